@@ -1,0 +1,7 @@
+//! The PLCComS line protocol, without I/O: request parsing, answer and value
+//! formatting, wildcard masks and cp1250 text. Shared by the server, its tests,
+//! tools and clients.
+
+pub mod types;
+
+pub use types::{Area, IecType};

@@ -1,0 +1,192 @@
+//! The PLC backend: the one interface through which the server touches a PLC.
+//!
+//! Errors come in two levels, as in tokio-modbus: the outer `Result` is the
+//! link (`PlcError`: timeout, unreachable, garbage on the wire), the inner one
+//! is what the PLC itself answered for one request (`Exception`: its error
+//! byte). A caller cannot mistake a lost PLC for "address out of range".
+
+pub mod memory;
+
+use std::fmt;
+
+use async_trait::async_trait;
+use plccoms_protocol::Area;
+
+/// A block of PLC memory to read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct ReadRequest {
+    pub area: Area,
+    pub offset: u32,
+    pub len: u32,
+}
+
+/// What a write puts into memory: whole bytes, or one bit of one byte (so two
+/// BOOLs sharing a byte never overwrite each other).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum WriteData {
+    Bytes(Vec<u8>),
+    Bit { bit: u8, value: bool },
+}
+
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct WriteRequest {
+    pub area: Area,
+    pub offset: u32,
+    pub data: WriteData,
+}
+
+/// An error byte the PLC answered with (EPSNET's public error codes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Exception {
+    UnknownService,
+    NotActivated,
+    PasswordBlocked,
+    NotReady,
+    /// Wrong service parameters; also reading past the end of an area.
+    BadParameters,
+    Other(u8),
+}
+
+impl Exception {
+    pub fn from_byte(byte: u8) -> Exception {
+        match byte {
+            0x02 => Exception::UnknownService,
+            0x03 => Exception::NotActivated,
+            0x04 => Exception::PasswordBlocked,
+            0x09 => Exception::NotReady,
+            0x0C => Exception::BadParameters,
+            other => Exception::Other(other),
+        }
+    }
+
+    pub fn to_byte(self) -> u8 {
+        match self {
+            Exception::UnknownService => 0x02,
+            Exception::NotActivated => 0x03,
+            Exception::PasswordBlocked => 0x04,
+            Exception::NotReady => 0x09,
+            Exception::BadParameters => 0x0C,
+            Exception::Other(byte) => byte,
+        }
+    }
+}
+
+impl fmt::Display for Exception {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Exception::UnknownService => f.write_str("unknown service (0x02)"),
+            Exception::NotActivated => f.write_str("service not activated (0x03)"),
+            Exception::PasswordBlocked => f.write_str("service blocked by password (0x04)"),
+            Exception::NotReady => f.write_str("data not ready (0x09)"),
+            Exception::BadParameters => f.write_str("wrong service parameters (0x0C)"),
+            Exception::Other(byte) => write!(f, "error byte 0x{byte:02X}"),
+        }
+    }
+}
+
+/// The link to the PLC failed: nothing is known about what the PLC did.
+#[derive(Debug, thiserror::Error)]
+pub enum PlcError {
+    #[error("no PLC configured")]
+    NotConfigured,
+    #[error("PLC does not answer: {0}")]
+    Timeout(String),
+    #[error("PLC link error: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("malformed answer from PLC: {0}")]
+    Protocol(String),
+    #[error("the PLC refused the request: {0}")]
+    Refused(Exception),
+    #[error("not supported by this backend: {0}")]
+    Unsupported(&'static str),
+}
+
+/// Answer to one request inside a batch: data, or the PLC's error byte.
+pub type Answer<T> = Result<T, Exception>;
+
+/// PLC run state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PlcStatus {
+    pub run: bool,
+}
+
+/// File attributes and times as PLCComS reports them (GETFILEINFO). Times are
+/// the 8-byte `ttida` structure packed little-endian into a u64: year-1900,
+/// month, day, hour, minute, second, 0, 0.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct FileInfo {
+    pub size: u64,
+    pub attributes: u32,
+    pub created: u64,
+    pub modified: u64,
+}
+
+pub const FILE_ATTRIBUTE_READONLY: u32 = 0x01;
+pub const FILE_ATTRIBUTE_HIDDEN: u32 = 0x02;
+pub const FILE_ATTRIBUTE_SYSTEM: u32 = 0x04;
+pub const FILE_ATTRIBUTE_DIRECTORY: u32 = 0x10;
+pub const FILE_ATTRIBUTE_ARCHIVE: u32 = 0x20;
+
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DirEntry {
+    /// cp1250 bytes, as the PLC names it.
+    pub name: Vec<u8>,
+    pub info: FileInfo,
+}
+
+/// One PLC, reached some way. The server owns one per PLC section, driven by
+/// one task (the section's link), so methods take `&mut self`.
+#[async_trait]
+pub trait PlcBackend: Send {
+    /// Where the PLC is, for logs and GETINFO (e.g. `127.0.0.1:61682`).
+    fn describe(&self) -> String;
+
+    /// Largest block one memory read request may carry; the poller plans
+    /// around it.
+    fn max_read_block(&self) -> u32;
+
+    /// Largest block one file read or write request may carry.
+    fn max_file_block(&self) -> u32;
+
+    /// (Re)initialise the link and return the PLC's identification string.
+    async fn connect(&mut self) -> Result<String, PlcError>;
+
+    /// Read every block; answers come back in request order. The backend packs
+    /// and splits requests as its transport allows.
+    async fn read(&mut self, requests: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError>;
+
+    /// Write every block, in order; answers in request order.
+    async fn write(&mut self, requests: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError>;
+
+    async fn status(&mut self) -> Result<PlcStatus, PlcError>;
+
+    /// Information about a file or directory in the PLC.
+    async fn file_info(&mut self, path: &[u8]) -> Result<Answer<FileInfo>, PlcError>;
+
+    /// Up to `len` (at most `max_file_block`) bytes of a file from `offset`;
+    /// fewer at its end.
+    async fn read_file(
+        &mut self,
+        path: &[u8],
+        offset: u64,
+        len: u32,
+    ) -> Result<Answer<Vec<u8>>, PlcError>;
+
+    /// Write a block of a file. The PLC commits the file only when `last` is
+    /// set; a write at offset 0 starts the file anew.
+    async fn write_file(
+        &mut self,
+        path: &[u8],
+        offset: u64,
+        data: &[u8],
+        last: bool,
+    ) -> Result<Answer<()>, PlcError>;
+
+    async fn write_file_info(
+        &mut self,
+        path: &[u8],
+        info: &FileInfo,
+    ) -> Result<Answer<()>, PlcError>;
+
+    async fn list_dir(&mut self, path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError>;
+}

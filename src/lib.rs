@@ -1,0 +1,4 @@
+//! plccoms: an open drop-in replacement for PLCComS.
+
+pub mod backend;
+pub mod plc;
