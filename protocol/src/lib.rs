@@ -2,6 +2,7 @@
 //! formatting, wildcard masks and cp1250 text. Shared by the server, its tests,
 //! tools and clients.
 
+pub mod cp1250;
 pub mod types;
 
 pub use types::{Area, IecType};
