@@ -3,6 +3,8 @@
 //! tools and clients.
 
 pub mod cp1250;
+pub mod mask;
 pub mod types;
 
+pub use mask::Mask;
 pub use types::{Area, IecType};
