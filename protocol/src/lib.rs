@@ -5,6 +5,8 @@
 pub mod cp1250;
 pub mod mask;
 pub mod types;
+pub mod value;
 
 pub use mask::Mask;
 pub use types::{Area, IecType};
+pub use value::{Delta, FormatOptions, Value, ValueError};
