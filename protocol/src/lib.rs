@@ -2,11 +2,13 @@
 //! formatting, wildcard masks and cp1250 text. Shared by the server, its tests,
 //! tools and clients.
 
+pub mod address;
 pub mod cp1250;
 pub mod mask;
 pub mod types;
 pub mod value;
 
+pub use address::{parse_direct, DirectAddress};
 pub use mask::Mask;
 pub use types::{Area, IecType};
 pub use value::{Delta, FormatOptions, Value, ValueError};
