@@ -5,10 +5,12 @@
 pub mod address;
 pub mod cp1250;
 pub mod mask;
+pub mod request;
 pub mod types;
 pub mod value;
 
 pub use address::{parse_direct, DirectAddress};
 pub use mask::Mask;
+pub use request::{classify, ArgError, Command, Line};
 pub use types::{Area, IecType};
 pub use value::{Delta, FormatOptions, Value, ValueError};
