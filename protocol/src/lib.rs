@@ -3,6 +3,7 @@
 //! tools and clients.
 
 pub mod address;
+pub mod answer;
 pub mod cp1250;
 pub mod mask;
 pub mod request;
@@ -10,6 +11,7 @@ pub mod types;
 pub mod value;
 
 pub use address::{parse_direct, DirectAddress};
+pub use answer::{write_error, write_warning, ErrorCode, WarningCode};
 pub use mask::Mask;
 pub use request::{classify, ArgError, Command, Line};
 pub use types::{Area, IecType};
