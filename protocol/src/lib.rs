@@ -5,6 +5,7 @@
 pub mod address;
 pub mod answer;
 pub mod cp1250;
+pub mod decoder;
 pub mod mask;
 pub mod request;
 pub mod types;
@@ -12,6 +13,7 @@ pub mod value;
 
 pub use address::{parse_direct, DirectAddress};
 pub use answer::{write_error, write_warning, ErrorCode, WarningCode};
+pub use decoder::{Decoder, Frame};
 pub use mask::Mask;
 pub use request::{classify, ArgError, Command, Line};
 pub use types::{Area, IecType};
