@@ -1,5 +1,6 @@
 //! plccoms: an open drop-in replacement for PLCComS.
 
 pub mod backend;
+pub mod config;
 pub mod plc;
 pub mod pubfile;
