@@ -141,6 +141,12 @@ pub trait PlcBackend: Send {
     /// Where the PLC is, for logs and GETINFO (e.g. `127.0.0.1:61682`).
     fn describe(&self) -> String;
 
+    /// The link's own address on the PLC's network (EPSNET source address),
+    /// for GETINFO.
+    fn source_address(&self) -> Option<u8> {
+        None
+    }
+
     /// Largest block one memory read request may carry; the poller plans
     /// around it.
     fn max_read_block(&self) -> u32;

@@ -1,0 +1,163 @@
+//! `GET:<name|mask|%addr>`: `GET:<NAME>,<value>` per variable; a mask's
+//! answer ends with `GET:`. Values of polled variables come from the latest
+//! poll; the others (and any GET behind an unanswered SET of this client) are
+//! read from the PLC, batched with other clients' reads.
+
+use plccoms_protocol::address::{parse_direct, DirectAddress};
+use plccoms_protocol::answer::ErrorCode;
+use plccoms_protocol::cp1250;
+use plccoms_protocol::value::Value;
+
+use super::{error, select, Selection};
+use crate::backend::ReadRequest;
+use crate::poller::{LinkError, ReadReply};
+use crate::session::{Pending, Session};
+use crate::vars::VarId;
+
+/// What to do with the PLC's answer.
+pub enum ReadThen {
+    Vars {
+        ids: Vec<VarId>,
+        /// Per id: whether its value is in the PLC's answer (in order) or
+        /// comes from the latest poll.
+        from_plc: Vec<bool>,
+        single: bool,
+    },
+    Direct {
+        name: Vec<u8>,
+        address: DirectAddress,
+    },
+}
+
+pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
+    if args.first() == Some(&b'%') {
+        return direct(session, args).await;
+    }
+    let selection = select(session.vars.table(), args, |id| session.vars.is_hidden(id));
+    let single = matches!(selection, Selection::One(_));
+    if let Selection::Unknown = selection {
+        return error(session, ErrorCode::UnknownVariable, context);
+    }
+    let ids = selection.ids();
+    let snapshot = session.latest_snapshot();
+    let cache_ok = !session.set_outstanding();
+    let table = session.vars.table().clone();
+    let mut requests = Vec::new();
+    let from_plc: Vec<bool> = ids
+        .iter()
+        .map(|&id| {
+            if cache_ok && snapshot.current(id).is_some() {
+                return false;
+            }
+            let var = table.var(id);
+            requests.push(ReadRequest {
+                area: var.area,
+                offset: var.offset,
+                len: var.byte_len(),
+            });
+            true
+        })
+        .collect();
+    let then = ReadThen::Vars {
+        ids,
+        from_plc,
+        single,
+    };
+    if requests.is_empty() {
+        let mut out = Vec::new();
+        complete(session, then, Ok(Vec::new()), &mut out);
+        return session.answer(out);
+    }
+    let rx = session.shared.poller.read(requests).await;
+    session.pending.push_back(Pending::Read { rx, then });
+}
+
+async fn direct(session: &mut Session, args: &[u8]) {
+    let Some(address) = parse_direct(args) else {
+        return error(session, ErrorCode::MemGet, args);
+    };
+    let request = ReadRequest {
+        area: address.area,
+        offset: address.offset,
+        len: address.ty.size() as u32,
+    };
+    let rx = session.shared.poller.read(vec![request]).await;
+    let then = ReadThen::Direct {
+        name: cp1250::to_upper(args),
+        address,
+    };
+    session.pending.push_back(Pending::Read { rx, then });
+}
+
+/// Writes the answer once the PLC answered.
+pub fn complete(session: &mut Session, then: ReadThen, reply: ReadReply, out: &mut Vec<u8>) {
+    let eol = session.conn.eol;
+    let format = &session.shared.format;
+    let answers = match reply {
+        Ok(answers) => answers,
+        Err(err) => return link_error(err, ErrorCode::GetData, eol, out),
+    };
+    match then {
+        ReadThen::Direct { name, address } => match answers.into_iter().next() {
+            Some(Ok(bytes)) => {
+                let value = match address.bit {
+                    Some(bit) => Value::Bool(bytes.first().is_some_and(|b| b & (1 << bit) != 0)),
+                    None => Value::decode(address.ty, &bytes),
+                };
+                out.extend_from_slice(b"GET:");
+                out.extend_from_slice(&name);
+                out.push(b',');
+                value.format(address.ty, format, out);
+                out.extend_from_slice(eol);
+            }
+            _ => {
+                plccoms_protocol::answer::write_error(out, ErrorCode::MemGet, &name);
+                out.extend_from_slice(eol);
+            }
+        },
+        ReadThen::Vars {
+            ids,
+            from_plc,
+            single,
+        } => {
+            let table = session.vars.table().clone();
+            let snapshot = session.snapshot.clone();
+            let mut answers = answers.into_iter();
+            let start = out.len();
+            for (&id, &plc) in ids.iter().zip(&from_plc) {
+                let var = table.var(id);
+                out.extend_from_slice(b"GET:");
+                out.extend_from_slice(&var.name);
+                out.push(b',');
+                if plc {
+                    match answers.next() {
+                        Some(Ok(bytes)) => var.decode(&bytes).format(var.ty, format, out),
+                        _ => {
+                            out.truncate(start);
+                            plccoms_protocol::answer::write_error(out, ErrorCode::GetData, b"");
+                            out.extend_from_slice(eol);
+                            return;
+                        }
+                    }
+                } else {
+                    out.extend_from_slice(snapshot.slot(id).text().unwrap_or_default());
+                }
+                out.extend_from_slice(eol);
+            }
+            if !single {
+                out.extend_from_slice(b"GET:");
+                out.extend_from_slice(eol);
+            }
+        }
+    }
+}
+
+/// ERROR:10 when there is no link, `code` when the PLC failed the request.
+pub fn link_error(err: LinkError, code: ErrorCode, eol: &[u8], out: &mut Vec<u8>) {
+    let code = match err {
+        LinkError::Offline => ErrorCode::ConnectPlc,
+        LinkError::Plc(_) => code,
+    };
+    plccoms_protocol::answer::write_error(out, code, b"");
+    out.extend_from_slice(eol);
+}

@@ -1,0 +1,132 @@
+//! `GETINFO:[key]`: information about the server, its PLC and its clients.
+//! The bare form lists every key in the vendor's order and ends with
+//! `GETINFO:`; a named key answers one line (NETWORK its list, terminated).
+
+use std::fmt::Write;
+
+use plccoms_protocol::answer::ErrorCode;
+
+use super::error;
+use crate::session::Session;
+
+const KEYS: &[&str] = &[
+    "VERSION",
+    "VERSION_EPSNET",
+    "VERSION_INI",
+    "VERSION_PLC",
+    "IPADDR",
+    "EPSADDR",
+    "EPSPORT",
+    "SERIAL_DEVICE",
+    "PUBFILE",
+    "NETWORK",
+];
+
+pub fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
+    let eol = session.conn.eol;
+    let mut text = String::new();
+    if args.is_empty() {
+        for key in KEYS {
+            lines(session, key, &mut text, true);
+        }
+        text.push_str("GETINFO:\n");
+    } else {
+        let key = String::from_utf8_lossy(args).to_ascii_uppercase();
+        // The manual's table calls it epsnet_version.
+        let key = if key == "EPSNET_VERSION" {
+            "VERSION_EPSNET".to_string()
+        } else {
+            key
+        };
+        if !KEYS.contains(&key.as_str()) {
+            return error(session, ErrorCode::GetInfoUnknown, context);
+        }
+        lines(session, &key, &mut text, false);
+    }
+    let mut out = Vec::with_capacity(text.len() + 16);
+    for line in text.lines() {
+        out.extend_from_slice(line.as_bytes());
+        out.extend_from_slice(eol);
+    }
+    session.answer(out);
+}
+
+/// Appends the lines of `key`, each ended by `\n`.
+fn lines(session: &Session, key: &str, text: &mut String, listing_all: bool) {
+    let config = &session.shared.config;
+    let link = session.shared.poller.info();
+    match key {
+        "VERSION" => line(
+            text,
+            key,
+            &format!("Ver {} (plccoms)", env!("CARGO_PKG_VERSION")),
+        ),
+        "VERSION_EPSNET" => line(
+            text,
+            key,
+            &format!("Ver {} (plccoms EPSNET)", env!("CARGO_PKG_VERSION")),
+        ),
+        "VERSION_INI" => line(text, key, "Ver 0.21 (rust-ini)"),
+        "VERSION_PLC" => line(text, key, link.ident.as_deref().unwrap_or("")),
+        "IPADDR" => line(
+            text,
+            key,
+            &config
+                .ipaddr
+                .map(|ip| ip.to_string())
+                .unwrap_or_else(|| "0.0.0.0".into()),
+        ),
+        "EPSADDR" => line(
+            text,
+            key,
+            &link
+                .source_address
+                .map(|a| a.to_string())
+                .unwrap_or_default(),
+        ),
+        "EPSPORT" => line(text, key, &config.epsport.to_string()),
+        "SERIAL_DEVICE" => {
+            // Only sections on a serial line show it in the full list.
+            if let Some(device) = &config.serial_device {
+                let speed = config
+                    .serial_speed
+                    .map(|s| format!(" {s}"))
+                    .unwrap_or_default();
+                line(text, key, &format!("{device}{speed}"));
+            } else if !listing_all {
+                line(text, key, "");
+            }
+        }
+        "PUBFILE" => {
+            let table = session.vars.table();
+            let files = match &table.user_file {
+                Some(user) => format!("{},{}", table.fixed_file, user),
+                None => table.fixed_file.clone(),
+            };
+            line(
+                text,
+                key,
+                &format!("{}/{} [{}]", table.fixed_count(), table.len(), files),
+            );
+        }
+        "NETWORK" => {
+            let max = session.shared.global.net_connect_max;
+            for (i, client) in session.shared.clients().iter().enumerate() {
+                let ip = client.peer.ip().to_string();
+                line(
+                    text,
+                    key,
+                    &format!("{}/{} [{:<15} {}]", i + 1, max, ip, client.connected),
+                );
+            }
+            if !listing_all {
+                text.push_str("GETINFO:\n");
+            }
+        }
+        _ => {}
+    }
+}
+
+fn line(text: &mut String, key: &str, value: &str) {
+    let _ = writeln!(text, "GETINFO:{key},{value}");
+}

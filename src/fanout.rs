@@ -1,0 +1,231 @@
+//! The fan-out of changes: the poller publishes what it read as an immutable
+//! `Snapshot`; every client session holds the latest one and picks the DIFF
+//! lines it owes its client from it.
+//!
+//! A snapshot never blocks the poller: it goes out on a `watch` channel, so a
+//! slow client simply sees a later snapshot and catches up by comparing change
+//! sequence numbers, instead of an ever-growing queue. Values are formatted
+//! once per change here, not once per client.
+
+use std::sync::Arc;
+
+use plccoms_protocol::value::{FormatOptions, Value};
+use tokio::sync::watch;
+
+use crate::poller::interest::Interest;
+use crate::vars::{Var, VarId, VarTable};
+
+/// Slots per copy-on-write chunk: a publish copies only the chunks it changed.
+const CHUNK: usize = 256;
+
+/// The last known value of one variable.
+#[derive(Debug, Clone, Default)]
+pub struct Slot {
+    /// Scalar value as little-endian bytes (a BOOL as 0/1); unused for
+    /// STRING, whose bytes are in `text`.
+    raw: u64,
+    /// The value as the protocol prints it; `None` until first read.
+    text: Option<Arc<[u8]>>,
+    /// Snapshot sequence at which the value last changed.
+    pub changed_seq: u64,
+    /// Snapshot sequence at which the value was last read from the PLC.
+    pub read_seq: u64,
+}
+
+impl Slot {
+    pub fn text(&self) -> Option<&[u8]> {
+        self.text.as_deref()
+    }
+
+    /// The value, decoded (for delta comparisons).
+    pub fn value(&self, var: &Var) -> Option<Value> {
+        let text = self.text.as_ref()?;
+        Some(if var.ty.is_string() {
+            // text is `"..."`; the quotes are ours.
+            Value::Str(text[1..text.len() - 1].to_vec())
+        } else {
+            Value::decode(var.ty, &self.raw.to_le_bytes()[..var.ty.size().min(8)])
+        })
+    }
+}
+
+/// Everything a session needs to know about the PLC's variables, as of one
+/// moment.
+#[derive(Debug)]
+pub struct Snapshot {
+    /// Increases with every publish.
+    pub seq: u64,
+    /// Sequence of the last completed poll cycle: a slot read at or after it
+    /// is current.
+    pub poll_seq: u64,
+    /// The link to the PLC answered the last poll.
+    pub online: bool,
+    pub table: Arc<VarTable>,
+    /// Which variables the clients of this table enabled.
+    pub interest: Arc<Interest>,
+    /// Variables whose value changed in this publish.
+    pub changed: Vec<VarId>,
+    chunks: Vec<Arc<Vec<Slot>>>,
+}
+
+impl Snapshot {
+    pub fn slot(&self, id: VarId) -> &Slot {
+        let id = id as usize;
+        &self.chunks[id / CHUNK][id % CHUNK]
+    }
+
+    /// The slot if its value is current: read in the last poll cycle or later,
+    /// with the PLC online.
+    pub fn current(&self, id: VarId) -> Option<&Slot> {
+        let slot = self.slot(id);
+        (self.online && slot.text.is_some() && slot.read_seq >= self.poll_seq && self.poll_seq > 0)
+            .then_some(slot)
+    }
+}
+
+/// The poller's side: owns the master copy of the slots and publishes.
+pub struct Publisher {
+    tx: watch::Sender<Arc<Snapshot>>,
+    seq: u64,
+    poll_seq: u64,
+    online: bool,
+    table: Arc<VarTable>,
+    interest: Arc<Interest>,
+    chunks: Vec<Arc<Vec<Slot>>>,
+    changed: Vec<VarId>,
+    format: FormatOptions,
+    scratch: Vec<u8>,
+}
+
+impl Publisher {
+    pub fn new(
+        table: Arc<VarTable>,
+        format: FormatOptions,
+    ) -> (Publisher, watch::Receiver<Arc<Snapshot>>) {
+        let interest = Arc::new(Interest::new(table.len()));
+        let chunks = empty_chunks(table.len());
+        let snapshot = Arc::new(Snapshot {
+            seq: 0,
+            poll_seq: 0,
+            online: false,
+            table: table.clone(),
+            interest: interest.clone(),
+            changed: Vec::new(),
+            chunks: chunks.clone(),
+        });
+        let (tx, rx) = watch::channel(snapshot);
+        let publisher = Publisher {
+            tx,
+            seq: 0,
+            poll_seq: 0,
+            online: false,
+            table,
+            interest,
+            chunks,
+            changed: Vec::new(),
+            format,
+            scratch: Vec::new(),
+        };
+        (publisher, rx)
+    }
+
+    pub fn table(&self) -> &Arc<VarTable> {
+        &self.table
+    }
+
+    pub fn interest(&self) -> &Arc<Interest> {
+        &self.interest
+    }
+
+    pub fn subscribe(&self) -> watch::Receiver<Arc<Snapshot>> {
+        self.tx.subscribe()
+    }
+
+    /// Sequence the next publish will carry; updates are stamped with it.
+    pub fn next_seq(&self) -> u64 {
+        self.seq + 1
+    }
+
+    pub fn slot(&self, id: VarId) -> &Slot {
+        let id = id as usize;
+        &self.chunks[id / CHUNK][id % CHUNK]
+    }
+
+    /// Records a value read from the PLC (`bytes` as read for the variable;
+    /// the bit of a BOOL is extracted here). Returns whether it changed.
+    pub fn update(&mut self, id: VarId, bytes: &[u8]) -> bool {
+        let var = self.table.var(id);
+        let seq = self.seq + 1;
+        let ty = var.ty;
+        let value = (!ty.is_string()).then(|| var.decode(bytes));
+        let raw = match &value {
+            Some(Value::Bool(on)) => u64::from(*on),
+            Some(_) => {
+                let mut le = [0u8; 8];
+                let n = bytes.len().min(8);
+                le[..n].copy_from_slice(&bytes[..n]);
+                u64::from_le_bytes(le)
+            }
+            None => 0,
+        };
+        let index = id as usize;
+        let chunk = Arc::make_mut(&mut self.chunks[index / CHUNK]);
+        let slot = &mut chunk[index % CHUNK];
+        slot.read_seq = seq;
+        let changed = match &slot.text {
+            None => true,
+            Some(old) if ty.is_string() => !string_equals(old, bytes),
+            Some(_) => slot.raw != raw,
+        };
+        if changed {
+            self.scratch.clear();
+            value.unwrap_or_else(|| Value::decode(ty, bytes)).format(
+                ty,
+                &self.format,
+                &mut self.scratch,
+            );
+            slot.raw = raw;
+            slot.text = Some(Arc::from(&self.scratch[..]));
+            slot.changed_seq = seq;
+            self.changed.push(id);
+        }
+        changed
+    }
+
+    /// Publishes the current state. `polled` marks the end of a full poll
+    /// cycle, which makes every slot it read current.
+    pub fn publish(&mut self, polled: bool, online: bool) {
+        self.seq += 1;
+        if polled {
+            self.poll_seq = self.seq;
+        }
+        self.online = online;
+        let snapshot = Snapshot {
+            seq: self.seq,
+            poll_seq: self.poll_seq,
+            online,
+            table: self.table.clone(),
+            interest: self.interest.clone(),
+            changed: std::mem::take(&mut self.changed),
+            chunks: self.chunks.clone(),
+        };
+        self.tx.send_replace(Arc::new(snapshot));
+    }
+
+    pub fn online(&self) -> bool {
+        self.online
+    }
+}
+
+fn empty_chunks(len: usize) -> Vec<Arc<Vec<Slot>>> {
+    (0..len.div_ceil(CHUNK))
+        .map(|i| Arc::new(vec![Slot::default(); CHUNK.min(len - i * CHUNK)]))
+        .collect()
+}
+
+/// Whether a formatted STRING text (`"..."`) holds exactly the NUL-terminated
+/// string in `raw`.
+fn string_equals(text: &[u8], raw: &[u8]) -> bool {
+    let end = raw.iter().position(|&b| b == 0).unwrap_or(raw.len());
+    text.len() == end + 2 && text[1..text.len() - 1] == raw[..end]
+}

@@ -1,0 +1,515 @@
+//! The poller: one task per PLC section that owns the backend. It polls the
+//! enabled variables on a fixed-deadline schedule, serves the sessions' direct
+//! reads and writes between polls (batching whatever is queued into shared
+//! requests), and keeps the link alive across outages.
+
+pub mod interest;
+pub mod plan;
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::sync::{mpsc, oneshot, watch};
+use tokio::time::{Instant, MissedTickBehavior};
+use tracing::{debug, info, warn};
+
+use crate::backend::{Answer, Exception, PlcBackend, PlcError, ReadRequest, WriteRequest};
+use crate::fanout::Publisher;
+use crate::vars::VarId;
+use plan::{Range, ReadPlan};
+
+/// Why the poller could not serve a request.
+#[derive(Debug, thiserror::Error)]
+pub enum LinkError {
+    /// No link to the PLC right now (never connected, or lost).
+    #[error("no connection to the PLC")]
+    Offline,
+    #[error(transparent)]
+    Plc(#[from] PlcError),
+}
+
+pub type ReadReply = Result<Vec<Answer<Vec<u8>>>, LinkError>;
+
+/// A SET: write, then read the variable back.
+#[derive(Debug, Clone)]
+pub struct SetItem {
+    pub write: WriteRequest,
+    pub readback: ReadRequest,
+    /// The table variable, so other clients get the DIFF too.
+    pub var: Option<VarId>,
+}
+
+#[derive(Debug)]
+pub struct SetOutcome {
+    /// The bytes read back after the write, or the PLC's refusal.
+    pub answer: Answer<Vec<u8>>,
+    /// Snapshot sequence that carries the read-back value.
+    pub seq: u64,
+}
+
+pub type SetReply = Result<SetOutcome, LinkError>;
+
+/// Work the sessions hand to the poller.
+pub enum Job {
+    Read {
+        requests: Vec<ReadRequest>,
+        reply: oneshot::Sender<ReadReply>,
+    },
+    Set {
+        item: SetItem,
+        reply: oneshot::Sender<SetReply>,
+    },
+}
+
+/// What GETINFO shows about the link.
+#[derive(Debug, Clone, Default)]
+pub struct LinkInfo {
+    pub describe: String,
+    pub ident: Option<String>,
+    pub source_address: Option<u8>,
+    pub online: bool,
+}
+
+/// The sessions' handle to their section's poller.
+#[derive(Clone)]
+pub struct PollerHandle {
+    jobs: mpsc::Sender<Job>,
+    info: watch::Receiver<LinkInfo>,
+}
+
+impl PollerHandle {
+    /// Queues direct reads; answers in request order.
+    pub async fn read(&self, requests: Vec<ReadRequest>) -> oneshot::Receiver<ReadReply> {
+        let (reply, rx) = oneshot::channel();
+        // A closed channel drops `reply`, which the receiver sees as offline.
+        let _ = self.jobs.send(Job::Read { requests, reply }).await;
+        rx
+    }
+
+    pub async fn set(&self, item: SetItem) -> oneshot::Receiver<SetReply> {
+        let (reply, rx) = oneshot::channel();
+        let _ = self.jobs.send(Job::Set { item, reply }).await;
+        rx
+    }
+
+    pub fn info(&self) -> LinkInfo {
+        self.info.borrow().clone()
+    }
+}
+
+/// Retry delays while the PLC is unreachable: short, so polling resumes
+/// within a second of the PLC coming back.
+const RECONNECT_MIN: Duration = Duration::from_millis(100);
+const RECONNECT_MAX: Duration = Duration::from_secs(1);
+/// Jobs taken into one batch at most.
+const MAX_BATCH: usize = 1024;
+
+pub struct Poller {
+    section: String,
+    backend: Option<Box<dyn PlcBackend>>,
+    publisher: Publisher,
+    jobs: mpsc::Receiver<Job>,
+    info: watch::Sender<LinkInfo>,
+    loop_delay: Duration,
+    online: bool,
+    /// Outage already logged.
+    outage_logged: bool,
+    reconnect_delay: Duration,
+    next_connect: Instant,
+    poll_vars: Vec<VarId>,
+    plan: ReadPlan,
+    last_run: Option<bool>,
+    last_crc: Option<u64>,
+    /// Blocks the PLC refused, logged once per plan.
+    refused_logged: bool,
+}
+
+impl Poller {
+    /// Creates the poller and the handle sessions use. `backend` is `None`
+    /// when the section has no PLC yet (`IPADDR = 0.0.0.0`).
+    pub fn new(
+        section: String,
+        backend: Option<Box<dyn PlcBackend>>,
+        publisher: Publisher,
+        loop_delay: Duration,
+    ) -> (Poller, PollerHandle) {
+        let (jobs_tx, jobs) = mpsc::channel(4096);
+        let describe = backend
+            .as_ref()
+            .map_or_else(|| "no PLC configured".to_string(), |b| b.describe());
+        let (info, info_rx) = watch::channel(LinkInfo {
+            describe,
+            ident: None,
+            source_address: backend.as_ref().and_then(|b| b.source_address()),
+            online: false,
+        });
+        let poller = Poller {
+            section,
+            backend,
+            publisher,
+            jobs,
+            info,
+            loop_delay,
+            online: false,
+            outage_logged: false,
+            reconnect_delay: RECONNECT_MIN,
+            next_connect: Instant::now(),
+            poll_vars: Vec::new(),
+            plan: ReadPlan::default(),
+            last_run: None,
+            last_crc: None,
+            refused_logged: false,
+        };
+        (
+            poller,
+            PollerHandle {
+                jobs: jobs_tx,
+                info: info_rx,
+            },
+        )
+    }
+
+    /// Runs until every handle is dropped.
+    pub async fn run(mut self) {
+        let mut ticks = tokio::time::interval(self.loop_delay);
+        // Fixed deadlines: a late cycle does not shift the ones after it.
+        ticks.set_missed_tick_behavior(MissedTickBehavior::Skip);
+        loop {
+            tokio::select! {
+                biased;
+                job = self.jobs.recv() => {
+                    let Some(job) = job else { break };
+                    let mut batch = vec![job];
+                    while batch.len() < MAX_BATCH {
+                        match self.jobs.try_recv() {
+                            Ok(job) => batch.push(job),
+                            Err(_) => break,
+                        }
+                    }
+                    self.serve(batch).await;
+                }
+                _ = ticks.tick() => self.cycle().await,
+            }
+        }
+        debug!(section = %self.section, "poller stopped");
+    }
+
+    async fn cycle(&mut self) {
+        if !self.online {
+            if Instant::now() >= self.next_connect {
+                self.connect().await;
+            }
+            if !self.online {
+                return;
+            }
+        }
+        self.poll().await;
+    }
+
+    async fn connect(&mut self) {
+        let Some(backend) = self.backend.as_mut() else {
+            return;
+        };
+        match backend.connect().await {
+            Ok(ident) => {
+                info!(section = %self.section, plc = %backend.describe(), ident = %ident, "PLC connected");
+                self.online = true;
+                self.outage_logged = false;
+                self.reconnect_delay = RECONNECT_MIN;
+                let source_address = backend.source_address();
+                self.info.send_modify(|info| {
+                    info.ident = Some(ident);
+                    info.source_address = source_address;
+                    info.online = true;
+                });
+            }
+            Err(err) => {
+                if !self.outage_logged {
+                    warn!(section = %self.section, plc = %backend.describe(), "cannot reach PLC: {err}; retrying");
+                    self.outage_logged = true;
+                }
+                self.next_connect = Instant::now() + self.reconnect_delay;
+                self.reconnect_delay = (self.reconnect_delay * 2).min(RECONNECT_MAX);
+            }
+        }
+    }
+
+    fn go_offline(&mut self, err: &PlcError) {
+        if self.online {
+            warn!(section = %self.section, "PLC lost: {err}; retrying");
+            self.outage_logged = true;
+        }
+        self.online = false;
+        self.last_run = None;
+        self.next_connect = Instant::now();
+        self.info.send_modify(|info| info.online = false);
+        self.publisher.publish(false, false);
+    }
+
+    fn rebuild_plan(&mut self, max_block: u32) {
+        let table = self.publisher.table().clone();
+        let interest = self.publisher.interest().clone();
+        self.poll_vars = (0..table.len() as VarId)
+            .filter(|&id| table.is_fixed(id) || interest.is_wanted(id))
+            .collect();
+        let ranges: Vec<Range> = self
+            .poll_vars
+            .iter()
+            .map(|&id| {
+                let var = table.var(id);
+                Range {
+                    area: var.area,
+                    offset: var.offset,
+                    len: var.byte_len(),
+                }
+            })
+            .collect();
+        self.plan = ReadPlan::new(&ranges, max_block);
+        self.refused_logged = false;
+        debug!(
+            section = %self.section,
+            variables = self.poll_vars.len(),
+            requests = self.plan.blocks().len(),
+            bytes = self.plan.bytes(),
+            "poll plan rebuilt"
+        );
+    }
+
+    async fn poll(&mut self) {
+        let Some(backend) = self.backend.as_mut() else {
+            return;
+        };
+        let max_block = backend.max_read_block();
+        if self.publisher.interest().take_dirty() {
+            self.rebuild_plan(max_block);
+        }
+        let backend = self.backend.as_mut().expect("checked above");
+        let answers = match backend.read(self.plan.blocks()).await {
+            Ok(answers) => answers,
+            Err(err) => return self.go_offline(&err),
+        };
+        let (data, refused) = self.plan.assemble_answers(answers);
+        if !refused.is_empty() && !self.refused_logged {
+            warn!(section = %self.section, blocks = ?refused, "PLC refused some poll reads; those variables are not updated");
+            self.refused_logged = true;
+        }
+        for (index, &id) in self.poll_vars.iter().enumerate() {
+            if let Ok(bytes) = self.plan.range_answer(&data, index) {
+                self.publisher.update(id, bytes);
+            }
+        }
+        self.publisher.publish(true, true);
+        self.watch_system_variables().await;
+    }
+
+    /// HALT -> RUN re-initialises the link; a changed `__PF_CRC` means the
+    /// PLC's program changed.
+    async fn watch_system_variables(&mut self) {
+        let table = self.publisher.table().clone();
+        let run = self
+            .publisher
+            .slot(table.plc_run())
+            .value(table.var(table.plc_run()))
+            .map(|v| matches!(v, plccoms_protocol::value::Value::Bool(true)));
+        if let Some(run) = run {
+            if self.last_run != Some(run) {
+                if self.last_run.is_some() {
+                    info!(section = %self.section, "PLC is in {}", if run { "RUN" } else { "HALT" });
+                }
+                if self.last_run == Some(false) && run {
+                    if let Some(backend) = self.backend.as_mut() {
+                        if let Err(err) = backend.connect().await {
+                            self.go_offline(&err);
+                            return;
+                        }
+                    }
+                }
+                self.last_run = Some(run);
+            }
+        }
+        let crc_slot = self.publisher.slot(table.pf_crc());
+        let crc = crc_slot.text().map(|_| crc_slot.changed_seq);
+        if let (Some(last), Some(now)) = (self.last_crc, crc) {
+            if last != now {
+                info!(section = %self.section, "__PF_CRC changed: the PLC's program changed");
+            }
+        }
+        self.last_crc = crc;
+    }
+
+    /// Serves a batch of jobs in arrival order; consecutive reads share one
+    /// plan, consecutive SETs one write request and one read-back.
+    async fn serve(&mut self, batch: Vec<Job>) {
+        if !self.online && Instant::now() >= self.next_connect {
+            // A request is a reason to try the link now rather than at the
+            // next tick.
+            self.connect().await;
+        }
+        let mut batch = batch.into_iter().peekable();
+        while let Some(job) = batch.next() {
+            match job {
+                Job::Read { requests, reply } => {
+                    let mut group = vec![(requests, reply)];
+                    while let Some(Job::Read { .. }) = batch.peek() {
+                        if let Some(Job::Read { requests, reply }) = batch.next() {
+                            group.push((requests, reply));
+                        }
+                    }
+                    self.serve_reads(group).await;
+                }
+                Job::Set { item, reply } => {
+                    let mut group = vec![(item, reply)];
+                    while let Some(Job::Set { .. }) = batch.peek() {
+                        if let Some(Job::Set { item, reply }) = batch.next() {
+                            group.push((item, reply));
+                        }
+                    }
+                    self.serve_sets(group).await;
+                }
+            }
+        }
+    }
+
+    async fn serve_reads(&mut self, group: Vec<(Vec<ReadRequest>, oneshot::Sender<ReadReply>)>) {
+        if !self.online || self.backend.is_none() {
+            for (_, reply) in group {
+                let _ = reply.send(Err(LinkError::Offline));
+            }
+            return;
+        }
+        let requests: Vec<ReadRequest> =
+            group.iter().flat_map(|(r, _)| r.iter().copied()).collect();
+        match self.read_ranges(&requests).await {
+            Ok(mut answers) => {
+                for (requests, reply) in group.into_iter().rev() {
+                    let mine = answers.split_off(answers.len() - requests.len());
+                    let _ = reply.send(Ok(mine));
+                }
+            }
+            Err(err) => {
+                let message = err.to_string();
+                self.go_offline(&err);
+                for (_, reply) in group {
+                    let _ = reply.send(Err(LinkError::Plc(PlcError::Timeout(message.clone()))));
+                }
+            }
+        }
+    }
+
+    /// Reads arbitrary ranges through one shared plan. A block the PLC
+    /// refuses is retried range by range, so one bad address does not fail
+    /// its neighbours.
+    async fn read_ranges(
+        &mut self,
+        requests: &[ReadRequest],
+    ) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
+        let backend = self.backend.as_mut().ok_or(PlcError::NotConfigured)?;
+        let ranges: Vec<Range> = requests
+            .iter()
+            .map(|r| Range {
+                area: r.area,
+                offset: r.offset,
+                len: r.len,
+            })
+            .collect();
+        let plan = ReadPlan::new(&ranges, backend.max_read_block());
+        let (data, refused) = plan.assemble_answers(backend.read(plan.blocks()).await?);
+        let mut answers: Vec<Answer<Vec<u8>>> = (0..requests.len())
+            .map(|i| plan.range_answer(&data, i).map(<[u8]>::to_vec))
+            .collect();
+        if !refused.is_empty() {
+            let retry: Vec<usize> = (0..requests.len())
+                .filter(|&i| answers[i].is_err())
+                .collect();
+            let single: Vec<ReadRequest> = retry
+                .iter()
+                .flat_map(|&i| split(requests[i], backend.max_read_block()))
+                .collect();
+            let mut results = backend.read(&single).await?.into_iter();
+            for &i in &retry {
+                let parts = split(requests[i], backend.max_read_block()).count();
+                let mut bytes = Vec::with_capacity(requests[i].len as usize);
+                let mut failure: Option<Exception> = None;
+                for answer in results.by_ref().take(parts) {
+                    match answer {
+                        Ok(b) => bytes.extend_from_slice(&b),
+                        Err(e) => failure = failure.or(Some(e)),
+                    }
+                }
+                answers[i] = match failure {
+                    Some(e) => Err(e),
+                    None if bytes.len() == requests[i].len as usize => Ok(bytes),
+                    None => Err(Exception::BadParameters),
+                };
+            }
+        }
+        Ok(answers)
+    }
+
+    async fn serve_sets(&mut self, group: Vec<(SetItem, oneshot::Sender<SetReply>)>) {
+        if !self.online || self.backend.is_none() {
+            for (_, reply) in group {
+                let _ = reply.send(Err(LinkError::Offline));
+            }
+            return;
+        }
+        let backend = self.backend.as_mut().expect("checked above");
+        let writes: Vec<WriteRequest> = group.iter().map(|(item, _)| item.write.clone()).collect();
+        let written = match backend.write(&writes).await {
+            Ok(written) if written.len() == writes.len() => written,
+            Ok(_) => {
+                let err = PlcError::Protocol("write answer count mismatch".to_string());
+                return self.fail_sets(group, err);
+            }
+            Err(err) => return self.fail_sets(group, err),
+        };
+        let readbacks: Vec<ReadRequest> = group.iter().map(|(item, _)| item.readback).collect();
+        let read = match self.read_ranges(&readbacks).await {
+            Ok(read) => read,
+            Err(err) => return self.fail_sets(group, err),
+        };
+        let seq = self.publisher.next_seq();
+        let mut outcomes = Vec::with_capacity(group.len());
+        for (((item, reply), write), read) in group.into_iter().zip(written).zip(read) {
+            let answer = write.and(read);
+            if let (Some(var), Ok(bytes)) = (item.var, &answer) {
+                self.publisher.update(var, bytes);
+            }
+            outcomes.push((reply, SetOutcome { answer, seq }));
+        }
+        // Answer the writers before publishing, so each sees its own answer
+        // before the snapshot that carries the same change.
+        for (reply, outcome) in outcomes {
+            let _ = reply.send(Ok(outcome));
+        }
+        self.publisher.publish(false, true);
+    }
+
+    fn fail_sets(&mut self, group: Vec<(SetItem, oneshot::Sender<SetReply>)>, err: PlcError) {
+        let message = err.to_string();
+        self.go_offline(&err);
+        for (_, reply) in group {
+            let _ = reply.send(Err(LinkError::Plc(PlcError::Timeout(message.clone()))));
+        }
+    }
+}
+
+/// `request` cut into blocks of at most `max` bytes.
+fn split(request: ReadRequest, max: u32) -> impl Iterator<Item = ReadRequest> {
+    let max = max.max(1);
+    let end = request.offset + request.len;
+    (request.offset..end)
+        .step_by(max as usize)
+        .map(move |offset| ReadRequest {
+            area: request.area,
+            offset,
+            len: (end - offset).min(max),
+        })
+}
+
+/// Spawns the poller; it stops when every handle is gone.
+pub fn spawn(poller: Poller) -> tokio::task::JoinHandle<()> {
+    tokio::spawn(poller.run())
+}
+
+pub type SharedPoller = Arc<PollerHandle>;

@@ -1,0 +1,97 @@
+//! What the sessions of one PLC section share: its configuration, its
+//! poller, the latest snapshot, and the list of connected clients.
+
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+
+use plccoms_protocol::value::FormatOptions;
+use tokio::sync::watch;
+
+use crate::config::{Global, Section};
+use crate::fanout::Snapshot;
+use crate::poller::PollerHandle;
+
+/// A connected client, for GETINFO's NETWORK list.
+#[derive(Debug, Clone)]
+pub struct ClientInfo {
+    pub id: u64,
+    pub peer: SocketAddr,
+    /// Local wall-clock time of connection, `yyyy-mm-dd hh:mm:ss`.
+    pub connected: String,
+}
+
+pub struct SectionShared {
+    pub name: String,
+    pub global: Arc<Global>,
+    pub config: Section,
+    pub format: FormatOptions,
+    pub poller: PollerHandle,
+    pub snapshots: watch::Receiver<Arc<Snapshot>>,
+    clients: Mutex<Clients>,
+}
+
+#[derive(Default)]
+struct Clients {
+    next_id: u64,
+    list: Vec<ClientInfo>,
+}
+
+impl SectionShared {
+    pub fn new(
+        global: Arc<Global>,
+        config: Section,
+        poller: PollerHandle,
+        snapshots: watch::Receiver<Arc<Snapshot>>,
+    ) -> SectionShared {
+        let format = format_options(&global);
+        SectionShared {
+            name: config.name.clone(),
+            global,
+            config,
+            format,
+            poller,
+            snapshots,
+            clients: Mutex::new(Clients::default()),
+        }
+    }
+
+    /// Registers a client unless NET_CONNECT_MAX are connected already.
+    pub fn admit(&self, peer: SocketAddr) -> Option<u64> {
+        let mut clients = self.clients.lock().unwrap_or_else(|p| p.into_inner());
+        if clients.list.len() >= self.global.net_connect_max {
+            return None;
+        }
+        clients.next_id += 1;
+        let id = clients.next_id;
+        let connected = chrono::Local::now().format("%Y-%m-%d %H:%M:%S").to_string();
+        clients.list.push(ClientInfo {
+            id,
+            peer,
+            connected,
+        });
+        Some(id)
+    }
+
+    pub fn leave(&self, id: u64) {
+        let mut clients = self.clients.lock().unwrap_or_else(|p| p.into_inner());
+        clients.list.retain(|c| c.id != id);
+    }
+
+    pub fn clients(&self) -> Vec<ClientInfo> {
+        self.clients
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .list
+            .clone()
+    }
+}
+
+/// How values print, from the global settings.
+pub fn format_options(global: &Global) -> FormatOptions {
+    FormatOptions {
+        num_of_decimals: global.num_of_decimals,
+        scient_notation: global.scient_notation,
+        date_time_decimal: global.date_time_decimal,
+        lim_of_decimals: global.lim_of_decimals,
+    }
+}

@@ -1,0 +1,138 @@
+//! Listeners: one TCP port per PLC section, admitting clients up to
+//! NET_CONNECT_MAX and running a session for each.
+
+use std::io;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::io::AsyncWriteExt;
+use tokio::net::{TcpListener, TcpSocket, TcpStream};
+use tokio::task::JoinHandle;
+use tracing::{info, warn};
+
+use plccoms_protocol::answer::{write_error, ErrorCode};
+
+use crate::backend::PlcBackend;
+use crate::config::{Global, Section};
+use crate::fanout::Publisher;
+use crate::poller::Poller;
+use crate::section::SectionShared;
+use crate::session::Session;
+use crate::vars::VarTable;
+
+/// A section that is serving clients.
+pub struct RunningSection {
+    pub shared: Arc<SectionShared>,
+    pub local_addr: SocketAddr,
+    tasks: Vec<JoinHandle<()>>,
+}
+
+impl RunningSection {
+    /// Stops accepting and polling. Sessions end when their poller is gone.
+    pub fn abort(&self) {
+        for task in &self.tasks {
+            task.abort();
+        }
+    }
+}
+
+impl Drop for RunningSection {
+    fn drop(&mut self) {
+        self.abort();
+    }
+}
+
+/// Starts serving one section: its poller on `backend` (none: no PLC yet)
+/// and a listener on `bind`.
+pub async fn start_section(
+    global: Arc<Global>,
+    config: Section,
+    table: VarTable,
+    backend: Option<Box<dyn PlcBackend>>,
+    bind: SocketAddr,
+) -> io::Result<RunningSection> {
+    let listener = listen(bind)?;
+    let local_addr = listener.local_addr()?;
+    let format = crate::section::format_options(&global);
+    let (publisher, snapshots) = Publisher::new(Arc::new(table), format);
+    let (poller, handle) = Poller::new(
+        config.name.clone(),
+        backend,
+        publisher,
+        global.comm_loop_delay,
+    );
+    let poll_task = tokio::spawn(poller.run());
+    let shared = Arc::new(SectionShared::new(global, config, handle, snapshots));
+    let accept_task = tokio::spawn(accept_loop(listener, shared.clone()));
+    info!(section = %shared.name, listen = %local_addr, "listening");
+    Ok(RunningSection {
+        shared,
+        local_addr,
+        tasks: vec![poll_task, accept_task],
+    })
+}
+
+/// A listening socket with SO_REUSEADDR, so a restarted server can bind at
+/// once while old connections linger in TIME_WAIT.
+fn listen(bind: SocketAddr) -> io::Result<TcpListener> {
+    let socket = if bind.is_ipv4() {
+        TcpSocket::new_v4()?
+    } else {
+        TcpSocket::new_v6()?
+    };
+    socket.set_reuseaddr(true)?;
+    socket.bind(bind)?;
+    socket.listen(1024)
+}
+
+async fn accept_loop(listener: TcpListener, shared: Arc<SectionShared>) {
+    loop {
+        let (stream, peer) = match listener.accept().await {
+            Ok(accepted) => accepted,
+            Err(err) => {
+                // Out of descriptors and the like: wait instead of spinning.
+                warn!(section = %shared.name, "accept failed: {err}");
+                tokio::time::sleep(Duration::from_millis(100)).await;
+                continue;
+            }
+        };
+        match shared.admit(peer) {
+            Some(id) => {
+                let shared = shared.clone();
+                tokio::spawn(async move {
+                    let _registration = Registration {
+                        shared: shared.clone(),
+                        id,
+                    };
+                    Session::new(shared, stream, peer).run().await;
+                });
+            }
+            None => {
+                warn!(section = %shared.name, client = %peer, "refused: NET_CONNECT_MAX ({}) reached", shared.global.net_connect_max);
+                let crlf = shared.global.end_line_crlf;
+                tokio::spawn(refuse(stream, crlf));
+            }
+        }
+    }
+}
+
+/// Removes a client from the section's list however its session ends.
+struct Registration {
+    shared: Arc<SectionShared>,
+    id: u64,
+}
+
+impl Drop for Registration {
+    fn drop(&mut self) {
+        self.shared.leave(self.id);
+    }
+}
+
+async fn refuse(mut stream: TcpStream, crlf: bool) {
+    let mut line = Vec::new();
+    write_error(&mut line, ErrorCode::MaxConnections, b"");
+    line.extend_from_slice(if crlf { b"\r\n" } else { b"\n" });
+    let _ = stream.write_all(&line).await;
+    let _ = stream.shutdown().await;
+}

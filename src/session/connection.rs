@@ -1,0 +1,106 @@
+//! One client's socket: input framing (telnet bytes, line ends, limits, file
+//! blocks, via the protocol crate's decoder) and the output buffer with its
+//! line end. Everything above it sees frames and lines, never raw bytes.
+
+use std::io;
+
+use bytes::BytesMut;
+use plccoms_protocol::decoder::{Decoder, Frame};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
+use tokio::net::TcpStream;
+
+/// Longest request line accepted.
+pub const MAX_LINE: usize = 16 * 1024;
+/// Largest WRITEFILE block accepted (FFILE_BLKSIZE's maximum).
+pub const MAX_BLOCK: usize = 65536;
+/// Output held before the session stops producing more until the client
+/// reads.
+pub const OUTPUT_HIGH_WATER: usize = 256 * 1024;
+
+pub const CRLF: &[u8] = b"\r\n";
+pub const LF: &[u8] = b"\n";
+
+pub struct Connection {
+    pub(crate) reader: OwnedReadHalf,
+    pub(crate) writer: OwnedWriteHalf,
+    pub(crate) input: BytesMut,
+    decoder: Decoder,
+    /// Bytes waiting to be written; `written` of them already are.
+    pub(crate) out: Vec<u8>,
+    pub(crate) written: usize,
+    pub eol: &'static [u8],
+    /// The client closed its side: answer what it sent, then close.
+    pub eof: bool,
+}
+
+impl Connection {
+    pub fn new(stream: TcpStream, crlf: bool) -> Connection {
+        let _ = stream.set_nodelay(true);
+        let (reader, writer) = stream.into_split();
+        Connection {
+            reader,
+            writer,
+            input: BytesMut::with_capacity(4096),
+            decoder: Decoder::new(MAX_LINE, MAX_BLOCK),
+            out: Vec::new(),
+            written: 0,
+            eol: if crlf { CRLF } else { LF },
+            eof: false,
+        }
+    }
+
+    /// The next complete frame already received, if any.
+    pub fn next_frame(&mut self) -> Option<Frame> {
+        self.decoder.decode(&mut self.input)
+    }
+
+    pub fn set_crlf(&mut self, crlf: bool) {
+        self.eol = if crlf { CRLF } else { LF };
+    }
+
+    /// Bytes queued and not yet written.
+    pub fn backlog(&self) -> usize {
+        self.out.len() - self.written
+    }
+
+    /// Appends one line and the line end.
+    pub fn line(&mut self, line: &[u8]) {
+        self.out.extend_from_slice(line);
+        self.out.extend_from_slice(self.eol);
+    }
+
+    /// Appends already terminated lines.
+    pub fn extend(&mut self, bytes: &[u8]) {
+        self.out.extend_from_slice(bytes);
+    }
+
+    /// Writes everything queued (used when closing).
+    pub async fn flush(&mut self) -> io::Result<()> {
+        if self.backlog() > 0 {
+            self.writer.write_all(&self.out[self.written..]).await?;
+        }
+        self.out.clear();
+        self.written = 0;
+        self.writer.flush().await
+    }
+
+    pub(crate) fn advance_written(&mut self, n: usize) {
+        self.written += n;
+        if self.written == self.out.len() {
+            self.out.clear();
+            self.written = 0;
+        } else if self.written > 64 * 1024 {
+            self.out.drain(..self.written);
+            self.written = 0;
+        }
+    }
+
+    pub(crate) async fn read_more(
+        reader: &mut OwnedReadHalf,
+        input: &mut BytesMut,
+    ) -> io::Result<usize> {
+        input.reserve(4096);
+        reader.read_buf(input).await
+    }
+}

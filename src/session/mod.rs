@@ -1,0 +1,341 @@
+//! A client session: reads requests, answers them in order, and sends DIFF
+//! lines between answers.
+//!
+//! Requests are taken as fast as they arrive (clients pipeline hundreds at
+//! once); answers that need the PLC wait in an ordered queue while later
+//! requests are already parsed and sent on to the poller, so a burst of SETs
+//! or GETs shares PLC round trips. Output is bounded: when the client does not
+//! read, the session stops taking requests and defers DIFFs (which it can
+//! always recompute from the latest snapshot) instead of buffering.
+
+pub mod connection;
+pub mod table;
+
+use std::collections::VecDeque;
+use std::net::SocketAddr;
+use std::sync::Arc;
+
+use plccoms_protocol::answer::{write_error, ErrorCode};
+use plccoms_protocol::decoder::Frame;
+use plccoms_protocol::request::{classify, Command, Line};
+use tokio::io::AsyncWriteExt;
+use tokio::net::TcpStream;
+use tokio::sync::{oneshot, watch};
+use tracing::{debug, info};
+
+use crate::cmd;
+use crate::fanout::Snapshot;
+use crate::poller::{ReadReply, SetReply};
+use crate::section::SectionShared;
+use connection::{Connection, OUTPUT_HIGH_WATER};
+use table::ClientTable;
+
+/// Answers waiting for the PLC at most, before the session stops reading.
+const MAX_PENDING: usize = 1024;
+
+/// An answer in the ordered queue.
+pub enum Pending {
+    Ready(Vec<u8>),
+    Read {
+        rx: oneshot::Receiver<ReadReply>,
+        then: cmd::get::ReadThen,
+    },
+    Set {
+        rx: oneshot::Receiver<SetReply>,
+        then: cmd::set::SetThen,
+    },
+}
+
+enum Completion {
+    Read(ReadReply),
+    Set(SetReply),
+}
+
+pub struct Session {
+    pub shared: Arc<SectionShared>,
+    pub conn: Connection,
+    pub vars: ClientTable,
+    pub snapshot: Arc<Snapshot>,
+    snapshots: watch::Receiver<Arc<Snapshot>>,
+    pub pending: VecDeque<Pending>,
+    /// The variable command a bare continuation line repeats.
+    continuation: Option<Command>,
+    /// DIFF lines on for this client (`SETCONF:diff`).
+    pub diff: bool,
+    pub peer: SocketAddr,
+    close: bool,
+    /// A snapshot arrived while a SET was unanswered; its DIFFs wait so the
+    /// SET's own answer is not doubled by a DIFF for the same change.
+    diffs_deferred: bool,
+}
+
+impl Session {
+    pub fn new(shared: Arc<SectionShared>, stream: TcpStream, peer: SocketAddr) -> Session {
+        let mut snapshots = shared.snapshots.clone();
+        let snapshot = snapshots.borrow_and_update().clone();
+        let vars = ClientTable::new(&snapshot, !shared.global.pf_var_disabled);
+        let crlf = shared.global.end_line_crlf;
+        let diff = shared.global.diff_var_enabled;
+        Session {
+            conn: Connection::new(stream, crlf),
+            vars,
+            snapshot,
+            snapshots,
+            pending: VecDeque::new(),
+            continuation: None,
+            diff,
+            peer,
+            close: false,
+            diffs_deferred: false,
+            shared,
+        }
+    }
+
+    /// Serves the client until it leaves.
+    pub async fn run(mut self) {
+        let section = self.shared.name.clone();
+        let peer = self.peer;
+        debug!(section = %section, client = %peer, "client connected");
+        if let Err(err) = self.serve().await {
+            debug!(section = %section, client = %peer, "connection error: {err}");
+        }
+        let _ = self.conn.flush().await;
+        let _ = self.conn.writer.shutdown().await;
+        debug!(section = %section, client = %peer, "client disconnected");
+    }
+
+    async fn serve(&mut self) -> std::io::Result<()> {
+        loop {
+            self.take_requests().await;
+            self.release_ready();
+            if (self.close || self.conn.eof) && self.pending.is_empty() {
+                return Ok(());
+            }
+            let head_waiting = matches!(
+                self.pending.front(),
+                Some(Pending::Read { .. } | Pending::Set { .. })
+            );
+            let backlog = self.conn.backlog();
+            let can_read = !self.conn.eof
+                && !self.close
+                && self.pending.len() < MAX_PENDING
+                && backlog < OUTPUT_HIGH_WATER;
+            let want_diffs = self.diff && backlog < OUTPUT_HIGH_WATER;
+            let Session {
+                conn,
+                pending,
+                snapshots,
+                ..
+            } = self;
+            let Connection {
+                reader,
+                writer,
+                input,
+                out,
+                written,
+                ..
+            } = conn;
+            tokio::select! {
+                biased;
+                completion = head_reply(pending), if head_waiting => {
+                    self.complete_head(completion);
+                }
+                result = writer.write(&out[*written..]), if backlog > 0 => {
+                    let n = result?;
+                    if n == 0 {
+                        return Ok(());
+                    }
+                    self.conn.advance_written(n);
+                }
+                result = Connection::read_more(reader, input), if can_read => {
+                    if result? == 0 {
+                        self.conn.eof = true;
+                        // Let a last line without its line end count.
+                        self.conn.input.extend_from_slice(b"\n");
+                    }
+                }
+                changed = snapshots.changed(), if want_diffs => {
+                    if changed.is_err() {
+                        // The poller is gone: the server is shutting down.
+                        self.close = true;
+                    } else {
+                        self.take_snapshot();
+                    }
+                }
+                else => return Ok(()),
+            }
+        }
+    }
+
+    /// Handles every complete request already received, while the queue and
+    /// output have room.
+    async fn take_requests(&mut self) {
+        while !self.close
+            && self.pending.len() < MAX_PENDING
+            && self.conn.backlog() < OUTPUT_HIGH_WATER
+        {
+            let Some(frame) = self.conn.next_frame() else {
+                break;
+            };
+            match frame {
+                Frame::Line(line) => self.handle_line(&line).await,
+                Frame::Block { header, .. } => {
+                    // File uploads arrive in the files issue; until then the
+                    // command is unknown.
+                    let mut out = Vec::new();
+                    write_error(&mut out, ErrorCode::UnknownCommand, &header);
+                    self.answer_line(out);
+                }
+                Frame::TooLong(prefix) => {
+                    let mut context = prefix;
+                    context.extend_from_slice(b"...");
+                    let mut out = Vec::new();
+                    write_error(&mut out, ErrorCode::BadRequest, &context);
+                    self.answer_line(out);
+                }
+                Frame::Close => {
+                    info!(section = %self.shared.name, client = %self.peer, "client closed the session (Ctrl+D)");
+                    self.close = true;
+                }
+            }
+        }
+    }
+
+    async fn handle_line(&mut self, line: &[u8]) {
+        match classify(line) {
+            Line::Empty => {}
+            Line::Command { command, args } => {
+                self.continuation = command.accepts_continuation().then_some(command);
+                let context = trim(line).to_vec();
+                cmd::dispatch(self, command, args, &context).await;
+            }
+            Line::UnknownCommand => {
+                self.continuation = None;
+                let mut out = Vec::new();
+                write_error(&mut out, ErrorCode::UnknownCommand, trim(line));
+                self.answer_line(out);
+            }
+            Line::Continuation(args) => match self.continuation {
+                Some(command) => {
+                    let mut context = command.name().as_bytes().to_vec();
+                    context.push(b':');
+                    context.extend_from_slice(args);
+                    cmd::dispatch(self, command, args, &context).await;
+                }
+                None => {
+                    let mut out = Vec::new();
+                    write_error(&mut out, ErrorCode::UnknownCommand, trim(line));
+                    self.answer_line(out);
+                }
+            },
+        }
+    }
+
+    /// Queues a complete answer (lines already terminated).
+    pub fn answer(&mut self, bytes: Vec<u8>) {
+        if bytes.is_empty() {
+            return;
+        }
+        if self.pending.is_empty() {
+            self.conn.extend(&bytes);
+        } else {
+            self.pending.push_back(Pending::Ready(bytes));
+        }
+    }
+
+    /// Queues a one-line answer given without its line end.
+    pub fn answer_line(&mut self, mut line: Vec<u8>) {
+        line.extend_from_slice(self.conn.eol);
+        self.answer(line);
+    }
+
+    /// Moves answers that are complete at the head of the queue to output.
+    fn release_ready(&mut self) {
+        while let Some(Pending::Ready(_)) = self.pending.front() {
+            if let Some(Pending::Ready(bytes)) = self.pending.pop_front() {
+                self.conn.extend(&bytes);
+            }
+        }
+    }
+
+    /// Whether a SET of this client has not been answered yet (a GET must
+    /// then read through the PLC, behind it, to see its effect).
+    pub fn set_outstanding(&self) -> bool {
+        self.pending
+            .iter()
+            .any(|p| matches!(p, Pending::Set { .. }))
+    }
+
+    fn complete_head(&mut self, completion: Completion) {
+        let Some(head) = self.pending.pop_front() else {
+            return;
+        };
+        let mut out = Vec::new();
+        match (head, completion) {
+            (Pending::Read { then, .. }, Completion::Read(reply)) => {
+                cmd::get::complete(self, then, reply, &mut out)
+            }
+            (Pending::Set { then, .. }, Completion::Set(reply)) => {
+                cmd::set::complete(self, then, reply, &mut out)
+            }
+            _ => unreachable!("completion matches the head it came from"),
+        }
+        self.conn.extend(&out);
+        self.release_ready();
+        if self.diffs_deferred && !self.set_outstanding() {
+            self.diffs_deferred = false;
+            self.take_snapshot();
+        }
+    }
+
+    fn take_snapshot(&mut self) {
+        let snapshot = self.snapshots.borrow_and_update().clone();
+        self.snapshot = snapshot;
+        if !self.diff {
+            return;
+        }
+        if self.set_outstanding() {
+            self.diffs_deferred = true;
+            return;
+        }
+        let Session {
+            vars,
+            conn,
+            shared,
+            snapshot,
+            ..
+        } = self;
+        vars.collect_diffs(snapshot, &shared.format, conn.eol, &mut conn.out);
+    }
+
+    /// The latest snapshot, without waiting for the next change.
+    pub fn latest_snapshot(&mut self) -> Arc<Snapshot> {
+        self.snapshot = self.snapshots.borrow().clone();
+        self.snapshot.clone()
+    }
+}
+
+async fn head_reply(pending: &mut VecDeque<Pending>) -> Completion {
+    match pending.front_mut() {
+        Some(Pending::Read { rx, .. }) => {
+            Completion::Read(rx.await.unwrap_or(Err(crate::poller::LinkError::Offline)))
+        }
+        Some(Pending::Set { rx, .. }) => {
+            Completion::Set(rx.await.unwrap_or(Err(crate::poller::LinkError::Offline)))
+        }
+        _ => std::future::pending().await,
+    }
+}
+
+/// `bytes` without leading and trailing spaces and tabs.
+pub fn trim(bytes: &[u8]) -> &[u8] {
+    let start = bytes
+        .iter()
+        .position(|b| !matches!(b, b' ' | b'\t'))
+        .unwrap_or(bytes.len());
+    let end = bytes
+        .iter()
+        .rposition(|b| !matches!(b, b' ' | b'\t'))
+        .map_or(start, |e| e + 1);
+    &bytes[start..end]
+}

@@ -1,0 +1,191 @@
+//! The variable table of one PLC section: the fixed public file's variables
+//! followed by the user public file's, looked up by upper-case cp1250 name.
+
+use std::collections::HashMap;
+
+use plccoms_protocol::value::Value;
+use plccoms_protocol::{cp1250, Area, IecType};
+
+use crate::plc::MemoryMap;
+use crate::pubfile::PubFile;
+
+/// Index of a variable in its table.
+pub type VarId = u32;
+
+pub const PLC_RUN: &[u8] = b"__PLC_RUN";
+pub const PF_CRC: &[u8] = b"__PF_CRC";
+
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Var {
+    /// Upper-case cp1250, as the server prints it.
+    pub name: Box<[u8]>,
+    pub area: Area,
+    pub offset: u32,
+    pub bit: Option<u8>,
+    pub ty: IecType,
+    /// From the fixed public file: always polled, ignored by DI.
+    pub fixed: bool,
+}
+
+impl Var {
+    /// The value held by `bytes` as read for this variable (a BOOL's bit is
+    /// picked out of its byte).
+    pub fn decode(&self, bytes: &[u8]) -> Value {
+        match self.bit {
+            Some(bit) => Value::Bool(bytes.first().is_some_and(|b| b & (1 << bit) != 0)),
+            None => Value::decode(self.ty, bytes),
+        }
+    }
+
+    /// Bytes read from PLC memory for this variable.
+    pub fn byte_len(&self) -> u32 {
+        self.ty.size() as u32
+    }
+}
+
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum TableError {
+    #[error("fixed public file '{file}' does not define {name}")]
+    MissingFixed { file: String, name: &'static str },
+}
+
+#[derive(Debug, Default)]
+pub struct VarTable {
+    vars: Vec<Var>,
+    index: HashMap<Box<[u8]>, VarId>,
+    fixed_count: usize,
+    plc_run: VarId,
+    pf_crc: VarId,
+    /// Names of the files the table was built from, for GETINFO and warnings.
+    pub fixed_file: String,
+    pub user_file: Option<String>,
+}
+
+impl VarTable {
+    /// Builds the table: fixed variables first, then the user's; on a name
+    /// clash the fixed file wins. Variables whose address lies outside `map`
+    /// are skipped with a warning, like any other bad public-file line.
+    pub fn build(
+        fixed_file: &str,
+        fixed: &PubFile,
+        user: Option<(&str, &PubFile)>,
+        map: &MemoryMap,
+        warnings: &mut Vec<String>,
+    ) -> Result<VarTable, TableError> {
+        let mut table = VarTable {
+            fixed_file: fixed_file.to_string(),
+            user_file: user.map(|(name, _)| name.to_string()),
+            ..VarTable::default()
+        };
+        table.add_file(fixed_file, fixed, true, map, warnings);
+        table.fixed_count = table.vars.len();
+        if let Some((name, file)) = user {
+            table.add_file(name, file, false, map, warnings);
+        }
+        table.plc_run = table.require(fixed_file, PLC_RUN, "__PLC_RUN")?;
+        table.pf_crc = table.require(fixed_file, PF_CRC, "__PF_CRC")?;
+        Ok(table)
+    }
+
+    fn require(&self, file: &str, name: &[u8], display: &'static str) -> Result<VarId, TableError> {
+        match self.index.get(name) {
+            Some(&id) if (id as usize) < self.fixed_count => Ok(id),
+            _ => Err(TableError::MissingFixed {
+                file: file.to_string(),
+                name: display,
+            }),
+        }
+    }
+
+    fn add_file(
+        &mut self,
+        file_name: &str,
+        file: &PubFile,
+        fixed: bool,
+        map: &MemoryMap,
+        warnings: &mut Vec<String>,
+    ) {
+        for warning in &file.warnings {
+            warnings.push(format!("{file_name}: {warning}"));
+        }
+        self.vars.reserve(file.vars.len());
+        self.index.reserve(file.vars.len());
+        for pv in &file.vars {
+            let name: Box<[u8]> = cp1250::to_upper(&pv.name).into_boxed_slice();
+            if !map.contains(pv.area, pv.offset, pv.ty.size() as u32) {
+                warnings.push(format!(
+                    "{file_name}: line {}: {} at {}{} is outside the PLC memory (size {}), skipped",
+                    pv.line,
+                    cp1250::decode(&name),
+                    pv.area,
+                    pv.offset,
+                    map.size(pv.area)
+                ));
+                continue;
+            }
+            if let Some(&existing) = self.index.get(&name) {
+                let winner = if self.vars[existing as usize].fixed && !fixed {
+                    "the fixed file's variable wins"
+                } else {
+                    "the first definition wins"
+                };
+                warnings.push(format!(
+                    "{file_name}: line {}: {} is defined twice, {winner}",
+                    pv.line,
+                    cp1250::decode(&name)
+                ));
+                continue;
+            }
+            let id = self.vars.len() as VarId;
+            self.index.insert(name.clone(), id);
+            self.vars.push(Var {
+                name,
+                area: pv.area,
+                offset: pv.offset,
+                bit: pv.bit,
+                ty: pv.ty,
+                fixed,
+            });
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.vars.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.vars.is_empty()
+    }
+
+    pub fn fixed_count(&self) -> usize {
+        self.fixed_count
+    }
+
+    pub fn var(&self, id: VarId) -> &Var {
+        &self.vars[id as usize]
+    }
+
+    pub fn vars(&self) -> &[Var] {
+        &self.vars
+    }
+
+    /// Looks a name up case-insensitively.
+    pub fn lookup(&self, name: &[u8]) -> Option<VarId> {
+        if name.iter().all(|b| !b.is_ascii_lowercase() && *b < 0x80) {
+            return self.index.get(name).copied();
+        }
+        self.index.get(cp1250::to_upper(name).as_slice()).copied()
+    }
+
+    pub fn plc_run(&self) -> VarId {
+        self.plc_run
+    }
+
+    pub fn pf_crc(&self) -> VarId {
+        self.pf_crc
+    }
+
+    pub fn is_fixed(&self, id: VarId) -> bool {
+        (id as usize) < self.fixed_count
+    }
+}

@@ -1,0 +1,223 @@
+//! Test harness: a server section on loopback over the in-process backend,
+//! and a raw TCP client that checks exact bytes.
+#![allow(dead_code)]
+
+use std::net::SocketAddr;
+use std::path::Path;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use plccoms::backend::memory::MemoryBackend;
+use plccoms::config;
+use plccoms::plc::{Device, MemoryMap};
+use plccoms::pubfile;
+use plccoms::server::{start_section, RunningSection};
+use plccoms::vars::VarTable;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+pub const FIXED_PUB: &[u8] =
+    b" __PLC_RUN S B 2 .2 BOOL PUB_INOUT\r\n __PF_CRC S B 70 DWORD PUB_INOUT\r\n";
+
+/// A user public file with every type; cp1250 bytes (0xEC is `ě`).
+pub fn user_pub() -> Vec<u8> {
+    let mut text = b"; test project\r\n\
+ TEST_1 R B 0 INT PUB_INOUT\r\n\
+ test_2 R F 4 REAL PUB_INOUT\r\n\
+ TEST_STRING R B 8 STRING[20] PUB_INOUT\r\n\
+ TEST_BTN_UP R B 30 .0 BOOL PUB_INOUT\r\n\
+ TEST_BTN_DOWN R B 30 .1 BOOL PUB_INOUT\r\n\
+ V_LREAL R F 32 LREAL PUB_INOUT\r\n\
+ V_BYTE R B 40 BYTE PUB_INOUT\r\n\
+ V_WORD R B 42 WORD PUB_INOUT\r\n\
+ V_DWORD R B 44 DWORD PUB_INOUT\r\n\
+ V_LWORD R B 48 LWORD PUB_INOUT\r\n\
+ V_SINT R B 56 SINT PUB_INOUT\r\n\
+ V_DINT R B 60 DINT PUB_INOUT\r\n\
+ V_LINT R B 64 LINT PUB_INOUT\r\n\
+ V_USINT R B 72 USINT PUB_INOUT\r\n\
+ V_UINT R B 74 UINT PUB_INOUT\r\n\
+ V_UDINT R B 76 UDINT PUB_INOUT\r\n\
+ V_ULINT R B 80 ULINT PUB_INOUT\r\n\
+ V_DATE R B 88 DATE PUB_INOUT\r\n\
+ V_TIME R B 96 TIME PUB_INOUT\r\n\
+ V_TOD R B 100 TIME_OF_DAY PUB_INOUT\r\n\
+ V_DT R B 104 DATE_AND_TIME PUB_INOUT\r\n\
+ Meteo.WindDirection R B 112 UINT PUB_INOUT\r\n\
+ T_ZONES_SET[0].TOPIT_TC R B 114 BOOL PUB_INOUT\r\n"
+        .to_vec();
+    text.extend_from_slice(b" teplota_kuchyn\xEC R F 116 REAL PUB_INOUT\r\n");
+    text
+}
+
+pub struct TestServer {
+    pub section: RunningSection,
+    pub device: Arc<Mutex<Device>>,
+    pub addr: SocketAddr,
+}
+
+/// Starts a section configured by the `[*]` keys in `global_ini` on the
+/// in-process backend with `user_pub()`.
+pub async fn start(global_ini: &str) -> TestServer {
+    start_with(global_ini, &user_pub()).await
+}
+
+pub async fn start_with(global_ini: &str, user: &[u8]) -> TestServer {
+    let ini = format!("[*]\n{global_ini}\n[Test]\nSERVER_PORT = 5010\n");
+    let loaded = config::parse(Path::new("test.ini"), &ini).expect("test ini");
+    let global = Arc::new(loaded.config.global);
+    let section = loaded.config.sections.into_iter().next().unwrap();
+    let mut warnings = Vec::new();
+    let table = VarTable::build(
+        "FIXED.pub",
+        &pubfile::parse(FIXED_PUB),
+        Some(("test.pub", &pubfile::parse(user))),
+        &MemoryMap::FOXTROT,
+        &mut warnings,
+    )
+    .expect("table");
+    let device = Arc::new(Mutex::new(Device::new(MemoryMap::FOXTROT)));
+    let backend = MemoryBackend::new(device.clone());
+    let section = start_section(
+        global,
+        section,
+        table,
+        Some(Box::new(backend)),
+        "127.0.0.1:0".parse().unwrap(),
+    )
+    .await
+    .expect("start section");
+    let addr = section.local_addr;
+    TestServer {
+        section,
+        device,
+        addr,
+    }
+}
+
+impl TestServer {
+    pub async fn client(&self) -> Client {
+        Client::connect(self.addr).await
+    }
+
+    /// Writes raw bytes into the PLC's memory, as its program would.
+    pub fn poke(&self, area: plccoms_protocol::Area, offset: u32, bytes: &[u8]) {
+        let mut device = self.device.lock().unwrap();
+        device
+            .write(
+                area,
+                offset,
+                &plccoms::backend::WriteData::Bytes(bytes.to_vec()),
+            )
+            .unwrap();
+    }
+
+    pub fn peek(&self, area: plccoms_protocol::Area, offset: u32, len: u32) -> Vec<u8> {
+        self.device.lock().unwrap().read(area, offset, len).unwrap()
+    }
+}
+
+pub const TIMEOUT: Duration = Duration::from_secs(5);
+
+pub struct Client {
+    pub stream: TcpStream,
+    buf: Vec<u8>,
+}
+
+impl Client {
+    pub async fn connect(addr: SocketAddr) -> Client {
+        let stream = TcpStream::connect(addr).await.expect("connect");
+        Client {
+            stream,
+            buf: Vec::new(),
+        }
+    }
+
+    pub async fn send(&mut self, bytes: &[u8]) {
+        self.stream.write_all(bytes).await.expect("send");
+    }
+
+    async fn fill(&mut self) -> usize {
+        let mut chunk = [0u8; 65536];
+        let n = tokio::time::timeout(TIMEOUT, self.stream.read(&mut chunk))
+            .await
+            .expect("timed out waiting for the server")
+            .expect("read");
+        self.buf.extend_from_slice(&chunk[..n]);
+        n
+    }
+
+    /// Reads exactly `want.len()` bytes and asserts they are `want`.
+    pub async fn expect(&mut self, want: &[u8]) {
+        while self.buf.len() < want.len() {
+            if self.fill().await == 0 {
+                break;
+            }
+        }
+        let got: Vec<u8> = self.buf.drain(..want.len().min(self.buf.len())).collect();
+        assert_eq!(
+            String::from_utf8_lossy(&got),
+            String::from_utf8_lossy(want),
+            "bytes on the wire differ"
+        );
+        assert_eq!(got, want);
+    }
+
+    /// One line including its line end.
+    pub async fn line(&mut self) -> Vec<u8> {
+        loop {
+            if let Some(pos) = self.buf.iter().position(|&b| b == b'\n') {
+                return self.buf.drain(..=pos).collect();
+            }
+            if self.fill().await == 0 {
+                panic!(
+                    "connection closed; partial: {:?}",
+                    String::from_utf8_lossy(&self.buf)
+                );
+            }
+        }
+    }
+
+    /// Sends a request and checks the whole answer.
+    pub async fn ask(&mut self, request: &str, answer: &str) {
+        self.send(request.as_bytes()).await;
+        self.expect(answer.as_bytes()).await;
+    }
+
+    /// Asserts nothing arrives within `ms`.
+    pub async fn silent(&mut self, ms: u64) {
+        assert!(
+            self.buf.is_empty(),
+            "unexpected: {:?}",
+            String::from_utf8_lossy(&self.buf)
+        );
+        let mut chunk = [0u8; 1024];
+        if let Ok(result) =
+            tokio::time::timeout(Duration::from_millis(ms), self.stream.read(&mut chunk)).await
+        {
+            let n = result.expect("read");
+            panic!(
+                "unexpected bytes: {:?}",
+                String::from_utf8_lossy(&chunk[..n])
+            );
+        }
+    }
+
+    /// Waits for the server to close the connection (all data read first).
+    pub async fn closed(&mut self) {
+        loop {
+            if self.fill().await == 0 {
+                assert!(
+                    self.buf.is_empty(),
+                    "left over: {:?}",
+                    String::from_utf8_lossy(&self.buf)
+                );
+                return;
+            }
+        }
+    }
+
+    pub fn buffered(&self) -> &[u8] {
+        &self.buf
+    }
+}
