@@ -197,16 +197,22 @@ impl Program {
 fn animate(v: &ProgVar, image: &mut MemoryImage, cycle: u64, cycle_ms: u64, now: f64, k: usize) {
     match v.ty {
         IecType::Bool => write_f64(image, v, (cycle % 2) as f64),
-        IecType::Real | IecType::Lreal => {
-            write_f64(image, v, (cycle as f64 * 0.01 + k as f64 * 0.5).sin() * 100.0)
-        }
+        IecType::Real | IecType::Lreal => write_f64(
+            image,
+            v,
+            (cycle as f64 * 0.01 + k as f64 * 0.5).sin() * 100.0,
+        ),
         IecType::String(_) => write_text(image, v, format!("count {cycle}").as_bytes()),
         IecType::Date => {
             let day = (now / 86_400.0).floor() + cycle as f64;
             write_f64(image, v, day * 86_400.0)
         }
         IecType::Dt => write_f64(image, v, now.floor() + cycle as f64),
-        IecType::Time => write_bytes(image, v, &(cycle.wrapping_mul(cycle_ms) as u32).to_le_bytes()),
+        IecType::Time => write_bytes(
+            image,
+            v,
+            &(cycle.wrapping_mul(cycle_ms) as u32).to_le_bytes(),
+        ),
         IecType::Tod => {
             let ms = (now.rem_euclid(86_400.0) * 1000.0) as u64 + cycle.wrapping_mul(cycle_ms);
             write_bytes(image, v, &((ms % 86_400_000) as u32).to_le_bytes())
@@ -341,7 +347,10 @@ mod tests {
             program.step(&mut image, now);
         }
         let r = image.area(Area::R);
-        assert_eq!(f64::from_le_bytes(r[0..8].try_into().unwrap()), 1_710_460_800.0);
+        assert_eq!(
+            f64::from_le_bytes(r[0..8].try_into().unwrap()),
+            1_710_460_800.0
+        );
         assert_eq!(u32::from_le_bytes(r[8..12].try_into().unwrap()), 49_530_500);
         let c = f64::from_le_bytes(r[16..24].try_into().unwrap());
         assert!((c - 0.003).abs() < 1e-12);

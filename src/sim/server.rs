@@ -9,7 +9,7 @@
 use crate::backend::epsnet::codec;
 use crate::backend::epsnet::frame::{Frame, Packet, MAX_DPLEN};
 use crate::backend::epsnet::service::{
-    self, answer_frame, dir_entry_len, Request, Response, MAX_DIR_PAGE, MAX_FILE_BLOCK, MAX_READ,
+    answer_frame, dir_entry_len, Request, Response, MAX_DIR_PAGE, MAX_FILE_BLOCK, MAX_READ,
 };
 use crate::backend::epsnet::PLC_EPS_ADDR;
 use crate::backend::{Exception, WriteData};
@@ -209,6 +209,7 @@ impl Rng {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::backend::epsnet::service;
     use crate::plc::MemoryMap;
     use plccoms_protocol::Area;
 

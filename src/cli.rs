@@ -1,0 +1,171 @@
+//! The command line, as the manual gives it:
+//! `plccoms [-dtvh] [-c <config>] [-l <log>]`, plus `-V`/`--version`.
+
+use std::path::PathBuf;
+
+use clap::{ArgAction, Parser};
+
+/// Log file used with `-d` when `-l` is not given.
+pub const DEFAULT_LOG: &str = "PLCComS.log";
+
+/// Parsed command line. `Cli::parse()` in `main`; `Cli::parse_from` or
+/// `Cli::try_parse_from` in tests.
+#[derive(Debug, Clone, PartialEq, Eq, Parser)]
+#[command(
+    name = "plccoms",
+    version,
+    about,
+    override_usage = "plccoms [-dtvh] [-c <configuration_file>] [-l <log_file>]"
+)]
+pub struct Cli {
+    /// Run in the background; reports go to the log file (PLCComS.log unless -l is given)
+    #[arg(short, long)]
+    pub daemon: bool,
+
+    /// Terminate if the configuration file was changed
+    #[arg(short, long)]
+    pub terminate: bool,
+
+    /// Verbose mode (multiple -v options increase the verbosity)
+    #[arg(short, long, action = ArgAction::Count)]
+    pub verbose: u8,
+
+    /// Configuration file
+    #[arg(
+        short,
+        long,
+        value_name = "configuration_file",
+        default_value = "PLCComS.ini"
+    )]
+    pub config: PathBuf,
+
+    /// Log file (without it, reports go to the terminal unless -d is given)
+    #[arg(short, long, value_name = "log_file")]
+    pub log: Option<PathBuf>,
+}
+
+impl Cli {
+    /// Where reports go: the `-l` file, else `PLCComS.log` when running as a
+    /// daemon, else `None` (the terminal).
+    pub fn log_path(&self) -> Option<PathBuf> {
+        match &self.log {
+            Some(path) => Some(path.clone()),
+            None if self.daemon => Some(PathBuf::from(DEFAULT_LOG)),
+            None => None,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    fn cli(args: &[&str]) -> Cli {
+        Cli::try_parse_from(std::iter::once("plccoms").chain(args.iter().copied()))
+            .unwrap_or_else(|e| panic!("{args:?}: {e}"))
+    }
+
+    #[test]
+    fn defaults() {
+        let c = cli(&[]);
+        assert_eq!(
+            c,
+            Cli {
+                daemon: false,
+                terminate: false,
+                verbose: 0,
+                config: PathBuf::from("PLCComS.ini"),
+                log: None,
+            }
+        );
+        assert_eq!(c.log_path(), None);
+    }
+
+    #[test]
+    fn combined_short_flags() {
+        let c = cli(&["-dtv"]);
+        assert!(c.daemon && c.terminate);
+        assert_eq!(c.verbose, 1);
+        assert_eq!(cli(&["-vvv"]).verbose, 3);
+        assert_eq!(cli(&["-v", "-v", "--verbose"]).verbose, 3);
+        let c = cli(&["-dvc", "my.ini"]);
+        assert!(c.daemon);
+        assert_eq!(c.config, PathBuf::from("my.ini"));
+    }
+
+    #[test]
+    fn long_forms() {
+        let c = cli(&[
+            "--daemon",
+            "--terminate",
+            "--verbose",
+            "--config",
+            "/etc/plccoms/PLCComS.ini",
+            "--log=/var/log/plccoms.log",
+        ]);
+        assert_eq!(
+            c,
+            Cli {
+                daemon: true,
+                terminate: true,
+                verbose: 1,
+                config: PathBuf::from("/etc/plccoms/PLCComS.ini"),
+                log: Some(PathBuf::from("/var/log/plccoms.log")),
+            }
+        );
+        let c = cli(&["-c", "a.ini", "-l", "a.log"]);
+        assert_eq!((c.config, c.log), ("a.ini".into(), Some("a.log".into())));
+    }
+
+    #[test]
+    fn log_path() {
+        assert_eq!(cli(&["-d"]).log_path(), Some(PathBuf::from("PLCComS.log")));
+        assert_eq!(
+            cli(&["-l", "x.log"]).log_path(),
+            Some(PathBuf::from("x.log"))
+        );
+        assert_eq!(
+            cli(&["-d", "-l", "x.log"]).log_path(),
+            Some(PathBuf::from("x.log"))
+        );
+        assert_eq!(cli(&["-v"]).log_path(), None);
+    }
+
+    #[test]
+    fn help_mentions_every_option() {
+        let help = Cli::command().render_long_help().to_string();
+        for option in [
+            "-d, --daemon",
+            "-t, --terminate",
+            "-v, --verbose",
+            "-c, --config",
+            "-l, --log",
+            "-h, --help",
+            "-V, --version",
+            "PLCComS.ini",
+            "plccoms [-dtvh] [-c <configuration_file>] [-l <log_file>]",
+        ] {
+            assert!(help.contains(option), "{option} missing from:\n{help}");
+        }
+        let err = Cli::try_parse_from(["plccoms", "--help"]).unwrap_err();
+        assert_eq!(err.kind(), clap::error::ErrorKind::DisplayHelp);
+        let err = Cli::try_parse_from(["plccoms", "-h"]).unwrap_err();
+        assert_eq!(err.kind(), clap::error::ErrorKind::DisplayHelp);
+        let err = Cli::try_parse_from(["plccoms", "--version"]).unwrap_err();
+        assert_eq!(err.kind(), clap::error::ErrorKind::DisplayVersion);
+    }
+
+    #[test]
+    fn bad_arguments_are_rejected() {
+        for args in [&["-x"][..], &["-c"], &["--log"], &["extra"]] {
+            let argv = std::iter::once("plccoms").chain(args.iter().copied());
+            assert!(Cli::try_parse_from(argv).is_err(), "{args:?}");
+        }
+    }
+
+    #[test]
+    fn definition_is_consistent() {
+        Cli::command().debug_assert();
+    }
+}
