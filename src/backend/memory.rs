@@ -126,3 +126,36 @@ impl PlcBackend for MemoryBackend {
         Ok(self.with_files(|files| files.list(path)))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::plc::MemoryMap;
+
+    #[tokio::test]
+    async fn files_go_to_the_device_store() {
+        let device = Arc::new(Mutex::new(Device::new(MemoryMap::FOXTROT)));
+        let mut backend = MemoryBackend::new(device.clone());
+        assert_eq!(
+            backend.file_info(b"x").await.unwrap(),
+            Err(Exception::NotActivated)
+        );
+        let dir = tempfile::tempdir().unwrap();
+        device.lock().unwrap().files = Some(FileStore::open(dir.path()).unwrap());
+        assert_eq!(
+            backend.write_file(b"a.txt", 0, b"abc", true).await.unwrap(),
+            Ok(())
+        );
+        assert_eq!(backend.file_info(b"a.txt").await.unwrap().unwrap().size, 3);
+        assert_eq!(
+            backend.read_file(b"a.txt", 1, 10).await.unwrap(),
+            Ok(b"bc".to_vec())
+        );
+        let list = backend.list_dir(b"/").await.unwrap().unwrap();
+        assert_eq!(list[0].name, b"a.txt");
+        assert_eq!(
+            backend.read_file(b"../a.txt", 0, 1).await.unwrap(),
+            Err(Exception::BadParameters)
+        );
+    }
+}

@@ -9,7 +9,7 @@
 use crate::backend::epsnet::codec;
 use crate::backend::epsnet::frame::{Frame, Packet, MAX_DPLEN};
 use crate::backend::epsnet::service::{
-    answer_frame, dir_entry_len, Request, Response, MAX_DIR_PAGE, MAX_FILE_BLOCK, MAX_READ,
+    self, answer_frame, dir_entry_len, Request, Response, MAX_DIR_PAGE, MAX_FILE_BLOCK, MAX_READ,
 };
 use crate::backend::epsnet::PLC_EPS_ADDR;
 use crate::backend::{Exception, WriteData};
@@ -24,10 +24,13 @@ pub fn execute(
 ) -> Result<Response, Exception> {
     const BAD: Exception = Exception::BadParameters;
     match request {
-        Request::Ident => Ok(Response::Ident(
-            cp1250::encode(&device.ident)
-                .unwrap_or_else(|| device.ident.bytes().filter(u8::is_ascii).collect()),
-        )),
+        Request::Ident => {
+            let mut ident = cp1250::encode(&device.ident)
+                .unwrap_or_else(|| device.ident.bytes().filter(u8::is_ascii).collect());
+            // Clients plan for at most this much (see `Request::max_answer_len`).
+            ident.truncate(service::MAX_IDENT);
+            Ok(Response::Ident(ident))
+        }
         Request::Status => Ok(Response::Status { run: device.run() }),
         Request::SetTime(t) => {
             let valid = (1..=12).contains(&t.month)
@@ -209,7 +212,6 @@ impl Rng {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::backend::epsnet::service;
     use crate::plc::MemoryMap;
     use plccoms_protocol::Area;
 

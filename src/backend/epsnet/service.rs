@@ -82,6 +82,8 @@ pub const MAX_FILE_BLOCK: u32 = 1150;
 pub const MAX_PATH: usize = 255;
 /// Largest answer payload a DIRLIST page may carry.
 pub const MAX_DIR_PAGE: usize = MAX_READ as usize;
+/// Longest identification string a PLC answers.
+pub const MAX_IDENT: usize = 64;
 /// Bytes of an encoded `FileInfo`.
 pub const FILE_INFO_LEN: usize = 28;
 
@@ -408,7 +410,7 @@ impl Request {
     /// answer datagram fits too.
     pub fn max_answer_len(&self) -> usize {
         let payload = match self {
-            Request::Ident => 64,
+            Request::Ident => MAX_IDENT,
             Request::Status => 2,
             Request::Read { len, .. } | Request::FileRead { len, .. } => usize::from(*len),
             Request::FileInfo { .. } => FILE_INFO_LEN,
