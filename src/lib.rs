@@ -18,4 +18,5 @@ pub mod pubfile;
 pub mod section;
 pub mod server;
 pub mod session;
+pub mod sim;
 pub mod vars;

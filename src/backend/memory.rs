@@ -6,9 +6,10 @@ use std::sync::{Arc, Mutex};
 use async_trait::async_trait;
 
 use super::{
-    Answer, DirEntry, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteRequest,
+    Answer, DirEntry, Exception, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest,
+    WriteRequest,
 };
-use crate::plc::Device;
+use crate::plc::{Device, FileStore};
 
 /// Same block limit as EPSNET, so plans made against this backend are the
 /// plans a real PLC gets.
@@ -27,6 +28,15 @@ impl MemoryBackend {
 
     pub fn device(&self) -> &Arc<Mutex<Device>> {
         &self.device
+    }
+
+    /// Runs a file service on the device's file store; a device without one
+    /// answers "service not activated", as a PLC without a file system would.
+    fn with_files<T>(&self, f: impl FnOnce(&mut FileStore) -> Result<T, Exception>) -> Answer<T> {
+        match self.lock().files.as_mut() {
+            Some(files) => f(files),
+            None => Err(Exception::NotActivated),
+        }
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Device> {
@@ -78,38 +88,74 @@ impl PlcBackend for MemoryBackend {
         })
     }
 
-    async fn file_info(&mut self, _path: &[u8]) -> Result<Answer<FileInfo>, PlcError> {
-        Err(PlcError::Unsupported("files"))
+    async fn file_info(&mut self, path: &[u8]) -> Result<Answer<FileInfo>, PlcError> {
+        Ok(self.with_files(|files| files.info(path)))
     }
 
     async fn read_file(
         &mut self,
-        _path: &[u8],
-        _offset: u64,
-        _len: u32,
+        path: &[u8],
+        offset: u64,
+        len: u32,
     ) -> Result<Answer<Vec<u8>>, PlcError> {
-        Err(PlcError::Unsupported("files"))
+        if len > MAX_FILE_BLOCK {
+            return Ok(Err(Exception::BadParameters));
+        }
+        Ok(self.with_files(|files| files.read(path, offset, len)))
     }
 
     async fn write_file(
         &mut self,
-        _path: &[u8],
-        _offset: u64,
-        _data: &[u8],
-        _last: bool,
+        path: &[u8],
+        offset: u64,
+        data: &[u8],
+        last: bool,
     ) -> Result<Answer<()>, PlcError> {
-        Err(PlcError::Unsupported("files"))
+        Ok(self.with_files(|files| files.write(path, offset, data, last)))
     }
 
     async fn write_file_info(
         &mut self,
-        _path: &[u8],
-        _info: &FileInfo,
+        path: &[u8],
+        info: &FileInfo,
     ) -> Result<Answer<()>, PlcError> {
-        Err(PlcError::Unsupported("files"))
+        Ok(self.with_files(|files| files.write_info(path, info)))
     }
 
-    async fn list_dir(&mut self, _path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError> {
-        Err(PlcError::Unsupported("files"))
+    async fn list_dir(&mut self, path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError> {
+        Ok(self.with_files(|files| files.list(path)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::plc::MemoryMap;
+
+    #[tokio::test]
+    async fn files_go_to_the_device_store() {
+        let device = Arc::new(Mutex::new(Device::new(MemoryMap::FOXTROT)));
+        let mut backend = MemoryBackend::new(device.clone());
+        assert_eq!(
+            backend.file_info(b"x").await.unwrap(),
+            Err(Exception::NotActivated)
+        );
+        let dir = tempfile::tempdir().unwrap();
+        device.lock().unwrap().files = Some(FileStore::open(dir.path()).unwrap());
+        assert_eq!(
+            backend.write_file(b"a.txt", 0, b"abc", true).await.unwrap(),
+            Ok(())
+        );
+        assert_eq!(backend.file_info(b"a.txt").await.unwrap().unwrap().size, 3);
+        assert_eq!(
+            backend.read_file(b"a.txt", 1, 10).await.unwrap(),
+            Ok(b"bc".to_vec())
+        );
+        let list = backend.list_dir(b"/").await.unwrap().unwrap();
+        assert_eq!(list[0].name, b"a.txt");
+        assert_eq!(
+            backend.read_file(b"../a.txt", 0, 1).await.unwrap(),
+            Err(Exception::BadParameters)
+        );
     }
 }

@@ -5,6 +5,7 @@
 //! is what the PLC itself answered for one request (`Exception`: its error
 //! byte). A caller cannot mistake a lost PLC for "address out of range".
 
+pub mod epsnet;
 pub mod memory;
 
 use std::fmt;

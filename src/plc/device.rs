@@ -4,6 +4,7 @@
 
 use plccoms_protocol::Area;
 
+use super::files::FileStore;
 use super::image::{MemoryImage, MemoryMap};
 use crate::backend::{Exception, WriteData};
 
@@ -19,6 +20,8 @@ pub const DEFAULT_IDENT: &str = "CP1000    SIM 1.0 1.0";
 pub struct Device {
     pub image: MemoryImage,
     pub ident: String,
+    /// The PLC's file system; `None`: file services are not activated.
+    pub files: Option<FileStore>,
 }
 
 impl Device {
@@ -27,6 +30,7 @@ impl Device {
         let mut device = Device {
             image: MemoryImage::new(map),
             ident: DEFAULT_IDENT.to_string(),
+            files: None,
         };
         device.set_run(true);
         device

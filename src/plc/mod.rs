@@ -2,8 +2,12 @@
 //! public files address, shared by the in-process backend and the simulated
 //! EPSNET PLC.
 
+pub mod cp1250;
 pub mod device;
+pub mod files;
 pub mod image;
+pub mod time;
 
 pub use device::Device;
+pub use files::FileStore;
 pub use image::{MemoryImage, MemoryMap};

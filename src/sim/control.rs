@@ -1,0 +1,133 @@
+//! Run-time control of a simulator over a loopback TCP text port, one command
+//! a line, each answered `OK` or `ERR <why>`:
+//!
+//! ```text
+//! loss 0.2          drop 20 % of incoming datagrams
+//! latency 500       delay answers by 500 ms
+//! halt | run        PLC state (__PLC_RUN; the program runs only in RUN)
+//! pub <file>        load another public file (new program, new __PF_CRC)
+//! program demo|idle
+//! animate <mask>... animate these variables (none: stop animating)
+//! status            OK run|halt crc=XXXXXXXX loss=.. latency=..
+//! ```
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
+use tokio::net::{TcpListener, TcpStream};
+
+use super::{lock, Shared};
+
+/// Longest command line accepted.
+const MAX_LINE: usize = 4096;
+/// Control connections served at once.
+const MAX_CLIENTS: usize = 8;
+
+pub(crate) async fn serve(listener: TcpListener, shared: Arc<Shared>) {
+    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CLIENTS));
+    loop {
+        let Ok((stream, _)) = listener.accept().await else {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+            continue;
+        };
+        let Ok(permit) = slots.clone().try_acquire_owned() else {
+            continue;
+        };
+        let shared = shared.clone();
+        tokio::spawn(async move {
+            let _ = client(stream, &shared).await;
+            drop(permit);
+        });
+    }
+}
+
+async fn client(stream: TcpStream, shared: &Shared) -> std::io::Result<()> {
+    let (read, mut write) = stream.into_split();
+    let mut reader = BufReader::new(read);
+    let mut line = Vec::new();
+    loop {
+        line.clear();
+        let n = (&mut reader)
+            .take(MAX_LINE as u64 + 1)
+            .read_until(b'\n', &mut line)
+            .await?;
+        if n == 0 {
+            return Ok(());
+        }
+        let answer = if line.len() > MAX_LINE && !line.ends_with(b"\n") {
+            // Skip the rest of the over-long line.
+            let mut rest = Vec::new();
+            while !rest.ends_with(b"\n") {
+                rest.clear();
+                if (&mut reader)
+                    .take(MAX_LINE as u64)
+                    .read_until(b'\n', &mut rest)
+                    .await?
+                    == 0
+                {
+                    return Ok(());
+                }
+            }
+            "ERR line too long".to_string()
+        } else {
+            match command(String::from_utf8_lossy(&line).trim(), shared) {
+                Ok(text) => text,
+                Err(why) => format!("ERR {why}"),
+            }
+        };
+        write.write_all(answer.as_bytes()).await?;
+        write.write_all(b"\n").await?;
+    }
+}
+
+/// Runs one command line.
+pub(crate) fn command(line: &str, shared: &Shared) -> Result<String, String> {
+    let (word, rest) = line.split_once(char::is_whitespace).unwrap_or((line, ""));
+    let rest = rest.trim();
+    match word.to_ascii_lowercase().as_str() {
+        "loss" => {
+            let fraction: f64 = rest.parse().map_err(|_| format!("bad fraction '{rest}'"))?;
+            if !(0.0..=1.0).contains(&fraction) {
+                return Err("loss must be within 0..1".into());
+            }
+            shared.set_loss(fraction);
+        }
+        "latency" => {
+            let ms: u64 = rest
+                .parse()
+                .map_err(|_| format!("bad milliseconds '{rest}'"))?;
+            shared.set_latency(Duration::from_millis(ms));
+        }
+        "halt" => shared.set_run(false),
+        "run" => shared.set_run(true),
+        "pub" => {
+            if rest.is_empty() {
+                return Err("pub needs a file".into());
+            }
+            let bytes = std::fs::read(rest).map_err(|e| format!("{rest}: {e}"))?;
+            let crc = shared.load_pub(&bytes);
+            return Ok(format!("OK crc={crc:08X}"));
+        }
+        "program" => shared.set_program(rest.parse()?),
+        "animate" => {
+            let masks: Vec<String> = rest.split_whitespace().map(str::to_string).collect();
+            shared.set_animate(&masks);
+        }
+        "status" => {
+            let state = lock(&shared.state);
+            let device = lock(&shared.device);
+            return Ok(format!(
+                "OK {} crc={:08X} loss={} latency={} program={:?}",
+                if device.run() { "run" } else { "halt" },
+                device.pf_crc(),
+                state.loss,
+                state.latency.as_millis(),
+                state.program.kind(),
+            ));
+        }
+        "" => return Err("empty command".into()),
+        other => return Err(format!("unknown command '{other}'")),
+    }
+    Ok("OK".into())
+}

@@ -1,0 +1,425 @@
+//! The simulated EPSNET PLC: a UDP server over a [`Device`], a PLC program
+//! engine, a directory-backed file store and fault injection.
+//!
+//! [`spawn`] starts it inside the current tokio runtime and returns a
+//! [`SimHandle`]: its address, the device, and the fault controls (packet
+//! loss, latency, HALT/RUN, another public file or program). Dropping the
+//! handle stops the simulator. The `plcsim` binary wraps the same API and
+//! adds a loopback TCP control port ([`control`]).
+
+pub mod control;
+pub mod program;
+pub mod server;
+
+use std::io;
+use std::net::{Ipv4Addr, SocketAddr};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::Duration;
+
+use tokio::net::UdpSocket;
+use tokio::sync::Semaphore;
+use tokio::task::JoinHandle;
+
+use self::program::{ProgVar, Program, ProgramKind};
+use self::server::Rng;
+use crate::backend::epsnet::frame::{DEFAULT_PORT, MAX_PACKET};
+use crate::plc::device::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
+use crate::plc::{time, Device, FileStore, MemoryMap};
+use crate::pubfile;
+
+/// The demo program's public file, built in (same bytes as `conf/demo.pub`).
+pub const DEMO_PUB: &[u8] = include_bytes!("../../conf/demo.pub");
+/// The fixed public file (same bytes as `conf/FIXED.pub`).
+pub const FIXED_PUB: &[u8] = include_bytes!("../../conf/FIXED.pub");
+
+/// Answers delayed by injected latency and not yet sent; beyond this the
+/// simulator drops datagrams (memory stays bounded).
+const MAX_DELAYED: usize = 256;
+
+/// Where the user public file comes from.
+#[derive(Debug, Clone)]
+pub enum PubSource {
+    Path(PathBuf),
+    Bytes(Vec<u8>),
+}
+
+#[derive(Debug, Clone)]
+pub struct SimConfig {
+    /// UDP address to serve (default 127.0.0.1:61682; port 0 picks one).
+    pub bind: SocketAddr,
+    /// The user public file (default: the built-in demo file).
+    pub pubfile: PubSource,
+    /// The fixed public file; only checked against the device's fixed places.
+    pub fixed: Option<PathBuf>,
+    /// Directory served as the PLC's file system; `None`: file services
+    /// answer "not activated".
+    pub files: Option<PathBuf>,
+    pub program: ProgramKind,
+    /// Variable name masks (`*` wildcard, case-insensitive) to animate.
+    pub animate: Vec<String>,
+    /// Fraction of incoming datagrams dropped, 0.0..=1.0.
+    pub loss: f64,
+    /// Delay before each answer.
+    pub latency: Duration,
+    /// PLC cycle.
+    pub cycle: Duration,
+    /// Loopback TCP control port (see [`control`]).
+    pub control: Option<SocketAddr>,
+    pub ident: String,
+    pub map: MemoryMap,
+    /// Seed of the packet-loss generator (default: from the clock).
+    pub seed: Option<u64>,
+}
+
+impl Default for SimConfig {
+    fn default() -> Self {
+        SimConfig {
+            bind: SocketAddr::from((Ipv4Addr::LOCALHOST, DEFAULT_PORT)),
+            pubfile: PubSource::Bytes(DEMO_PUB.to_vec()),
+            fixed: None,
+            files: None,
+            program: ProgramKind::Demo,
+            animate: Vec::new(),
+            loss: 0.0,
+            latency: Duration::ZERO,
+            cycle: Duration::from_millis(10),
+            control: None,
+            ident: crate::plc::device::DEFAULT_IDENT.to_string(),
+            map: MemoryMap::FOXTROT,
+            seed: None,
+        }
+    }
+}
+
+/// State the server, the program task and the controls share. Lock order:
+/// `state` before `device`.
+pub(crate) struct Shared {
+    device: Arc<Mutex<Device>>,
+    state: Mutex<SimState>,
+}
+
+struct SimState {
+    loss: f64,
+    latency: Duration,
+    /// PLC clock minus host clock, seconds (SETTID).
+    clock_offset: f64,
+    program: Program,
+    rng: Rng,
+    cycle_ms: u64,
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    // Plain data: still valid after a panic elsewhere.
+    mutex.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// The variables and `__PF_CRC` of a public file.
+pub fn load_pub_bytes(bytes: &[u8]) -> (Vec<ProgVar>, u32) {
+    let parsed = pubfile::parse(bytes);
+    for warning in &parsed.warnings {
+        tracing::warn!("plcsim: public file {warning}");
+    }
+    let computed = pubfile::crc_of(pubfile::crc_content(bytes));
+    let crc = match parsed.crc {
+        Some(trailer) if trailer == computed => trailer,
+        Some(trailer) => {
+            tracing::warn!(
+                "plcsim: public file CRC trailer {trailer:08X} does not match the content \
+                 ({computed:08X}); __PF_CRC = {computed:08X}"
+            );
+            computed
+        }
+        None => computed,
+    };
+    let vars = parsed
+        .vars
+        .into_iter()
+        .map(|v| ProgVar {
+            name: v.name,
+            area: v.area,
+            offset: v.offset,
+            bit: v.bit,
+            ty: v.ty,
+        })
+        .collect();
+    (vars, crc)
+}
+
+impl Shared {
+    fn set_loss(&self, fraction: f64) {
+        lock(&self.state).loss = if fraction.is_nan() {
+            0.0
+        } else {
+            fraction.clamp(0.0, 1.0)
+        };
+    }
+
+    fn set_latency(&self, latency: Duration) {
+        lock(&self.state).latency = latency.min(Duration::from_secs(60));
+    }
+
+    fn set_run(&self, run: bool) {
+        lock(&self.device).set_run(run);
+    }
+
+    fn set_program(&self, kind: ProgramKind) {
+        let mut state = lock(&self.state);
+        state.program = state.program.with_kind(kind);
+    }
+
+    /// Loads another public file: the program now works on its variables,
+    /// and `__PF_CRC` changes to its CRC.
+    fn load_pub(&self, bytes: &[u8]) -> u32 {
+        let (vars, crc) = load_pub_bytes(bytes);
+        let mut state = lock(&self.state);
+        let program = Program::new(
+            state.program.kind(),
+            vars,
+            &state.program.masks(),
+            state.cycle_ms,
+        );
+        state.program = program;
+        lock(&self.device).set_pf_crc(crc);
+        crc
+    }
+
+    fn set_animate(&self, masks: &[String]) {
+        let mut state = lock(&self.state);
+        state.program = Program::new(
+            state.program.kind(),
+            state.program.vars().to_vec(),
+            masks,
+            state.cycle_ms,
+        );
+    }
+
+    /// One PLC cycle: the program runs only in RUN.
+    fn cycle(&self) {
+        let mut state = lock(&self.state);
+        let now = time::unix_now() + state.clock_offset;
+        let mut device = lock(&self.device);
+        if device.run() {
+            state.program.step(&mut device.image, now);
+        }
+    }
+
+    /// Decides the fate of one datagram: `None` to drop it, else the answer
+    /// (possibly empty: stay silent) and its delay.
+    fn handle(&self, bytes: &[u8]) -> Option<(Option<Vec<u8>>, Duration)> {
+        let mut state = lock(&self.state);
+        if state.loss > 0.0 && state.rng.next_f64() < state.loss {
+            return None;
+        }
+        let latency = state.latency;
+        let mut offset = state.clock_offset;
+        let answer = server::handle_datagram(bytes, &mut lock(&self.device), &mut offset);
+        state.clock_offset = offset;
+        Some((answer, latency))
+    }
+}
+
+/// A running simulator. Dropping it stops every task of it.
+pub struct SimHandle {
+    local_addr: SocketAddr,
+    control_addr: Option<SocketAddr>,
+    shared: Arc<Shared>,
+    tasks: Vec<JoinHandle<()>>,
+}
+
+/// Starts a simulated PLC in the current tokio runtime.
+pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
+    let pub_bytes = match &config.pubfile {
+        PubSource::Bytes(bytes) => bytes.clone(),
+        PubSource::Path(path) => std::fs::read(path).map_err(|e| with_path(e, path))?,
+    };
+    if let Some(path) = &config.fixed {
+        check_fixed(&std::fs::read(path).map_err(|e| with_path(e, path))?);
+    }
+    let mut device = Device::new(config.map);
+    device.ident = config.ident.clone();
+    if let Some(dir) = &config.files {
+        device.files = Some(FileStore::open(dir).map_err(|e| with_path(e, dir))?);
+    }
+    let cycle_ms = config.cycle.as_millis().clamp(1, 60_000) as u64;
+    let (vars, crc) = load_pub_bytes(&pub_bytes);
+    device.set_pf_crc(crc);
+    let shared = Arc::new(Shared {
+        device: Arc::new(Mutex::new(device)),
+        state: Mutex::new(SimState {
+            loss: 0.0,
+            latency: Duration::ZERO,
+            clock_offset: 0.0,
+            program: Program::new(config.program, vars, &config.animate, cycle_ms),
+            rng: config.seed.map(Rng::new).unwrap_or_else(Rng::from_time),
+            cycle_ms,
+        }),
+    });
+    shared.set_loss(config.loss);
+    shared.set_latency(config.latency);
+
+    let socket = Arc::new(UdpSocket::bind(config.bind).await?);
+    let local_addr = socket.local_addr()?;
+    let mut tasks = vec![
+        tokio::spawn(serve(socket, shared.clone())),
+        tokio::spawn(run_program(shared.clone(), Duration::from_millis(cycle_ms))),
+    ];
+    let mut control_addr = None;
+    if let Some(addr) = config.control {
+        let listener = tokio::net::TcpListener::bind(addr).await?;
+        control_addr = Some(listener.local_addr()?);
+        tasks.push(tokio::spawn(control::serve(listener, shared.clone())));
+    }
+    Ok(SimHandle {
+        local_addr,
+        control_addr,
+        shared,
+        tasks,
+    })
+}
+
+fn with_path(e: io::Error, path: &Path) -> io::Error {
+    io::Error::new(e.kind(), format!("{}: {e}", path.display()))
+}
+
+/// Warns when the fixed file places `__PLC_RUN` / `__PF_CRC` elsewhere than
+/// the simulated device keeps them.
+fn check_fixed(bytes: &[u8]) {
+    let parsed = pubfile::parse(bytes);
+    let find = |name: &[u8]| {
+        parsed
+            .vars
+            .iter()
+            .find(|v| v.name.eq_ignore_ascii_case(name))
+    };
+    match find(b"__PLC_RUN") {
+        Some(v)
+            if v.area == plccoms_protocol::Area::S
+                && v.offset == PLC_RUN_BYTE
+                && v.bit == Some(PLC_RUN_BIT) => {}
+        _ => tracing::warn!("plcsim: fixed file does not place __PLC_RUN at S2.2"),
+    }
+    match find(b"__PF_CRC") {
+        Some(v) if v.area == plccoms_protocol::Area::S && v.offset == PF_CRC_OFFSET => {}
+        _ => tracing::warn!("plcsim: fixed file does not place __PF_CRC at S70"),
+    }
+}
+
+async fn serve(socket: Arc<UdpSocket>, shared: Arc<Shared>) {
+    let delayed = Arc::new(Semaphore::new(MAX_DELAYED));
+    let mut buf = vec![0u8; MAX_PACKET + 64];
+    loop {
+        let (len, from) = match socket.recv_from(&mut buf).await {
+            Ok(received) => received,
+            Err(e) => {
+                // ICMP errors from earlier answers and the like: keep serving.
+                tracing::debug!("plcsim: receive error: {e}");
+                tokio::time::sleep(Duration::from_millis(1)).await;
+                continue;
+            }
+        };
+        let Some((Some(answer), latency)) = shared.handle(&buf[..len]) else {
+            continue;
+        };
+        if latency.is_zero() {
+            let _ = socket.send_to(&answer, from).await;
+        } else if let Ok(permit) = delayed.clone().try_acquire_owned() {
+            let socket = socket.clone();
+            tokio::spawn(async move {
+                tokio::time::sleep(latency).await;
+                let _ = socket.send_to(&answer, from).await;
+                drop(permit);
+            });
+        }
+    }
+}
+
+async fn run_program(shared: Arc<Shared>, cycle: Duration) {
+    let mut ticks = tokio::time::interval(cycle);
+    ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    loop {
+        ticks.tick().await;
+        shared.cycle();
+    }
+}
+
+impl SimHandle {
+    /// The bound UDP address (the PLC's address for a backend).
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local_addr
+    }
+
+    /// The bound control port, when one was asked for.
+    pub fn control_addr(&self) -> Option<SocketAddr> {
+        self.control_addr
+    }
+
+    /// The simulated device (memory image, run state, files).
+    pub fn device(&self) -> Arc<Mutex<Device>> {
+        self.shared.device.clone()
+    }
+
+    /// Drops this fraction (0.0..=1.0) of incoming datagrams.
+    pub fn set_loss(&self, fraction: f64) {
+        self.shared.set_loss(fraction);
+    }
+
+    /// Delays every answer by this much (capped at 60 s).
+    pub fn set_latency(&self, latency: Duration) {
+        self.shared.set_latency(latency);
+    }
+
+    pub fn halt(&self) {
+        self.shared.set_run(false);
+    }
+
+    pub fn run(&self) {
+        self.shared.set_run(true);
+    }
+
+    pub fn is_running(&self) -> bool {
+        lock(&self.shared.device).run()
+    }
+
+    pub fn set_program(&self, kind: ProgramKind) {
+        self.shared.set_program(kind);
+    }
+
+    pub fn set_animate(&self, masks: &[String]) {
+        self.shared.set_animate(masks);
+    }
+
+    /// Loads another public file (another PLC program); returns the new
+    /// `__PF_CRC`.
+    pub fn load_pub(&self, bytes: &[u8]) -> u32 {
+        self.shared.load_pub(bytes)
+    }
+
+    pub fn load_pub_file(&self, path: &Path) -> io::Result<u32> {
+        let bytes = std::fs::read(path).map_err(|e| with_path(e, path))?;
+        Ok(self.load_pub(&bytes))
+    }
+
+    pub fn pf_crc(&self) -> u32 {
+        lock(&self.shared.device).pf_crc()
+    }
+
+    /// Stops the simulator and waits until its sockets are closed, so the
+    /// port can be bound again.
+    pub async fn stop(mut self) {
+        for task in &self.tasks {
+            task.abort();
+        }
+        for task in self.tasks.drain(..) {
+            let _ = task.await;
+        }
+    }
+}
+
+impl Drop for SimHandle {
+    fn drop(&mut self) {
+        for task in &self.tasks {
+            task.abort();
+        }
+    }
+}
