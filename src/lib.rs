@@ -19,4 +19,5 @@ pub mod section;
 pub mod server;
 pub mod session;
 pub mod sim;
+pub mod startup;
 pub mod vars;
