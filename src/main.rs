@@ -6,6 +6,8 @@ use std::process::ExitCode;
 use clap::Parser;
 use plccoms::cli::Cli;
 use plccoms::config::{self, Severity};
+use plccoms::daemon::{self, Notifier};
+use plccoms::watch;
 use tracing::{error, info, warn};
 
 /// The configuration used when no file is named and `PLCComS.ini` is absent:
@@ -15,8 +17,22 @@ const DEFAULT_CONFIG: &str = "PLCComS.ini";
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // Detach before any thread exists; the parent exits with the outcome of
+    // the child's start-up.
+    let mut notifier = if cli.daemon {
+        match daemon::detach() {
+            Ok(notifier) => notifier,
+            Err(message) => {
+                eprintln!("plccoms: cannot detach: {message}");
+                return ExitCode::FAILURE;
+            }
+        }
+    } else {
+        Notifier::none()
+    };
     if let Err(message) = init_logging(&cli) {
         eprintln!("plccoms: {message}");
+        notifier.fail(&message);
         return ExitCode::FAILURE;
     }
     let runtime = match tokio::runtime::Builder::new_multi_thread()
@@ -25,11 +41,13 @@ fn main() -> ExitCode {
     {
         Ok(runtime) => runtime,
         Err(err) => {
-            error!("cannot start the runtime: {err}");
+            let message = format!("cannot start the runtime: {err}");
+            error!("{message}");
+            notifier.fail(&message);
             return ExitCode::FAILURE;
         }
     };
-    runtime.block_on(run(cli))
+    runtime.block_on(run(cli, notifier))
 }
 
 fn init_logging(cli: &Cli) -> Result<(), String> {
@@ -45,6 +63,7 @@ fn init_logging(cli: &Cli) -> Result<(), String> {
         .with_target(cli.verbose >= 2);
     match cli.log_path() {
         Some(path) => {
+            // Appended, never truncated.
             let file = std::fs::OpenOptions::new()
                 .create(true)
                 .append(true)
@@ -60,8 +79,9 @@ fn init_logging(cli: &Cli) -> Result<(), String> {
     Ok(())
 }
 
-async fn run(cli: Cli) -> ExitCode {
-    let loaded = if cli.config == Path::new(DEFAULT_CONFIG) && !cli.config.exists() {
+async fn run(cli: Cli, mut notifier: Notifier) -> ExitCode {
+    let embedded = cli.config == Path::new(DEFAULT_CONFIG) && !cli.config.exists();
+    let loaded = if embedded {
         info!("no {DEFAULT_CONFIG} here: using the built-in configuration (a simulated PLC on port 5010)");
         config::parse(Path::new("PLCComS.ini.example (built in)"), EMBEDDED_CONFIG)
     } else {
@@ -71,6 +91,7 @@ async fn run(cli: Cli) -> ExitCode {
         Ok(loaded) => loaded,
         Err(err) => {
             error!("{err}");
+            notifier.fail(&err.to_string());
             return ExitCode::FAILURE;
         }
     };
@@ -80,29 +101,60 @@ async fn run(cli: Cli) -> ExitCode {
             Severity::Error => error!("{diagnostic}"),
         }
     }
+    // -t: exit when the configuration file changes (watching starts before
+    // the sections, so no edit is missed).
+    let mut config_changes = None;
+    if cli.terminate {
+        if embedded {
+            warn!("-t: there is no configuration file to watch (built-in configuration)");
+        } else {
+            match watch::watch_file(&cli.config) {
+                Ok(watch) => config_changes = Some(watch),
+                Err(err) => {
+                    let message = format!("-t: cannot watch {}: {err}", cli.config.display());
+                    error!("{message}");
+                    notifier.fail(&message);
+                    return ExitCode::FAILURE;
+                }
+            }
+        }
+    }
     let server = match plccoms::startup::start(&loaded.config).await {
         Ok(server) => server,
         Err(message) => {
             error!("{message}");
+            notifier.fail(&message);
             return ExitCode::FAILURE;
         }
     };
+    let mut terminate =
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(signal) => signal,
+            Err(err) => {
+                let message = format!("cannot handle SIGTERM: {err}");
+                error!("{message}");
+                notifier.fail(&message);
+                return ExitCode::FAILURE;
+            }
+        };
     info!(
         "plccoms {} running, {} section(s)",
         env!("CARGO_PKG_VERSION"),
         server.sections.len()
     );
-    shutdown_signal().await;
-    info!("shutting down");
-    drop(server);
-    ExitCode::SUCCESS
-}
-
-async fn shutdown_signal() {
-    let mut terminate = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-        .expect("SIGTERM handler");
+    notifier.ready();
+    let config_changed = async {
+        match config_changes.as_mut() {
+            Some((_, changes)) => changes.recv().await,
+            None => std::future::pending().await,
+        }
+    };
     tokio::select! {
-        _ = tokio::signal::ctrl_c() => {}
-        _ = terminate.recv() => {}
+        _ = tokio::signal::ctrl_c() => info!("SIGINT: shutting down"),
+        _ = terminate.recv() => info!("SIGTERM: shutting down"),
+        _ = config_changed => info!("configuration file {} changed: exiting (-t)", cli.config.display()),
     }
+    server.shutdown().await;
+    info!("stopped");
+    ExitCode::SUCCESS
 }

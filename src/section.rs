@@ -6,6 +6,7 @@ use std::sync::{Arc, Mutex};
 
 use plccoms_protocol::value::FormatOptions;
 use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
 
 use crate::config::{Global, Section};
 use crate::fanout::Snapshot;
@@ -27,6 +28,9 @@ pub struct SectionShared {
     pub format: FormatOptions,
     pub poller: PollerHandle,
     pub snapshots: watch::Receiver<Arc<Snapshot>>,
+    /// Cancelled when the server stops: sessions answer what they have and
+    /// close.
+    pub shutdown: CancellationToken,
     clients: Mutex<Clients>,
 }
 
@@ -51,6 +55,7 @@ impl SectionShared {
             format,
             poller,
             snapshots,
+            shutdown: CancellationToken::new(),
             clients: Mutex::new(Clients::default()),
         }
     }

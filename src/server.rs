@@ -9,6 +9,8 @@ use std::time::Duration;
 use tokio::io::AsyncWriteExt;
 use tokio::net::{TcpListener, TcpSocket, TcpStream};
 use tokio::task::JoinHandle;
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
 use tracing::{info, warn};
 
 use plccoms_protocol::answer::{write_error, ErrorCode};
@@ -16,7 +18,7 @@ use plccoms_protocol::answer::{write_error, ErrorCode};
 use crate::backend::PlcBackend;
 use crate::config::{Global, Section};
 use crate::fanout::Publisher;
-use crate::poller::Poller;
+use crate::poller::{self, Poller};
 use crate::section::SectionShared;
 use crate::session::Session;
 use crate::vars::VarTable;
@@ -25,14 +27,28 @@ use crate::vars::VarTable;
 pub struct RunningSection {
     pub shared: Arc<SectionShared>,
     pub local_addr: SocketAddr,
-    tasks: Vec<JoinHandle<()>>,
+    accept: JoinHandle<()>,
+    poller_stop: CancellationToken,
+    sessions: TaskTracker,
 }
 
 impl RunningSection {
     /// Stops accepting and polling. Sessions end when their poller is gone.
     pub fn abort(&self) {
-        for task in &self.tasks {
-            task.abort();
+        self.accept.abort();
+        self.poller_stop.cancel();
+        self.shared.shutdown.cancel();
+        self.sessions.close();
+    }
+
+    /// Waits until every session has answered what it received and closed,
+    /// at most `grace`.
+    pub async fn wait_sessions(&self, grace: Duration) {
+        if tokio::time::timeout(grace, self.sessions.wait())
+            .await
+            .is_err()
+        {
+            warn!(section = %self.shared.name, "{} session(s) still busy at shutdown", self.sessions.len());
         }
     }
 }
@@ -62,14 +78,18 @@ pub async fn start_section(
         publisher,
         global.comm_loop_delay,
     );
-    let poll_task = tokio::spawn(poller.run());
+    let poller_stop = poller.stop_token();
+    poller::spawn_thread(poller, global.comm_sched_pri)?;
     let shared = Arc::new(SectionShared::new(global, config, handle, snapshots));
-    let accept_task = tokio::spawn(accept_loop(listener, shared.clone()));
+    let sessions = TaskTracker::new();
+    let accept = tokio::spawn(accept_loop(listener, shared.clone(), sessions.clone()));
     info!(section = %shared.name, listen = %local_addr, "listening");
     Ok(RunningSection {
         shared,
         local_addr,
-        tasks: vec![poll_task, accept_task],
+        accept,
+        poller_stop,
+        sessions,
     })
 }
 
@@ -86,7 +106,7 @@ fn listen(bind: SocketAddr) -> io::Result<TcpListener> {
     socket.listen(1024)
 }
 
-async fn accept_loop(listener: TcpListener, shared: Arc<SectionShared>) {
+async fn accept_loop(listener: TcpListener, shared: Arc<SectionShared>, sessions: TaskTracker) {
     loop {
         let (stream, peer) = match listener.accept().await {
             Ok(accepted) => accepted,
@@ -100,7 +120,7 @@ async fn accept_loop(listener: TcpListener, shared: Arc<SectionShared>) {
         match shared.admit(peer) {
             Some(id) => {
                 let shared = shared.clone();
-                tokio::spawn(async move {
+                sessions.spawn(async move {
                     let _registration = Registration {
                         shared: shared.clone(),
                         id,

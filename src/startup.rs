@@ -32,7 +32,24 @@ impl Server {
     pub fn simulators(&self) -> &[SimHandle] {
         &self.simulators
     }
+
+    /// Stops accepting and polling, lets every session answer what it has
+    /// received (bounded by a grace period), then stops the simulators.
+    pub async fn shutdown(self) {
+        for section in &self.sections {
+            section.abort();
+        }
+        for section in &self.sections {
+            section.wait_sessions(SHUTDOWN_GRACE).await;
+        }
+        for simulator in self.simulators {
+            simulator.stop().await;
+        }
+    }
 }
+
+/// Longest wait for sessions to finish at shutdown.
+const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
 
 /// Starts every section of `config`; fails only when none could start.
 pub async fn start(config: &Config) -> Result<Server, String> {

@@ -6,11 +6,11 @@
 pub mod interest;
 pub mod plan;
 
-use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::sync::{mpsc, oneshot, watch};
 use tokio::time::{Instant, MissedTickBehavior};
+use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
 use crate::backend::{Answer, Exception, PlcBackend, PlcError, ReadRequest, WriteRequest};
@@ -122,6 +122,7 @@ pub struct Poller {
     last_crc: Option<u64>,
     /// Blocks the PLC refused, logged once per plan.
     refused_logged: bool,
+    stop: CancellationToken,
 }
 
 impl Poller {
@@ -159,6 +160,7 @@ impl Poller {
             last_run: None,
             last_crc: None,
             refused_logged: false,
+            stop: CancellationToken::new(),
         };
         (
             poller,
@@ -169,7 +171,12 @@ impl Poller {
         )
     }
 
-    /// Runs until every handle is dropped.
+    /// Cancelling this token stops the poller.
+    pub fn stop_token(&self) -> CancellationToken {
+        self.stop.clone()
+    }
+
+    /// Runs until stopped or every handle is dropped.
     pub async fn run(mut self) {
         let mut ticks = tokio::time::interval(self.loop_delay);
         // Fixed deadlines: a late cycle does not shift the ones after it.
@@ -177,6 +184,7 @@ impl Poller {
         loop {
             tokio::select! {
                 biased;
+                _ = self.stop.cancelled() => break,
                 job = self.jobs.recv() => {
                     let Some(job) = job else { break };
                     let mut batch = vec![job];
@@ -507,9 +515,38 @@ fn split(request: ReadRequest, max: u32) -> impl Iterator<Item = ReadRequest> {
         })
 }
 
-/// Spawns the poller; it stops when every handle is gone.
-pub fn spawn(poller: Poller) -> tokio::task::JoinHandle<()> {
-    tokio::spawn(poller.run())
+/// Runs the poller on a thread of its own, so that client load never delays
+/// a poll cycle, with real-time priority `priority` (COMM_SCHED_PRI, 0 = off)
+/// when the process may have it.
+pub fn spawn_thread(poller: Poller, priority: u8) -> std::io::Result<std::thread::JoinHandle<()>> {
+    let section = poller.section.clone();
+    std::thread::Builder::new()
+        .name(format!("poll {section}"))
+        .spawn(move || {
+            if priority > 0 {
+                if let Err(err) = set_realtime_priority(priority) {
+                    warn!(section = %section, "COMM_SCHED_PRI = {priority}: cannot use real-time priority ({err}); polling at normal priority");
+                } else {
+                    info!(section = %section, "poll loop at real-time priority {priority}");
+                }
+            }
+            match tokio::runtime::Builder::new_current_thread().enable_all().build() {
+                Ok(runtime) => runtime.block_on(poller.run()),
+                Err(err) => warn!(section = %section, "cannot start the poll loop: {err}"),
+            }
+        })
 }
 
-pub type SharedPoller = Arc<PollerHandle>;
+/// SCHED_FIFO at `priority` for the calling thread.
+fn set_realtime_priority(priority: u8) -> std::io::Result<()> {
+    let param = libc::sched_param {
+        sched_priority: i32::from(priority),
+    };
+    // SAFETY: plain syscall on the current thread with a valid parameter.
+    let rc = unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &param) };
+    if rc == 0 {
+        Ok(())
+    } else {
+        Err(std::io::Error::from_raw_os_error(rc))
+    }
+}

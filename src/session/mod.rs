@@ -121,10 +121,12 @@ impl Session {
                 && self.pending.len() < MAX_PENDING
                 && backlog < OUTPUT_HIGH_WATER;
             let want_diffs = self.diff && backlog < OUTPUT_HIGH_WATER;
+            let closing = self.close;
             let Session {
                 conn,
                 pending,
                 snapshots,
+                shared,
                 ..
             } = self;
             let Connection {
@@ -161,6 +163,9 @@ impl Session {
                     } else {
                         self.take_snapshot();
                     }
+                }
+                _ = shared.shutdown.cancelled(), if !closing => {
+                    self.close = true;
                 }
                 else => return Ok(()),
             }
