@@ -721,7 +721,7 @@ impl Values<'_, '_, '_> {
 
 /// Dotted decimal with 1 to 3 digits per part; leading zeros are decimal
 /// (`192.168.001.010` is 192.168.1.10), as the vendor's files write them.
-fn parse_ipv4(text: &str) -> Option<Ipv4Addr> {
+pub fn parse_ipv4(text: &str) -> Option<Ipv4Addr> {
     let mut octets = [0u8; 4];
     let mut parts = text.split('.');
     for octet in &mut octets {

@@ -37,6 +37,10 @@ impl Slot {
         self.text.as_deref()
     }
 
+    pub fn shared_text(&self) -> Option<Arc<[u8]>> {
+        self.text.clone()
+    }
+
     /// The value, decoded (for delta comparisons).
     pub fn value(&self, var: &Var) -> Option<Value> {
         let text = self.text.as_ref()?;
@@ -47,6 +51,17 @@ impl Slot {
             Value::decode(var.ty, &self.raw.to_le_bytes()[..var.ty.size().min(8)])
         })
     }
+}
+
+/// A change of public file, announced to every client of the section.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Notice {
+    /// Increases with every notice.
+    pub seq: u64,
+    /// The new file differs: WARNING:250 (else 251, content unchanged).
+    pub changed: bool,
+    /// The file's name as the warning shows it.
+    pub name: String,
 }
 
 /// Everything a session needs to know about the PLC's variables, as of one
@@ -65,6 +80,8 @@ pub struct Snapshot {
     pub interest: Arc<Interest>,
     /// Variables whose value changed in this publish.
     pub changed: Vec<VarId>,
+    /// The latest public-file notice, if any was made.
+    pub notice: Option<Arc<Notice>>,
     chunks: Vec<Arc<Vec<Slot>>>,
 }
 
@@ -95,6 +112,7 @@ pub struct Publisher {
     changed: Vec<VarId>,
     format: FormatOptions,
     scratch: Vec<u8>,
+    notice: Option<Arc<Notice>>,
 }
 
 impl Publisher {
@@ -111,6 +129,7 @@ impl Publisher {
             table: table.clone(),
             interest: interest.clone(),
             changed: Vec::new(),
+            notice: None,
             chunks: chunks.clone(),
         });
         let (tx, rx) = watch::channel(snapshot);
@@ -125,6 +144,7 @@ impl Publisher {
             changed: Vec::new(),
             format,
             scratch: Vec::new(),
+            notice: None,
         };
         (publisher, rx)
     }
@@ -207,6 +227,7 @@ impl Publisher {
             table: self.table.clone(),
             interest: self.interest.clone(),
             changed: std::mem::take(&mut self.changed),
+            notice: self.notice.clone(),
             chunks: self.chunks.clone(),
         };
         self.tx.send_replace(Arc::new(snapshot));
@@ -214,6 +235,24 @@ impl Publisher {
 
     pub fn online(&self) -> bool {
         self.online
+    }
+
+    /// Switches to a new variable table (a new public file): every value is
+    /// unknown again and the clients' interest starts anew. Takes effect with
+    /// the next publish.
+    pub fn replace_table(&mut self, table: Arc<VarTable>) {
+        self.interest = Arc::new(Interest::new(table.len()));
+        self.chunks = empty_chunks(table.len());
+        self.changed.clear();
+        self.table = table;
+    }
+
+    /// Announces a public-file load to every client with the next publish.
+    pub fn announce(&mut self, changed: bool, name: String) -> Arc<Notice> {
+        let seq = self.notice.as_ref().map_or(1, |n| n.seq + 1);
+        let notice = Arc::new(Notice { seq, changed, name });
+        self.notice = Some(notice.clone());
+        notice
     }
 }
 

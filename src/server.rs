@@ -18,6 +18,7 @@ use plccoms_protocol::answer::{write_error, ErrorCode};
 use crate::backend::PlcBackend;
 use crate::config::{Global, Section};
 use crate::fanout::Publisher;
+use crate::poller::reload::{PubSource, UserFile};
 use crate::poller::{self, Poller};
 use crate::section::SectionShared;
 use crate::session::Session;
@@ -67,6 +68,7 @@ pub async fn start_section(
     table: VarTable,
     backend: Option<Box<dyn PlcBackend>>,
     bind: SocketAddr,
+    reload: Option<(PubSource, Option<UserFile>)>,
 ) -> io::Result<RunningSection> {
     let listener = listen(bind)?;
     let local_addr = listener.local_addr()?;
@@ -78,6 +80,10 @@ pub async fn start_section(
         publisher,
         global.comm_loop_delay,
     );
+    let poller = match reload {
+        Some((source, user)) => poller.with_source(source, user),
+        None => poller,
+    };
     let poller_stop = poller.stop_token();
     poller::spawn_thread(poller, global.comm_sched_pri)?;
     let shared = Arc::new(SectionShared::new(global, config, handle, snapshots));

@@ -197,3 +197,46 @@ pub trait PlcBackend: Send {
 
     async fn list_dir(&mut self, path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError>;
 }
+
+/// The link a section's keys describe: EPSNET to `IPADDR:EPSPORT`, or `None`
+/// when the section has no PLC yet (`IPADDR` unset or `0.0.0.0`). Serial
+/// lines and shared modules are refused with the reason.
+pub fn for_section(
+    section: &crate::config::Section,
+) -> Result<Option<Box<dyn PlcBackend>>, String> {
+    use std::net::{IpAddr, SocketAddr};
+    if section.serial_device.is_some() {
+        return Err("serial lines (SERIAL_DEVICE) are not supported by this server".to_string());
+    }
+    if section.shm_name.is_some() {
+        return Err("shared modules (SHM_NAME) are not supported by this server".to_string());
+    }
+    match section.ipaddr {
+        Some(ip) if !ip.is_unspecified() => {
+            let plc = SocketAddr::new(IpAddr::V4(ip), section.epsport);
+            Ok(Some(Box::new(epsnet::EpsnetBackend::new(epsnet_config(
+                section, plc,
+            )))))
+        }
+        _ => Ok(None),
+    }
+}
+
+/// EPSNET settings from a section's keys, for a PLC at `plc`.
+pub fn epsnet_config(
+    section: &crate::config::Section,
+    plc: std::net::SocketAddr,
+) -> epsnet::EpsnetConfig {
+    use std::net::{IpAddr, Ipv4Addr};
+    let mut config = epsnet::EpsnetConfig::new(plc);
+    if let Some(local) = section.ipaddr_local {
+        config.local_ip = IpAddr::V4(local);
+    }
+    if plc.ip().is_loopback() {
+        config.local_ip = IpAddr::V4(Ipv4Addr::LOCALHOST);
+    }
+    config.eps_addr = section.epsaddr;
+    config.timeout = section.epstout;
+    config.timeout_step = section.epstout_step;
+    config
+}

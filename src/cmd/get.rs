@@ -12,15 +12,17 @@ use super::{error, select, Selection};
 use crate::backend::ReadRequest;
 use crate::poller::{LinkError, ReadReply};
 use crate::session::{Pending, Session};
-use crate::vars::VarId;
+use crate::vars::{VarId, VarTable};
+use std::sync::Arc;
 
 /// What to do with the PLC's answer.
 pub enum ReadThen {
     Vars {
+        table: Arc<VarTable>,
         ids: Vec<VarId>,
-        /// Per id: whether its value is in the PLC's answer (in order) or
-        /// comes from the latest poll.
-        from_plc: Vec<bool>,
+        /// Per id: the value from the latest poll, or `None` when it is in
+        /// the PLC's answer (in order).
+        cached: Vec<Option<Arc<[u8]>>>,
         single: bool,
     },
     Direct {
@@ -40,14 +42,18 @@ pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
     }
     let ids = selection.ids();
     let snapshot = session.latest_snapshot();
-    let cache_ok = !session.set_outstanding();
     let table = session.vars.table().clone();
+    // Behind an unanswered SET, or across a public-file change, only the PLC
+    // knows.
+    let cache_ok = !session.set_outstanding() && Arc::ptr_eq(&snapshot.table, &table);
     let mut requests = Vec::new();
-    let from_plc: Vec<bool> = ids
+    let cached: Vec<Option<Arc<[u8]>>> = ids
         .iter()
         .map(|&id| {
-            if cache_ok && snapshot.current(id).is_some() {
-                return false;
+            if cache_ok {
+                if let Some(text) = snapshot.current(id).and_then(|slot| slot.shared_text()) {
+                    return Some(text);
+                }
             }
             let var = table.var(id);
             requests.push(ReadRequest {
@@ -55,12 +61,13 @@ pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
                 offset: var.offset,
                 len: var.byte_len(),
             });
-            true
+            None
         })
         .collect();
     let then = ReadThen::Vars {
+        table,
         ids,
-        from_plc,
+        cached,
         single,
     };
     if requests.is_empty() {
@@ -116,20 +123,21 @@ pub fn complete(session: &mut Session, then: ReadThen, reply: ReadReply, out: &m
             }
         },
         ReadThen::Vars {
+            table,
             ids,
-            from_plc,
+            cached,
             single,
         } => {
-            let table = session.vars.table().clone();
-            let snapshot = session.snapshot.clone();
             let mut answers = answers.into_iter();
             let start = out.len();
-            for (&id, &plc) in ids.iter().zip(&from_plc) {
+            for (&id, cached) in ids.iter().zip(&cached) {
                 let var = table.var(id);
                 out.extend_from_slice(b"GET:");
                 out.extend_from_slice(&var.name);
                 out.push(b',');
-                if plc {
+                if let Some(text) = cached {
+                    out.extend_from_slice(text);
+                } else {
                     match answers.next() {
                         Some(Ok(bytes)) => var.decode(&bytes).format(var.ty, format, out),
                         _ => {
@@ -139,8 +147,6 @@ pub fn complete(session: &mut Session, then: ReadThen, reply: ReadReply, out: &m
                             return;
                         }
                     }
-                } else {
-                    out.extend_from_slice(snapshot.slot(id).text().unwrap_or_default());
                 }
                 out.extend_from_slice(eol);
             }

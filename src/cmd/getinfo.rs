@@ -53,8 +53,9 @@ pub fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
 
 /// Appends the lines of `key`, each ended by `\n`.
 fn lines(session: &Session, key: &str, text: &mut String, listing_all: bool) {
-    let config = &session.shared.config;
     let link = session.shared.poller.info();
+    // The settings as SETCONF left them.
+    let config = link.section.as_ref().unwrap_or(&session.shared.config);
     match key {
         "VERSION" => line(
             text,

@@ -29,7 +29,7 @@ pub async fn dispatch(session: &mut Session, command: Command, args: &[u8], cont
         Command::Hide => hide::apply(session, args, context, true),
         Command::Unhide => hide::apply(session, args, context, false),
         Command::GetInfo => getinfo::apply(session, args, context),
-        Command::SetConf => setconf::apply(session, args, context),
+        Command::SetConf => setconf::apply(session, args, context).await,
         Command::Help => help::apply(session),
         Command::GetMem
         | Command::GetFile

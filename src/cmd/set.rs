@@ -14,10 +14,12 @@ use super::get::link_error;
 use crate::backend::{ReadRequest, WriteData, WriteRequest};
 use crate::poller::{SetItem, SetReply};
 use crate::session::{Pending, Session};
-use crate::vars::VarId;
+use crate::vars::{VarId, VarTable};
+use std::sync::Arc;
 
 pub struct SetThen {
     name: Vec<u8>,
+    table: Arc<VarTable>,
     var: Option<VarId>,
     ty: IecType,
     bit: Option<u8>,
@@ -67,11 +69,12 @@ pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
             offset,
             len: ty.size() as u32,
         },
-        var,
+        var: var.map(|id| (session.vars.table().clone(), id)),
     };
     let rx = session.shared.poller.set(item).await;
     let then = SetThen {
         name: printed,
+        table: session.vars.table().clone(),
         var,
         ty,
         bit,
@@ -108,7 +111,8 @@ pub fn complete(session: &mut Session, then: SetThen, reply: SetReply, out: &mut
         value.format(then.ty, &session.shared.format, out);
         out.extend_from_slice(eol);
     }
-    if let Some(id) = then.var {
+    // The table may have changed while the SET was under way.
+    if let (Some(id), true) = (then.var, Arc::ptr_eq(&then.table, session.vars.table())) {
         session.vars.mark_sent(id, outcome.seq, Some(value));
     }
 }

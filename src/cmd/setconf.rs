@@ -1,21 +1,34 @@
 //! `SETCONF:<name>,<value>`. `crlf` and `diff` change this client only and
-//! are answered by echoing the setting; an unknown name is ERROR:50, a bad
-//! value ERROR:35.
+//! are answered by echoing the setting. `ipaddr`, `epsaddr`, `epsport`,
+//! `serial_device`, `serial_speed` and `pubfile` change the section for all
+//! its clients: the link is re-established and the public file reloaded,
+//! answered `WARNING:250 Changed public file: '<name>'` (or 251 when its
+//! content is the same), and every other client of the section gets the same
+//! warning. ERROR:10 when the PLC does not answer, ERROR:35 for a bad value,
+//! ERROR:50 for an unknown name.
 
-use plccoms_protocol::answer::ErrorCode;
+use plccoms_protocol::answer::{write_error, write_warning, ErrorCode, WarningCode};
 use plccoms_protocol::request::{parse_setconf, ArgError};
 
 use super::error;
-use crate::session::Session;
+use crate::config::parse_ipv4;
+use crate::fanout::Notice;
+use crate::poller::{ConfChange, ReconfError, ReconfReply};
+use crate::session::{Pending, Session};
 
-pub fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
+pub struct ConfThen {
+    context: Vec<u8>,
+}
+
+pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
     let (name, value) = match parse_setconf(args) {
         Ok(parts) => parts,
         Err(ArgError::Incomplete) => return error(session, ErrorCode::Incomplete, context),
         Err(ArgError::Bad) => return error(session, ErrorCode::BadRequest, context),
     };
     let key = String::from_utf8_lossy(name).to_ascii_lowercase();
-    match key.as_str() {
+    let text = String::from_utf8_lossy(value).into_owned();
+    let change = match key.as_str() {
         "crlf" | "diff" => {
             let Some(on) = yes_no(value) else {
                 return error(session, ErrorCode::WrongValue, context);
@@ -29,10 +42,59 @@ pub fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
             line.extend_from_slice(key.to_ascii_uppercase().as_bytes());
             line.push(b',');
             line.extend_from_slice(if on { b"YES" } else { b"NO" });
-            session.answer_line(line);
+            return session.answer_line(line);
         }
-        _ => error(session, ErrorCode::SetConfUnknown, context),
+        "ipaddr" => parse_ipv4(&text).map(ConfChange::IpAddr),
+        "epsaddr" => text
+            .parse()
+            .ok()
+            .filter(|a| (1..=126).contains(a))
+            .map(ConfChange::EpsAddr),
+        "epsport" => text
+            .parse()
+            .ok()
+            .filter(|&p| p > 0)
+            .map(ConfChange::EpsPort),
+        "serial_device" => (!text.is_empty()).then(|| ConfChange::SerialDevice(text.clone())),
+        "serial_speed" => text
+            .parse()
+            .ok()
+            .filter(|&s| s > 0)
+            .map(ConfChange::SerialSpeed),
+        "pubfile" => (!text.is_empty()).then(|| ConfChange::PubFile(text.clone())),
+        _ => return error(session, ErrorCode::SetConfUnknown, context),
+    };
+    let Some(change) = change else {
+        return error(session, ErrorCode::WrongValue, context);
+    };
+    let rx = session.shared.poller.reconfigure(change).await;
+    let then = ConfThen {
+        context: context.to_vec(),
+    };
+    session.pending.push_back(Pending::Conf { rx, then });
+}
+
+pub fn complete(session: &mut Session, then: ConfThen, reply: ReconfReply, out: &mut Vec<u8>) {
+    match reply {
+        Ok(outcome) => {
+            // This client hears of the reload through this answer only.
+            session.notice_seen = session.notice_seen.max(outcome.notice.seq);
+            write_notice(&outcome.notice, out);
+        }
+        Err(ReconfError::Unreachable(_)) => write_error(out, ErrorCode::ConnectPlc, b""),
+        Err(ReconfError::PubFile(_)) => write_error(out, ErrorCode::WrongValue, &then.context),
     }
+    out.extend_from_slice(session.conn.eol);
+}
+
+/// `WARNING:250 Changed public file: '<name>'` or 251, without line end.
+pub fn write_notice(notice: &Notice, out: &mut Vec<u8>) {
+    let code = if notice.changed {
+        WarningCode::PubfileChanged
+    } else {
+        WarningCode::PubfileSame
+    };
+    write_warning(out, code, notice.name.as_bytes());
 }
 
 /// `yes`/`no` (also `1`/`0`, `true`/`false`), any case.

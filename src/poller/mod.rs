@@ -5,6 +5,7 @@
 
 pub mod interest;
 pub mod plan;
+pub mod reload;
 
 use std::time::Duration;
 
@@ -35,8 +36,9 @@ pub type ReadReply = Result<Vec<Answer<Vec<u8>>>, LinkError>;
 pub struct SetItem {
     pub write: WriteRequest,
     pub readback: ReadRequest,
-    /// The table variable, so other clients get the DIFF too.
-    pub var: Option<VarId>,
+    /// The table variable, so other clients get the DIFF too; ignored when
+    /// the table changed meanwhile.
+    pub var: Option<(std::sync::Arc<crate::vars::VarTable>, VarId)>,
 }
 
 #[derive(Debug)]
@@ -59,7 +61,41 @@ pub enum Job {
         item: SetItem,
         reply: oneshot::Sender<SetReply>,
     },
+    /// SETCONF of a key that affects the whole section.
+    Reconfigure {
+        change: ConfChange,
+        reply: oneshot::Sender<ReconfReply>,
+    },
 }
+
+/// A section setting changed at run time (SETCONF).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ConfChange {
+    IpAddr(std::net::Ipv4Addr),
+    EpsAddr(u8),
+    EpsPort(u16),
+    SerialDevice(String),
+    SerialSpeed(u32),
+    PubFile(String),
+}
+
+/// A public-file load that SETCONF caused: the notice every client gets.
+#[derive(Debug, Clone)]
+pub struct ReconfOutcome {
+    pub notice: std::sync::Arc<crate::fanout::Notice>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ReconfError {
+    /// The PLC does not answer at the new address (ERROR:10).
+    #[error("PLC not reachable: {0}")]
+    Unreachable(String),
+    /// The public file could not be loaded (ERROR:35).
+    #[error("{0}")]
+    PubFile(String),
+}
+
+pub type ReconfReply = Result<ReconfOutcome, ReconfError>;
 
 /// What GETINFO shows about the link.
 #[derive(Debug, Clone, Default)]
@@ -68,6 +104,8 @@ pub struct LinkInfo {
     pub ident: Option<String>,
     pub source_address: Option<u8>,
     pub online: bool,
+    /// The section's settings as changed by SETCONF (`None`: as configured).
+    pub section: Option<crate::config::Section>,
 }
 
 /// The sessions' handle to their section's poller.
@@ -89,6 +127,12 @@ impl PollerHandle {
     pub async fn set(&self, item: SetItem) -> oneshot::Receiver<SetReply> {
         let (reply, rx) = oneshot::channel();
         let _ = self.jobs.send(Job::Set { item, reply }).await;
+        rx
+    }
+
+    pub async fn reconfigure(&self, change: ConfChange) -> oneshot::Receiver<ReconfReply> {
+        let (reply, rx) = oneshot::channel();
+        let _ = self.jobs.send(Job::Reconfigure { change, reply }).await;
         rx
     }
 
@@ -123,6 +167,12 @@ pub struct Poller {
     /// Blocks the PLC refused, logged once per plan.
     refused_logged: bool,
     stop: CancellationToken,
+    /// How to reload the public files; `None` when the section was built
+    /// from a fixed table (tests).
+    source: Option<reload::PubSource>,
+    user: Option<reload::UserFile>,
+    /// The user file's CRC was compared with `__PF_CRC`.
+    crc_checked: bool,
 }
 
 impl Poller {
@@ -143,6 +193,7 @@ impl Poller {
             ident: None,
             source_address: backend.as_ref().and_then(|b| b.source_address()),
             online: false,
+            section: None,
         });
         let poller = Poller {
             section,
@@ -161,6 +212,9 @@ impl Poller {
             last_crc: None,
             refused_logged: false,
             stop: CancellationToken::new(),
+            source: None,
+            user: None,
+            crc_checked: false,
         };
         (
             poller,
@@ -169,6 +223,20 @@ impl Poller {
                 info: info_rx,
             },
         )
+    }
+
+    /// Lets the poller reload public files from `source` (`user` is the
+    /// file loaded at start-up).
+    pub fn with_source(
+        mut self,
+        source: reload::PubSource,
+        user: Option<reload::UserFile>,
+    ) -> Self {
+        self.info
+            .send_modify(|info| info.section = Some(source.section.clone()));
+        self.source = Some(source);
+        self.user = user;
+        self
     }
 
     /// Cancelling this token stops the poller.
@@ -335,14 +403,151 @@ impl Poller {
                 self.last_run = Some(run);
             }
         }
-        let crc_slot = self.publisher.slot(table.pf_crc());
-        let crc = crc_slot.text().map(|_| crc_slot.changed_seq);
+        let crc_var = table.var(table.pf_crc());
+        let crc = match self.publisher.slot(table.pf_crc()).value(crc_var) {
+            Some(plccoms_protocol::value::Value::Unsigned(crc)) => Some(crc),
+            _ => None,
+        };
         if let (Some(last), Some(now)) = (self.last_crc, crc) {
             if last != now {
-                info!(section = %self.section, "__PF_CRC changed: the PLC's program changed");
+                info!(section = %self.section, "__PF_CRC changed ({last:08X} -> {now:08X}): the PLC's program changed, reloading the public file");
+                self.last_crc = crc;
+                self.crc_checked = false;
+                if let Err(err) = self.reload().await {
+                    warn!(section = %self.section, "public file not reloaded: {err}");
+                }
+                return;
             }
         }
         self.last_crc = crc;
+        if let Some(crc) = crc {
+            self.check_crc(crc);
+        }
+    }
+
+    /// PUBFILE_CRC: the user file's CRC trailer must match `__PF_CRC`. A
+    /// mismatch is logged once per file; the variables stay served.
+    fn check_crc(&mut self, pf_crc: u64) {
+        if self.crc_checked {
+            return;
+        }
+        self.crc_checked = true;
+        let (Some(source), Some(user)) = (&self.source, &self.user) else {
+            return;
+        };
+        if !source.section.pubfile_crc {
+            return;
+        }
+        match reload::trailer_crc(user) {
+            Some(crc) if u64::from(crc) == pf_crc => {
+                debug!(section = %self.section, "public file {} matches __PF_CRC {crc:08X}", user.name)
+            }
+            Some(crc) => warn!(
+                section = %self.section,
+                "public file {} has CRC {crc:08X} but the PLC's __PF_CRC is {pf_crc:08X}: the file does not describe the program in the PLC",
+                user.name
+            ),
+            None => warn!(
+                section = %self.section,
+                "PUBFILE_CRC = Yes but public file {} has no CRC line",
+                user.name
+            ),
+        }
+    }
+
+    /// Loads the public file again; when its content changed, switches every
+    /// client to the new table. Announces the outcome (250 or 251).
+    async fn reload(&mut self) -> Result<std::sync::Arc<crate::fanout::Notice>, String> {
+        let Some(source) = self.source.clone() else {
+            return Err("this section has no public-file source".to_string());
+        };
+        let user = source.load_user(self.backend.as_deref_mut()).await?;
+        let name = user
+            .as_ref()
+            .map_or_else(|| source.fixed_name.clone(), |u| u.name.clone());
+        let changed = user != self.user;
+        if changed {
+            let table = source.build(user.as_ref())?;
+            info!(section = %self.section, variables = table.len(), "public file {name} loaded: new variable table");
+            self.publisher.replace_table(std::sync::Arc::new(table));
+            self.poll_vars.clear();
+            self.plan = ReadPlan::default();
+            self.user = user;
+        } else {
+            info!(section = %self.section, "public file {name} reloaded: content unchanged");
+        }
+        let notice = self.publisher.announce(changed, name);
+        let online = self.online;
+        self.publisher.publish(false, online);
+        Ok(notice)
+    }
+
+    /// SETCONF of a section key: apply it, reconnect when the link changed,
+    /// reload the public file, and tell every client.
+    async fn reconfigure(&mut self, change: ConfChange) -> ReconfReply {
+        let Some(source) = self.source.as_mut() else {
+            return Err(ReconfError::PubFile(
+                "this section cannot be reconfigured".to_string(),
+            ));
+        };
+        let section = &mut source.section;
+        let relink = match &change {
+            ConfChange::IpAddr(ip) => {
+                section.ipaddr = Some(*ip);
+                // A real address replaces the simulated PLC.
+                section.simulator = None;
+                true
+            }
+            ConfChange::EpsAddr(addr) => {
+                section.epsaddr = Some(*addr);
+                true
+            }
+            ConfChange::EpsPort(port) => {
+                section.epsport = *port;
+                true
+            }
+            ConfChange::SerialDevice(device) => {
+                section.serial_device = Some(device.clone());
+                true
+            }
+            ConfChange::SerialSpeed(speed) => {
+                section.serial_speed = Some(*speed);
+                true
+            }
+            ConfChange::PubFile(name) => {
+                section.pubfile = Some(name.clone());
+                false
+            }
+        };
+        let section = section.clone();
+        info!(section = %self.section, "SETCONF: {change:?}");
+        self.info
+            .send_modify(|info| info.section = Some(section.clone()));
+        if relink {
+            self.backend =
+                crate::backend::for_section(&section).map_err(ReconfError::Unreachable)?;
+            self.online = false;
+            self.last_run = None;
+            self.last_crc = None;
+            self.crc_checked = false;
+            let describe = self
+                .backend
+                .as_ref()
+                .map_or_else(|| "no PLC configured".to_string(), |b| b.describe());
+            self.info.send_modify(|info| {
+                info.describe = describe.clone();
+                info.ident = None;
+                info.online = false;
+            });
+            self.next_connect = Instant::now();
+            self.connect().await;
+            if !self.online {
+                self.publisher.publish(false, false);
+                return Err(ReconfError::Unreachable(describe));
+            }
+        }
+        let notice = self.reload().await.map_err(ReconfError::PubFile)?;
+        Ok(ReconfOutcome { notice })
     }
 
     /// Serves a batch of jobs in arrival order; consecutive reads share one
@@ -364,6 +569,10 @@ impl Poller {
                         }
                     }
                     self.serve_reads(group).await;
+                }
+                Job::Reconfigure { change, reply } => {
+                    let outcome = self.reconfigure(change).await;
+                    let _ = reply.send(outcome);
                 }
                 Job::Set { item, reply } => {
                     let mut group = vec![(item, reply)];
@@ -480,7 +689,11 @@ impl Poller {
         let mut outcomes = Vec::with_capacity(group.len());
         for (((item, reply), write), read) in group.into_iter().zip(written).zip(read) {
             let answer = write.and(read);
-            if let (Some(var), Ok(bytes)) = (item.var, &answer) {
+            let var = item
+                .var
+                .filter(|(table, _)| std::sync::Arc::ptr_eq(table, self.publisher.table()))
+                .map(|(_, id)| id);
+            if let (Some(var), Ok(bytes)) = (var, &answer) {
                 self.publisher.update(var, bytes);
             }
             outcomes.push((reply, SetOutcome { answer, seq }));

@@ -25,7 +25,7 @@ use tracing::{debug, info};
 
 use crate::cmd;
 use crate::fanout::Snapshot;
-use crate::poller::{ReadReply, SetReply};
+use crate::poller::{ReadReply, ReconfReply, SetReply};
 use crate::section::SectionShared;
 use connection::{Connection, OUTPUT_HIGH_WATER};
 use table::ClientTable;
@@ -44,11 +44,16 @@ pub enum Pending {
         rx: oneshot::Receiver<SetReply>,
         then: cmd::set::SetThen,
     },
+    Conf {
+        rx: oneshot::Receiver<ReconfReply>,
+        then: cmd::setconf::ConfThen,
+    },
 }
 
 enum Completion {
     Read(ReadReply),
     Set(SetReply),
+    Conf(ReconfReply),
 }
 
 pub struct Session {
@@ -67,6 +72,8 @@ pub struct Session {
     /// A snapshot arrived while a SET was unanswered; its DIFFs wait so the
     /// SET's own answer is not doubled by a DIFF for the same change.
     diffs_deferred: bool,
+    /// Sequence of the last public-file notice this client was told of.
+    pub notice_seen: u64,
 }
 
 impl Session {
@@ -74,6 +81,7 @@ impl Session {
         let mut snapshots = shared.snapshots.clone();
         let snapshot = snapshots.borrow_and_update().clone();
         let vars = ClientTable::new(&snapshot, !shared.global.pf_var_disabled);
+        let notice_seen = snapshot.notice.as_ref().map_or(0, |n| n.seq);
         let crlf = shared.global.end_line_crlf;
         let diff = shared.global.diff_var_enabled;
         Session {
@@ -87,6 +95,7 @@ impl Session {
             peer,
             close: false,
             diffs_deferred: false,
+            notice_seen,
             shared,
         }
     }
@@ -113,14 +122,16 @@ impl Session {
             }
             let head_waiting = matches!(
                 self.pending.front(),
-                Some(Pending::Read { .. } | Pending::Set { .. })
+                Some(Pending::Read { .. } | Pending::Set { .. } | Pending::Conf { .. })
             );
             let backlog = self.conn.backlog();
             let can_read = !self.conn.eof
                 && !self.close
                 && self.pending.len() < MAX_PENDING
                 && backlog < OUTPUT_HIGH_WATER;
-            let want_diffs = self.diff && backlog < OUTPUT_HIGH_WATER;
+            // Snapshots also carry public-file changes, so every client takes
+            // them, DIFF lines on or off.
+            let want_diffs = backlog < OUTPUT_HIGH_WATER;
             let closing = self.close;
             let Session {
                 conn,
@@ -283,6 +294,9 @@ impl Session {
             (Pending::Set { then, .. }, Completion::Set(reply)) => {
                 cmd::set::complete(self, then, reply, &mut out)
             }
+            (Pending::Conf { then, .. }, Completion::Conf(reply)) => {
+                cmd::setconf::complete(self, then, reply, &mut out)
+            }
             _ => unreachable!("completion matches the head it came from"),
         }
         self.conn.extend(&out);
@@ -290,12 +304,15 @@ impl Session {
         if self.diffs_deferred && !self.set_outstanding() {
             self.diffs_deferred = false;
             self.take_snapshot();
+        } else {
+            self.sync_table();
         }
     }
 
     fn take_snapshot(&mut self) {
         let snapshot = self.snapshots.borrow_and_update().clone();
         self.snapshot = snapshot;
+        self.sync_table();
         if !self.diff {
             return;
         }
@@ -313,6 +330,33 @@ impl Session {
         vars.collect_diffs(snapshot, &shared.format, conn.eol, &mut conn.out);
     }
 
+    /// Follows a new public file: carries this client's settings over to the
+    /// new table and tells it WARNING:250 (or 251 when only reloaded). While
+    /// its own SETCONF is unanswered the SETCONF's answer does the telling.
+    pub fn sync_table(&mut self) {
+        if !Arc::ptr_eq(&self.snapshot.table, self.vars.table()) {
+            let all_enabled = !self.shared.global.pf_var_disabled;
+            self.vars = self.vars.remap(&self.snapshot, all_enabled);
+        }
+        let conf_pending = self
+            .pending
+            .iter()
+            .any(|p| matches!(p, Pending::Conf { .. }));
+        if conf_pending {
+            return;
+        }
+        if let Some(notice) = self.snapshot.notice.clone() {
+            if notice.seq > self.notice_seen {
+                self.notice_seen = notice.seq;
+                let mut line = Vec::new();
+                cmd::setconf::write_notice(&notice, &mut line);
+                line.extend_from_slice(self.conn.eol);
+                // Between answers, like a DIFF line.
+                self.conn.extend(&line);
+            }
+        }
+    }
+
     /// The latest snapshot, without waiting for the next change.
     pub fn latest_snapshot(&mut self) -> Arc<Snapshot> {
         self.snapshot = self.snapshots.borrow().clone();
@@ -328,6 +372,9 @@ async fn head_reply(pending: &mut VecDeque<Pending>) -> Completion {
         Some(Pending::Set { rx, .. }) => {
             Completion::Set(rx.await.unwrap_or(Err(crate::poller::LinkError::Offline)))
         }
+        Some(Pending::Conf { rx, .. }) => Completion::Conf(rx.await.unwrap_or(Err(
+            crate::poller::ReconfError::Unreachable("the server is stopping".to_string()),
+        ))),
         _ => std::future::pending().await,
     }
 }

@@ -292,6 +292,32 @@ impl ClientTable {
         out.extend_from_slice(eol);
     }
 
+    /// This client's settings carried over to the table of `snapshot` (a new
+    /// public file), by name: enabled, hidden and deltas; names that
+    /// vanished are dropped. Every enabled variable is owed its value again.
+    pub fn remap(&self, snapshot: &Snapshot, all_enabled: bool) -> ClientTable {
+        let mut next = ClientTable::new(snapshot, all_enabled);
+        let new_table = next.table.clone();
+        for (id, var) in self.table.vars().iter().enumerate() {
+            let id = id as VarId;
+            let Some(new_id) = new_table.lookup(&var.name) else {
+                continue;
+            };
+            if !var.fixed && self.enabled.get(id) {
+                next.enable(new_id);
+            } else if all_enabled && !new_table.is_fixed(new_id) && !self.enabled.get(id) {
+                next.disable(new_id);
+            }
+            if self.hidden.get(id) {
+                next.set_hidden(new_id, true);
+            }
+            if let Some(state) = self.deltas.get(&id) {
+                next.set_delta(new_id, state.delta);
+            }
+        }
+        next
+    }
+
     /// The client leaves: its interest goes with it.
     pub fn release(&mut self) {
         for id in 0..self.table.len() as VarId {

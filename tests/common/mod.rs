@@ -84,6 +84,7 @@ pub async fn start_with(global_ini: &str, user: &[u8]) -> TestServer {
         table,
         Some(Box::new(backend)),
         "127.0.0.1:0".parse().unwrap(),
+        None,
     )
     .await
     .expect("start section");
@@ -138,10 +139,15 @@ impl Client {
     }
 
     async fn fill(&mut self) -> usize {
-        let mut chunk = [0u8; 65536];
+        let mut chunk = vec![0u8; 65536];
         let n = tokio::time::timeout(TIMEOUT, self.stream.read(&mut chunk))
             .await
-            .expect("timed out waiting for the server")
+            .unwrap_or_else(|_| {
+                panic!(
+                    "timed out waiting for the server; received so far: {:?}",
+                    String::from_utf8_lossy(&self.buf)
+                )
+            })
             .expect("read");
         self.buf.extend_from_slice(&chunk[..n]);
         n

@@ -459,6 +459,10 @@ impl PlcBackend for EpsnetBackend {
         format!("EPSNET/UDP {} (EPSADDR {})", self.config.plc, self.sa)
     }
 
+    fn source_address(&self) -> Option<u8> {
+        Some(self.sa)
+    }
+
     fn max_read_block(&self) -> u32 {
         MAX_READ
     }
