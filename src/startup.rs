@@ -81,7 +81,10 @@ async fn start_one(
     dir: &Path,
     server: &mut Server,
 ) -> Result<RunningSection, String> {
+    let mut section = section.clone();
+    let section = &mut section;
     let mut backend = backend_for(section, dir, server).await?;
+    let section = &*section;
     let source = PubSource::new(section, dir)?;
     let user = source.load_user(backend.as_deref_mut()).await?;
     let table = source.build(user.as_ref())?;
@@ -107,13 +110,19 @@ async fn start_one(
 }
 
 /// The section's PLC link; `None` when it has no PLC yet (`IPADDR = 0.0.0.0`).
+/// A simulated PLC's section is pointed at it (IPADDR, EPSPORT), so GETINFO
+/// and SETCONF see where the PLC really is.
 async fn backend_for(
-    section: &Section,
+    section: &mut Section,
     dir: &Path,
     server: &mut Server,
 ) -> Result<Option<Box<dyn PlcBackend>>, String> {
-    if let Some(simulator) = &section.simulator {
-        let plc = spawn_simulator(section, simulator, dir, server).await?;
+    if let Some(simulator) = section.simulator.clone() {
+        let plc = spawn_simulator(section, &simulator, dir, server).await?;
+        if let std::net::IpAddr::V4(ip) = plc.ip() {
+            section.ipaddr = Some(ip);
+        }
+        section.epsport = plc.port();
         return Ok(Some(Box::new(EpsnetBackend::new(epsnet_config(
             section, plc,
         )))));

@@ -48,10 +48,7 @@ impl PubSource {
                     .map_err(|e| format!("fixed public file {}: {e}", path.display()))?;
                 (name.clone(), file)
             }
-            None => (
-                "FIXED.pub (built in)".to_string(),
-                pubfile::parse(STANDARD_FIXED),
-            ),
+            None => ("FIXED.pub".to_string(), pubfile::parse(STANDARD_FIXED)),
         };
         Ok(PubSource {
             section: section.clone(),
