@@ -12,6 +12,7 @@ pub mod cli;
 pub mod cmd;
 pub mod config;
 pub mod fanout;
+pub mod localfs;
 pub mod plc;
 pub mod poller;
 pub mod pubfile;

@@ -2,6 +2,7 @@
 //! poller, the latest snapshot, and the list of connected clients.
 
 use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 use plccoms_protocol::value::FormatOptions;
@@ -27,6 +28,10 @@ pub struct SectionShared {
     pub format: FormatOptions,
     pub poller: PollerHandle,
     pub snapshots: watch::Receiver<Arc<Snapshot>>,
+    /// The folder local files (names beginning with `.`) live in: the
+    /// configuration file's folder, or its `<section name>` subfolder with
+    /// PUBFILE_WRITE = Yes.
+    pub root: PathBuf,
     clients: Mutex<Clients>,
 }
 
@@ -42,8 +47,14 @@ impl SectionShared {
         config: Section,
         poller: PollerHandle,
         snapshots: watch::Receiver<Arc<Snapshot>>,
+        config_dir: PathBuf,
     ) -> SectionShared {
         let format = format_options(&global);
+        let root = if config.pubfile_write {
+            config_dir.join(&config.name)
+        } else {
+            config_dir
+        };
         SectionShared {
             name: config.name.clone(),
             global,
@@ -51,6 +62,7 @@ impl SectionShared {
             format,
             poller,
             snapshots,
+            root,
             clients: Mutex::new(Clients::default()),
         }
     }

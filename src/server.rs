@@ -3,6 +3,7 @@
 
 use std::io;
 use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -16,7 +17,7 @@ use plccoms_protocol::answer::{write_error, ErrorCode};
 use crate::backend::PlcBackend;
 use crate::config::{Global, Section};
 use crate::fanout::Publisher;
-use crate::poller::Poller;
+use crate::poller::{FileSettings, Poller};
 use crate::section::SectionShared;
 use crate::session::Session;
 use crate::vars::VarTable;
@@ -44,13 +45,15 @@ impl Drop for RunningSection {
 }
 
 /// Starts serving one section: its poller on `backend` (none: no PLC yet)
-/// and a listener on `bind`.
+/// and a listener on `bind`. `config_dir` is the configuration file's
+/// folder, the root of the section's local files.
 pub async fn start_section(
     global: Arc<Global>,
     config: Section,
     table: VarTable,
     backend: Option<Box<dyn PlcBackend>>,
     bind: SocketAddr,
+    config_dir: PathBuf,
 ) -> io::Result<RunningSection> {
     let listener = listen(bind)?;
     let local_addr = listener.local_addr()?;
@@ -62,8 +65,15 @@ pub async fn start_section(
         publisher,
         global.comm_loop_delay,
     );
+    let poller = poller.with_file_settings(FileSettings {
+        cache_recs: global.ffile_maxrecs,
+        cache_timeout: global.ffile_timeout,
+        sync_var_enabled: global.sync_var_enabled,
+    });
     let poll_task = tokio::spawn(poller.run());
-    let shared = Arc::new(SectionShared::new(global, config, handle, snapshots));
+    let shared = Arc::new(SectionShared::new(
+        global, config, handle, snapshots, config_dir,
+    ));
     let accept_task = tokio::spawn(accept_loop(listener, shared.clone()));
     info!(section = %shared.name, listen = %local_addr, "listening");
     Ok(RunningSection {

@@ -54,6 +54,10 @@ pub struct TestServer {
     pub section: RunningSection,
     pub device: Arc<Mutex<Device>>,
     pub addr: SocketAddr,
+    /// The section's root folder for local files (`./name`).
+    pub root: tempfile::TempDir,
+    /// The folder the in-process PLC serves as its file system.
+    pub plc_files: tempfile::TempDir,
 }
 
 /// Starts a section configured by the `[*]` keys in `global_ini` on the
@@ -77,6 +81,10 @@ pub async fn start_with(global_ini: &str, user: &[u8]) -> TestServer {
     )
     .expect("table");
     let device = Arc::new(Mutex::new(Device::new(MemoryMap::FOXTROT)));
+    let root = tempfile::tempdir().expect("root dir");
+    let plc_files = tempfile::tempdir().expect("plc files dir");
+    device.lock().unwrap().files =
+        Some(plccoms::plc::FileStore::open(plc_files.path()).expect("file store"));
     let backend = MemoryBackend::new(device.clone());
     let section = start_section(
         global,
@@ -84,6 +92,7 @@ pub async fn start_with(global_ini: &str, user: &[u8]) -> TestServer {
         table,
         Some(Box::new(backend)),
         "127.0.0.1:0".parse().unwrap(),
+        root.path().to_path_buf(),
     )
     .await
     .expect("start section");
@@ -92,6 +101,8 @@ pub async fn start_with(global_ini: &str, user: &[u8]) -> TestServer {
         section,
         device,
         addr,
+        root,
+        plc_files,
     }
 }
 
