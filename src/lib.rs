@@ -13,6 +13,7 @@ pub mod cmd;
 pub mod config;
 pub mod daemon;
 pub mod fanout;
+pub mod localfs;
 pub mod plc;
 pub mod poller;
 pub mod pubfile;

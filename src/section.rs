@@ -2,6 +2,7 @@
 //! poller, the latest snapshot, and the list of connected clients.
 
 use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 use plccoms_protocol::value::FormatOptions;
@@ -31,6 +32,10 @@ pub struct SectionShared {
     /// Cancelled when the server stops: sessions answer what they have and
     /// close.
     pub shutdown: CancellationToken,
+    /// The folder local files (names beginning with `.`) live in: the
+    /// configuration file's folder, or its `<section name>` subfolder with
+    /// PUBFILE_WRITE = Yes.
+    pub root: PathBuf,
     clients: Mutex<Clients>,
 }
 
@@ -46,8 +51,14 @@ impl SectionShared {
         config: Section,
         poller: PollerHandle,
         snapshots: watch::Receiver<Arc<Snapshot>>,
+        config_dir: PathBuf,
     ) -> SectionShared {
         let format = format_options(&global);
+        let root = if config.pubfile_write {
+            config_dir.join(&config.name)
+        } else {
+            config_dir
+        };
         SectionShared {
             name: config.name.clone(),
             global,
@@ -56,6 +67,7 @@ impl SectionShared {
             poller,
             snapshots,
             shutdown: CancellationToken::new(),
+            root,
             clients: Mutex::new(Clients::default()),
         }
     }

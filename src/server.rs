@@ -3,6 +3,7 @@
 
 use std::io;
 use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -19,7 +20,7 @@ use crate::backend::PlcBackend;
 use crate::config::{Global, Section};
 use crate::fanout::Publisher;
 use crate::poller::reload::{PubSource, UserFile};
-use crate::poller::{self, Poller};
+use crate::poller::{self, FileSettings, Poller};
 use crate::section::SectionShared;
 use crate::session::Session;
 use crate::vars::VarTable;
@@ -61,13 +62,15 @@ impl Drop for RunningSection {
 }
 
 /// Starts serving one section: its poller on `backend` (none: no PLC yet)
-/// and a listener on `bind`.
+/// and a listener on `bind`. `config_dir` is the configuration file's
+/// folder, the root of the section's local files.
 pub async fn start_section(
     global: Arc<Global>,
     config: Section,
     table: VarTable,
     backend: Option<Box<dyn PlcBackend>>,
     bind: SocketAddr,
+    config_dir: PathBuf,
     reload: Option<(PubSource, Option<UserFile>)>,
 ) -> io::Result<RunningSection> {
     let listener = listen(bind)?;
@@ -80,13 +83,20 @@ pub async fn start_section(
         publisher,
         global.comm_loop_delay,
     );
+    let poller = poller.with_file_settings(FileSettings {
+        cache_recs: global.ffile_maxrecs,
+        cache_timeout: global.ffile_timeout,
+        sync_var_enabled: global.sync_var_enabled,
+    });
     let poller = match reload {
         Some((source, user)) => poller.with_source(source, user),
         None => poller,
     };
     let poller_stop = poller.stop_token();
     poller::spawn_thread(poller, global.comm_sched_pri)?;
-    let shared = Arc::new(SectionShared::new(global, config, handle, snapshots));
+    let shared = Arc::new(SectionShared::new(
+        global, config, handle, snapshots, config_dir,
+    ));
     let sessions = TaskTracker::new();
     let accept = tokio::spawn(accept_loop(listener, shared.clone(), sessions.clone()));
     info!(section = %shared.name, listen = %local_addr, "listening");

@@ -103,6 +103,7 @@ async fn start_one(
         table,
         backend,
         bind,
+        dir.to_path_buf(),
         Some((source, user)),
     )
     .await

@@ -61,6 +61,8 @@ async fn list_marks_disabled_and_hidden() {
         "WARNING:252 Changed active variables in public file: '[3/26]'\r\n",
     )
     .await;
+    // The first poll after EN sends the value.
+    c.expect(b"DIFF:TEST_BTN_UP,0\r\n").await;
     c.ask(
         "LIST:TEST_BTN*\n",
         "LIST:TEST_BTN_UP,BOOL\r\nLIST:TEST_BTN_DOWN,BOOL*~\r\nLIST:\r\n",
@@ -328,6 +330,8 @@ async fn set_of_an_enabled_variable_is_answered_once() {
 async fn hidden_variables_skip_the_all_forms_only() {
     let server = start("").await;
     let mut c = server.client().await;
+    // Only the answers matter here, not the DIFF lines EN causes.
+    c.ask("SETCONF:diff,no\n", "SETCONF:DIFF,NO\r\n").await;
     c.ask(
         "HIDE:v_*\n",
         "WARNING:253 Changed hidden variables in public file: '[16]'\r\n",

@@ -106,6 +106,24 @@ impl Decoder {
         }
     }
 
+    /// The header of a `WRITEFILE`/`WRITEFILEINFO` block whose data is still
+    /// arriving, if any (for the unterminated-data timeout).
+    pub fn pending_block(&self) -> Option<&[u8]> {
+        match &self.mode {
+            Mode::Block { header, .. } => Some(header),
+            _ => None,
+        }
+    }
+
+    /// Drops a block whose data is still arriving and goes back to line
+    /// mode: what the client sends next is read as requests again.
+    pub fn abandon_block(&mut self) {
+        if matches!(self.mode, Mode::Block { .. } | Mode::SkipBlock { .. }) {
+            self.mode = Mode::Line;
+            self.after_cr = false;
+        }
+    }
+
     /// The next frame, consuming from `src` what it scanned; `None` when
     /// `src` holds no complete frame (all of it is then consumed and kept
     /// in the decoder's bounded state).

@@ -29,6 +29,8 @@ pub enum ReadThen {
         name: Vec<u8>,
         address: DirectAddress,
     },
+    /// A GETMEM block.
+    Mem { name: Vec<u8> },
 }
 
 pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
@@ -98,6 +100,9 @@ async fn direct(session: &mut Session, args: &[u8]) {
 
 /// Writes the answer once the PLC answered.
 pub fn complete(session: &mut Session, then: ReadThen, reply: ReadReply, out: &mut Vec<u8>) {
+    if let ReadThen::Mem { name } = &then {
+        return super::getmem::complete(session, name, reply, out);
+    }
     let eol = session.conn.eol;
     let format = &session.shared.format;
     let answers = match reply {
@@ -105,6 +110,7 @@ pub fn complete(session: &mut Session, then: ReadThen, reply: ReadReply, out: &m
         Err(err) => return link_error(err, ErrorCode::GetData, eol, out),
     };
     match then {
+        ReadThen::Mem { .. } => unreachable!("handled above"),
         ReadThen::Direct { name, address } => match answers.into_iter().next() {
             Some(Ok(bytes)) => {
                 let value = match address.bit {

@@ -3,6 +3,7 @@
 //! reads and writes between polls (batching whatever is queued into shared
 //! requests), and keeps the link alive across outages.
 
+pub mod files;
 pub mod interest;
 pub mod plan;
 pub mod reload;
@@ -17,6 +18,7 @@ use tracing::{debug, info, warn};
 use crate::backend::{Answer, Exception, PlcBackend, PlcError, ReadRequest, WriteRequest};
 use crate::fanout::Publisher;
 use crate::vars::VarId;
+use files::{FileCache, FileJob, FileOutput, FileReply};
 use plan::{Range, ReadPlan};
 
 /// Why the poller could not serve a request.
@@ -66,6 +68,10 @@ pub enum Job {
         change: ConfChange,
         reply: oneshot::Sender<ReconfReply>,
     },
+    File {
+        job: FileJob,
+        reply: oneshot::Sender<FileReply>,
+    },
 }
 
 /// A section setting changed at run time (SETCONF).
@@ -96,6 +102,30 @@ pub enum ReconfError {
 }
 
 pub type ReconfReply = Result<ReconfOutcome, ReconfError>;
+
+/// File transfer settings (FFILE_MAXRECS, FFILE_TIMEOUT, SYNC_VAR_ENABLED).
+#[derive(Debug, Clone, Copy)]
+pub struct FileSettings {
+    pub cache_recs: usize,
+    pub cache_timeout: Duration,
+    /// Whether polling goes on while a file transfer is in progress.
+    pub sync_var_enabled: bool,
+}
+
+impl Default for FileSettings {
+    fn default() -> Self {
+        FileSettings {
+            cache_recs: 0,
+            cache_timeout: Duration::ZERO,
+            sync_var_enabled: true,
+        }
+    }
+}
+
+/// How long after its last file request a transfer counts as in progress
+/// (for SYNC_VAR_ENABLED = No): a client reading a file asks for the next
+/// block well within this.
+const TRANSFER_IDLE: Duration = Duration::from_millis(500);
 
 /// What GETINFO shows about the link.
 #[derive(Debug, Clone, Default)]
@@ -136,6 +166,12 @@ impl PollerHandle {
         rx
     }
 
+    pub async fn file(&self, job: FileJob) -> oneshot::Receiver<FileReply> {
+        let (reply, rx) = oneshot::channel();
+        let _ = self.jobs.send(Job::File { job, reply }).await;
+        rx
+    }
+
     pub fn info(&self) -> LinkInfo {
         self.info.borrow().clone()
     }
@@ -173,6 +209,11 @@ pub struct Poller {
     user: Option<reload::UserFile>,
     /// The user file's CRC was compared with `__PF_CRC`.
     crc_checked: bool,
+    files: FileSettings,
+    cache: FileCache,
+    /// A file transfer counts as in progress until then.
+    transfer_until: Instant,
+    last_poll: Instant,
 }
 
 impl Poller {
@@ -215,6 +256,10 @@ impl Poller {
             source: None,
             user: None,
             crc_checked: false,
+            files: FileSettings::default(),
+            cache: FileCache::new(0, Duration::ZERO),
+            transfer_until: Instant::now(),
+            last_poll: Instant::now(),
         };
         (
             poller,
@@ -242,6 +287,12 @@ impl Poller {
     /// Cancelling this token stops the poller.
     pub fn stop_token(&self) -> CancellationToken {
         self.stop.clone()
+    }
+
+    pub fn with_file_settings(mut self, files: FileSettings) -> Poller {
+        self.cache = FileCache::new(files.cache_recs, files.cache_timeout);
+        self.files = files;
+        self
     }
 
     /// Runs until stopped or every handle is dropped.
@@ -278,6 +329,9 @@ impl Poller {
             if !self.online {
                 return;
             }
+        }
+        if !self.files.sync_var_enabled && Instant::now() < self.transfer_until {
+            return;
         }
         self.poll().await;
     }
@@ -360,6 +414,7 @@ impl Poller {
             self.rebuild_plan(max_block);
         }
         let backend = self.backend.as_mut().expect("checked above");
+        self.last_poll = Instant::now();
         let answers = match backend.read(self.plan.blocks()).await {
             Ok(answers) => answers,
             Err(err) => return self.go_offline(&err),
@@ -583,6 +638,10 @@ impl Poller {
                     }
                     self.serve_sets(group).await;
                 }
+                Job::File { job, reply } => {
+                    let answer = self.serve_file(job).await;
+                    let _ = reply.send(answer);
+                }
             }
         }
     }
@@ -704,6 +763,83 @@ impl Poller {
             let _ = reply.send(Ok(outcome));
         }
         self.publisher.publish(false, true);
+    }
+
+    async fn serve_file(&mut self, job: FileJob) -> FileReply {
+        if !self.online || self.backend.is_none() {
+            return Err(LinkError::Offline);
+        }
+        self.transfer_until = Instant::now() + TRANSFER_IDLE;
+        let result = self.run_file_job(job).await;
+        self.transfer_until = Instant::now() + TRANSFER_IDLE;
+        result.map_err(|err| {
+            let message = err.to_string();
+            self.go_offline(&err);
+            LinkError::Plc(PlcError::Timeout(message))
+        })
+    }
+
+    async fn run_file_job(&mut self, job: FileJob) -> Result<Answer<FileOutput>, PlcError> {
+        let backend = self.backend.as_mut().ok_or(PlcError::NotConfigured)?;
+        let block = backend.max_file_block().max(1);
+        Ok(match job {
+            FileJob::Info { path } => backend.file_info(&path).await?.map(FileOutput::Info),
+            FileJob::List { path } => backend.list_dir(&path).await?.map(FileOutput::List),
+            FileJob::Read { path, offset, len } => {
+                if let Some(data) = self.cache.get(&path, offset, len) {
+                    return Ok(Ok(FileOutput::Data(data)));
+                }
+                let mut data = Vec::with_capacity(len as usize);
+                while data.len() < len as usize {
+                    let want = (len - data.len() as u32).min(block);
+                    let at = offset + data.len() as u64;
+                    match backend.read_file(&path, at, want).await? {
+                        Ok(piece) => {
+                            let short = piece.len() < want as usize;
+                            data.extend_from_slice(&piece);
+                            if short {
+                                break;
+                            }
+                        }
+                        Err(e) => return Ok(Err(e)),
+                    }
+                }
+                self.cache.note_read(&path, offset, len, &data);
+                Ok(FileOutput::Data(data))
+            }
+            FileJob::Write { path, data } => {
+                self.cache.invalidate(&path);
+                let pieces = data.len().div_ceil(block as usize).max(1);
+                for index in 0..pieces {
+                    let start = index * block as usize;
+                    let end = (start + block as usize).min(data.len());
+                    let last = index + 1 == pieces;
+                    let backend = self.backend.as_mut().ok_or(PlcError::NotConfigured)?;
+                    if let Err(e) = backend
+                        .write_file(&path, start as u64, &data[start..end], last)
+                        .await?
+                    {
+                        return Ok(Err(e));
+                    }
+                    self.transfer_until = Instant::now() + TRANSFER_IDLE;
+                    if self.files.sync_var_enabled && self.last_poll.elapsed() >= self.loop_delay {
+                        // A long upload does not stop polling.
+                        self.poll().await;
+                        if !self.online {
+                            return Err(PlcError::Timeout("PLC lost during upload".into()));
+                        }
+                    }
+                }
+                Ok(FileOutput::Done)
+            }
+            FileJob::WriteInfo { path, info } => {
+                self.cache.invalidate(&path);
+                backend
+                    .write_file_info(&path, &info)
+                    .await?
+                    .map(|()| FileOutput::Done)
+            }
+        })
     }
 
     fn fail_sets(&mut self, group: Vec<(SetItem, oneshot::Sender<SetReply>)>, err: PlcError) {

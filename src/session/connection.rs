@@ -32,6 +32,8 @@ pub struct Connection {
     pub eol: &'static [u8],
     /// The client closed its side: answer what it sent, then close.
     pub eof: bool,
+    /// When input last arrived.
+    pub last_input: tokio::time::Instant,
 }
 
 impl Connection {
@@ -47,12 +49,23 @@ impl Connection {
             written: 0,
             eol: if crlf { CRLF } else { LF },
             eof: false,
+            last_input: tokio::time::Instant::now(),
         }
     }
 
     /// The next complete frame already received, if any.
     pub fn next_frame(&mut self) -> Option<Frame> {
         self.decoder.decode(&mut self.input)
+    }
+
+    /// The header of a WRITEFILE block whose data is still arriving.
+    pub fn pending_block(&self) -> Option<&[u8]> {
+        self.decoder.pending_block()
+    }
+
+    /// Drops a block whose data stopped arriving.
+    pub fn abandon_block(&mut self) {
+        self.decoder.abandon_block();
     }
 
     pub fn set_crlf(&mut self, crlf: bool) {

@@ -25,6 +25,7 @@ use tracing::{debug, info};
 
 use crate::cmd;
 use crate::fanout::Snapshot;
+use crate::poller::files::FileReply;
 use crate::poller::{ReadReply, ReconfReply, SetReply};
 use crate::section::SectionShared;
 use connection::{Connection, OUTPUT_HIGH_WATER};
@@ -48,12 +49,22 @@ pub enum Pending {
         rx: oneshot::Receiver<ReconfReply>,
         then: cmd::setconf::ConfThen,
     },
+    /// A PLC file service (GETFILEINFO, a directory listing, WRITEFILE,
+    /// WRITEFILEINFO).
+    File {
+        rx: oneshot::Receiver<FileReply>,
+        then: cmd::FileThen,
+    },
+    /// A GETFILE answer, sent block by block. While it is at the head of the
+    /// queue it is being written, so DIFF lines wait until it ends.
+    Stream(Box<cmd::getfile::Stream>),
 }
 
 enum Completion {
     Read(ReadReply),
     Set(SetReply),
     Conf(ReconfReply),
+    File(FileReply),
 }
 
 pub struct Session {
@@ -74,6 +85,8 @@ pub struct Session {
     diffs_deferred: bool,
     /// Sequence of the last public-file notice this client was told of.
     pub notice_seen: u64,
+    /// A WRITEFILE transfer in progress.
+    pub upload: Option<cmd::writefile::Upload>,
 }
 
 impl Session {
@@ -96,6 +109,7 @@ impl Session {
             close: false,
             diffs_deferred: false,
             notice_seen,
+            upload: None,
             shared,
         }
     }
@@ -117,21 +131,30 @@ impl Session {
         loop {
             self.take_requests().await;
             self.release_ready();
+            self.pump_stream().await;
             if (self.close || self.conn.eof) && self.pending.is_empty() {
                 return Ok(());
             }
-            let head_waiting = matches!(
-                self.pending.front(),
-                Some(Pending::Read { .. } | Pending::Set { .. } | Pending::Conf { .. })
-            );
+            let head_waiting = match self.pending.front_mut() {
+                Some(
+                    Pending::Read { .. }
+                    | Pending::Set { .. }
+                    | Pending::Conf { .. }
+                    | Pending::File { .. },
+                ) => true,
+                Some(Pending::Stream(stream)) => stream.waiting().is_some(),
+                _ => false,
+            };
+            let streaming = matches!(self.pending.front(), Some(Pending::Stream(_)));
+            let write_deadline = self.write_deadline();
             let backlog = self.conn.backlog();
             let can_read = !self.conn.eof
                 && !self.close
                 && self.pending.len() < MAX_PENDING
                 && backlog < OUTPUT_HIGH_WATER;
             // Snapshots also carry public-file changes, so every client takes
-            // them, DIFF lines on or off.
-            let want_diffs = backlog < OUTPUT_HIGH_WATER;
+            // them, DIFF lines on or off; never inside a streamed answer.
+            let want_diffs = backlog < OUTPUT_HIGH_WATER && !streaming;
             let closing = self.close;
             let Session {
                 conn,
@@ -161,6 +184,7 @@ impl Session {
                     self.conn.advance_written(n);
                 }
                 result = Connection::read_more(reader, input), if can_read => {
+                    self.conn.last_input = tokio::time::Instant::now();
                     if result? == 0 {
                         self.conn.eof = true;
                         // Let a last line without its line end count.
@@ -177,6 +201,9 @@ impl Session {
                 }
                 _ = shared.shutdown.cancelled(), if !closing => {
                     self.close = true;
+                }
+                _ = tokio::time::sleep_until(write_deadline.unwrap_or_else(tokio::time::Instant::now)), if write_deadline.is_some() => {
+                    self.write_timeout();
                 }
                 else => return Ok(()),
             }
@@ -195,12 +222,9 @@ impl Session {
             };
             match frame {
                 Frame::Line(line) => self.handle_line(&line).await,
-                Frame::Block { header, .. } => {
-                    // File uploads arrive in the files issue; until then the
-                    // command is unknown.
-                    let mut out = Vec::new();
-                    write_error(&mut out, ErrorCode::UnknownCommand, &header);
-                    self.answer_line(out);
+                Frame::Block { header, data } => {
+                    self.continuation = None;
+                    cmd::writefile::block(self, &header, data).await;
                 }
                 Frame::TooLong(prefix) => {
                     let mut context = prefix;
@@ -265,6 +289,72 @@ impl Session {
         self.answer(line);
     }
 
+    /// Keeps the GETFILE answer at the head of the queue going: local blocks
+    /// while output is below the high-water mark, or the next PLC request.
+    async fn pump_stream(&mut self) {
+        loop {
+            let Some(Pending::Stream(_)) = self.pending.front() else {
+                return;
+            };
+            let Some(Pending::Stream(mut stream)) = self.pending.pop_front() else {
+                return;
+            };
+            let done = if stream.waiting().is_some() || self.conn.backlog() >= OUTPUT_HIGH_WATER {
+                false
+            } else if stream.is_local() {
+                cmd::getfile::pump_local(self, &mut stream, OUTPUT_HIGH_WATER)
+            } else {
+                cmd::getfile::request_next(self, &mut stream).await;
+                false
+            };
+            if !done {
+                self.pending.push_front(Pending::Stream(stream));
+                return;
+            }
+            self.stream_done();
+        }
+    }
+
+    /// A GETFILE answer ended: what waited behind it may go out.
+    fn stream_done(&mut self) {
+        self.release_ready();
+        if self.diffs_deferred && !self.set_outstanding() {
+            self.diffs_deferred = false;
+            self.take_snapshot();
+        }
+    }
+
+    /// When the WRITEFILE transfer times out: data of a block stopped
+    /// arriving, or no next block came.
+    fn write_deadline(&self) -> Option<tokio::time::Instant> {
+        let wait = self.shared.global.ffile_timeout_wr;
+        if self.conn.pending_block().is_some() {
+            return Some(self.conn.last_input + wait);
+        }
+        self.upload.as_ref().map(|u| u.deadline)
+    }
+
+    fn write_timeout(&mut self) {
+        if let Some(header) = self.conn.pending_block() {
+            // The block's data never came whole: its count does not match.
+            let name = match classify(header) {
+                Line::Command { args, .. } => plccoms_protocol::request::parse_block(args)
+                    .map(|(name, _, _)| name.to_vec())
+                    .unwrap_or_default(),
+                _ => Vec::new(),
+            };
+            self.conn.abandon_block();
+            if self.upload.as_ref().is_some_and(|u| u.name == name) {
+                self.upload = None;
+            }
+            let mut out = Vec::new();
+            write_error(&mut out, ErrorCode::Unterminated, &name);
+            self.answer_line(out);
+            return;
+        }
+        cmd::writefile::timed_out(self);
+    }
+
     /// Moves answers that are complete at the head of the queue to output.
     fn release_ready(&mut self) {
         while let Some(Pending::Ready(_)) = self.pending.front() {
@@ -288,6 +378,17 @@ impl Session {
         };
         let mut out = Vec::new();
         match (head, completion) {
+            (Pending::Stream(mut stream), Completion::File(reply)) => {
+                if cmd::getfile::plc_block(self, &mut stream, reply) {
+                    self.stream_done();
+                } else {
+                    self.pending.push_front(Pending::Stream(stream));
+                }
+                return;
+            }
+            (Pending::File { then, .. }, Completion::File(reply)) => {
+                cmd::complete_file(self, then, reply, &mut out)
+            }
             (Pending::Read { then, .. }, Completion::Read(reply)) => {
                 cmd::get::complete(self, then, reply, &mut out)
             }
@@ -316,7 +417,7 @@ impl Session {
         if !self.diff {
             return;
         }
-        if self.set_outstanding() {
+        if self.set_outstanding() || matches!(self.pending.front(), Some(Pending::Stream(_))) {
             self.diffs_deferred = true;
             return;
         }
@@ -375,6 +476,15 @@ async fn head_reply(pending: &mut VecDeque<Pending>) -> Completion {
         Some(Pending::Conf { rx, .. }) => Completion::Conf(rx.await.unwrap_or(Err(
             crate::poller::ReconfError::Unreachable("the server is stopping".to_string()),
         ))),
+        Some(Pending::File { rx, .. }) => {
+            Completion::File(rx.await.unwrap_or(Err(crate::poller::LinkError::Offline)))
+        }
+        Some(Pending::Stream(stream)) => match stream.waiting() {
+            Some(rx) => {
+                Completion::File(rx.await.unwrap_or(Err(crate::poller::LinkError::Offline)))
+            }
+            None => std::future::pending().await,
+        },
         _ => std::future::pending().await,
     }
 }

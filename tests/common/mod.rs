@@ -54,6 +54,10 @@ pub struct TestServer {
     pub section: RunningSection,
     pub device: Arc<Mutex<Device>>,
     pub addr: SocketAddr,
+    /// The section's root folder for local files (`./name`).
+    pub root: tempfile::TempDir,
+    /// The folder the in-process PLC serves as its file system.
+    pub plc_files: tempfile::TempDir,
 }
 
 /// Starts a section configured by the `[*]` keys in `global_ini` on the
@@ -63,6 +67,16 @@ pub async fn start(global_ini: &str) -> TestServer {
 }
 
 pub async fn start_with(global_ini: &str, user: &[u8]) -> TestServer {
+    start_on(global_ini, user, None).await
+}
+
+/// Like [`start_with`], on `backend` instead of the in-process device (which
+/// is then only used by `poke`/`peek`).
+pub async fn start_on(
+    global_ini: &str,
+    user: &[u8],
+    backend: Option<Box<dyn plccoms::backend::PlcBackend>>,
+) -> TestServer {
     let ini = format!("[*]\n{global_ini}\n[Test]\nSERVER_PORT = 5010\n");
     let loaded = config::parse(Path::new("test.ini"), &ini).expect("test ini");
     let global = Arc::new(loaded.config.global);
@@ -77,13 +91,18 @@ pub async fn start_with(global_ini: &str, user: &[u8]) -> TestServer {
     )
     .expect("table");
     let device = Arc::new(Mutex::new(Device::new(MemoryMap::FOXTROT)));
-    let backend = MemoryBackend::new(device.clone());
+    let root = tempfile::tempdir().expect("root dir");
+    let plc_files = tempfile::tempdir().expect("plc files dir");
+    device.lock().unwrap().files =
+        Some(plccoms::plc::FileStore::open(plc_files.path()).expect("file store"));
+    let backend = backend.unwrap_or_else(|| Box::new(MemoryBackend::new(device.clone())));
     let section = start_section(
         global,
         section,
         table,
-        Some(Box::new(backend)),
+        Some(backend),
         "127.0.0.1:0".parse().unwrap(),
+        root.path().to_path_buf(),
         None,
     )
     .await
@@ -93,6 +112,8 @@ pub async fn start_with(global_ini: &str, user: &[u8]) -> TestServer {
         section,
         device,
         addr,
+        root,
+        plc_files,
     }
 }
 
@@ -182,6 +203,34 @@ impl Client {
                 );
             }
         }
+    }
+
+    /// Bytes up to and including the first `stop` (or `end`, whichever
+    /// comes first).
+    pub async fn line_until(&mut self, stop: u8, end: u8) -> Vec<u8> {
+        loop {
+            if let Some(pos) = self.buf.iter().position(|&b| b == stop || b == end) {
+                return self.buf.drain(..=pos).collect();
+            }
+            if self.fill().await == 0 {
+                panic!("connection closed");
+            }
+        }
+    }
+
+    /// Exactly `n` bytes.
+    pub async fn take(&mut self, n: usize) -> Vec<u8> {
+        while self.buf.len() < n {
+            if self.fill().await == 0 {
+                panic!("connection closed");
+            }
+        }
+        self.buf.drain(..n).collect()
+    }
+
+    /// Pauses briefly, so the server's output backs up.
+    pub async fn slow_down(&mut self) {
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
     }
 
     /// Sends a request and checks the whole answer.

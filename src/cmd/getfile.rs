@@ -1,0 +1,227 @@
+//! `GETFILE:<name>`: the file as `GETFILE:<name>[N]=<N raw bytes>` blocks of
+//! at most FFILE_BLKSIZE, then `GETFILE:<name>[0]=`. A name ending in `/`
+//! lists the directory: one entry a line (the client's line end), folders
+//! with a trailing `/`, in the same blocks.
+//!
+//! Files stream: the answer is a [`Stream`] at the head of the session's
+//! queue that makes its next block only when the client has drained output
+//! below the high-water mark (local files are read a block at a time; PLC
+//! files are fetched by the poller one FFILE_BLKSIZE block per request, so
+//! polling and other clients' requests go on between blocks). The session
+//! holds DIFF lines back while a stream is at the head, so they never land
+//! inside its block sequence.
+//!
+//! Errors: a missing or unreadable file, or a local name leading outside the
+//! root folder, is ERROR 41 when no block was sent yet. A read that fails
+//! after blocks went out ends the answer with `ERROR:46 Aborted get file:
+//! '<name>'` in place of the `[0]=` terminator.
+
+use std::fs::File;
+use std::io::Read;
+
+use plccoms_protocol::answer::{write_error, ErrorCode};
+use tokio::sync::oneshot;
+
+use super::{error, is_local, write_block, FileThen};
+use crate::localfs;
+use crate::poller::files::{FileJob, FileOutput, FileReply};
+use crate::poller::LinkError;
+use crate::session::{trim, Pending, Session};
+
+/// A GETFILE answer being sent.
+pub struct Stream {
+    name: Vec<u8>,
+    source: Source,
+    /// Bytes sent so far.
+    offset: u64,
+}
+
+enum Source {
+    Local(File),
+    /// A PLC file; the block requested from the poller, if one is.
+    Plc {
+        path: Vec<u8>,
+        rx: Option<oneshot::Receiver<FileReply>>,
+    },
+}
+
+impl Stream {
+    pub fn is_local(&self) -> bool {
+        matches!(self.source, Source::Local(_))
+    }
+
+    /// The reply being waited for, if the stream waits on the PLC.
+    pub fn waiting(&mut self) -> Option<&mut oneshot::Receiver<FileReply>> {
+        match &mut self.source {
+            Source::Plc { rx, .. } => rx.as_mut(),
+            Source::Local(_) => None,
+        }
+    }
+}
+
+pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
+    let name = trim(args);
+    if name.is_empty() {
+        return error(session, ErrorCode::Incomplete, context);
+    }
+    let listing = name.last() == Some(&b'/');
+    if is_local(name) {
+        let path = match localfs::resolve(&session.shared.root, name) {
+            Ok(path) => path,
+            Err(err) => {
+                super::getfileinfo::refused(session, name, &err);
+                return error(session, ErrorCode::GetFile, name);
+            }
+        };
+        if listing {
+            return match localfs::list(&path) {
+                Ok(entries) => {
+                    let eol = session.conn.eol;
+                    let data = localfs::format_listing(&entries, eol);
+                    let mut out = Vec::new();
+                    let blksize = session.shared.global.ffile_blksize;
+                    super::write_blocks(&mut out, b"GETFILE", name, &data, blksize, eol);
+                    session.answer(out);
+                }
+                Err(_) => error(session, ErrorCode::GetFile, name),
+            };
+        }
+        let file = match File::open(&path) {
+            Ok(file) if file.metadata().is_ok_and(|m| m.is_file()) => file,
+            _ => return error(session, ErrorCode::GetFile, name),
+        };
+        let stream = Stream {
+            name: name.to_vec(),
+            source: Source::Local(file),
+            offset: 0,
+        };
+        return session.pending.push_back(Pending::Stream(Box::new(stream)));
+    }
+    if listing {
+        let rx = session
+            .shared
+            .poller
+            .file(FileJob::List {
+                path: name.to_vec(),
+            })
+            .await;
+        let then = FileThen::List {
+            name: name.to_vec(),
+        };
+        return session.pending.push_back(Pending::File { rx, then });
+    }
+    let mut stream = Stream {
+        name: name.to_vec(),
+        source: Source::Plc {
+            path: name.to_vec(),
+            rx: None,
+        },
+        offset: 0,
+    };
+    request_next(session, &mut stream).await;
+    session.pending.push_back(Pending::Stream(Box::new(stream)));
+}
+
+fn blksize(session: &Session) -> usize {
+    session.shared.global.ffile_blksize.clamp(1, 65536)
+}
+
+/// Asks the poller for the next block of a PLC file, unless a request is out.
+pub async fn request_next(session: &Session, stream: &mut Stream) {
+    let len = blksize(session) as u32;
+    if let Source::Plc { path, rx } = &mut stream.source {
+        if rx.is_none() {
+            let job = FileJob::Read {
+                path: path.clone(),
+                offset: stream.offset,
+                len,
+            };
+            *rx = Some(session.shared.poller.file(job).await);
+        }
+    }
+}
+
+/// Makes the stream's next local blocks while output is below `limit`.
+/// Returns whether the answer is complete.
+pub fn pump_local(session: &mut Session, stream: &mut Stream, limit: usize) -> bool {
+    let blksize = blksize(session);
+    let eol = session.conn.eol;
+    let Source::Local(file) = &mut stream.source else {
+        return false;
+    };
+    let mut buf = vec![0; blksize];
+    while session.conn.backlog() < limit {
+        // Blocking reads of one block: a page-cache read of at most 64 KiB
+        // costs microseconds, less than a trip to a blocking thread.
+        let mut filled = 0;
+        let failed = loop {
+            match file.read(&mut buf[filled..]) {
+                Ok(0) => break false,
+                Ok(n) => {
+                    filled += n;
+                    if filled == blksize {
+                        break false;
+                    }
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(_) => break true,
+            }
+        };
+        let out = &mut session.conn.out;
+        if failed {
+            abort(out, &stream.name, stream.offset, eol);
+            return true;
+        }
+        if filled > 0 {
+            write_block(out, b"GETFILE", &stream.name, &buf[..filled], eol);
+            stream.offset += filled as u64;
+        }
+        if filled < blksize {
+            write_block(out, b"GETFILE", &stream.name, b"", eol);
+            return true;
+        }
+    }
+    false
+}
+
+/// Handles a PLC block; returns whether the answer is complete.
+pub fn plc_block(session: &mut Session, stream: &mut Stream, reply: FileReply) -> bool {
+    let eol = session.conn.eol;
+    let requested = blksize(session);
+    if let Source::Plc { rx, .. } = &mut stream.source {
+        *rx = None;
+    }
+    let out = &mut session.conn.out;
+    let data = match reply {
+        Ok(Ok(FileOutput::Data(data))) => data,
+        Err(LinkError::Offline) if stream.offset == 0 => {
+            write_error(out, ErrorCode::ConnectPlc, b"");
+            out.extend_from_slice(eol);
+            return true;
+        }
+        _ => {
+            abort(out, &stream.name, stream.offset, eol);
+            return true;
+        }
+    };
+    if !data.is_empty() {
+        write_block(out, b"GETFILE", &stream.name, &data, eol);
+        stream.offset += data.len() as u64;
+    }
+    if data.len() < requested {
+        write_block(out, b"GETFILE", &stream.name, b"", eol);
+        return true;
+    }
+    false
+}
+
+/// ERROR 41 before any block, ERROR 46 after some.
+fn abort(out: &mut Vec<u8>, name: &[u8], sent: u64, eol: &[u8]) {
+    let code = if sent == 0 {
+        ErrorCode::GetFile
+    } else {
+        ErrorCode::AbortedGet
+    };
+    write_error(out, code, name);
+    out.extend_from_slice(eol);
+}

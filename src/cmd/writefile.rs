@@ -1,0 +1,203 @@
+//! `WRITEFILE:<name>[<n>]=<n raw bytes>` blocks, ended by
+//! `WRITEFILE:<name>[0]=`, answered `WRITEFILE:<name> OK` once the file is
+//! written; and `WRITEFILEINFO:<name>[<n>]=<size> <attr> <created>
+//! <modified>`, answered `WRITEFILEINFO:<name> OK`.
+//!
+//! As the manual says, the content first comes to the server, and the file
+//! is written after the zero block; it appears whole or not at all. A local
+//! file (`./name`) is streamed into a hidden staging file in the target's
+//! folder and renamed into place; a PLC file is held in memory (at most
+//! [`MAX_PLC_FILE`]) and handed to the poller whole, which writes it in the
+//! backend's blocks with only the last one committing it. Blocks get no
+//! answer of their own: failures are answered at the zero block (ERROR 42).
+//!
+//! A block for another name while a transfer is open ends the open one with
+//! ERROR 44 (unterminated). A gap longer than FFILE_TIMEOUT_WR between blocks
+//! is ERROR 45 and the data is discarded; further blocks of that name are
+//! ignored and its zero block is answered ERROR 45 again, so a file is never
+//! made from the tail of a transfer. Block data that stops arriving short of
+//! its count for FFILE_TIMEOUT_WR is ERROR 44 (see the session). A client
+//! that disconnects mid-transfer leaves nothing behind.
+//!
+//! WRITEFILEINFO takes effect with its one data block; a `[0]=` block after
+//! it is accepted without an answer, so both the manual's single-block form
+//! and the WRITEFILE-like form work.
+
+use plccoms_protocol::answer::ErrorCode;
+use plccoms_protocol::request::{classify, parse_block, Command, Line};
+use tokio::time::Instant;
+
+use super::{error, is_local, FileThen};
+use crate::localfs::{self, Staging};
+use crate::poller::files::FileJob;
+use crate::session::{Pending, Session};
+
+/// Largest PLC file taken by WRITEFILE.
+pub const MAX_PLC_FILE: usize = 16 * 1024 * 1024;
+/// Largest WRITEFILEINFO data.
+const MAX_INFO: usize = 256;
+
+/// A WRITEFILE transfer in progress.
+pub struct Upload {
+    pub name: Vec<u8>,
+    target: Target,
+    /// The next block must arrive before this.
+    pub deadline: Instant,
+}
+
+enum Target {
+    Local(Staging),
+    Plc(Vec<u8>),
+    /// Writing failed; the zero block answers ERROR 42.
+    Failed,
+    /// Timed out (ERROR 45 sent): blocks are ignored, the zero block
+    /// answers ERROR 45 again.
+    TimedOut,
+}
+
+pub async fn block(session: &mut Session, header: &[u8], data: Vec<u8>) {
+    let Line::Command { command, args } = classify(header) else {
+        return error(session, ErrorCode::BadRequest, header);
+    };
+    let name = match parse_block(args) {
+        Ok((name, _, _)) => name.to_vec(),
+        Err(_) => return error(session, ErrorCode::BadRequest, header),
+    };
+    match command {
+        Command::WriteFileInfo => write_info(session, name, &data).await,
+        _ => write_block(session, name, data).await,
+    }
+}
+
+async fn write_block(session: &mut Session, name: Vec<u8>, data: Vec<u8>) {
+    if session.upload.as_ref().is_some_and(|u| u.name != name) {
+        if let Some(open) = session.upload.take() {
+            if !matches!(open.target, Target::TimedOut) {
+                error(session, ErrorCode::Unterminated, &open.name);
+            }
+        }
+    }
+    if data.is_empty() {
+        return finish(session, name).await;
+    }
+    let deadline = Instant::now() + session.shared.global.ffile_timeout_wr;
+    let upload = match session.upload.take() {
+        Some(upload) => upload,
+        None => Upload {
+            target: start(session, &name),
+            name,
+            deadline,
+        },
+    };
+    let mut upload = Upload { deadline, ..upload };
+    match &mut upload.target {
+        Target::Local(staging) => {
+            if staging.write(&data).is_err() {
+                upload.target = Target::Failed;
+            }
+        }
+        Target::Plc(buffer) => {
+            if buffer.len() + data.len() > MAX_PLC_FILE {
+                upload.target = Target::Failed;
+            } else {
+                buffer.extend_from_slice(&data);
+            }
+        }
+        Target::Failed | Target::TimedOut => {}
+    }
+    session.upload = Some(upload);
+}
+
+fn start(session: &Session, name: &[u8]) -> Target {
+    if !is_local(name) {
+        return Target::Plc(Vec::new());
+    }
+    match localfs::resolve(&session.shared.root, name) {
+        Ok(path) => Staging::create(path).map_or(Target::Failed, Target::Local),
+        Err(err) => {
+            super::getfileinfo::refused(session, name, &err);
+            Target::Failed
+        }
+    }
+}
+
+async fn finish(session: &mut Session, name: Vec<u8>) {
+    let target = match session.upload.take() {
+        Some(upload) => upload.target,
+        // Only the zero block: an empty file.
+        None => start(session, &name),
+    };
+    match target {
+        Target::Local(staging) => match staging.commit() {
+            Ok(()) => ok(session, b"WRITEFILE:", &name),
+            Err(_) => error(session, ErrorCode::WriteFile, &name),
+        },
+        Target::Plc(data) => {
+            let job = FileJob::Write {
+                path: name.clone(),
+                data,
+            };
+            let rx = session.shared.poller.file(job).await;
+            let then = FileThen::Write { name };
+            session.pending.push_back(Pending::File { rx, then });
+        }
+        Target::Failed => error(session, ErrorCode::WriteFile, &name),
+        Target::TimedOut => error(session, ErrorCode::WriteTimeout, &name),
+    }
+}
+
+/// FFILE_TIMEOUT_WR passed since the last block: ERROR 45, data discarded.
+pub fn timed_out(session: &mut Session) {
+    let Some(mut upload) = session.upload.take() else {
+        return;
+    };
+    if matches!(upload.target, Target::TimedOut) {
+        // The remembered timeout expired: the name is free again.
+        return;
+    }
+    error(session, ErrorCode::WriteTimeout, &upload.name);
+    // Dropping a staging file removes it.
+    upload.target = Target::TimedOut;
+    upload.deadline = Instant::now() + session.shared.global.ffile_timeout_wr * 12;
+    // Stray blocks of the abandoned transfer are ignored for a while, then
+    // the name is free again.
+    session.upload = Some(upload);
+}
+
+async fn write_info(session: &mut Session, name: Vec<u8>, data: &[u8]) {
+    if data.is_empty() {
+        return;
+    }
+    let info = match (data.len() <= MAX_INFO).then(|| localfs::parse_info(data)) {
+        Some(Some(info)) => info,
+        _ => return error(session, ErrorCode::WriteFileInfo, &name),
+    };
+    if is_local(&name) {
+        let done = match localfs::resolve(&session.shared.root, &name) {
+            Ok(path) => localfs::write_info(&path, &info).is_ok(),
+            Err(err) => {
+                super::getfileinfo::refused(session, &name, &err);
+                false
+            }
+        };
+        return if done {
+            ok(session, b"WRITEFILEINFO:", &name)
+        } else {
+            error(session, ErrorCode::WriteFileInfo, &name)
+        };
+    }
+    let job = FileJob::WriteInfo {
+        path: name.clone(),
+        info,
+    };
+    let rx = session.shared.poller.file(job).await;
+    let then = FileThen::WriteInfo { name };
+    session.pending.push_back(Pending::File { rx, then });
+}
+
+fn ok(session: &mut Session, command: &[u8], name: &[u8]) {
+    let mut line = command.to_vec();
+    line.extend_from_slice(name);
+    line.extend_from_slice(b" OK");
+    session.answer_line(line);
+}

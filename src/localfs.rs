@@ -1,0 +1,285 @@
+//! Files on the server's machine (names beginning with `.` in GETFILE,
+//! GETFILEINFO, WRITEFILE and WRITEFILEINFO), confined to the section's root
+//! folder.
+//!
+//! A name is split on `/` and `\`; `..`, drive letters (`:`) and NUL are
+//! refused outright, `.` and empty parts are skipped (so `./a`, `.//a` and
+//! `a` are the same file). What exists of the path is then resolved with
+//! symbolic links followed and must still lie inside the root: a link that
+//! stays inside is fine, one that leads out is refused. Uploads are written
+//! to a hidden temporary name in the target's folder and renamed into place.
+
+use std::fs::{self, File};
+use std::io;
+use std::path::{Component, Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, UNIX_EPOCH};
+
+use crate::backend::{
+    DirEntry, FileInfo, FILE_ATTRIBUTE_ARCHIVE, FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_HIDDEN,
+    FILE_ATTRIBUTE_READONLY,
+};
+use crate::plc::{cp1250, time};
+
+/// Name prefix of upload staging files; hidden from listings and refused as
+/// a path part.
+pub const STAGING_PREFIX: &str = ".plccoms-upload-";
+/// Most entries listed for one directory.
+pub const MAX_ENTRIES: usize = 65_535;
+
+#[derive(Debug, thiserror::Error)]
+pub enum LocalError {
+    /// The name leads outside the root (traversal, absolute, or a link).
+    #[error("outside the root folder")]
+    Outside,
+    #[error(transparent)]
+    Io(#[from] io::Error),
+}
+
+/// The host path of a local file name, checked to lie inside `root`. The
+/// target itself may be missing (for uploads); its folder must exist.
+pub fn resolve(root: &Path, name: &[u8]) -> Result<PathBuf, LocalError> {
+    let root = fs::canonicalize(root)?;
+    let text = cp1250::decode(name);
+    let mut path = root.clone();
+    for part in text.split(['/', '\\']) {
+        if part.is_empty() || part == "." {
+            continue;
+        }
+        if part == ".." || part.contains(['\0', ':']) || part.starts_with(STAGING_PREFIX) {
+            return Err(LocalError::Outside);
+        }
+        let mut components = Path::new(part).components();
+        if !matches!(
+            (components.next(), components.next()),
+            (Some(Component::Normal(_)), None)
+        ) {
+            return Err(LocalError::Outside);
+        }
+        path.push(part);
+    }
+    // Follow links in what exists: the real place must be under the root.
+    let real = match fs::canonicalize(&path) {
+        Ok(real) => real,
+        Err(_) => {
+            if fs::symlink_metadata(&path).is_ok() {
+                // A dangling link: where it points cannot be checked.
+                return Err(LocalError::Outside);
+            }
+            let parent = path.parent().ok_or(LocalError::Outside)?;
+            let real_parent = fs::canonicalize(parent)?;
+            real_parent.join(path.file_name().ok_or(LocalError::Outside)?)
+        }
+    };
+    if !real.starts_with(&root) {
+        return Err(LocalError::Outside);
+    }
+    Ok(real)
+}
+
+pub fn info(path: &Path) -> io::Result<FileInfo> {
+    Ok(info_of(path, &fs::metadata(path)?))
+}
+
+fn info_of(path: &Path, meta: &fs::Metadata) -> FileInfo {
+    let mut attributes = if meta.is_dir() {
+        FILE_ATTRIBUTE_DIRECTORY
+    } else {
+        FILE_ATTRIBUTE_ARCHIVE
+    };
+    if meta.permissions().readonly() {
+        attributes |= FILE_ATTRIBUTE_READONLY;
+    }
+    if path
+        .file_name()
+        .and_then(|n| n.to_str())
+        .is_some_and(|n| n.starts_with('.'))
+    {
+        attributes |= FILE_ATTRIBUTE_HIDDEN;
+    }
+    let modified = meta.modified().map(time::ttida_from_system).unwrap_or(0);
+    let created = meta
+        .created()
+        .map(time::ttida_from_system)
+        .unwrap_or(modified);
+    FileInfo {
+        size: if meta.is_dir() { 0 } else { meta.len() },
+        attributes,
+        created,
+        modified,
+    }
+}
+
+/// A directory's entries by name; names not representable in cp1250 and
+/// staging files are left out.
+pub fn list(path: &Path) -> io::Result<Vec<DirEntry>> {
+    let mut entries = Vec::new();
+    for entry in fs::read_dir(path)? {
+        let Ok(entry) = entry else { continue };
+        let name = entry.file_name();
+        let Some(name) = name.to_str() else { continue };
+        if name.starts_with(STAGING_PREFIX) {
+            continue;
+        }
+        let Some(bytes) = cp1250::encode(name) else {
+            continue;
+        };
+        let Ok(meta) = fs::metadata(entry.path()) else {
+            continue;
+        };
+        entries.push(DirEntry {
+            name: bytes,
+            info: info_of(&entry.path(), &meta),
+        });
+        if entries.len() >= MAX_ENTRIES {
+            break;
+        }
+    }
+    entries.sort_by(|a, b| a.name.cmp(&b.name));
+    Ok(entries)
+}
+
+/// A GETFILE directory listing: one entry a line, directories with a
+/// trailing `/`.
+pub fn format_listing(entries: &[DirEntry], eol: &[u8]) -> Vec<u8> {
+    let mut out = Vec::new();
+    for entry in entries {
+        out.extend_from_slice(&entry.name);
+        if entry.info.attributes & FILE_ATTRIBUTE_DIRECTORY != 0 {
+            out.push(b'/');
+        }
+        out.extend_from_slice(eol);
+    }
+    out
+}
+
+/// An upload in progress: a staging file next to the target, removed unless
+/// committed.
+pub struct Staging {
+    temp: PathBuf,
+    target: PathBuf,
+    file: Option<File>,
+}
+
+impl Staging {
+    pub fn create(target: PathBuf) -> io::Result<Staging> {
+        static COUNTER: AtomicU64 = AtomicU64::new(0);
+        let parent = target
+            .parent()
+            .ok_or_else(|| io::Error::new(io::ErrorKind::InvalidInput, "no folder"))?;
+        if fs::metadata(&target).is_ok_and(|m| m.is_dir()) {
+            return Err(io::Error::new(
+                io::ErrorKind::InvalidInput,
+                "target is a directory",
+            ));
+        }
+        let temp = parent.join(format!(
+            "{STAGING_PREFIX}{}-{}",
+            std::process::id(),
+            COUNTER.fetch_add(1, Ordering::Relaxed)
+        ));
+        let file = File::options().write(true).create_new(true).open(&temp)?;
+        Ok(Staging {
+            temp,
+            target,
+            file: Some(file),
+        })
+    }
+
+    pub fn write(&mut self, data: &[u8]) -> io::Result<()> {
+        use std::io::Write;
+        match self.file.as_mut() {
+            Some(file) => file.write_all(data),
+            None => Err(io::Error::other("already committed")),
+        }
+    }
+
+    /// Moves the finished file into place.
+    pub fn commit(mut self) -> io::Result<()> {
+        if let Some(file) = self.file.take() {
+            file.sync_all()?;
+        }
+        fs::rename(&self.temp, &self.target)
+    }
+}
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        // Not committed (or the rename failed): the data is discarded.
+        let _ = fs::remove_file(&self.temp);
+    }
+}
+
+/// WRITEFILEINFO on a local file: the read-only attribute and the
+/// modification time (0 leaves it); the creation time cannot be set.
+pub fn write_info(path: &Path, info: &FileInfo) -> io::Result<()> {
+    let meta = fs::metadata(path)?;
+    if info.modified != 0 {
+        let secs = time::unix_from_ttida(info.modified)
+            .filter(|&s| s >= 0)
+            .ok_or_else(|| io::Error::new(io::ErrorKind::InvalidInput, "bad time"))?;
+        File::options()
+            .write(!meta.is_dir())
+            .read(meta.is_dir())
+            .open(path)
+            .and_then(|f| f.set_modified(UNIX_EPOCH + Duration::from_secs(secs as u64)))?;
+    }
+    let mut perms = meta.permissions();
+    let readonly = info.attributes & FILE_ATTRIBUTE_READONLY != 0;
+    if perms.readonly() != readonly {
+        #[allow(clippy::permissions_set_readonly_false)]
+        perms.set_readonly(readonly);
+        fs::set_permissions(path, perms)?;
+    }
+    Ok(())
+}
+
+/// Parses `<size> <attr> <created> <modified>` (WRITEFILEINFO data).
+pub fn parse_info(text: &[u8]) -> Option<FileInfo> {
+    let text = std::str::from_utf8(text).ok()?;
+    let mut fields = text.split_ascii_whitespace();
+    let info = FileInfo {
+        size: fields.next()?.parse().ok()?,
+        attributes: fields.next()?.parse().ok()?,
+        created: fields.next()?.parse().ok()?,
+        modified: fields.next()?.parse().ok()?,
+    };
+    fields.next().is_none().then_some(info)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_stay_inside_the_root() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = fs::canonicalize(dir.path()).unwrap();
+        fs::create_dir(root.join("sub")).unwrap();
+        assert_eq!(resolve(&root, b"./a.txt").unwrap(), root.join("a.txt"));
+        assert_eq!(resolve(&root, b".\\sub\\b").unwrap(), root.join("sub/b"));
+        assert_eq!(resolve(&root, b".//etc/x").ok(), None); // folder missing
+        for bad in [&b"../x"[..], b"./sub/../../x", b"./C:/x", b"./a\0b"] {
+            assert!(matches!(resolve(&root, bad), Err(LocalError::Outside)));
+        }
+        #[cfg(unix)]
+        {
+            std::os::unix::fs::symlink("/etc", root.join("out")).unwrap();
+            std::os::unix::fs::symlink(root.join("sub"), root.join("in")).unwrap();
+            assert!(matches!(
+                resolve(&root, b"./out/passwd"),
+                Err(LocalError::Outside)
+            ));
+            assert_eq!(resolve(&root, b"./in/c").unwrap(), root.join("sub/c"));
+        }
+    }
+
+    #[test]
+    fn info_text_parses() {
+        let info = parse_info(b"44 0 41854524393844 41854674928753").unwrap();
+        assert_eq!(info.size, 44);
+        assert_eq!(info.modified, 41_854_674_928_753);
+        assert!(parse_info(b"1 2 3").is_none());
+        assert!(parse_info(b"1 2 3 4 5").is_none());
+    }
+}

@@ -1,0 +1,208 @@
+//! PLC file services, run by the poller (the backend's one owner): file
+//! information, directory listings, reads in blocks and whole-file writes,
+//! plus the cache of recently read files (FFILE_MAXRECS, FFILE_TIMEOUT).
+//!
+//! The cache keeps whole files only, filled while a client reads one from
+//! offset 0 to its end. It is bounded in entries (FFILE_MAXRECS; 0 turns it
+//! off), in age (FFILE_TIMEOUT), and in bytes: files over
+//! [`CACHE_MAX_FILE`] are never kept and the total stays under
+//! [`CACHE_MAX_BYTES`], oldest entries going first. A write or an info
+//! change of a file drops its entry.
+
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::time::Instant;
+
+use crate::backend::{Answer, DirEntry, FileInfo};
+
+/// Largest file the cache keeps.
+pub const CACHE_MAX_FILE: usize = 1024 * 1024;
+/// Most bytes the cache holds in all.
+pub const CACHE_MAX_BYTES: usize = 16 * 1024 * 1024;
+
+/// A file request from a session.
+#[derive(Debug)]
+pub enum FileJob {
+    Info {
+        path: Vec<u8>,
+    },
+    List {
+        path: Vec<u8>,
+    },
+    /// Up to `len` bytes from `offset` (the poller cuts the backend's
+    /// requests to its file block size); fewer at the end of the file.
+    Read {
+        path: Vec<u8>,
+        offset: u64,
+        len: u32,
+    },
+    /// The whole file; the PLC commits it with the last block.
+    Write {
+        path: Vec<u8>,
+        data: Vec<u8>,
+    },
+    WriteInfo {
+        path: Vec<u8>,
+        info: FileInfo,
+    },
+}
+
+impl FileJob {
+    pub fn path(&self) -> &[u8] {
+        match self {
+            FileJob::Info { path }
+            | FileJob::List { path }
+            | FileJob::Read { path, .. }
+            | FileJob::Write { path, .. }
+            | FileJob::WriteInfo { path, .. } => path,
+        }
+    }
+}
+
+#[derive(Debug)]
+pub enum FileOutput {
+    Info(FileInfo),
+    List(Vec<DirEntry>),
+    Data(Vec<u8>),
+    Done,
+}
+
+pub type FileReply = Result<Answer<FileOutput>, super::LinkError>;
+
+struct Entry {
+    path: Vec<u8>,
+    stored: Instant,
+    data: Arc<Vec<u8>>,
+}
+
+/// Recently read PLC files.
+pub struct FileCache {
+    max_recs: usize,
+    ttl: Duration,
+    entries: VecDeque<Entry>,
+    bytes: usize,
+    /// A read from offset 0 in progress: path and the bytes so far.
+    filling: Option<(Vec<u8>, Vec<u8>)>,
+}
+
+impl FileCache {
+    pub fn new(max_recs: usize, ttl: Duration) -> FileCache {
+        FileCache {
+            max_recs,
+            ttl,
+            entries: VecDeque::new(),
+            bytes: 0,
+            filling: None,
+        }
+    }
+
+    fn enabled(&self) -> bool {
+        self.max_recs > 0 && !self.ttl.is_zero()
+    }
+
+    /// `len` bytes from `offset` of a cached file (fewer at its end).
+    pub fn get(&mut self, path: &[u8], offset: u64, len: u32) -> Option<Vec<u8>> {
+        self.expire();
+        let entry = self.entries.iter().find(|e| e.path == path)?;
+        let start = usize::try_from(offset).ok()?.min(entry.data.len());
+        let end = start.saturating_add(len as usize).min(entry.data.len());
+        Some(entry.data[start..end].to_vec())
+    }
+
+    /// Notes a block read from the PLC; a file read whole from its start is
+    /// stored when its end (a short block) arrives.
+    pub fn note_read(&mut self, path: &[u8], offset: u64, len: u32, data: &[u8]) {
+        if !self.enabled() {
+            return;
+        }
+        if offset == 0 {
+            self.filling = Some((path.to_vec(), Vec::new()));
+        }
+        let Some((fill_path, buf)) = self.filling.as_mut() else {
+            return;
+        };
+        if fill_path != path || buf.len() as u64 != offset {
+            self.filling = None;
+            return;
+        }
+        buf.extend_from_slice(data);
+        if buf.len() > CACHE_MAX_FILE {
+            self.filling = None;
+            return;
+        }
+        if data.len() < len as usize {
+            let (path, data) = self.filling.take().expect("checked above");
+            self.insert(path, data);
+        }
+    }
+
+    fn insert(&mut self, path: Vec<u8>, data: Vec<u8>) {
+        self.invalidate(&path);
+        self.bytes += data.len();
+        self.entries.push_back(Entry {
+            path,
+            stored: Instant::now(),
+            data: Arc::new(data),
+        });
+        while self.entries.len() > self.max_recs || self.bytes > CACHE_MAX_BYTES {
+            match self.entries.pop_front() {
+                Some(old) => self.bytes -= old.data.len(),
+                None => break,
+            }
+        }
+    }
+
+    pub fn invalidate(&mut self, path: &[u8]) {
+        if self.filling.as_ref().is_some_and(|(p, _)| p == path) {
+            self.filling = None;
+        }
+        let bytes = &mut self.bytes;
+        self.entries.retain(|e| {
+            let keep = e.path != path;
+            if !keep {
+                *bytes -= e.data.len();
+            }
+            keep
+        });
+    }
+
+    fn expire(&mut self) {
+        while let Some(front) = self.entries.front() {
+            if front.stored.elapsed() < self.ttl {
+                break;
+            }
+            if let Some(old) = self.entries.pop_front() {
+                self.bytes -= old.data.len();
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cache_keeps_whole_files_within_bounds() {
+        let mut cache = FileCache::new(2, Duration::from_secs(60));
+        cache.note_read(b"a", 0, 4, b"abcd");
+        assert!(cache.get(b"a", 0, 4).is_none(), "not complete yet");
+        cache.note_read(b"a", 4, 4, b"ef");
+        assert_eq!(cache.get(b"a", 2, 10).unwrap(), b"cdef");
+        assert_eq!(cache.get(b"a", 9, 10).unwrap(), b"");
+        cache.note_read(b"b", 0, 4, b"b");
+        cache.note_read(b"c", 0, 4, b"c");
+        assert!(cache.get(b"a", 0, 1).is_none(), "oldest evicted");
+        cache.invalidate(b"c");
+        assert!(cache.get(b"c", 0, 1).is_none());
+        // A read that skips ahead is not stored.
+        cache.note_read(b"d", 0, 2, b"xy");
+        cache.note_read(b"d", 4, 2, b"z");
+        assert!(cache.get(b"d", 0, 1).is_none());
+        let mut off = FileCache::new(0, Duration::from_secs(60));
+        off.note_read(b"a", 0, 4, b"ab");
+        assert!(off.get(b"a", 0, 4).is_none());
+    }
+}
