@@ -15,11 +15,10 @@ use std::path::{Component, Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, UNIX_EPOCH};
 
-use crate::backend::{
-    DirEntry, FileInfo, FILE_ATTRIBUTE_ARCHIVE, FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_HIDDEN,
-    FILE_ATTRIBUTE_READONLY,
-};
-use crate::plc::{cp1250, time};
+use crate::backend::{DirEntry, FileInfo, FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_READONLY};
+use crate::plc::files::info_of;
+use crate::plc::time;
+use plccoms_protocol::cp1250;
 
 /// Name prefix of upload staging files; hidden from listings and refused as
 /// a path part.
@@ -81,35 +80,6 @@ pub fn info(path: &Path) -> io::Result<FileInfo> {
     Ok(info_of(path, &fs::metadata(path)?))
 }
 
-fn info_of(path: &Path, meta: &fs::Metadata) -> FileInfo {
-    let mut attributes = if meta.is_dir() {
-        FILE_ATTRIBUTE_DIRECTORY
-    } else {
-        FILE_ATTRIBUTE_ARCHIVE
-    };
-    if meta.permissions().readonly() {
-        attributes |= FILE_ATTRIBUTE_READONLY;
-    }
-    if path
-        .file_name()
-        .and_then(|n| n.to_str())
-        .is_some_and(|n| n.starts_with('.'))
-    {
-        attributes |= FILE_ATTRIBUTE_HIDDEN;
-    }
-    let modified = meta.modified().map(time::ttida_from_system).unwrap_or(0);
-    let created = meta
-        .created()
-        .map(time::ttida_from_system)
-        .unwrap_or(modified);
-    FileInfo {
-        size: if meta.is_dir() { 0 } else { meta.len() },
-        attributes,
-        created,
-        modified,
-    }
-}
-
 /// A directory's entries by name; names not representable in cp1250 and
 /// staging files are left out.
 pub fn list(path: &Path) -> io::Result<Vec<DirEntry>> {
@@ -121,7 +91,7 @@ pub fn list(path: &Path) -> io::Result<Vec<DirEntry>> {
         if name.starts_with(STAGING_PREFIX) {
             continue;
         }
-        let Some(bytes) = cp1250::encode(name) else {
+        let Some(bytes) = cp1250::try_encode(name) else {
             continue;
         };
         let Ok(meta) = fs::metadata(entry.path()) else {

@@ -56,6 +56,13 @@ pub fn encode(s: &str) -> Cow<'_, [u8]> {
     encoding_rs::WINDOWS_1250.encode(s).0
 }
 
+/// Text as cp1250 bytes, or `None` when a character has no cp1250 byte
+/// (for names that must round-trip exactly, such as file names).
+pub fn try_encode(s: &str) -> Option<Vec<u8>> {
+    let (bytes, _, had_errors) = encoding_rs::WINDOWS_1250.encode(s);
+    (!had_errors).then(|| bytes.into_owned())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

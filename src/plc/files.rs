@@ -15,11 +15,12 @@ use std::io::{self, Read, Seek, SeekFrom, Write};
 use std::path::{Component, Path, PathBuf};
 use std::time::{Duration, Instant, UNIX_EPOCH};
 
-use super::{cp1250, time};
+use super::time;
 use crate::backend::{
     DirEntry, Exception, FileInfo, FILE_ATTRIBUTE_ARCHIVE, FILE_ATTRIBUTE_DIRECTORY,
-    FILE_ATTRIBUTE_READONLY,
+    FILE_ATTRIBUTE_HIDDEN, FILE_ATTRIBUTE_READONLY,
 };
+use plccoms_protocol::cp1250;
 
 /// Name prefix of staging files; hidden from listings and unreachable by path.
 pub const STAGING_PREFIX: &str = ".plcsim-staging-";
@@ -112,7 +113,7 @@ impl FileStore {
     pub fn info(&self, path: &[u8]) -> Result<FileInfo, Exception> {
         let host = self.resolve(path)?;
         let meta = fs::symlink_metadata(&host).map_err(bad)?;
-        Ok(info_of(&meta))
+        Ok(info_of(&host, &meta))
     }
 
     pub fn read(&self, path: &[u8], offset: u64, len: u32) -> Result<Vec<u8>, Exception> {
@@ -259,13 +260,13 @@ impl FileStore {
             if name.starts_with(STAGING_PREFIX) {
                 continue;
             }
-            let Some(bytes) = cp1250::encode(name) else {
+            let Some(bytes) = cp1250::try_encode(name) else {
                 continue;
             };
             let Ok(meta) = entry.metadata() else { continue };
             entries.push(DirEntry {
                 name: bytes,
-                info: info_of(&meta),
+                info: info_of(&entry.path(), &meta),
             });
             if entries.len() >= MAX_ENTRIES {
                 break;
@@ -276,7 +277,10 @@ impl FileStore {
     }
 }
 
-fn info_of(meta: &fs::Metadata) -> FileInfo {
+/// GETFILEINFO's view of a host file: size, attributes (directory or
+/// archive, read-only, hidden for dot names) and ttida times. Shared by the
+/// simulated PLC's file store and the server's local files.
+pub fn info_of(path: &Path, meta: &fs::Metadata) -> FileInfo {
     let mut attributes = if meta.is_dir() {
         FILE_ATTRIBUTE_DIRECTORY
     } else {
@@ -284,6 +288,13 @@ fn info_of(meta: &fs::Metadata) -> FileInfo {
     };
     if meta.permissions().readonly() {
         attributes |= FILE_ATTRIBUTE_READONLY;
+    }
+    if path
+        .file_name()
+        .and_then(|n| n.to_str())
+        .is_some_and(|n| n.starts_with('.'))
+    {
+        attributes |= FILE_ATTRIBUTE_HIDDEN;
     }
     let modified = meta.modified().map(time::ttida_from_system).unwrap_or(0);
     let created = meta

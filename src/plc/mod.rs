@@ -2,7 +2,6 @@
 //! public files address, shared by the in-process backend and the simulated
 //! EPSNET PLC.
 
-pub mod cp1250;
 pub mod device;
 pub mod files;
 pub mod image;

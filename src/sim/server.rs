@@ -13,7 +13,8 @@ use crate::backend::epsnet::service::{
 };
 use crate::backend::epsnet::PLC_EPS_ADDR;
 use crate::backend::{Exception, WriteData};
-use crate::plc::{cp1250, time, Device};
+use crate::plc::{time, Device};
+use plccoms_protocol::cp1250;
 
 /// Runs one request against the device. `clock_offset` is the PLC clock's
 /// offset from the host clock in seconds (set by SETTID).
@@ -25,7 +26,7 @@ pub fn execute(
     const BAD: Exception = Exception::BadParameters;
     match request {
         Request::Ident => {
-            let mut ident = cp1250::encode(&device.ident)
+            let mut ident = cp1250::try_encode(&device.ident)
                 .unwrap_or_else(|| device.ident.bytes().filter(u8::is_ascii).collect());
             // Clients plan for at most this much (see `Request::max_answer_len`).
             ident.truncate(service::MAX_IDENT);

@@ -39,7 +39,7 @@ use super::{
     Answer, DirEntry, Exception, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteData,
     WriteRequest,
 };
-use crate::plc::cp1250;
+use plccoms_protocol::cp1250;
 
 /// EPSNET address of the PLC itself (DA of every request).
 pub const PLC_EPS_ADDR: u8 = 0;
@@ -480,7 +480,7 @@ impl PlcBackend for EpsnetBackend {
             .await?
             .into_iter();
         let ident = match answers.next() {
-            Some(Ok(Response::Ident(bytes))) => cp1250::decode(&bytes),
+            Some(Ok(Response::Ident(bytes))) => cp1250::decode(&bytes).into_owned(),
             Some(Ok(other)) => return Err(unexpected(other)),
             Some(Err(e)) => return Err(PlcError::Refused(e)),
             None => return Err(PlcError::Protocol("no identification".into())),
