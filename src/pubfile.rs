@@ -390,21 +390,7 @@ fn show(bytes: &[u8]) -> String {
     out
 }
 
-/// Upper case of a cp1250 byte: ASCII letters and the cp1250 letters that
-/// have a case pair.
-fn cp1250_upper(b: u8) -> u8 {
-    match b {
-        b'a'..=b'z' => b - 0x20,
-        0x9A | 0x9C | 0x9D | 0x9E | 0x9F => b - 0x10,
-        0xB3 => 0xA3,
-        0xB9 => 0xA5,
-        0xBA => 0xAA,
-        0xBF => 0xAF,
-        0xBE => 0xBC,
-        0xE0..=0xFE if b != 0xF7 => b - 0x20,
-        _ => b,
-    }
-}
+use plccoms_protocol::cp1250::upper as cp1250_upper;
 
 /// A name compared and hashed case-insensitively (cp1250).
 struct FoldedName<'a>(&'a [u8]);
