@@ -272,6 +272,50 @@ impl Client {
         }
     }
 
+    /// One line including its line end, waiting at most `within` for it
+    /// (`None` on timeout). For events slower than [`TIMEOUT`], e.g. a PLC
+    /// coming back.
+    pub async fn line_within(&mut self, within: Duration) -> Option<Vec<u8>> {
+        let deadline = tokio::time::Instant::now() + within;
+        loop {
+            if let Some(pos) = self.buf.iter().position(|&b| b == b'\n') {
+                return Some(self.buf.drain(..=pos).collect());
+            }
+            let mut chunk = vec![0u8; 65536];
+            match tokio::time::timeout_at(deadline, self.stream.read(&mut chunk)).await {
+                Err(_) => return None,
+                Ok(Ok(0)) => panic!(
+                    "connection closed; partial: {:?}",
+                    String::from_utf8_lossy(&self.buf)
+                ),
+                Ok(Ok(n)) => self.buf.extend_from_slice(&chunk[..n]),
+                Ok(Err(e)) => panic!("read: {e}"),
+            }
+        }
+    }
+
+    /// Reads lines until one equals `want`, within `within`; returns the
+    /// lines skipped before it.
+    pub async fn wait_for_line(&mut self, want: &[u8], within: Duration) -> Vec<Vec<u8>> {
+        let deadline = tokio::time::Instant::now() + within;
+        let mut skipped = Vec::new();
+        loop {
+            let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+            match self.line_within(left).await {
+                Some(line) if line == want => return skipped,
+                Some(line) => skipped.push(line),
+                None => panic!(
+                    "no {:?} within {within:?}; got {:?}",
+                    String::from_utf8_lossy(want),
+                    skipped
+                        .iter()
+                        .map(|l| String::from_utf8_lossy(l).into_owned())
+                        .collect::<Vec<_>>()
+                ),
+            }
+        }
+    }
+
     pub fn buffered(&self) -> &[u8] {
         &self.buf
     }
