@@ -80,6 +80,8 @@ async fn start_server(plc: SocketAddr, global_ini: &str, link: Link) -> RunningS
         table,
         Some(Box::new(EpsnetBackend::new(eps))),
         any_port(),
+        std::env::temp_dir(),
+        None,
     )
     .await
     .expect("start section")

@@ -36,7 +36,6 @@ use plccoms::backend::{
     Answer, DirEntry, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteRequest,
 };
 use plccoms::plc::MemoryMap;
-use plccoms::poller::plan::MERGE_GAP;
 use plccoms::server::start_section;
 use plccoms::sim::program::ProgramKind;
 use plccoms::sim::{self, PubSource, SimConfig};
@@ -84,10 +83,6 @@ struct Layout {
     /// Distinct bytes the variables occupy (BOOLs sharing a byte count once).
     bytes: u64,
     per_area: [(char, usize, u64); 4],
-    /// Contiguous regions once gaps of up to `MERGE_GAP` bytes are read
-    /// through, and the READ requests they need, each cut at 1230 bytes.
-    regions: usize,
-    region_requests: u64,
 }
 
 struct Lcg(u64);
@@ -286,23 +281,11 @@ fn generate(total: usize, seed: u64) -> Layout {
     for o in [2, 70, 71, 72, 73] {
         covered.insert(('S', o));
     }
-    let mut spans: Vec<(char, u32, u32)> = Vec::new();
-    for &(area, o) in &covered {
-        match spans.last_mut() {
-            Some((a, _, end)) if *a == area && o <= *end + MERGE_GAP => *end = o + 1,
-            _ => spans.push((area, o, o + 1)),
-        }
-    }
     Layout {
         text,
         vars: n,
         bytes: covered.len() as u64 - 5,
         per_area,
-        regions: spans.len(),
-        region_requests: spans
-            .iter()
-            .map(|&(_, start, end)| u64::from(end - start).div_ceil(1230))
-            .sum(),
     }
 }
 
@@ -512,6 +495,8 @@ async fn run(
         table,
         Some(Box::new(backend)),
         "127.0.0.1:0".parse().unwrap(),
+        std::env::temp_dir(),
+        None,
     )
     .await
     .expect("section");
@@ -686,11 +671,7 @@ async fn main() {
         "| EPSNET READ requests | {} | {} (= ceil({} B / 1230)); {} with one area per request |",
         counted.plan_requests, min_requests, all_bytes, per_area_min
     );
-    let _ = writeln!(
-        out,
-        "| EPSNET READ requests, read plan's rule | | {} ({} regions once gaps of up to {MERGE_GAP} B are read through, each cut at 1230 B) |",
-        layout.region_requests, layout.regions
-    );
+
     let _ = writeln!(
         out,
         "| memory bytes read | {} | {} |",

@@ -417,7 +417,16 @@ impl Poller {
         self.last_poll = Instant::now();
         let answers = match backend.read(self.plan.blocks()).await {
             Ok(answers) => answers,
-            Err(err) => return self.go_offline(&err),
+            // A datagram lost to all its retries is no outage yet (at 20 %
+            // loss that happens every few minutes): the PLC is lost only when
+            // the cycle fails twice in a row.
+            Err(first) => match backend.read(self.plan.blocks()).await {
+                Ok(answers) => {
+                    debug!(section = %self.section, "poll read failed once ({first}), the retry succeeded");
+                    answers
+                }
+                Err(_) => return self.go_offline(&first),
+            },
         };
         let (data, refused) = self.plan.assemble_answers(answers);
         if !refused.is_empty() && !self.refused_logged {
@@ -663,8 +672,9 @@ impl Poller {
                 }
             }
             Err(err) => {
+                // The client hears of it; whether the PLC is gone is the
+                // poll's to decide.
                 let message = err.to_string();
-                self.go_offline(&err);
                 for (_, reply) in group {
                     let _ = reply.send(Err(LinkError::Plc(PlcError::Timeout(message.clone()))));
                 }
@@ -757,12 +767,14 @@ impl Poller {
             }
             outcomes.push((reply, SetOutcome { answer, seq }));
         }
-        // Answer the writers before publishing, so each sees its own answer
-        // before the snapshot that carries the same change.
+        // Publish before answering: a client that reads its answer and asks
+        // again at once must find the new value in the snapshot. The writer
+        // holds back DIFF lines while its SET is unanswered, so it does not
+        // get the change twice.
+        self.publisher.publish(false, true);
         for (reply, outcome) in outcomes {
             let _ = reply.send(Ok(outcome));
         }
-        self.publisher.publish(false, true);
     }
 
     async fn serve_file(&mut self, job: FileJob) -> FileReply {
@@ -772,11 +784,7 @@ impl Poller {
         self.transfer_until = Instant::now() + TRANSFER_IDLE;
         let result = self.run_file_job(job).await;
         self.transfer_until = Instant::now() + TRANSFER_IDLE;
-        result.map_err(|err| {
-            let message = err.to_string();
-            self.go_offline(&err);
-            LinkError::Plc(PlcError::Timeout(message))
-        })
+        result.map_err(|err| LinkError::Plc(PlcError::Timeout(err.to_string())))
     }
 
     async fn run_file_job(&mut self, job: FileJob) -> Result<Answer<FileOutput>, PlcError> {
@@ -844,7 +852,6 @@ impl Poller {
 
     fn fail_sets(&mut self, group: Vec<(SetItem, oneshot::Sender<SetReply>)>, err: PlcError) {
         let message = err.to_string();
-        self.go_offline(&err);
         for (_, reply) in group {
             let _ = reply.send(Err(LinkError::Plc(PlcError::Timeout(message.clone()))));
         }
@@ -869,9 +876,12 @@ fn split(request: ReadRequest, max: u32) -> impl Iterator<Item = ReadRequest> {
 /// when the process may have it.
 pub fn spawn_thread(poller: Poller, priority: u8) -> std::io::Result<std::thread::JoinHandle<()>> {
     let section = poller.section.clone();
+    // The thread logs where its creator logs (a scoped subscriber included).
+    let dispatch = tracing::dispatcher::get_default(|d| d.clone());
     std::thread::Builder::new()
         .name(format!("poll {section}"))
         .spawn(move || {
+            let _log = tracing::dispatcher::set_default(&dispatch);
             if priority > 0 {
                 if let Err(err) = set_realtime_priority(priority) {
                     warn!(section = %section, "COMM_SCHED_PRI = {priority}: cannot use real-time priority ({err}); polling at normal priority");

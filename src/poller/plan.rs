@@ -1,21 +1,19 @@
 //! Read planning: turn a set of memory ranges into as few block reads as the
 //! backend's block size allows.
 //!
-//! Ranges are merged into contiguous spans (also across gaps no larger than a
-//! request costs on the wire), and each span is cut into blocks of at most
-//! `max_block` bytes at byte granularity, so a dense region of N bytes costs
-//! exactly ceil(N / max_block) requests. A range that straddles two blocks is
-//! reassembled from both.
+//! Greedy covering with fixed windows, which is optimal for the number of
+//! requests: a block starts at the first byte still needed and covers every
+//! wanted byte within `max_block` bytes of it (reading through the gaps in
+//! between, which costs bytes but no request), then ends at the last wanted
+//! byte inside that window. A dense region of N bytes costs ceil(N /
+//! max_block) requests. A range that straddles two blocks lies in adjacent
+//! blocks and is reassembled from both.
 
 use plccoms_protocol::Area;
 
 use crate::backend::{Answer, Exception, ReadRequest};
 
-/// Largest gap (bytes) merged into a span: reading it costs less than the
-/// header and parameters of one more request.
-pub const MERGE_GAP: u32 = 16;
-
-/// One wanted range, tagged with the caller's key.
+/// One wanted range.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Range {
     pub area: Area,
@@ -23,21 +21,11 @@ pub struct Range {
     pub len: u32,
 }
 
-#[derive(Debug, Clone)]
-struct Span {
-    area: Area,
-    offset: u32,
-    len: u32,
-    /// Index of the span's first byte in the concatenated block data.
-    data_start: usize,
-}
-
 /// Where each requested range lands in the block data.
 #[derive(Debug, Clone, Default)]
 pub struct ReadPlan {
     blocks: Vec<ReadRequest>,
-    spans: Vec<Span>,
-    /// Per input range: start in the concatenated data.
+    /// Per input range: start in the concatenated block data.
     locations: Vec<usize>,
     lens: Vec<u32>,
 }
@@ -45,61 +33,84 @@ pub struct ReadPlan {
 impl ReadPlan {
     /// Plans reads for `ranges` (any order, overlaps allowed).
     pub fn new(ranges: &[Range], max_block: u32) -> ReadPlan {
-        let max_block = max_block.max(1);
+        let max = u64::from(max_block.max(1));
         let mut order: Vec<u32> = (0..ranges.len() as u32).collect();
         order.sort_unstable_by_key(|&i| {
             let r = &ranges[i as usize];
             (r.area, r.offset)
         });
-
         let mut plan = ReadPlan {
             locations: vec![0; ranges.len()],
             lens: ranges.iter().map(|r| r.len).collect(),
-            ..ReadPlan::default()
+            blocks: Vec::new(),
         };
+        // The block being filled: index, and where its data starts.
+        let mut open: Option<(usize, usize)> = None;
         let mut data_len = 0usize;
         for &i in &order {
             let r = ranges[i as usize];
-            let end = u64::from(r.offset) + u64::from(r.len);
-            let extend = plan.spans.last().is_some_and(|s: &Span| {
-                s.area == r.area
-                    && u64::from(r.offset)
-                        <= u64::from(s.offset) + u64::from(s.len) + u64::from(MERGE_GAP)
+            let start = u64::from(r.offset);
+            let end = start + u64::from(r.len);
+            let window = open.filter(|&(b, _)| {
+                let block = &plan.blocks[b];
+                block.area == r.area && start < u64::from(block.offset) + max
             });
-            if extend {
-                let span = plan.spans.last_mut().expect("checked above");
-                let span_end = u64::from(span.offset) + u64::from(span.len);
-                if end > span_end {
-                    let grow = (end - span_end) as u32;
-                    span.len += grow;
-                    data_len += grow as usize;
+            match window {
+                Some((b, data_start)) => {
+                    let block_start = u64::from(plan.blocks[b].offset);
+                    // A range may start before the open block when it lies in
+                    // the run of adjacent blocks an earlier range opened; their
+                    // data is contiguous.
+                    plan.locations[i as usize] = if start >= block_start {
+                        data_start + (start - block_start) as usize
+                    } else {
+                        data_start - (block_start - start) as usize
+                    };
+                    let block_end = block_start + u64::from(plan.blocks[b].len);
+                    if end > block_end {
+                        let grow_to = end.min(block_start + max);
+                        plan.blocks[b].len = (grow_to - block_start) as u32;
+                        data_len += (grow_to - block_end) as usize;
+                        if end > grow_to {
+                            // Straddles the window: continue in adjacent blocks.
+                            open = Some(plan.push_blocks(r.area, grow_to, end, max, &mut data_len));
+                        }
+                    }
                 }
-                plan.locations[i as usize] = span.data_start + (r.offset - span.offset) as usize;
-            } else {
-                plan.spans.push(Span {
-                    area: r.area,
-                    offset: r.offset,
-                    len: r.len,
-                    data_start: data_len,
-                });
-                plan.locations[i as usize] = data_len;
-                data_len += r.len as usize;
-            }
-        }
-        for span in &plan.spans {
-            let mut offset = span.offset;
-            let end = span.offset + span.len;
-            while offset < end {
-                let len = (end - offset).min(max_block);
-                plan.blocks.push(ReadRequest {
-                    area: span.area,
-                    offset,
-                    len,
-                });
-                offset += len;
+                None => {
+                    plan.locations[i as usize] = data_len;
+                    open = Some(plan.push_blocks(r.area, start, end, max, &mut data_len));
+                }
             }
         }
         plan
+    }
+
+    /// Adds adjacent blocks covering `start..end`; returns the last one (the
+    /// open window) and where its data starts.
+    fn push_blocks(
+        &mut self,
+        area: Area,
+        start: u64,
+        end: u64,
+        max: u64,
+        data_len: &mut usize,
+    ) -> (usize, usize) {
+        let mut offset = start;
+        loop {
+            let len = (end - offset).min(max);
+            let data_start = *data_len;
+            self.blocks.push(ReadRequest {
+                area,
+                offset: offset as u32,
+                len: len as u32,
+            });
+            *data_len += len as usize;
+            offset += len;
+            if offset >= end {
+                return (self.blocks.len() - 1, data_start);
+            }
+        }
     }
 
     /// The block reads to issue, in order.
@@ -189,12 +200,13 @@ mod tests {
     }
 
     #[test]
-    fn small_gaps_merge_large_gaps_split_areas_never_merge() {
+    fn gaps_inside_a_window_cost_no_request_areas_never_merge() {
         let ranges = [
             r(Area::R, 100, 4),
-            r(Area::R, 110, 2), // gap 6: merged
-            r(Area::R, 500, 1), // gap > MERGE_GAP: new span
-            r(Area::S, 501, 1), // other area
+            r(Area::R, 110, 2),
+            r(Area::R, 1300, 1), // within 1230 of 100: same block
+            r(Area::R, 1400, 8), // past the window: next block
+            r(Area::S, 501, 1),  // other area
         ];
         let plan = ReadPlan::new(&ranges, 1230);
         assert_eq!(
@@ -208,15 +220,25 @@ mod tests {
                 ReadRequest {
                     area: Area::R,
                     offset: 100,
-                    len: 12
+                    len: 1201
                 },
                 ReadRequest {
                     area: Area::R,
-                    offset: 500,
-                    len: 1
+                    offset: 1400,
+                    len: 8
                 },
             ]
         );
+    }
+
+    #[test]
+    fn scattered_ranges_need_the_fewest_windows() {
+        // 300 four-byte variables 40 bytes apart: 12,000 bytes of address
+        // space, so ceil(11,964 / 1230) = 10 windows.
+        let ranges: Vec<Range> = (0..300).map(|i| r(Area::R, i * 40, 4)).collect();
+        let plan = ReadPlan::new(&ranges, 1230);
+        assert_eq!(plan.blocks().len(), 10);
+        assert!(plan.blocks().iter().all(|b| b.len <= 1230));
     }
 
     #[test]
@@ -228,6 +250,9 @@ mod tests {
             r(Area::R, 1, 10),
             r(Area::R, 10, 3),
             r(Area::R, 2000, 81),
+            r(Area::R, 2005, 2),
+            r(Area::R, 4000, 3),
+            r(Area::R, 4005, 3),
         ];
         let plan = ReadPlan::new(&ranges, 7);
         let answers = plan
@@ -246,7 +271,7 @@ mod tests {
 
     #[test]
     fn refused_and_short_blocks_fail_only_their_ranges() {
-        let ranges = [r(Area::R, 0, 4), r(Area::R, 100, 4), r(Area::R, 200, 4)];
+        let ranges = [r(Area::R, 0, 4), r(Area::R, 2000, 4), r(Area::R, 4000, 4)];
         let plan = ReadPlan::new(&ranges, 1230);
         let answers = vec![
             Ok(vec![1; 4]),
@@ -258,5 +283,36 @@ mod tests {
         assert_eq!(plan.range_answer(&data, 0), Ok(&[1u8; 4][..]));
         assert_eq!(plan.range_answer(&data, 1), Err(Exception::BadParameters));
         assert_eq!(plan.range_answer(&data, 2), Err(Exception::BadParameters));
+    }
+
+    proptest::proptest! {
+        /// Any ranges: every range reassembles exactly, no block exceeds the
+        /// limit, and no more blocks are used than one per range.
+        #[test]
+        fn any_ranges_reassemble(
+            raw in proptest::collection::vec((0u8..2, 0u32..6000, 1u32..300), 1..60),
+            max in 1u32..1500,
+        ) {
+            let memory: Vec<u8> = (0..7000u32).map(|i| (i % 253) as u8).collect();
+            let ranges: Vec<Range> = raw
+                .iter()
+                .map(|&(a, offset, len)| r(if a == 0 { Area::R } else { Area::S }, offset, len))
+                .collect();
+            let plan = ReadPlan::new(&ranges, max);
+            let answers = plan
+                .blocks()
+                .iter()
+                .map(|b| Ok(memory[b.offset as usize..(b.offset + b.len) as usize].to_vec()))
+                .collect();
+            let (data, refused) = plan.assemble_answers(answers);
+            proptest::prop_assert!(refused.is_empty());
+            for (i, range) in ranges.iter().enumerate() {
+                let want = &memory[range.offset as usize..(range.offset + range.len) as usize];
+                proptest::prop_assert_eq!(plan.range_answer(&data, i).unwrap(), want);
+            }
+            proptest::prop_assert!(plan.blocks().iter().all(|b| b.len <= max && b.len > 0));
+            let naive: u32 = ranges.iter().map(|r| r.len.div_ceil(max)).sum();
+            proptest::prop_assert!(plan.blocks().len() as u32 <= naive);
+        }
     }
 }
