@@ -410,9 +410,14 @@ impl Eq for FoldedName<'_> {}
 
 impl Hash for FoldedName<'_> {
     fn hash<H: Hasher>(&self, state: &mut H) {
+        // In chunks: one hasher call per byte dominated loading big files.
         state.write_usize(self.0.len());
-        for &b in self.0 {
-            state.write_u8(cp1250_upper(b));
+        let mut folded = [0u8; 64];
+        for chunk in self.0.chunks(folded.len()) {
+            for (dst, &src) in folded.iter_mut().zip(chunk) {
+                *dst = cp1250_upper(src);
+            }
+            state.write(&folded[..chunk.len()]);
         }
     }
 }

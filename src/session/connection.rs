@@ -18,6 +18,9 @@ pub const MAX_BLOCK: usize = 65536;
 /// reads.
 pub const OUTPUT_HIGH_WATER: usize = 256 * 1024;
 
+/// Output buffer capacity kept once everything is written.
+const RETAINED_OUTPUT: usize = 16 * 1024;
+
 pub const CRLF: &[u8] = b"\r\n";
 pub const LF: &[u8] = b"\n";
 
@@ -101,8 +104,14 @@ impl Connection {
     pub(crate) fn advance_written(&mut self, n: usize) {
         self.written += n;
         if self.written == self.out.len() {
-            self.out.clear();
             self.written = 0;
+            if self.out.capacity() > RETAINED_OUTPUT {
+                // A big answer or DIFF burst is over: give its memory back,
+                // so a thousand idle clients do not each keep their peak.
+                self.out = Vec::new();
+            } else {
+                self.out.clear();
+            }
         } else if self.written > 64 * 1024 {
             self.out.drain(..self.written);
             self.written = 0;
