@@ -2,6 +2,8 @@
 //! and a raw TCP client that checks exact bytes.
 #![allow(dead_code)]
 
+pub mod process;
+
 use std::net::SocketAddr;
 use std::path::Path;
 use std::sync::{Arc, Mutex};

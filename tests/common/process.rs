@@ -1,0 +1,298 @@
+//! Child processes for tests that run programs: the built `plccoms` binary
+//! and real client programs. Every child is killed when its guard drops, on
+//! every path, panics included.
+
+use std::io::Read;
+use std::net::{Ipv4Addr, SocketAddr, TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::{Arc, Mutex};
+use std::thread::{self, JoinHandle};
+use std::time::{Duration, Instant};
+
+/// The binary under test, as cargo built it for this test run.
+pub const PLCCOMS: &str = env!("CARGO_BIN_EXE_plccoms");
+
+/// How long a server gets from spawn to accepting connections.
+pub const START_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// A child process that is killed and reaped when dropped.
+pub struct ChildGuard {
+    child: Child,
+    name: String,
+}
+
+impl ChildGuard {
+    pub fn spawn(name: &str, command: &mut Command) -> ChildGuard {
+        let child = command
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {name}: {e}"));
+        ChildGuard {
+            child,
+            name: name.to_string(),
+        }
+    }
+
+    pub fn child(&mut self) -> &mut Child {
+        &mut self.child
+    }
+
+    /// The exit status, if it has exited.
+    pub fn exited(&mut self) -> Option<ExitStatus> {
+        self.child
+            .try_wait()
+            .unwrap_or_else(|e| panic!("waiting for {}: {e}", self.name))
+    }
+
+    /// Waits up to `timeout` for the child to exit by itself.
+    pub fn wait_timeout(&mut self, timeout: Duration) -> Option<ExitStatus> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(status) = self.exited() {
+                return Some(status);
+            }
+            if Instant::now() >= deadline {
+                return None;
+            }
+            thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for ChildGuard {
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            let _ = self.child.kill();
+        }
+        let _ = self.child.wait();
+    }
+}
+
+/// Collects everything a child writes on one pipe, on a thread.
+pub struct Capture {
+    bytes: Arc<Mutex<Vec<u8>>>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl Capture {
+    pub fn start(mut pipe: impl Read + Send + 'static) -> Capture {
+        let bytes = Arc::new(Mutex::new(Vec::new()));
+        let sink = bytes.clone();
+        let thread = thread::spawn(move || {
+            let mut chunk = [0u8; 8192];
+            while let Ok(n) = pipe.read(&mut chunk) {
+                if n == 0 {
+                    break;
+                }
+                sink.lock().unwrap().extend_from_slice(&chunk[..n]);
+            }
+        });
+        Capture {
+            bytes,
+            thread: Some(thread),
+        }
+    }
+
+    /// What arrived so far.
+    pub fn bytes(&self) -> Vec<u8> {
+        self.bytes.lock().unwrap().clone()
+    }
+
+    pub fn text(&self) -> String {
+        String::from_utf8_lossy(&self.bytes()).into_owned()
+    }
+
+    /// Waits for the pipe's end (the writer exited), then everything.
+    pub fn finish(mut self) -> Vec<u8> {
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+        self.bytes()
+    }
+}
+
+/// A TCP port on 127.0.0.1 that was free a moment ago.
+pub fn free_port() -> u16 {
+    TcpListener::bind((Ipv4Addr::LOCALHOST, 0))
+        .and_then(|l| l.local_addr())
+        .expect("bind 127.0.0.1:0")
+        .port()
+}
+
+/// Whether a server could listen on `port` on all interfaces now.
+pub fn port_is_free(port: u16) -> bool {
+    TcpListener::bind((Ipv4Addr::UNSPECIFIED, port)).is_ok()
+}
+
+/// The `plccoms` binary running in its own empty temporary directory, its log
+/// (stderr) in a file there.
+pub struct ServerProcess {
+    pub child: ChildGuard,
+    pub addr: SocketAddr,
+    pub dir: tempfile::TempDir,
+}
+
+impl ServerProcess {
+    /// Writes `ini` to `plccoms.ini` in a new temporary directory and runs
+    /// `plccoms -c plccoms.ini` there; returns once `port` accepts.
+    pub fn with_config(ini: &str, port: u16) -> ServerProcess {
+        let dir = tempfile::tempdir().expect("tempdir");
+        std::fs::write(dir.path().join("plccoms.ini"), ini).expect("write ini");
+        ServerProcess::start(dir, &["-c", "plccoms.ini"], port)
+    }
+
+    /// Runs `plccoms` with no arguments in an empty temporary directory: the
+    /// built-in configuration. Returns once `port` accepts.
+    pub fn built_in(port: u16) -> ServerProcess {
+        let dir = tempfile::tempdir().expect("tempdir");
+        ServerProcess::start(dir, &[], port)
+    }
+
+    fn start(dir: tempfile::TempDir, args: &[&str], port: u16) -> ServerProcess {
+        let log = std::fs::File::create(dir.path().join("plccoms.log")).expect("log file");
+        let child = ChildGuard::spawn(
+            "plccoms",
+            Command::new(PLCCOMS)
+                .args(args)
+                .current_dir(dir.path())
+                .env_remove("RUST_LOG")
+                .stdin(Stdio::null())
+                .stdout(Stdio::null())
+                .stderr(log),
+        );
+        let mut server = ServerProcess {
+            child,
+            addr: SocketAddr::from((Ipv4Addr::LOCALHOST, port)),
+            dir,
+        };
+        server.wait_ready();
+        server
+    }
+
+    /// Waits until the port accepts, and checks that the listener is this
+    /// child's: a server that failed to bind exits at once.
+    fn wait_ready(&mut self) {
+        let deadline = Instant::now() + START_TIMEOUT;
+        loop {
+            if let Some(status) = self.child.exited() {
+                panic!(
+                    "plccoms exited ({status}) before accepting on {}; its log:\n{}",
+                    self.addr,
+                    self.log()
+                );
+            }
+            if TcpStream::connect_timeout(&self.addr, Duration::from_millis(200)).is_ok() {
+                break;
+            }
+            if Instant::now() >= deadline {
+                panic!(
+                    "plccoms did not accept on {} within {START_TIMEOUT:?}; its log:\n{}",
+                    self.addr,
+                    self.log()
+                );
+            }
+            thread::sleep(Duration::from_millis(50));
+        }
+        thread::sleep(Duration::from_millis(200));
+        if let Some(status) = self.child.exited() {
+            panic!(
+                "plccoms exited ({status}) although {} accepts: another program holds the port; its log:\n{}",
+                self.addr,
+                self.log()
+            );
+        }
+    }
+
+    pub fn port(&self) -> u16 {
+        self.addr.port()
+    }
+
+    /// The server's log so far.
+    pub fn log(&self) -> String {
+        std::fs::read(self.dir.path().join("plccoms.log"))
+            .map(|b| String::from_utf8_lossy(&b).into_owned())
+            .unwrap_or_else(|e| format!("(no log: {e})"))
+    }
+}
+
+/// A program's full path from `PATH`, like `which`.
+pub fn which(program: &str) -> Option<PathBuf> {
+    let path = std::env::var_os("PATH")?;
+    std::env::split_paths(&path)
+        .map(|dir| dir.join(program))
+        .find(|candidate| is_executable(candidate))
+}
+
+fn is_executable(path: &Path) -> bool {
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::metadata(path)
+        .map(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
+        .unwrap_or(false)
+}
+
+/// A TCP relay on 127.0.0.1 in front of a server, for one connection: it
+/// records the bytes each way, so a test can see what a client program puts
+/// on the wire. A close on one side is passed on as a half-close.
+pub struct Relay {
+    pub addr: SocketAddr,
+    upstream: Arc<Mutex<Vec<u8>>>,
+    downstream: Arc<Mutex<Vec<u8>>>,
+}
+
+impl Relay {
+    pub fn start(server: SocketAddr) -> Relay {
+        let listener = TcpListener::bind((Ipv4Addr::LOCALHOST, 0)).expect("relay bind");
+        let addr = listener.local_addr().expect("relay addr");
+        let upstream = Arc::new(Mutex::new(Vec::new()));
+        let downstream = Arc::new(Mutex::new(Vec::new()));
+        let (up, down) = (upstream.clone(), downstream.clone());
+        thread::spawn(move || {
+            let Ok((client, _)) = listener.accept() else {
+                return;
+            };
+            let Ok(server) = TcpStream::connect(server) else {
+                return;
+            };
+            let _ = client.set_nodelay(true);
+            let _ = server.set_nodelay(true);
+            let (Ok(client2), Ok(server2)) = (client.try_clone(), server.try_clone()) else {
+                return;
+            };
+            let to_server = thread::spawn(move || pump(client2, server2, up));
+            pump(server, client, down);
+            let _ = to_server.join();
+        });
+        Relay {
+            addr,
+            upstream,
+            downstream,
+        }
+    }
+
+    /// Bytes the client sent.
+    pub fn upstream(&self) -> Vec<u8> {
+        self.upstream.lock().unwrap().clone()
+    }
+
+    /// Bytes the server sent.
+    pub fn downstream(&self) -> Vec<u8> {
+        self.downstream.lock().unwrap().clone()
+    }
+}
+
+fn pump(mut from: TcpStream, mut to: TcpStream, record: Arc<Mutex<Vec<u8>>>) {
+    use std::io::Write;
+    let mut chunk = [0u8; 8192];
+    loop {
+        match from.read(&mut chunk) {
+            Ok(0) | Err(_) => break,
+            Ok(n) => {
+                record.lock().unwrap().extend_from_slice(&chunk[..n]);
+                if to.write_all(&chunk[..n]).is_err() {
+                    break;
+                }
+            }
+        }
+    }
+    let _ = to.shutdown(std::net::Shutdown::Write);
+}
