@@ -82,7 +82,17 @@ pub struct Snapshot {
     pub changed: Vec<VarId>,
     /// The latest public-file notice, if any was made.
     pub notice: Option<Arc<Notice>>,
+    /// The DIFF lines of every variable in `changed`, with the section's
+    /// default line end: what a client that enabled everything is owed, so
+    /// a thousand such clients copy one block instead of each picking lines.
+    pub diff_block: Option<DiffBlock>,
     chunks: Vec<Arc<Vec<Slot>>>,
+}
+
+#[derive(Debug, Clone)]
+pub struct DiffBlock {
+    pub eol: &'static [u8],
+    pub bytes: Arc<[u8]>,
 }
 
 impl Snapshot {
@@ -113,6 +123,8 @@ pub struct Publisher {
     format: FormatOptions,
     scratch: Vec<u8>,
     notice: Option<Arc<Notice>>,
+    /// Line end of the shared DIFF block; `None`: no block (DIFF lines off).
+    block_eol: Option<&'static [u8]>,
 }
 
 impl Publisher {
@@ -130,6 +142,7 @@ impl Publisher {
             interest: interest.clone(),
             changed: Vec::new(),
             notice: None,
+            diff_block: None,
             chunks: chunks.clone(),
         });
         let (tx, rx) = watch::channel(snapshot);
@@ -145,12 +158,19 @@ impl Publisher {
             format,
             scratch: Vec::new(),
             notice: None,
+            block_eol: None,
         };
         (publisher, rx)
     }
 
     pub fn table(&self) -> &Arc<VarTable> {
         &self.table
+    }
+
+    /// Publishes each change also as one block of DIFF lines ending in `eol`.
+    pub fn with_diff_block(mut self, eol: &'static [u8]) -> Self {
+        self.block_eol = Some(eol);
+        self
     }
 
     pub fn interest(&self) -> &Arc<Interest> {
@@ -220,6 +240,26 @@ impl Publisher {
             self.poll_seq = self.seq;
         }
         self.online = online;
+        let diff_block = match self.block_eol {
+            Some(eol) if !self.changed.is_empty() => {
+                let mut bytes = Vec::with_capacity(self.changed.len() * 32);
+                for &id in &self.changed {
+                    let slot = self.slot(id);
+                    if let Some(text) = slot.text() {
+                        bytes.extend_from_slice(b"DIFF:");
+                        bytes.extend_from_slice(&self.table.var(id).name);
+                        bytes.push(b',');
+                        bytes.extend_from_slice(text);
+                        bytes.extend_from_slice(eol);
+                    }
+                }
+                Some(DiffBlock {
+                    eol,
+                    bytes: bytes.into(),
+                })
+            }
+            _ => None,
+        };
         let snapshot = Snapshot {
             seq: self.seq,
             poll_seq: self.poll_seq,
@@ -228,6 +268,7 @@ impl Publisher {
             interest: self.interest.clone(),
             changed: std::mem::take(&mut self.changed),
             notice: self.notice.clone(),
+            diff_block,
             chunks: self.chunks.clone(),
         };
         self.tx.send_replace(Arc::new(snapshot));

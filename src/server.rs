@@ -77,6 +77,8 @@ pub async fn start_section(
     let local_addr = listener.local_addr()?;
     let format = crate::section::format_options(&global);
     let (publisher, snapshots) = Publisher::new(Arc::new(table), format);
+    let eol: &'static [u8] = if global.end_line_crlf { b"\r\n" } else { b"\n" };
+    let publisher = publisher.with_diff_block(eol);
     let (poller, handle) = Poller::new(
         config.name.clone(),
         backend,

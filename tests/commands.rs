@@ -576,3 +576,54 @@ use tokio::io::AsyncWriteExt;
 
 #[allow(dead_code)]
 async fn unused(_: Client) {}
+
+/// Clients that enabled everything get the poll's shared DIFF block; it must
+/// say exactly what per-client selection says, and a SET's answer must not
+/// come twice.
+#[tokio::test]
+async fn shared_diff_block_matches_per_client_diffs() {
+    let server = start("").await;
+    let mut all = server.client().await;
+    let mut lf = server.client().await;
+    all.ask(
+        "EN:*\n",
+        "WARNING:252 Changed active variables in public file: '[26/26]'\r\n",
+    )
+    .await;
+    lf.ask("SETCONF:crlf,no\n", "SETCONF:CRLF,NO\n").await;
+    lf.ask(
+        "EN:*\n",
+        "WARNING:252 Changed active variables in public file: '[26/26]'\n",
+    )
+    .await;
+    // Both get the 26 first values, then wait for the next change.
+    for c in [&mut all, &mut lf] {
+        for _ in 0..26 {
+            let line = c.line().await;
+            assert!(line.starts_with(b"DIFF:"), "{line:?}");
+        }
+    }
+    server.poke(Area::R, 0, &11i16.to_le_bytes());
+    server.poke(Area::R, 40, &[7]);
+    let mut got_all = vec![all.line().await, all.line().await];
+    let mut got_lf = vec![lf.line().await, lf.line().await];
+    got_all.sort();
+    got_lf.sort();
+    assert_eq!(
+        got_all,
+        [
+            b"DIFF:TEST_1,11\r\n".to_vec(),
+            b"DIFF:V_BYTE,7\r\n".to_vec()
+        ]
+    );
+    assert_eq!(
+        got_lf,
+        [b"DIFF:TEST_1,11\n".to_vec(), b"DIFF:V_BYTE,7\n".to_vec()]
+    );
+    all.ask("SET:v_byte,8\n", "DIFF:V_BYTE,8\r\n").await;
+    lf.expect(b"DIFF:V_BYTE,8\n").await;
+    all.silent(300).await;
+    server.poke(Area::R, 40, &[9]);
+    all.expect(b"DIFF:V_BYTE,9\r\n").await;
+    lf.expect(b"DIFF:V_BYTE,9\n").await;
+}

@@ -66,6 +66,11 @@ pub struct ClientTable {
     /// Enabled variables still owed their first value.
     pending: Vec<VarId>,
     seen_seq: u64,
+    /// Every change up to this snapshot sequence was sent (through the
+    /// shared DIFF block), whatever `sent` says.
+    floor: u64,
+    /// Highest sequence a SET's answer marked as sent.
+    last_mark: u64,
 }
 
 impl ClientTable {
@@ -84,6 +89,8 @@ impl ClientTable {
             deltas: HashMap::new(),
             pending: Vec::new(),
             seen_seq: snapshot.seq,
+            floor: 0,
+            last_mark: 0,
             table,
         };
         client.ensure_sent();
@@ -195,6 +202,7 @@ impl ClientTable {
         }
         self.grow_sent();
         self.sent[id as usize] = seq;
+        self.last_mark = self.last_mark.max(seq);
         if let Some(state) = self.deltas.get_mut(&id) {
             state.last_sent = value;
         }
@@ -218,15 +226,20 @@ impl ClientTable {
         if !snapshot.online {
             return;
         }
-        if consecutive {
+        if consecutive && self.takes_block(snapshot, eol) {
+            if let Some(block) = &snapshot.diff_block {
+                out.extend_from_slice(&block.bytes);
+            }
+            self.floor = snapshot.seq;
+        } else if consecutive {
             for &id in &snapshot.changed {
-                self.offer(snapshot, id, format, eol, out);
+                self.offer(snapshot, id, format, eol, out, true);
             }
         } else {
             // Missed snapshots: compare everything enabled.
             for id in 0..self.table.len() as VarId {
                 if self.is_enabled(id) {
-                    self.offer(snapshot, id, format, eol, out);
+                    self.offer(snapshot, id, format, eol, out, true);
                 }
             }
         }
@@ -238,13 +251,27 @@ impl ClientTable {
                     continue;
                 }
                 if snapshot.current(id).is_some() {
-                    self.offer(snapshot, id, format, eol, out);
+                    // Owed its value now, whatever went out before.
+                    self.offer(snapshot, id, format, eol, out, false);
                 } else {
                     waiting.push(id);
                 }
             }
             self.pending.extend(waiting);
         }
+    }
+
+    /// Whether this client is owed exactly the snapshot's shared DIFF block:
+    /// it enabled everything, has no deltas, owes no first values, answered
+    /// no SET with this change, and uses the block's line end.
+    fn takes_block(&self, snapshot: &Snapshot, eol: &[u8]) -> bool {
+        let fixed = self.table.fixed_count();
+        self.pending.is_empty()
+            && self.deltas.is_empty()
+            && self.enabled_count == self.table.len() - fixed
+            && self.last_mark < snapshot.seq
+            && self.sent[..fixed].iter().all(|&s| s != BASELINE)
+            && snapshot.diff_block.as_ref().is_none_or(|b| b.eol == eol)
     }
 
     fn offer(
@@ -254,6 +281,7 @@ impl ClientTable {
         format: &FormatOptions,
         eol: &[u8],
         out: &mut Vec<u8>,
+        use_floor: bool,
     ) {
         if !self.is_enabled(id) {
             return;
@@ -261,17 +289,26 @@ impl ClientTable {
         let Some(slot) = snapshot.current(id) else {
             return;
         };
-        let sent = self.sent.get(id as usize).copied().unwrap_or(0);
+        let mut sent = self.sent.get(id as usize).copied().unwrap_or(0);
         if sent == BASELINE {
             // A fixed variable's first value is not news to this client.
             self.sent[id as usize] = slot.changed_seq;
             return;
         }
+        if use_floor {
+            sent = sent.max(self.floor);
+        }
         if slot.changed_seq <= sent {
             return;
         }
         let var = self.table.var(id);
-        if let Some(state) = self.deltas.get_mut(&id) {
+        // Most clients set no delta: skip the map lookup on the hot path.
+        let state = if self.deltas.is_empty() {
+            None
+        } else {
+            self.deltas.get_mut(&id)
+        };
+        if let Some(state) = state {
             let value = slot.value(var);
             if let (Some(now), Some(last)) = (&value, &state.last_sent) {
                 if !now.exceeds(last, &state.delta, var.ty, format) {
