@@ -1,0 +1,656 @@
+//! What every fuzz target does with one input, with the properties it
+//! asserts. Shared, unchanged, by the fuzz targets (`fuzz/fuzz_targets/`) and
+//! by the stable regression tests (`tests/fuzz_regressions.rs` includes this
+//! file with `#[path]`), so a crash input replays through the same code.
+//!
+//! It must compile in both places: only `plccoms`, `plccoms_protocol`, `bytes`
+//! and `std`, and no `crate::` paths.
+
+use std::cell::Cell;
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+
+use bytes::BytesMut;
+use plccoms::backend::epsnet::codec::{decode_packet, encode_packet, EpsnetCodec};
+use plccoms::backend::epsnet::frame::{Frame as EpsFrame, MAX_PACKET};
+use plccoms::backend::epsnet::service::{answer_frame, decode_answer, PlcTime, Request, Response};
+use plccoms::backend::epsnet::PLC_EPS_ADDR;
+use plccoms::backend::FileInfo;
+use plccoms::plc::{Device, FileStore, MemoryMap};
+use plccoms::vars::VarTable;
+use plccoms_protocol::request::{
+    parse_block, parse_getmem, parse_mask_delta, parse_set, parse_setconf, trim,
+};
+use plccoms_protocol::{
+    classify, cp1250, parse_direct, Area, Decoder, Delta, FormatOptions, Frame, IecType, Line,
+    Mask, Value,
+};
+
+// ---------------------------------------------------------------------------
+// Allocation accounting (for the decoder's memory bound).
+
+/// A global allocator that counts the bytes live on each thread, so a check
+/// can see what a piece of code holds on to without seeing other threads.
+pub mod alloc_count {
+    use std::alloc::{GlobalAlloc, Layout, System};
+    use std::cell::Cell;
+
+    pub struct Counting;
+
+    thread_local! {
+        static LIVE: Cell<isize> = const { Cell::new(0) };
+    }
+
+    fn add(n: isize) {
+        // `try_with`: allocations during thread teardown are not counted.
+        let _ = LIVE.try_with(|live| live.set(live.get() + n));
+    }
+
+    /// Bytes allocated and not yet freed by this thread (frees of memory
+    /// another thread allocated count against it).
+    pub fn live() -> isize {
+        LIVE.try_with(Cell::get).unwrap_or(0)
+    }
+
+    unsafe impl GlobalAlloc for Counting {
+        unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+            let p = System.alloc(layout);
+            if !p.is_null() {
+                add(layout.size() as isize);
+            }
+            p
+        }
+
+        unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+            let p = System.alloc_zeroed(layout);
+            if !p.is_null() {
+                add(layout.size() as isize);
+            }
+            p
+        }
+
+        unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+            System.dealloc(ptr, layout);
+            add(-(layout.size() as isize));
+        }
+
+        unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+            let p = System.realloc(ptr, layout, new_size);
+            if !p.is_null() {
+                add(new_size as isize - layout.size() as isize);
+            }
+            p
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------
+// request_line
+
+pub const FIXED_TYPES: [IecType; 19] = [
+    IecType::Bool,
+    IecType::Byte,
+    IecType::Word,
+    IecType::Dword,
+    IecType::Lword,
+    IecType::Sint,
+    IecType::Int,
+    IecType::Dint,
+    IecType::Lint,
+    IecType::Usint,
+    IecType::Uint,
+    IecType::Udint,
+    IecType::Ulint,
+    IecType::Real,
+    IecType::Lreal,
+    IecType::Date,
+    IecType::Time,
+    IecType::Tod,
+    IecType::Dt,
+];
+
+/// Every type: the fixed ones and strings of the smallest, default and
+/// largest capacity.
+pub fn all_types() -> impl Iterator<Item = IecType> {
+    FIXED_TYPES.into_iter().chain([
+        IecType::String(1),
+        IecType::String(80),
+        IecType::String(255),
+    ])
+}
+
+const OPTIONS: [FormatOptions; 2] = [
+    FormatOptions {
+        num_of_decimals: 10,
+        scient_notation: false,
+        date_time_decimal: false,
+        lim_of_decimals: false,
+    },
+    FormatOptions {
+        num_of_decimals: 0,
+        scient_notation: true,
+        date_time_decimal: true,
+        lim_of_decimals: true,
+    },
+];
+
+fn is_exact(ty: IecType) -> bool {
+    !matches!(
+        ty,
+        IecType::Real | IecType::Lreal | IecType::Date | IecType::Dt
+    )
+}
+
+/// `text` as a value of every type: what parses survives the memory form,
+/// prints, and what it prints parses again (to the same value where the type
+/// is exact).
+fn values(text: &[u8]) {
+    for ty in all_types() {
+        for opts in &OPTIONS {
+            let Ok(v) = Value::parse(ty, text, opts) else {
+                continue;
+            };
+            let mut raw = Vec::new();
+            v.encode(ty, &mut raw);
+            assert_eq!(raw.len(), ty.size(), "{ty}: encoded size");
+            let stored = Value::decode(ty, &raw);
+            let mut printed = Vec::new();
+            stored.format(ty, opts, &mut printed);
+            assert!(!printed.contains(&0), "{ty}: NUL in printed value");
+            match Value::parse(ty, &printed, opts) {
+                Ok(again) if is_exact(ty) => assert_eq!(again, stored, "{ty}: print/parse"),
+                Ok(_) => {}
+                Err(e) => panic!(
+                    "{ty}: the server's own output {:?} does not parse: {e}",
+                    String::from_utf8_lossy(&printed)
+                ),
+            }
+        }
+    }
+}
+
+fn deltas(text: &[u8]) {
+    let Ok(delta) = Delta::parse(text) else {
+        return;
+    };
+    let _ = delta.as_f64();
+    let _ = delta.floor();
+    let samples = [
+        &[0u8; 8][..],
+        &[0xff; 8],
+        &[0x7f, 0, 0, 0x80, 1, 2, 3, 0xf0],
+    ];
+    for ty in all_types() {
+        for opts in &OPTIONS {
+            for (a, b) in samples.iter().zip(samples.iter().cycle().skip(1)) {
+                let (a, b) = (Value::decode(ty, a), Value::decode(ty, b));
+                let _ = a.exceeds(&b, &delta, ty, opts);
+            }
+        }
+    }
+}
+
+/// Reference matcher for short masks: dynamic programming.
+fn reference_match(p: &[u8], n: &[u8]) -> bool {
+    // m[j]: pattern prefix matches name prefix of length j.
+    let mut m = vec![false; n.len() + 1];
+    m[0] = true;
+    for &c in p {
+        if c == b'*' {
+            for j in 1..=n.len() {
+                m[j] = m[j] || m[j - 1];
+            }
+        } else {
+            for j in (1..=n.len()).rev() {
+                m[j] = m[j - 1] && n[j - 1] == c;
+            }
+            m[0] = false;
+        }
+    }
+    m[n.len()]
+}
+
+fn masks(pattern: &[u8]) {
+    let mask = Mask::new(pattern);
+    let _ = mask.has_wildcard();
+    let _ = mask.is_all();
+    let upper = cp1250::to_upper(pattern);
+    assert!(mask.matches(&upper), "a mask matches its own text");
+    let names: [&[u8]; 4] = [
+        b"",
+        b"TEST_1",
+        b"T_ZONES_SET[0].TOPIT_TC",
+        b"TEPLOTA_KUCHYN\xCC",
+    ];
+    for name in names.into_iter().chain([&upper[..upper.len() / 2]]) {
+        let got = mask.matches(name);
+        if pattern.len() <= 64 {
+            let want = mask.pattern().is_empty() || reference_match(mask.pattern(), name);
+            assert_eq!(got, want, "mask {:?} on {:?}", mask.pattern(), name);
+        }
+    }
+}
+
+fn direct(text: &[u8]) {
+    if let Some(addr) = parse_direct(text) {
+        assert!(!matches!(addr.bit, Some(b) if b >= 8));
+        assert!(addr.bit.is_none() || addr.ty == IecType::Bool);
+        let last = u64::from(addr.offset) + addr.ty.size() as u64 - 1;
+        assert!(last <= u64::from(u32::MAX), "{addr:?} ends past 4 GiB");
+    }
+}
+
+fn is_blank(b: &u8) -> bool {
+    *b == b' ' || *b == b'\t'
+}
+
+fn trimmed(text: &[u8]) -> bool {
+    !text.first().is_some_and(is_blank) && !text.last().is_some_and(is_blank)
+}
+
+/// One request line: classification, every argument grammar on its
+/// arguments, and what the server then does with the pieces (names as direct
+/// addresses and masks, values of every type, deltas).
+pub fn request_line(line: &[u8]) {
+    let args = match classify(line) {
+        Line::Empty => {
+            assert!(trim(line).is_empty());
+            return;
+        }
+        Line::Command { args, .. } => args,
+        Line::UnknownCommand => trim(line),
+        Line::Continuation(text) => text,
+    };
+    assert!(trimmed(args), "arguments are trimmed");
+    if let Ok((name, value)) = parse_set(args) {
+        assert!(!name.is_empty() && trimmed(name) && trimmed(value));
+        direct(name);
+        values(value);
+    }
+    if let Ok((mask, delta)) = parse_mask_delta(args) {
+        masks(mask);
+        if let Some(delta) = delta {
+            deltas(delta);
+        }
+    }
+    if let Ok((name, _size)) = parse_getmem(args) {
+        direct(name);
+    }
+    if let Ok((key, value)) = parse_setconf(args) {
+        assert!(!key.is_empty() && trimmed(key) && trimmed(value));
+    }
+    if let Ok((name, len, data)) = parse_block(args) {
+        assert!(!name.is_empty() && trimmed(name));
+        let _ = (len, data);
+    }
+    direct(args);
+    masks(args);
+    values(args);
+    deltas(args);
+}
+
+// ---------------------------------------------------------------------------
+// input_decoder
+
+/// Feeds `input` to a decoder in chunks whose sizes `next_chunk` gives,
+/// checking after every chunk that the decoder consumed it and holds at most
+/// its bound. Returns the frames.
+fn decode_in_chunks(
+    input: &[u8],
+    max_line: usize,
+    max_block: usize,
+    mut next_chunk: impl FnMut() -> usize,
+    mut abandon: impl FnMut() -> bool,
+) -> Vec<Frame> {
+    let base = alloc_count::live();
+    let mut decoder = Decoder::new(max_line, max_block);
+    let mut frames: Vec<Frame> = Vec::new();
+    let mut rest = input;
+    // Lines keep at most twice their limit (Vec growth) and blocks exactly
+    // their length; the header of a block is the line it came from.
+    let bound = 2 * (2 * max_line).max(8) + max_block + 256;
+    while !rest.is_empty() {
+        let take = next_chunk().clamp(1, rest.len());
+        let mut src = BytesMut::from(&rest[..take]);
+        rest = &rest[take..];
+        while let Some(frame) = decoder.decode(&mut src) {
+            frames.push(frame);
+        }
+        assert!(src.is_empty(), "decoder left bytes it had scanned");
+        drop(src);
+        if abandon() {
+            decoder.abandon_block();
+        }
+        let returned: isize = (frames.capacity() * std::mem::size_of::<Frame>()
+            + frames
+                .iter()
+                .map(|f| match f {
+                    Frame::Line(v) | Frame::TooLong(v) => v.capacity(),
+                    Frame::Block { header, data } => header.capacity() + data.capacity(),
+                    Frame::Close => 0,
+                })
+                .sum::<usize>()) as isize;
+        let held = alloc_count::live() - base - returned;
+        assert!(
+            held <= bound as isize,
+            "decoder holds {held} bytes, bound {bound} (max_line {max_line}, max_block {max_block})"
+        );
+    }
+    for frame in &frames {
+        match frame {
+            Frame::Line(line) => {
+                assert!(line.len() <= max_line);
+                assert!(!line.iter().any(|&b| b == b'\r' || b == b'\n' || b == 0));
+            }
+            Frame::Block { header, data } => {
+                assert!(header.len() <= max_line && data.len() <= max_block);
+                assert!(header.ends_with(b"]="));
+            }
+            Frame::TooLong(prefix) => assert!(prefix.len() <= 64),
+            Frame::Close => {}
+        }
+    }
+    frames
+}
+
+/// `data[0]` is the line limit, `data[1]` a third of the block limit,
+/// `data[2]` seeds the chunk sizes; the rest is the client's input. The
+/// frames must not depend on how the input is split, and the decoder's
+/// memory stays within its bound after every chunk.
+pub fn input_decoder(data: &[u8]) {
+    let [max_line, block, seed, ref input @ ..] = *data else {
+        return;
+    };
+    let (max_line, max_block) = (usize::from(max_line), usize::from(block) * 3);
+    let whole = decode_in_chunks(input, max_line, max_block, || usize::MAX, || false);
+    // xorshift32, seeded from the input: chunk sizes 1..=32, sometimes large.
+    let state = Cell::new(u32::from(seed).wrapping_mul(0x9E37_79B9) | 1);
+    let next = || {
+        let mut x = state.get();
+        x ^= x << 13;
+        x ^= x >> 17;
+        x ^= x << 5;
+        state.set(x);
+        x
+    };
+    let chunk = || match next() % 16 {
+        0 => 1 + (next() % 4096) as usize,
+        _ => 1 + (next() % 32) as usize,
+    };
+    let split = decode_in_chunks(input, max_line, max_block, chunk, || false);
+    assert_eq!(whole, split, "frames depend on the chunking");
+    // Abandoning a block at a read boundary (the server's timeout) keeps the
+    // bounds too.
+    decode_in_chunks(input, max_line, max_block, chunk, || next() % 8 == 0);
+}
+
+// ---------------------------------------------------------------------------
+// ini
+
+/// The ini loader on lossily decoded text, as `config::load` does.
+pub fn ini(data: &[u8]) {
+    let text = String::from_utf8_lossy(data);
+    match plccoms::config::parse(Path::new("fuzz.ini"), &text) {
+        Ok(loaded) => {
+            for d in &loaded.diagnostics {
+                let _ = d.to_string();
+            }
+            let _ = format!("{:?}", loaded.config);
+        }
+        Err(e) => {
+            let _ = e.to_string();
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------
+// pubfile
+
+/// The fixed public file the server ships.
+pub const FIXED_PUB: &[u8] = include_bytes!("../../conf/FIXED.pub");
+
+/// A public file, then the variable table a section builds from it with the
+/// fixed file, and with it as the fixed file.
+pub fn pubfile(data: &[u8]) {
+    let parsed = plccoms::pubfile::parse(data);
+    let _ = plccoms::pubfile::crc_of(plccoms::pubfile::crc_content(data));
+    let lines = data.split(|&b| b == b'\n').count();
+    let mut names = HashSet::new();
+    for v in &parsed.vars {
+        assert!(!v.name.is_empty());
+        assert!(v.line >= 1 && v.line <= lines, "line {} of {lines}", v.line);
+        assert_eq!(v.bit.is_some(), v.ty == IecType::Bool, "{v:?}");
+        assert!(!matches!(v.bit, Some(b) if b >= 8));
+        assert!(
+            names.insert(cp1250::to_upper(&v.name)),
+            "duplicate kept: {v:?}"
+        );
+    }
+    for w in &parsed.warnings {
+        let _ = w.to_string();
+    }
+
+    let map = MemoryMap::FOXTROT;
+    let fixed = plccoms::pubfile::parse(FIXED_PUB);
+    let mut warnings = Vec::new();
+    let table = VarTable::build(
+        "FIXED.pub",
+        &fixed,
+        Some(("fuzz.pub", &parsed)),
+        &map,
+        &mut warnings,
+    )
+    .expect("the shipped fixed file defines __PLC_RUN and __PF_CRC");
+    assert!(table.len() <= fixed.vars.len() + parsed.vars.len());
+    for (id, var) in table.vars().iter().enumerate() {
+        assert!(map.contains(var.area, var.offset, var.byte_len()));
+        assert_eq!(table.lookup(&var.name), Some(id as u32));
+        assert_eq!(table.is_fixed(id as u32), var.fixed);
+    }
+    let mut warnings = Vec::new();
+    if let Ok(table) = VarTable::build("fuzz.pub", &parsed, None, &map, &mut warnings) {
+        assert_eq!(table.fixed_count(), table.len());
+    }
+}
+
+// ---------------------------------------------------------------------------
+// epsnet_client
+
+/// One request of every kind; `len` for the reads.
+fn every_request(len: u16) -> Vec<Request> {
+    let info = FileInfo {
+        size: 1,
+        attributes: 0x20,
+        created: 2,
+        modified: 3,
+    };
+    vec![
+        Request::Ident,
+        Request::Status,
+        Request::SetTime(PlcTime {
+            year: 2024,
+            month: 3,
+            day: 15,
+            hour: 13,
+            minute: 45,
+            second: 30,
+            weekday: 5,
+        }),
+        Request::Read {
+            area: Area::R,
+            offset: 100,
+            len,
+        },
+        Request::Write {
+            area: Area::R,
+            offset: 100,
+            data: vec![1, 2],
+        },
+        Request::WriteBits {
+            area: Area::S,
+            offset: 2,
+            mask: 4,
+            value: 4,
+        },
+        Request::FileInfo {
+            path: b"a.txt".to_vec(),
+        },
+        Request::FileRead {
+            path: b"a.txt".to_vec(),
+            offset: 0,
+            len,
+        },
+        Request::FileWrite {
+            path: b"a.txt".to_vec(),
+            offset: 0,
+            last: true,
+            data: vec![b'x'],
+        },
+        Request::FileWriteInfo {
+            path: b"a.txt".to_vec(),
+            info,
+        },
+        Request::DirList {
+            path: b"/".to_vec(),
+            start: 0,
+        },
+    ]
+}
+
+/// The server's side of an answer datagram: `data[0..2]` is the length of
+/// the read requests it answers (big-endian), the rest the datagram. Every
+/// frame is read as the answer to every kind of request; what decodes must
+/// survive re-encoding.
+pub fn epsnet_client(data: &[u8]) {
+    let [hi, lo, ref datagram @ ..] = *data else {
+        return;
+    };
+    let mut codec = EpsnetCodec;
+    let mut src = BytesMut::from(datagram);
+    let _ = tokio_util_decode(&mut codec, &mut src);
+
+    let Ok(packet) = decode_packet(datagram) else {
+        return;
+    };
+    assert!(!packet.frames.is_empty());
+    let bytes = encode_packet(&packet).expect("a decoded packet re-encodes");
+    assert!(bytes.len() <= MAX_PACKET);
+    assert_eq!(decode_packet(&bytes).as_ref(), Ok(&packet));
+
+    let requests = every_request(u16::from_be_bytes([hi, lo]));
+    for frame in &packet.frames {
+        for request in &requests {
+            let Ok(answer) = decode_answer(request, frame) else {
+                continue;
+            };
+            let Ok(response) = answer else { continue };
+            let (da, sa) = match frame {
+                EpsFrame::Data(f) => (f.da, f.sa),
+                EpsFrame::Ack => (1, PLC_EPS_ADDR),
+            };
+            // What the PLC side would send for this response reads back the same.
+            let again = answer_frame(da, sa, request.code(), &Ok(response.clone()));
+            assert_eq!(
+                decode_answer(request, &again),
+                Ok(Ok(response)),
+                "{request:?}"
+            );
+        }
+    }
+}
+
+fn tokio_util_decode(codec: &mut EpsnetCodec, src: &mut BytesMut) -> bool {
+    use tokio_util::codec::Decoder as _;
+    codec.decode(src).is_ok()
+}
+
+// ---------------------------------------------------------------------------
+// epsnet_device
+
+/// Separates datagrams in an `epsnet_device` input.
+pub const NEXT: &[u8] = b"NEXT";
+
+fn device_root() -> PathBuf {
+    std::env::temp_dir().join(format!(
+        "plccoms-fuzz-device-{}-{:?}",
+        std::process::id(),
+        std::thread::current().id()
+    ))
+}
+
+/// A fresh simulated PLC: the demo map, file services on an empty
+/// directory with one file and one subdirectory.
+fn fresh_device() -> Device {
+    let root = device_root();
+    let _ = std::fs::remove_dir_all(&root);
+    std::fs::create_dir_all(root.join("d")).expect("create the device's file root");
+    std::fs::write(root.join("a.txt"), b"This is test string 1.").expect("seed file");
+    std::fs::write(root.join("d").join("b.bin"), [0u8, 1, 2, 0xff]).expect("seed file");
+    let mut device = Device::new(MemoryMap::FOXTROT);
+    device.files = Some(FileStore::open(&root).expect("open the device's file root"));
+    device
+}
+
+/// The simulated PLC's side: datagrams separated by [`NEXT`], each handled
+/// by one device in turn. An answer, when there is one, is a valid datagram
+/// with one frame per request frame, and the server's side accepts every
+/// answer frame as the answer to its request.
+pub fn epsnet_device(data: &[u8]) {
+    let mut device = fresh_device();
+    let mut clock_offset = 0.0;
+    let mut rest = data;
+    loop {
+        let (datagram, next) = match rest.windows(NEXT.len()).position(|w| w == NEXT) {
+            Some(at) => (&rest[..at], Some(&rest[at + NEXT.len()..])),
+            None => (rest, None),
+        };
+        one_datagram(datagram, &mut device, &mut clock_offset);
+        match next {
+            Some(next) => rest = next,
+            None => break,
+        }
+    }
+    let _ = std::fs::remove_dir_all(device_root());
+}
+
+fn one_datagram(datagram: &[u8], device: &mut Device, clock_offset: &mut f64) {
+    let answer = plccoms::sim::server::handle_datagram(datagram, device, clock_offset);
+    let Ok(request) = decode_packet(datagram) else {
+        assert!(answer.is_none(), "answered a datagram that does not decode");
+        return;
+    };
+    let addressed = request
+        .frames
+        .iter()
+        .all(|f| matches!(f, EpsFrame::Data(d) if d.da == PLC_EPS_ADDR));
+    if !addressed {
+        assert!(answer.is_none(), "answered a datagram not for this PLC");
+        return;
+    }
+    let Some(answer) = answer else {
+        return;
+    };
+    assert!(answer.len() <= MAX_PACKET);
+    let packet = decode_packet(&answer).expect("the PLC's answer decodes");
+    assert_eq!(packet.mesi, request.mesi);
+    assert_eq!(packet.frames.len(), request.frames.len());
+    for (asked, answered) in request.frames.iter().zip(&packet.frames) {
+        let EpsFrame::Data(asked) = asked else {
+            unreachable!("checked above")
+        };
+        if let EpsFrame::Data(a) = answered {
+            assert_eq!(a.da, asked.sa);
+            assert_eq!(a.sa, PLC_EPS_ADDR);
+        }
+        if let Ok(req) = Request::decode(asked.fc, &asked.data) {
+            let decoded = decode_answer(&req, answered);
+            assert!(
+                decoded.is_ok(),
+                "the server would refuse the PLC's answer to {req:?}: {decoded:?}"
+            );
+            if let (Request::Read { len, .. }, Ok(Ok(Response::Data(d)))) = (&req, &decoded) {
+                assert_eq!(d.len(), usize::from(*len));
+            }
+        }
+    }
+}

@@ -1,0 +1,42 @@
+//! Inputs the fuzz targets (`fuzz/`) found or need, replayed on the stable
+//! toolchain through the very checks the targets run (`fuzz/src/checks.rs`,
+//! included here), so every crash found stays fixed.
+
+#[path = "../fuzz/src/checks.rs"]
+#[allow(dead_code)]
+mod checks;
+
+#[global_allocator]
+static ALLOC: checks::alloc_count::Counting = checks::alloc_count::Counting;
+
+/// Every target on a few ordinary inputs, so the shared checks build and run
+/// in the normal test suite.
+#[test]
+fn every_target_runs_on_ordinary_input() {
+    for line in [
+        &b"GET:test_*"[..],
+        b"SET:test_1,-32768",
+        b"EN:t* 0.5",
+        b"GETMEM:%R100 16",
+        b"WRITEFILE:a.txt[3]=abc",
+        b"SETCONF: pubfile, Test.pub",
+        b"",
+        b"x",
+    ] {
+        checks::request_line(line);
+    }
+    checks::input_decoder(b"\x10\x02\x07GET:x\r\nWRITEFILE:a[3]=abc\r\n\xff\xfb\x18\x04");
+    checks::ini(include_bytes!("data/vendor/PLCComS.ini"));
+    checks::pubfile(include_bytes!("../conf/demo.pub"));
+    // READN answer of 2 bytes, then the same datagram as a request.
+    let answer = [
+        0x00, 0x02, 0x00, 0x07, 0x02, 0x00, 0x00, 0x0D, 0x68, 0x07, 0x07, 0x68, 0x7D, 0x00, 0x08,
+        0x10, 0x00, 0xAA, 0xBB, 0xFA, 0x16, 0x00,
+    ];
+    checks::epsnet_client(&answer);
+    // IDENT request from 0x7D.
+    checks::epsnet_device(&[
+        0x00, 0x01, 0x02, 0x00, 0x00, 0x0A, 0x68, 0x04, 0x04, 0x68, 0x00, 0x7D, 0x63, 0x01, 0xE1,
+        0x16,
+    ]);
+}
