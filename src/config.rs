@@ -59,6 +59,15 @@ pub struct Global {
     pub num_of_decimals: u8,
     pub scient_notation: bool,
     pub serial_device_cfg: Option<String>,
+    /// OUTPUT_HARD_LIMIT: output queued for one client, in bytes, beyond
+    /// which it is disconnected at once (this server's own key).
+    pub output_hard_limit: usize,
+    /// OUTPUT_SOFT_LIMIT: output queued for one client, in bytes, that it may
+    /// hold only for OUTPUT_SOFT_TIMEOUT; DIFF lines wait (coalesced) while
+    /// it is reached.
+    pub output_soft_limit: usize,
+    /// OUTPUT_SOFT_TIMEOUT.
+    pub output_soft_timeout: Duration,
 }
 
 impl Default for Global {
@@ -83,6 +92,9 @@ impl Default for Global {
             num_of_decimals: 10,
             scient_notation: false,
             serial_device_cfg: None,
+            output_hard_limit: 16 * 1024 * 1024,
+            output_soft_limit: 1024 * 1024,
+            output_soft_timeout: Duration::from_secs(30),
         }
     }
 }
@@ -546,7 +558,7 @@ struct RawSection {
     errors: Vec<Diagnostic>,
 }
 
-const GLOBAL_KEYS: [&str; 18] = [
+const GLOBAL_KEYS: [&str; 21] = [
     "COMM_LOOP_DELAY",
     "COMM_SCHED_PRI",
     "NET_CONNECT_MAX",
@@ -565,6 +577,10 @@ const GLOBAL_KEYS: [&str; 18] = [
     "NUM_OF_DECIMALS",
     "SCIENT_NOTATION",
     "SERIAL_DEVICE_CFG",
+    // This server's own keys.
+    "OUTPUT_HARD_LIMIT",
+    "OUTPUT_SOFT_LIMIT",
+    "OUTPUT_SOFT_TIMEOUT",
 ];
 
 const SECTION_KEYS: [&str; 21] = [
@@ -749,6 +765,21 @@ fn read_global(
         errors,
     };
     let d = Global::default();
+    let output_hard_limit = v
+        .number("OUTPUT_HARD_LIMIT", 4096, 1 << 30, "bytes")
+        .map_or(d.output_hard_limit, |n| n as usize);
+    let output_soft_limit = match v.number("OUTPUT_SOFT_LIMIT", 1024, 1 << 30, "bytes") {
+        Some(n) if n as usize > output_hard_limit => {
+            let entry = map["OUTPUT_SOFT_LIMIT"];
+            v.error(
+                entry,
+                format!("is above OUTPUT_HARD_LIMIT ({output_hard_limit} bytes)"),
+            );
+            d.output_soft_limit.min(output_hard_limit)
+        }
+        Some(n) => n as usize,
+        None => d.output_soft_limit.min(output_hard_limit),
+    };
     // Ranges fit the field types, so the casts below cannot truncate.
     Global {
         comm_loop_delay: v.millis("COMM_LOOP_DELAY", 1, 1000, 100),
@@ -781,6 +812,9 @@ fn read_global(
             .map_or(d.num_of_decimals, |n| n as u8),
         scient_notation: v.bool("SCIENT_NOTATION", d.scient_notation),
         serial_device_cfg: v.string("SERIAL_DEVICE_CFG"),
+        output_hard_limit,
+        output_soft_limit,
+        output_soft_timeout: v.secs("OUTPUT_SOFT_TIMEOUT", 1, 3600, 30),
     }
 }
 
@@ -1117,7 +1151,7 @@ mod tests {
 
     #[test]
     fn global_ranges() {
-        let ranges: [GlobalRange; 9] = [
+        let ranges: [GlobalRange; 11] = [
             ("COMM_LOOP_DELAY", 1, 1000, " ms", |g| {
                 g.comm_loop_delay.as_millis() as u64
             }),
@@ -1136,6 +1170,12 @@ mod tests {
             ("FFILE_MAXRECS", 0, 1024, "", |g| g.ffile_maxrecs as u64),
             ("NUM_OF_DECIMALS", 0, 15, "", |g| {
                 u64::from(g.num_of_decimals)
+            }),
+            ("OUTPUT_HARD_LIMIT", 4096, 1 << 30, " bytes", |g| {
+                g.output_hard_limit as u64
+            }),
+            ("OUTPUT_SOFT_TIMEOUT", 1, 3600, " s", |g| {
+                g.output_soft_timeout.as_secs()
             }),
         ];
         for (key, min, max, unit, read) in ranges {
@@ -1177,6 +1217,34 @@ mod tests {
         assert_eq!(
             global("COMM_LOOP_DELAY = 0050").comm_loop_delay,
             Duration::from_millis(50)
+        );
+    }
+
+    #[test]
+    fn output_limits() {
+        let d = Global::default();
+        assert_eq!(d.output_hard_limit, 16 << 20);
+        assert_eq!(d.output_soft_limit, 1 << 20);
+        assert_eq!(d.output_soft_timeout, Duration::from_secs(30));
+        let g = global("OUTPUT_SOFT_LIMIT = 1024\nOUTPUT_HARD_LIMIT = 4096");
+        assert_eq!((g.output_soft_limit, g.output_hard_limit), (1024, 4096));
+        // Without its own value the soft limit follows a lower hard limit.
+        assert_eq!(global("OUTPUT_HARD_LIMIT = 65536").output_soft_limit, 65536);
+        assert_eq!(
+            global("OUTPUT_SOFT_LIMIT = 16777216").output_soft_limit,
+            16 << 20
+        );
+        assert_eq!(
+            global_error("OUTPUT_SOFT_LIMIT = 1023"),
+            "PLCComS.ini:2: OUTPUT_SOFT_LIMIT = 1023 is out of range (allowed 1024-1073741824 bytes)"
+        );
+        assert_eq!(
+            global_error("OUTPUT_SOFT_LIMIT = 16777217"),
+            "PLCComS.ini:2: OUTPUT_SOFT_LIMIT = 16777217 is above OUTPUT_HARD_LIMIT (16777216 bytes)"
+        );
+        assert_eq!(
+            global_error("OUTPUT_HARD_LIMIT = 8192\nOUTPUT_SOFT_LIMIT = 8193"),
+            "PLCComS.ini:3: OUTPUT_SOFT_LIMIT = 8193 is above OUTPUT_HARD_LIMIT (8192 bytes)"
         );
     }
 
