@@ -22,7 +22,7 @@
 
 use std::collections::HashMap;
 use std::fmt;
-use std::net::Ipv4Addr;
+use std::net::{IpAddr, Ipv4Addr, Ipv6Addr};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -128,6 +128,86 @@ pub struct Section {
     pub pubfile_fixed: Option<String>,
     /// Set when `SIMULATOR = Yes`.
     pub simulator: Option<Simulator>,
+    /// `ALLOW`: the client addresses and networks admitted; `None` admits
+    /// every client, as PLCComS does (this server's own key).
+    pub allow: Option<Vec<Network>>,
+    /// `READ_ONLY = Yes`: requests that would change the PLC or the section
+    /// answer ERROR:30 (this server's own key).
+    pub read_only: bool,
+}
+
+/// An address or CIDR network of `ALLOW`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Network {
+    /// The network address (host bits cleared).
+    pub addr: IpAddr,
+    /// Leading bits that must match: 32 (IPv4) or 128 (IPv6) for a single
+    /// address.
+    pub prefix: u8,
+}
+
+impl Network {
+    /// `a.b.c.d`, `a.b.c.d/n`, an IPv6 address, or `ipv6/n`.
+    pub fn parse(text: &str) -> Option<Network> {
+        let (addr, prefix) = match text.split_once('/') {
+            Some((addr, prefix)) => (addr.trim(), Some(prefix.trim())),
+            None => (text.trim(), None),
+        };
+        let addr = match parse_ipv4(addr) {
+            Some(v4) => IpAddr::V4(v4),
+            None => IpAddr::V6(addr.parse::<Ipv6Addr>().ok()?),
+        };
+        let max = if addr.is_ipv4() { 32 } else { 128 };
+        let prefix = match prefix {
+            None => max,
+            Some(p) if !p.is_empty() && p.len() <= 3 && p.bytes().all(|b| b.is_ascii_digit()) => {
+                p.parse::<u8>().ok().filter(|&n| n <= max)?
+            }
+            Some(_) => return None,
+        };
+        let addr = match addr {
+            IpAddr::V4(a) => IpAddr::V4(Ipv4Addr::from(u32::from(a) & mask32(prefix))),
+            IpAddr::V6(a) => IpAddr::V6(Ipv6Addr::from(u128::from(a) & mask128(prefix))),
+        };
+        Some(Network { addr, prefix })
+    }
+
+    /// Whether `peer` is in this network. An IPv4 client seen on an IPv6
+    /// socket (`::ffff:a.b.c.d`) counts as its IPv4 address.
+    pub fn contains(&self, peer: IpAddr) -> bool {
+        let peer = match peer {
+            IpAddr::V6(v6) => v6.to_ipv4_mapped().map_or(peer, IpAddr::V4),
+            v4 => v4,
+        };
+        match (self.addr, peer) {
+            (IpAddr::V4(net), IpAddr::V4(p)) => {
+                u32::from(p) & mask32(self.prefix) == u32::from(net)
+            }
+            (IpAddr::V6(net), IpAddr::V6(p)) => {
+                u128::from(p) & mask128(self.prefix) == u128::from(net)
+            }
+            _ => false,
+        }
+    }
+}
+
+impl fmt::Display for Network {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}/{}", self.addr, self.prefix)
+    }
+}
+
+fn mask32(prefix: u8) -> u32 {
+    u32::MAX.checked_shl(32 - u32::from(prefix)).unwrap_or(0)
+}
+
+fn mask128(prefix: u8) -> u128 {
+    u128::MAX.checked_shl(128 - u32::from(prefix)).unwrap_or(0)
+}
+
+/// Whether `allow` (a section's ALLOW) admits `peer`.
+pub fn allowed(allow: Option<&[Network]>, peer: IpAddr) -> bool {
+    allow.is_none_or(|nets| nets.iter().any(|n| n.contains(peer)))
 }
 
 /// A simulated PLC that serves the section (`SIMULATOR = Yes`).
@@ -583,7 +663,7 @@ const GLOBAL_KEYS: [&str; 21] = [
     "OUTPUT_SOFT_TIMEOUT",
 ];
 
-const SECTION_KEYS: [&str; 21] = [
+const SECTION_KEYS: [&str; 23] = [
     "IPADDR",
     "IPADDR_LOCAL",
     "EPSADDR",
@@ -604,6 +684,8 @@ const SECTION_KEYS: [&str; 21] = [
     "SIMULATOR",
     "SIMULATOR_PROGRAM",
     "SIMULATOR_PUB",
+    "ALLOW",
+    "READ_ONLY",
     // Accepted in a PLC section for symmetry with [*]: no effect there.
     "SERIAL_DEVICE_CFG",
 ];
@@ -724,6 +806,25 @@ impl Values<'_, '_, '_> {
             self.error(entry, "is not an IPv4 address (a.b.c.d)".into());
         }
         parsed
+    }
+
+    /// A comma-separated list of addresses and CIDR networks.
+    fn networks(&mut self, key: &str) -> Option<Vec<Network>> {
+        let entry = *self.map.get(key)?;
+        let mut list = Vec::new();
+        for part in entry.value.split(',').map(str::trim) {
+            match Network::parse(part) {
+                Some(net) => list.push(net),
+                None => {
+                    self.error(
+                        entry,
+                        format!("has '{part}', which is not an IPv4 or IPv6 address or network (a.b.c.d, a.b.c.d/n, x:y::z, x:y::/n)"),
+                    );
+                    return None;
+                }
+            }
+        }
+        Some(list)
     }
 
     fn millis(&mut self, key: &str, min: u64, max: u64, default: u64) -> Duration {
@@ -900,6 +1001,8 @@ fn read_section(
         pubfile: v.string("PUBFILE"),
         pubfile_fixed: v.string("PUBFILE_FIXED"),
         simulator,
+        allow: v.networks("ALLOW"),
+        read_only: v.bool("READ_ONLY", false),
     };
     let server_port = if map.contains_key("SERVER_PORT") {
         v.number("SERVER_PORT", 1, 65535, "").map(|n| n as u16)
@@ -1032,6 +1135,8 @@ mod tests {
                 pubfile: Some("//VARLIST.PUB".into()),
                 pubfile_fixed: Some("FIXED_Foxtrot.pub".into()),
                 simulator: None,
+                allow: None,
+                read_only: false,
             }]
         );
     }
@@ -1134,6 +1239,8 @@ mod tests {
                 pubfile: None,
                 pubfile_fixed: None,
                 simulator: None,
+                allow: None,
+                read_only: false,
             }
         );
     }
@@ -1608,6 +1715,62 @@ mod tests {
         assert!(err
             .to_string()
             .starts_with(&format!("cannot read {}: ", path.display())));
+    }
+
+    #[test]
+    fn allow_and_read_only() {
+        let s = section("SERVER_PORT = 5000");
+        assert_eq!((s.allow, s.read_only), (None, false));
+        let s = section(
+            "SERVER_PORT = 5000\nALLOW = 127.0.0.1, 192.168.1.0/24 ,::1,fd00::/8, 10.1.2.3/8\nREAD_ONLY = Yes",
+        );
+        assert!(s.read_only);
+        let allow = s.allow.unwrap();
+        let shown: Vec<String> = allow.iter().map(ToString::to_string).collect();
+        assert_eq!(
+            shown,
+            [
+                "127.0.0.1/32",
+                "192.168.1.0/24",
+                "::1/128",
+                "fd00::/8",
+                "10.0.0.0/8"
+            ]
+        );
+        let ok = |ip: &str| allowed(Some(&allow), ip.parse().unwrap());
+        assert!(ok("127.0.0.1"));
+        assert!(!ok("127.0.0.2"));
+        assert!(ok("192.168.1.200"));
+        assert!(!ok("192.168.2.1"));
+        assert!(ok("10.255.0.1"));
+        assert!(ok("::1"));
+        assert!(ok("fd12::5"));
+        assert!(!ok("fe80::1"));
+        // An IPv4 client on an IPv6 socket.
+        assert!(ok("::ffff:192.168.1.7"));
+        assert!(!ok("::ffff:8.8.8.8"));
+        assert!(allowed(None, "8.8.8.8".parse().unwrap()));
+        let any = [Network::parse("0.0.0.0/0").unwrap()];
+        assert!(allowed(Some(&any), "8.8.8.8".parse().unwrap()));
+        assert!(!allowed(Some(&any), "::2".parse().unwrap()));
+        for bad in [
+            "10.0.0.0/33",
+            "10.0.0/8",
+            "host.example",
+            "::1/129",
+            "1.2.3.4/",
+            "1.2.3.4/-1",
+            "",
+        ] {
+            assert_eq!(
+                section_error(&format!("SERVER_PORT = 5000\nALLOW = 127.0.0.1,{bad}")),
+                format!("PLCComS.ini:4: ALLOW = 127.0.0.1,{bad} has '{bad}', which is not an IPv4 or IPv6 address or network (a.b.c.d, a.b.c.d/n, x:y::z, x:y::/n)"),
+            );
+        }
+        assert_eq!(
+            section_error("SERVER_PORT = 5000\nREAD_ONLY = maybe"),
+            "PLCComS.ini:4: READ_ONLY = maybe is not Yes or No"
+        );
     }
 
     #[test]
