@@ -22,7 +22,7 @@
 
 use std::collections::HashMap;
 use std::fmt;
-use std::net::Ipv4Addr;
+use std::net::{IpAddr, Ipv4Addr, Ipv6Addr};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -59,6 +59,15 @@ pub struct Global {
     pub num_of_decimals: u8,
     pub scient_notation: bool,
     pub serial_device_cfg: Option<String>,
+    /// OUTPUT_HARD_LIMIT: output queued for one client, in bytes, beyond
+    /// which it is disconnected at once (this server's own key).
+    pub output_hard_limit: usize,
+    /// OUTPUT_SOFT_LIMIT: output queued for one client, in bytes, that it may
+    /// hold only for OUTPUT_SOFT_TIMEOUT; DIFF lines wait (coalesced) while
+    /// it is reached.
+    pub output_soft_limit: usize,
+    /// OUTPUT_SOFT_TIMEOUT.
+    pub output_soft_timeout: Duration,
 }
 
 impl Default for Global {
@@ -83,6 +92,9 @@ impl Default for Global {
             num_of_decimals: 10,
             scient_notation: false,
             serial_device_cfg: None,
+            output_hard_limit: 16 * 1024 * 1024,
+            output_soft_limit: 1024 * 1024,
+            output_soft_timeout: Duration::from_secs(30),
         }
     }
 }
@@ -116,6 +128,86 @@ pub struct Section {
     pub pubfile_fixed: Option<String>,
     /// Set when `SIMULATOR = Yes`.
     pub simulator: Option<Simulator>,
+    /// `ALLOW`: the client addresses and networks admitted; `None` admits
+    /// every client, as PLCComS does (this server's own key).
+    pub allow: Option<Vec<Network>>,
+    /// `READ_ONLY = Yes`: requests that would change the PLC or the section
+    /// answer ERROR:30 (this server's own key).
+    pub read_only: bool,
+}
+
+/// An address or CIDR network of `ALLOW`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Network {
+    /// The network address (host bits cleared).
+    pub addr: IpAddr,
+    /// Leading bits that must match: 32 (IPv4) or 128 (IPv6) for a single
+    /// address.
+    pub prefix: u8,
+}
+
+impl Network {
+    /// `a.b.c.d`, `a.b.c.d/n`, an IPv6 address, or `ipv6/n`.
+    pub fn parse(text: &str) -> Option<Network> {
+        let (addr, prefix) = match text.split_once('/') {
+            Some((addr, prefix)) => (addr.trim(), Some(prefix.trim())),
+            None => (text.trim(), None),
+        };
+        let addr = match parse_ipv4(addr) {
+            Some(v4) => IpAddr::V4(v4),
+            None => IpAddr::V6(addr.parse::<Ipv6Addr>().ok()?),
+        };
+        let max = if addr.is_ipv4() { 32 } else { 128 };
+        let prefix = match prefix {
+            None => max,
+            Some(p) if !p.is_empty() && p.len() <= 3 && p.bytes().all(|b| b.is_ascii_digit()) => {
+                p.parse::<u8>().ok().filter(|&n| n <= max)?
+            }
+            Some(_) => return None,
+        };
+        let addr = match addr {
+            IpAddr::V4(a) => IpAddr::V4(Ipv4Addr::from(u32::from(a) & mask32(prefix))),
+            IpAddr::V6(a) => IpAddr::V6(Ipv6Addr::from(u128::from(a) & mask128(prefix))),
+        };
+        Some(Network { addr, prefix })
+    }
+
+    /// Whether `peer` is in this network. An IPv4 client seen on an IPv6
+    /// socket (`::ffff:a.b.c.d`) counts as its IPv4 address.
+    pub fn contains(&self, peer: IpAddr) -> bool {
+        let peer = match peer {
+            IpAddr::V6(v6) => v6.to_ipv4_mapped().map_or(peer, IpAddr::V4),
+            v4 => v4,
+        };
+        match (self.addr, peer) {
+            (IpAddr::V4(net), IpAddr::V4(p)) => {
+                u32::from(p) & mask32(self.prefix) == u32::from(net)
+            }
+            (IpAddr::V6(net), IpAddr::V6(p)) => {
+                u128::from(p) & mask128(self.prefix) == u128::from(net)
+            }
+            _ => false,
+        }
+    }
+}
+
+impl fmt::Display for Network {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}/{}", self.addr, self.prefix)
+    }
+}
+
+fn mask32(prefix: u8) -> u32 {
+    u32::MAX.checked_shl(32 - u32::from(prefix)).unwrap_or(0)
+}
+
+fn mask128(prefix: u8) -> u128 {
+    u128::MAX.checked_shl(128 - u32::from(prefix)).unwrap_or(0)
+}
+
+/// Whether `allow` (a section's ALLOW) admits `peer`.
+pub fn allowed(allow: Option<&[Network]>, peer: IpAddr) -> bool {
+    allow.is_none_or(|nets| nets.iter().any(|n| n.contains(peer)))
 }
 
 /// A simulated PLC that serves the section (`SIMULATOR = Yes`).
@@ -546,7 +638,7 @@ struct RawSection {
     errors: Vec<Diagnostic>,
 }
 
-const GLOBAL_KEYS: [&str; 18] = [
+const GLOBAL_KEYS: [&str; 21] = [
     "COMM_LOOP_DELAY",
     "COMM_SCHED_PRI",
     "NET_CONNECT_MAX",
@@ -565,9 +657,13 @@ const GLOBAL_KEYS: [&str; 18] = [
     "NUM_OF_DECIMALS",
     "SCIENT_NOTATION",
     "SERIAL_DEVICE_CFG",
+    // This server's own keys.
+    "OUTPUT_HARD_LIMIT",
+    "OUTPUT_SOFT_LIMIT",
+    "OUTPUT_SOFT_TIMEOUT",
 ];
 
-const SECTION_KEYS: [&str; 21] = [
+const SECTION_KEYS: [&str; 23] = [
     "IPADDR",
     "IPADDR_LOCAL",
     "EPSADDR",
@@ -588,6 +684,8 @@ const SECTION_KEYS: [&str; 21] = [
     "SIMULATOR",
     "SIMULATOR_PROGRAM",
     "SIMULATOR_PUB",
+    "ALLOW",
+    "READ_ONLY",
     // Accepted in a PLC section for symmetry with [*]: no effect there.
     "SERIAL_DEVICE_CFG",
 ];
@@ -710,6 +808,25 @@ impl Values<'_, '_, '_> {
         parsed
     }
 
+    /// A comma-separated list of addresses and CIDR networks.
+    fn networks(&mut self, key: &str) -> Option<Vec<Network>> {
+        let entry = *self.map.get(key)?;
+        let mut list = Vec::new();
+        for part in entry.value.split(',').map(str::trim) {
+            match Network::parse(part) {
+                Some(net) => list.push(net),
+                None => {
+                    self.error(
+                        entry,
+                        format!("has '{part}', which is not an IPv4 or IPv6 address or network (a.b.c.d, a.b.c.d/n, x:y::z, x:y::/n)"),
+                    );
+                    return None;
+                }
+            }
+        }
+        Some(list)
+    }
+
     fn millis(&mut self, key: &str, min: u64, max: u64, default: u64) -> Duration {
         Duration::from_millis(self.number(key, min, max, "ms").unwrap_or(default))
     }
@@ -749,6 +866,21 @@ fn read_global(
         errors,
     };
     let d = Global::default();
+    let output_hard_limit = v
+        .number("OUTPUT_HARD_LIMIT", 4096, 1 << 30, "bytes")
+        .map_or(d.output_hard_limit, |n| n as usize);
+    let output_soft_limit = match v.number("OUTPUT_SOFT_LIMIT", 1024, 1 << 30, "bytes") {
+        Some(n) if n as usize > output_hard_limit => {
+            let entry = map["OUTPUT_SOFT_LIMIT"];
+            v.error(
+                entry,
+                format!("is above OUTPUT_HARD_LIMIT ({output_hard_limit} bytes)"),
+            );
+            d.output_soft_limit.min(output_hard_limit)
+        }
+        Some(n) => n as usize,
+        None => d.output_soft_limit.min(output_hard_limit),
+    };
     // Ranges fit the field types, so the casts below cannot truncate.
     Global {
         comm_loop_delay: v.millis("COMM_LOOP_DELAY", 1, 1000, 100),
@@ -781,6 +913,9 @@ fn read_global(
             .map_or(d.num_of_decimals, |n| n as u8),
         scient_notation: v.bool("SCIENT_NOTATION", d.scient_notation),
         serial_device_cfg: v.string("SERIAL_DEVICE_CFG"),
+        output_hard_limit,
+        output_soft_limit,
+        output_soft_timeout: v.secs("OUTPUT_SOFT_TIMEOUT", 1, 3600, 30),
     }
 }
 
@@ -866,6 +1001,8 @@ fn read_section(
         pubfile: v.string("PUBFILE"),
         pubfile_fixed: v.string("PUBFILE_FIXED"),
         simulator,
+        allow: v.networks("ALLOW"),
+        read_only: v.bool("READ_ONLY", false),
     };
     let server_port = if map.contains_key("SERVER_PORT") {
         v.number("SERVER_PORT", 1, 65535, "").map(|n| n as u16)
@@ -998,6 +1135,8 @@ mod tests {
                 pubfile: Some("//VARLIST.PUB".into()),
                 pubfile_fixed: Some("FIXED_Foxtrot.pub".into()),
                 simulator: None,
+                allow: None,
+                read_only: false,
             }]
         );
     }
@@ -1100,6 +1239,8 @@ mod tests {
                 pubfile: None,
                 pubfile_fixed: None,
                 simulator: None,
+                allow: None,
+                read_only: false,
             }
         );
     }
@@ -1117,7 +1258,7 @@ mod tests {
 
     #[test]
     fn global_ranges() {
-        let ranges: [GlobalRange; 9] = [
+        let ranges: [GlobalRange; 11] = [
             ("COMM_LOOP_DELAY", 1, 1000, " ms", |g| {
                 g.comm_loop_delay.as_millis() as u64
             }),
@@ -1136,6 +1277,12 @@ mod tests {
             ("FFILE_MAXRECS", 0, 1024, "", |g| g.ffile_maxrecs as u64),
             ("NUM_OF_DECIMALS", 0, 15, "", |g| {
                 u64::from(g.num_of_decimals)
+            }),
+            ("OUTPUT_HARD_LIMIT", 4096, 1 << 30, " bytes", |g| {
+                g.output_hard_limit as u64
+            }),
+            ("OUTPUT_SOFT_TIMEOUT", 1, 3600, " s", |g| {
+                g.output_soft_timeout.as_secs()
             }),
         ];
         for (key, min, max, unit, read) in ranges {
@@ -1177,6 +1324,34 @@ mod tests {
         assert_eq!(
             global("COMM_LOOP_DELAY = 0050").comm_loop_delay,
             Duration::from_millis(50)
+        );
+    }
+
+    #[test]
+    fn output_limits() {
+        let d = Global::default();
+        assert_eq!(d.output_hard_limit, 16 << 20);
+        assert_eq!(d.output_soft_limit, 1 << 20);
+        assert_eq!(d.output_soft_timeout, Duration::from_secs(30));
+        let g = global("OUTPUT_SOFT_LIMIT = 1024\nOUTPUT_HARD_LIMIT = 4096");
+        assert_eq!((g.output_soft_limit, g.output_hard_limit), (1024, 4096));
+        // Without its own value the soft limit follows a lower hard limit.
+        assert_eq!(global("OUTPUT_HARD_LIMIT = 65536").output_soft_limit, 65536);
+        assert_eq!(
+            global("OUTPUT_SOFT_LIMIT = 16777216").output_soft_limit,
+            16 << 20
+        );
+        assert_eq!(
+            global_error("OUTPUT_SOFT_LIMIT = 1023"),
+            "PLCComS.ini:2: OUTPUT_SOFT_LIMIT = 1023 is out of range (allowed 1024-1073741824 bytes)"
+        );
+        assert_eq!(
+            global_error("OUTPUT_SOFT_LIMIT = 16777217"),
+            "PLCComS.ini:2: OUTPUT_SOFT_LIMIT = 16777217 is above OUTPUT_HARD_LIMIT (16777216 bytes)"
+        );
+        assert_eq!(
+            global_error("OUTPUT_HARD_LIMIT = 8192\nOUTPUT_SOFT_LIMIT = 8193"),
+            "PLCComS.ini:3: OUTPUT_SOFT_LIMIT = 8193 is above OUTPUT_HARD_LIMIT (8192 bytes)"
         );
     }
 
@@ -1540,6 +1715,62 @@ mod tests {
         assert!(err
             .to_string()
             .starts_with(&format!("cannot read {}: ", path.display())));
+    }
+
+    #[test]
+    fn allow_and_read_only() {
+        let s = section("SERVER_PORT = 5000");
+        assert_eq!((s.allow, s.read_only), (None, false));
+        let s = section(
+            "SERVER_PORT = 5000\nALLOW = 127.0.0.1, 192.168.1.0/24 ,::1,fd00::/8, 10.1.2.3/8\nREAD_ONLY = Yes",
+        );
+        assert!(s.read_only);
+        let allow = s.allow.unwrap();
+        let shown: Vec<String> = allow.iter().map(ToString::to_string).collect();
+        assert_eq!(
+            shown,
+            [
+                "127.0.0.1/32",
+                "192.168.1.0/24",
+                "::1/128",
+                "fd00::/8",
+                "10.0.0.0/8"
+            ]
+        );
+        let ok = |ip: &str| allowed(Some(&allow), ip.parse().unwrap());
+        assert!(ok("127.0.0.1"));
+        assert!(!ok("127.0.0.2"));
+        assert!(ok("192.168.1.200"));
+        assert!(!ok("192.168.2.1"));
+        assert!(ok("10.255.0.1"));
+        assert!(ok("::1"));
+        assert!(ok("fd12::5"));
+        assert!(!ok("fe80::1"));
+        // An IPv4 client on an IPv6 socket.
+        assert!(ok("::ffff:192.168.1.7"));
+        assert!(!ok("::ffff:8.8.8.8"));
+        assert!(allowed(None, "8.8.8.8".parse().unwrap()));
+        let any = [Network::parse("0.0.0.0/0").unwrap()];
+        assert!(allowed(Some(&any), "8.8.8.8".parse().unwrap()));
+        assert!(!allowed(Some(&any), "::2".parse().unwrap()));
+        for bad in [
+            "10.0.0.0/33",
+            "10.0.0/8",
+            "host.example",
+            "::1/129",
+            "1.2.3.4/",
+            "1.2.3.4/-1",
+            "",
+        ] {
+            assert_eq!(
+                section_error(&format!("SERVER_PORT = 5000\nALLOW = 127.0.0.1,{bad}")),
+                format!("PLCComS.ini:4: ALLOW = 127.0.0.1,{bad} has '{bad}', which is not an IPv4 or IPv6 address or network (a.b.c.d, a.b.c.d/n, x:y::z, x:y::/n)"),
+            );
+        }
+        assert_eq!(
+            section_error("SERVER_PORT = 5000\nREAD_ONLY = maybe"),
+            "PLCComS.ini:4: READ_ONLY = maybe is not Yes or No"
+        );
     }
 
     #[test]

@@ -1,5 +1,9 @@
 //! Listeners: one TCP port per PLC section, admitting clients up to
 //! NET_CONNECT_MAX and running a session for each.
+//!
+//! A client whose address is not in the section's ALLOW list is closed right
+//! after accept, without any data, and logged (rate-limited). The others get
+//! TCP keepalive; one over NET_CONNECT_MAX gets ERROR:11 and is closed.
 
 use std::io;
 use std::net::SocketAddr;
@@ -7,6 +11,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
+use socket2::{SockRef, TcpKeepalive};
 use tokio::io::AsyncWriteExt;
 use tokio::net::{TcpListener, TcpSocket, TcpStream};
 use tokio::task::JoinHandle;
@@ -124,7 +129,54 @@ fn listen(bind: SocketAddr) -> io::Result<TcpListener> {
     socket.listen(1024)
 }
 
+/// TCP keepalive on client connections: idle clients are kept (PLCComS
+/// never drops them), and a peer that vanished (powered off, cable cut) is
+/// found within about idle + interval * probes = 110 s, freeing its place
+/// under NET_CONNECT_MAX.
+pub const KEEPALIVE_IDLE: Duration = Duration::from_secs(60);
+pub const KEEPALIVE_INTERVAL: Duration = Duration::from_secs(10);
+pub const KEEPALIVE_PROBES: u32 = 5;
+
+fn set_keepalive(stream: &TcpStream) -> io::Result<()> {
+    let keepalive = TcpKeepalive::new()
+        .with_time(KEEPALIVE_IDLE)
+        .with_interval(KEEPALIVE_INTERVAL)
+        .with_retries(KEEPALIVE_PROBES);
+    SockRef::from(stream).set_tcp_keepalive(&keepalive)
+}
+
+/// Logs refusals by ALLOW at most once a second, with a count of the ones in
+/// between, so a scan cannot flood the log.
+struct RefusalLog {
+    last: Option<tokio::time::Instant>,
+    quiet: u64,
+}
+
+impl RefusalLog {
+    fn refused(&mut self, section: &str, peer: SocketAddr) {
+        let now = tokio::time::Instant::now();
+        if self
+            .last
+            .is_some_and(|last| now.duration_since(last) < Duration::from_secs(1))
+        {
+            self.quiet += 1;
+            return;
+        }
+        if self.quiet > 0 {
+            warn!(section = %section, client = %peer, "refused: not in ALLOW ({} more refused since the last message)", self.quiet);
+        } else {
+            warn!(section = %section, client = %peer, "refused: not in ALLOW");
+        }
+        self.last = Some(now);
+        self.quiet = 0;
+    }
+}
+
 async fn accept_loop(listener: TcpListener, shared: Arc<SectionShared>, sessions: TaskTracker) {
+    let mut refusals = RefusalLog {
+        last: None,
+        quiet: 0,
+    };
     loop {
         let (stream, peer) = match listener.accept().await {
             Ok(accepted) => accepted,
@@ -135,6 +187,16 @@ async fn accept_loop(listener: TcpListener, shared: Arc<SectionShared>, sessions
                 continue;
             }
         };
+        if !crate::config::allowed(shared.config.allow.as_deref(), peer.ip()) {
+            // Closed at once without a word: nothing about the server is
+            // told to a client that may not use it.
+            refusals.refused(&shared.name, peer);
+            drop(stream);
+            continue;
+        }
+        if let Err(err) = set_keepalive(&stream) {
+            warn!(section = %shared.name, client = %peer, "cannot set TCP keepalive: {err}");
+        }
         match shared.admit(peer) {
             Some(id) => {
                 let shared = shared.clone();

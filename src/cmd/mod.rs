@@ -26,6 +26,9 @@ use crate::vars::{VarId, VarTable};
 /// Runs one request. `context` is the request as the client wrote it, for
 /// error texts.
 pub async fn dispatch(session: &mut Session, command: Command, args: &[u8], context: &[u8]) {
+    if session.shared.config.read_only && matches!(command, Command::Set) {
+        return read_only(session, context);
+    }
     match command {
         Command::List => list::apply(session, args),
         Command::Get => get::apply(session, args, context).await,
@@ -46,6 +49,12 @@ pub async fn dispatch(session: &mut Session, command: Command, args: &[u8], cont
             error(session, ErrorCode::Incomplete, context);
         }
     }
+}
+
+/// READ_ONLY = Yes: a request that would change the PLC or the section
+/// answers ERROR:30 with the request, and nothing is changed.
+pub fn read_only(session: &mut Session, context: &[u8]) {
+    error(session, ErrorCode::BadRequest, context);
 }
 
 /// Queues `ERROR:<code> <text> '<context>'`.

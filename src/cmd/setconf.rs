@@ -5,7 +5,8 @@
 //! answered `WARNING:250 Changed public file: '<name>'` (or 251 when its
 //! content is the same), and every other client of the section gets the same
 //! warning. ERROR:10 when the PLC does not answer, ERROR:35 for a bad value,
-//! ERROR:50 for an unknown name.
+//! ERROR:50 for an unknown name. With READ_ONLY = Yes the section-wide keys
+//! answer ERROR:30 and change nothing.
 
 use plccoms_protocol::answer::{write_error, write_warning, ErrorCode, WarningCode};
 use plccoms_protocol::request::{parse_setconf, ArgError};
@@ -28,6 +29,13 @@ pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
     };
     let key = String::from_utf8_lossy(name).to_ascii_lowercase();
     let text = String::from_utf8_lossy(value).into_owned();
+    let section_wide = matches!(
+        key.as_str(),
+        "ipaddr" | "epsaddr" | "epsport" | "serial_device" | "serial_speed" | "pubfile"
+    );
+    if section_wide && session.shared.config.read_only {
+        return super::read_only(session, context);
+    }
     let change = match key.as_str() {
         "crlf" | "diff" => {
             let Some(on) = yes_no(value) else {

@@ -63,6 +63,21 @@ pub async fn block(session: &mut Session, header: &[u8], data: Vec<u8>) {
         Ok((name, _, _)) => name.to_vec(),
         Err(_) => return error(session, ErrorCode::BadRequest, header),
     };
+    if session.shared.config.read_only {
+        // Blocks are dropped; the one that would be answered (WRITEFILE's
+        // zero block, WRITEFILEINFO's data block) answers ERROR:30.
+        let answered = match command {
+            Command::WriteFileInfo => !data.is_empty(),
+            _ => data.is_empty(),
+        };
+        if answered {
+            let mut context = command.name().as_bytes().to_vec();
+            context.push(b':');
+            context.extend_from_slice(&name);
+            super::read_only(session, &context);
+        }
+        return;
+    }
     match command {
         Command::WriteFileInfo => write_info(session, name, &data).await,
         _ => write_block(session, name, data).await,

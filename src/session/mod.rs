@@ -5,8 +5,16 @@
 //! once); answers that need the PLC wait in an ordered queue while later
 //! requests are already parsed and sent on to the poller, so a burst of SETs
 //! or GETs shares PLC round trips. Output is bounded: when the client does not
-//! read, the session stops taking requests and defers DIFFs (which it can
-//! always recompute from the latest snapshot) instead of buffering.
+//! read, the session stops taking requests (at `OUTPUT_HIGH_WATER`) and defers
+//! DIFFs (at OUTPUT_SOFT_LIMIT; it can always recompute them from the latest
+//! snapshot, so they coalesce) instead of buffering.
+//!
+//! A client that does not read its output is disconnected: at once when its
+//! queued output (written-out buffer plus finished answers waiting behind a
+//! PLC request) passes OUTPUT_HARD_LIMIT, and when it stays at or above
+//! OUTPUT_SOFT_LIMIT for OUTPUT_SOFT_TIMEOUT. Nothing a session does waits for
+//! another session or holds up the poller: snapshots reach it on a `watch`
+//! channel.
 
 pub mod connection;
 pub mod table;
@@ -21,7 +29,7 @@ use plccoms_protocol::request::{classify, Command, Line};
 use tokio::io::AsyncWriteExt;
 use tokio::net::TcpStream;
 use tokio::sync::{oneshot, watch};
-use tracing::{debug, info};
+use tracing::{debug, info, warn};
 
 use crate::cmd;
 use crate::fanout::Snapshot;
@@ -87,6 +95,12 @@ pub struct Session {
     pub notice_seen: u64,
     /// A WRITEFILE transfer in progress.
     pub upload: Option<cmd::writefile::Upload>,
+    /// Bytes of the finished answers (`Pending::Ready`) in `pending`.
+    ready_bytes: usize,
+    /// Since when queued output has been at or above OUTPUT_SOFT_LIMIT.
+    over_soft_since: Option<tokio::time::Instant>,
+    /// Why the session was cut off (output limits); nothing more is written.
+    dropped: Option<String>,
 }
 
 impl Session {
@@ -110,6 +124,9 @@ impl Session {
             diffs_deferred: false,
             notice_seen,
             upload: None,
+            ready_bytes: 0,
+            over_soft_since: None,
+            dropped: None,
             shared,
         }
     }
@@ -122,9 +139,52 @@ impl Session {
         if let Err(err) = self.serve().await {
             debug!(section = %section, client = %peer, "connection error: {err}");
         }
-        let _ = self.conn.flush().await;
+        if let Some(why) = &self.dropped {
+            // Dropping the socket closes it (with a reset if input is
+            // unread): nothing more is owed to this client.
+            warn!(section = %section, client = %peer, "client disconnected: {why}");
+            return;
+        }
+        // A client that asked to close but does not read what it is owed
+        // gets as long as a soft-limit stall.
+        let grace = self.shared.global.output_soft_timeout;
+        let _ = tokio::time::timeout(grace, self.conn.flush()).await;
         let _ = self.conn.writer.shutdown().await;
         debug!(section = %section, client = %peer, "client disconnected");
+    }
+
+    /// Output queued for the client: the unwritten buffer and the finished
+    /// answers waiting behind a PLC request.
+    pub fn queued_output(&self) -> usize {
+        self.conn.backlog() + self.ready_bytes
+    }
+
+    /// Applies OUTPUT_HARD_LIMIT and OUTPUT_SOFT_LIMIT; `Some(why)` when the
+    /// client must go.
+    fn check_output_limits(&mut self) -> Option<String> {
+        let global = &self.shared.global;
+        let queued = self.queued_output();
+        if queued > global.output_hard_limit {
+            return Some(format!(
+                "{queued} bytes of output queued, over OUTPUT_HARD_LIMIT ({} bytes)",
+                global.output_hard_limit
+            ));
+        }
+        if queued < global.output_soft_limit {
+            self.over_soft_since = None;
+            return None;
+        }
+        let since = *self
+            .over_soft_since
+            .get_or_insert_with(tokio::time::Instant::now);
+        let held = since.elapsed();
+        (held >= global.output_soft_timeout).then(|| {
+            format!(
+                "not reading: {queued} bytes of output queued, at or over OUTPUT_SOFT_LIMIT ({} bytes) for {} s (OUTPUT_SOFT_TIMEOUT)",
+                global.output_soft_limit,
+                held.as_secs()
+            )
+        })
     }
 
     async fn serve(&mut self) -> std::io::Result<()> {
@@ -132,6 +192,10 @@ impl Session {
             self.take_requests().await;
             self.release_ready();
             self.pump_stream().await;
+            if let Some(why) = self.check_output_limits() {
+                self.dropped = Some(why);
+                return Ok(());
+            }
             if (self.close || self.conn.eof) && self.pending.is_empty() {
                 return Ok(());
             }
@@ -154,8 +218,11 @@ impl Session {
                 && backlog < OUTPUT_HIGH_WATER;
             // Snapshots also carry public-file changes, so every client takes
             // them, DIFF lines on or off; never inside a streamed answer.
-            let want_diffs = backlog < OUTPUT_HIGH_WATER && !streaming;
+            let want_diffs = backlog < self.shared.global.output_soft_limit && !streaming;
             let closing = self.close;
+            let soft_deadline = self
+                .over_soft_since
+                .map(|since| since + self.shared.global.output_soft_timeout);
             let Session {
                 conn,
                 pending,
@@ -205,6 +272,8 @@ impl Session {
                 _ = tokio::time::sleep_until(write_deadline.unwrap_or_else(tokio::time::Instant::now)), if write_deadline.is_some() => {
                     self.write_timeout();
                 }
+                // Wakes the limit check when the client stays stalled.
+                _ = tokio::time::sleep_until(soft_deadline.unwrap_or_else(tokio::time::Instant::now)), if soft_deadline.is_some() => {}
                 else => return Ok(()),
             }
         }
@@ -279,6 +348,7 @@ impl Session {
         if self.pending.is_empty() {
             self.conn.extend(&bytes);
         } else {
+            self.ready_bytes += bytes.len();
             self.pending.push_back(Pending::Ready(bytes));
         }
     }
@@ -359,6 +429,7 @@ impl Session {
     fn release_ready(&mut self) {
         while let Some(Pending::Ready(_)) = self.pending.front() {
             if let Some(Pending::Ready(bytes)) = self.pending.pop_front() {
+                self.ready_bytes -= bytes.len();
                 self.conn.extend(&bytes);
             }
         }
