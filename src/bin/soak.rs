@@ -33,7 +33,7 @@ struct Args {
     clients: usize,
     /// Base port: the server listens on it, the simulator on +1 (UDP) and
     /// its control port on +2.
-    #[arg(long, default_value_t = 47100)]
+    #[arg(long, default_value_t = 21100)]
     port: u16,
     /// Pause of each client between rounds, in milliseconds (0: flat out).
     #[arg(long, default_value_t = 20)]
