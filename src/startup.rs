@@ -55,14 +55,23 @@ pub async fn start(config: &Config) -> Result<Server, String> {
         simulators: Vec::new(),
         _file_stores: Vec::new(),
     };
+    let mut failures = Vec::new();
     for section in &config.sections {
         match start_one(&global, section, &dir, &mut server).await {
             Ok(running) => server.sections.push(running),
-            Err(message) => error!(section = %section.name, "section not started: {message}"),
+            Err(message) => {
+                error!(section = %section.name, "section not started: {message}");
+                failures.push(format!("[{}] {message}", section.name));
+            }
         }
     }
     if server.sections.is_empty() {
-        return Err("no PLC section could start".to_string());
+        // The reasons go into the message: with -d it is all the parent
+        // prints.
+        return Err(format!(
+            "no PLC section could start: {}",
+            failures.join("; ")
+        ));
     }
     Ok(server)
 }
