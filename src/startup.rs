@@ -28,14 +28,18 @@ impl Server {
         &self.simulators
     }
 
-    /// Stops accepting and polling, lets every session answer what it has
-    /// received (bounded by a grace period), then stops the simulators.
+    /// Stops accepting, lets every session answer what it has received
+    /// (bounded by a grace period; the pollers still serve their reads),
+    /// then stops polling and the simulators.
     pub async fn shutdown(self) {
         for section in &self.sections {
-            section.abort();
+            section.stop_accepting();
         }
         for section in &self.sections {
             section.wait_sessions(SHUTDOWN_GRACE).await;
+        }
+        for section in &self.sections {
+            section.abort();
         }
         for simulator in self.simulators {
             simulator.stop().await;
