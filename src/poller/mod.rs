@@ -398,6 +398,7 @@ impl Poller {
                             self.go_offline(&err);
                             return;
                         }
+                        info!(section = %self.section, "HALT -> RUN: PLC link re-initialised");
                     }
                 }
                 self.last_run = Some(run);
