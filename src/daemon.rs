@@ -4,7 +4,7 @@
 
 use std::fs::File;
 use std::io::{Read, Write};
-use std::os::fd::{AsRawFd, OwnedFd};
+use std::os::fd::{AsRawFd, OwnedFd, RawFd};
 
 use nix::unistd::{dup2_stderr, dup2_stdin, dup2_stdout, fork, pipe, setsid, ForkResult};
 
@@ -47,6 +47,7 @@ pub fn detach() -> Result<Notifier, String> {
         ForkResult::Child => {
             drop(read_end);
             setsid().map_err(|e| format!("setsid: {e}"))?;
+            close_inherited(write_end.as_raw_fd());
             let null = std::fs::OpenOptions::new()
                 .read(true)
                 .write(true)
@@ -58,6 +59,28 @@ pub fn detach() -> Result<Notifier, String> {
             Ok(Notifier {
                 pipe: Some(File::from(write_end)),
             })
+        }
+    }
+}
+
+/// Closes every descriptor the launcher left open, except the standard
+/// streams and `keep`, as a daemon must: a launcher that waits for the end
+/// of some pipe would otherwise wait for as long as the server runs.
+fn close_inherited(keep: RawFd) {
+    let Ok(dir) = std::fs::read_dir("/proc/self/fd") else {
+        return;
+    };
+    let fds: Vec<RawFd> = dir
+        .filter_map(|entry| entry.ok()?.file_name().to_str()?.parse().ok())
+        .collect();
+    for fd in fds {
+        if fd > 2 && fd != keep {
+            // SAFETY: single-threaded child right after fork; nothing in this
+            // process owns these inherited descriptors (the folder listing's
+            // own descriptor is closed already: EBADF, harmless).
+            unsafe {
+                libc::close(fd);
+            }
         }
     }
 }

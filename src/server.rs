@@ -42,8 +42,14 @@ pub struct RunningSection {
 impl RunningSection {
     /// Stops accepting and polling. Sessions end when their poller is gone.
     pub fn abort(&self) {
-        self.accept.abort();
+        self.stop_accepting();
         self.poller_stop.cancel();
+    }
+
+    /// Stops accepting and tells every session to close once it has
+    /// answered what it received; the poller keeps serving their reads.
+    pub fn stop_accepting(&self) {
+        self.accept.abort();
         self.shared.shutdown.cancel();
         self.sessions.close();
     }

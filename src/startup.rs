@@ -28,14 +28,18 @@ impl Server {
         &self.simulators
     }
 
-    /// Stops accepting and polling, lets every session answer what it has
-    /// received (bounded by a grace period), then stops the simulators.
+    /// Stops accepting, lets every session answer what it has received
+    /// (bounded by a grace period; the pollers still serve their reads),
+    /// then stops polling and the simulators.
     pub async fn shutdown(self) {
         for section in &self.sections {
-            section.abort();
+            section.stop_accepting();
         }
         for section in &self.sections {
             section.wait_sessions(SHUTDOWN_GRACE).await;
+        }
+        for section in &self.sections {
+            section.abort();
         }
         for simulator in self.simulators {
             simulator.stop().await;
@@ -55,14 +59,23 @@ pub async fn start(config: &Config) -> Result<Server, String> {
         simulators: Vec::new(),
         _file_stores: Vec::new(),
     };
+    let mut failures = Vec::new();
     for section in &config.sections {
         match start_one(&global, section, &dir, &mut server).await {
             Ok(running) => server.sections.push(running),
-            Err(message) => error!(section = %section.name, "section not started: {message}"),
+            Err(message) => {
+                error!(section = %section.name, "section not started: {message}");
+                failures.push(format!("[{}] {message}", section.name));
+            }
         }
     }
     if server.sections.is_empty() {
-        return Err("no PLC section could start".to_string());
+        // The reasons go into the message: with -d it is all the parent
+        // prints.
+        return Err(format!(
+            "no PLC section could start: {}",
+            failures.join("; ")
+        ));
     }
     Ok(server)
 }

@@ -462,6 +462,7 @@ impl Poller {
                             self.go_offline(&err);
                             return;
                         }
+                        info!(section = %self.section, "HALT -> RUN: PLC link re-initialised");
                     }
                 }
                 self.last_run = Some(run);
@@ -549,12 +550,12 @@ impl Poller {
     /// SETCONF of a section key: apply it, reconnect when the link changed,
     /// reload the public file, and tell every client.
     async fn reconfigure(&mut self, change: ConfChange) -> ReconfReply {
-        let Some(source) = self.source.as_mut() else {
+        let Some(source) = self.source.as_ref() else {
             return Err(ReconfError::PubFile(
                 "this section cannot be reconfigured".to_string(),
             ));
         };
-        let section = &mut source.section;
+        let mut section = source.section.clone();
         let relink = match &change {
             ConfChange::IpAddr(ip) => {
                 section.ipaddr = Some(*ip);
@@ -583,13 +584,21 @@ impl Poller {
                 false
             }
         };
-        let section = section.clone();
+        // A link this server cannot make (a serial line) is refused before
+        // anything changes, so the section keeps its working link.
+        let backend = if relink {
+            Some(crate::backend::for_section(&section).map_err(ReconfError::Unreachable)?)
+        } else {
+            None
+        };
+        if let Some(source) = self.source.as_mut() {
+            source.section = section.clone();
+        }
         info!(section = %self.section, "SETCONF: {change:?}");
         self.info
             .send_modify(|info| info.section = Some(section.clone()));
-        if relink {
-            self.backend =
-                crate::backend::for_section(&section).map_err(ReconfError::Unreachable)?;
+        if let Some(backend) = backend {
+            self.backend = backend;
             self.online = false;
             self.last_run = None;
             self.last_crc = None;

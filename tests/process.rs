@@ -1,0 +1,1075 @@
+//! The built binaries as processes: `plccoms` (daemon, log file, start-up
+//! errors, `-t`, signals, SETCONF, GETINFO, outages) and `plcsim` as the PLC.
+//!
+//! Everything listens on 127.0.0.1 ports found free by binding port 0; every
+//! child is killed on every path (the guards' `Drop`); waits poll against a
+//! generous deadline instead of sleeping a fixed time (the one exception:
+//! the outage test watches the log for two seconds to see that a lost PLC
+//! is logged once, not once per cycle).
+//!
+//! Daemon tests make this process a child subreaper, so a detached server
+//! becomes our child (found in /proc/self/task/*/children, never by scanning
+//! other processes) and its exit status can be checked.
+//!
+//! Not covered yet: SIGTERM during a WRITEFILE (the file commands are not on
+//! main).
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::{SocketAddr, TcpListener, TcpStream, UdpSocket};
+use std::os::unix::net::UnixStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+const PLCCOMS: &str = env!("CARGO_BIN_EXE_plccoms");
+const PLCSIM: &str = env!("CARGO_BIN_EXE_plcsim");
+/// Longest wait for anything: the machine is shared and may be slow.
+const DEADLINE: Duration = Duration::from_secs(20);
+const DEMO_PUB: &[u8] = include_bytes!("../conf/demo.pub");
+
+// ---------------------------------------------------------------- helpers --
+
+fn tcp_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn udp_port() -> u16 {
+    UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// Polls `ready` until it holds; panics with `what` after [`DEADLINE`].
+#[track_caller]
+fn wait_for(what: &str, mut ready: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !ready() {
+        assert!(start.elapsed() < DEADLINE, "timed out waiting for {what}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn read(path: &Path) -> String {
+    String::from_utf8_lossy(&std::fs::read(path).unwrap_or_default()).into_owned()
+}
+
+fn count(text: &str, needle: &str) -> usize {
+    text.lines().filter(|l| l.contains(needle)).count()
+}
+
+fn signal(pid: u32, sig: libc::c_int) {
+    // SAFETY: plain syscall; the pid is a process this test started.
+    unsafe {
+        libc::kill(pid as libc::pid_t, sig);
+    }
+}
+
+/// A child process, killed and reaped when dropped.
+struct Proc {
+    child: Child,
+}
+
+impl Proc {
+    fn spawn(command: &mut Command) -> Proc {
+        let child = command
+            .env_remove("RUST_LOG")
+            .stdin(Stdio::null())
+            .spawn()
+            .expect("spawn");
+        Proc { child }
+    }
+
+    fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    fn running(&mut self) -> bool {
+        self.child.try_wait().unwrap().is_none()
+    }
+
+    /// Waits for the process to end by itself.
+    #[track_caller]
+    fn exit(&mut self) -> ExitStatus {
+        let start = Instant::now();
+        loop {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                return status;
+            }
+            assert!(
+                start.elapsed() < DEADLINE,
+                "process {} did not exit",
+                self.pid()
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Makes this test process the reaper of orphaned descendants, so a
+/// detached server becomes our child when its parent exits (and its exit
+/// status can be checked) instead of being handed to PID 1.
+fn become_subreaper() {
+    // SAFETY: plain syscall with constant arguments.
+    let rc = unsafe { libc::prctl(libc::PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) };
+    assert_eq!(rc, 0, "PR_SET_CHILD_SUBREAPER");
+}
+
+/// A detached server, found through /proc. With [`become_subreaper`] it is
+/// our child once its parent has exited; SIGKILLed and reaped when dropped
+/// unless it has ended already.
+struct Daemon {
+    pid: u32,
+    reaped: bool,
+}
+
+impl Daemon {
+    /// The running plccoms process whose command line names `config`,
+    /// among this process's children (only ever look at our own processes).
+    fn find(config: &Path) -> Option<Daemon> {
+        let config = config.to_str().unwrap();
+        let tasks = std::fs::read_dir("/proc/self/task").ok()?;
+        let children: Vec<u32> = tasks
+            .filter_map(|task| std::fs::read_to_string(task.ok()?.path().join("children")).ok())
+            .flat_map(|list| {
+                list.split_whitespace()
+                    .filter_map(|pid| pid.parse().ok())
+                    .collect::<Vec<u32>>()
+            })
+            .collect();
+        children.into_iter().find_map(|pid| {
+            let cmdline = std::fs::read(format!("/proc/{pid}/cmdline")).ok()?;
+            let args: Vec<&[u8]> = cmdline.split(|&b| b == 0).collect();
+            let ours =
+                args.first() == Some(&PLCCOMS.as_bytes()) && args.contains(&config.as_bytes());
+            // Built only for the match: dropping a Daemon kills its pid.
+            (ours && alive(pid)).then(|| Daemon { pid, reaped: false })
+        })
+    }
+
+    /// The exit status once the process has ended (it must be our child).
+    fn try_reap(&mut self) -> Option<libc::c_int> {
+        let mut status = 0;
+        // SAFETY: waits for one specific child of ours.
+        let rc = unsafe { libc::waitpid(self.pid as libc::pid_t, &mut status, libc::WNOHANG) };
+        assert!(rc >= 0, "waitpid {}: not our child", self.pid);
+        if rc == 0 {
+            return None;
+        }
+        self.reaped = true;
+        Some(status)
+    }
+
+    /// SIGTERM; returns the exit code.
+    #[track_caller]
+    fn terminate(mut self) -> i32 {
+        signal(self.pid, libc::SIGTERM);
+        let mut status = None;
+        wait_for("the daemon to exit", || {
+            status = self.try_reap();
+            status.is_some()
+        });
+        let status = status.unwrap();
+        assert!(libc::WIFEXITED(status), "killed by a signal: {status:#x}");
+        libc::WEXITSTATUS(status)
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        if !self.reaped {
+            signal(self.pid, libc::SIGKILL);
+            let mut status = 0;
+            // SAFETY: waits for one specific child of ours (an error when
+            // it is not ours is ignored).
+            unsafe { libc::waitpid(self.pid as libc::pid_t, &mut status, 0) };
+        }
+    }
+}
+
+/// Exists and is not a zombie.
+fn alive(pid: u32) -> bool {
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        Ok(stat) => !stat
+            .rsplit_once(')')
+            .is_some_and(|(_, rest)| rest.trim_start().starts_with('Z')),
+        Err(_) => false,
+    }
+}
+
+/// A temporary folder with a configuration file and a log file in it.
+struct Site {
+    dir: tempfile::TempDir,
+    port: u16,
+}
+
+impl Site {
+    fn new() -> Site {
+        Site {
+            dir: tempfile::tempdir().unwrap(),
+            port: tcp_port(),
+        }
+    }
+
+    fn ini(&self) -> PathBuf {
+        self.dir.path().join("PLCComS.ini")
+    }
+
+    fn log(&self) -> PathBuf {
+        self.dir.path().join("plccoms.log")
+    }
+
+    fn log_text(&self) -> String {
+        read(&self.log())
+    }
+
+    fn write_ini(&self, text: &str) {
+        std::fs::write(self.ini(), text).unwrap();
+    }
+
+    /// `[*]` plus one section with a simulated PLC inside the server.
+    fn simulated(&self) {
+        self.write_ini(&format!(
+            "[*]\nCOMM_LOOP_DELAY = 20\n[Demo]\nSIMULATOR = Yes\nSIMULATOR_PROGRAM = demo\n\
+             IPADDR_LOCAL = 127.0.0.1\nSERVER_PORT = {}\nPUBFILE = //demo.pub\n",
+            self.port
+        ));
+    }
+
+    /// `[*]` plus one section on the PLC at 127.0.0.1:`epsport`, its public
+    /// file fetched from the PLC.
+    fn external(&self, epsport: u16) {
+        self.write_ini(&format!(
+            "[*]\nCOMM_LOOP_DELAY = 20\n[PLC]\nIPADDR = 127.0.0.1\nEPSPORT = {epsport}\n\
+             EPSTOUT = 100\nEPSTOUT_STEP = 0\nIPADDR_LOCAL = 127.0.0.1\nSERVER_PORT = {}\n\
+             PUBFILE_CRC = Yes\nPUBFILE_WRITE = No\nPUBFILE = //demo.pub\n",
+            self.port
+        ));
+    }
+
+    fn command(&self, args: &[&str]) -> Command {
+        let mut command = Command::new(PLCCOMS);
+        command
+            .args(args)
+            .arg("-c")
+            .arg(self.ini())
+            .arg("-l")
+            .arg(self.log())
+            .current_dir(self.dir.path());
+        command
+    }
+
+    /// The server in the foreground, logging to the site's log; returns
+    /// once it accepts clients.
+    fn run(&self, args: &[&str]) -> Proc {
+        let mut server = Proc::spawn(
+            self.command(args)
+                .stdout(Stdio::null())
+                .stderr(Stdio::null()),
+        );
+        wait_for("the server to listen", || {
+            assert!(server.running(), "server exited:\n{}", self.log_text());
+            TcpStream::connect(("127.0.0.1", self.port)).is_ok()
+        });
+        server
+    }
+
+    /// Waits until the log has a line containing `needle`.
+    #[track_caller]
+    fn wait_log(&self, needle: &str) {
+        let start = Instant::now();
+        while !self.log_text().contains(needle) {
+            assert!(
+                start.elapsed() < DEADLINE,
+                "no {needle:?} in the log:\n{}",
+                self.log_text()
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    fn client(&self) -> Client {
+        Client::connect(self.port)
+    }
+}
+
+/// `plcsim` as a process: EPSNET on a UDP port, a control port, and a
+/// folder as its file system holding `demo.pub`.
+struct Plcsim {
+    proc: Proc,
+    udp: u16,
+    control: u16,
+    files: tempfile::TempDir,
+    program: &'static str,
+}
+
+impl Plcsim {
+    fn start(program: &'static str) -> Plcsim {
+        let files = tempfile::tempdir().unwrap();
+        std::fs::write(files.path().join("demo.pub"), DEMO_PUB).unwrap();
+        let (udp, control) = (udp_port(), tcp_port());
+        let proc = Plcsim::spawn(files.path(), udp, control, program);
+        Plcsim {
+            proc,
+            udp,
+            control,
+            files,
+            program,
+        }
+    }
+
+    fn spawn(files: &Path, udp: u16, control: u16, program: &str) -> Proc {
+        let log = std::fs::File::create(files.join("plcsim.log")).unwrap();
+        let mut proc = Proc::spawn(
+            Command::new(PLCSIM)
+                .arg("--bind")
+                .arg(format!("127.0.0.1:{udp}"))
+                .arg("--control")
+                .arg(format!("127.0.0.1:{control}"))
+                .arg("--files")
+                .arg(files)
+                .arg("--pub")
+                .arg(files.join("demo.pub"))
+                .args(["--program", program])
+                .stdout(Stdio::null())
+                .stderr(log),
+        );
+        wait_for("plcsim's control port", || {
+            assert!(
+                proc.running(),
+                "plcsim exited: {}",
+                read(&files.join("plcsim.log"))
+            );
+            TcpStream::connect(("127.0.0.1", control)).is_ok()
+        });
+        proc
+    }
+
+    /// Sends one control command; returns its answer line.
+    #[track_caller]
+    fn control(&self, command: &str) -> String {
+        let mut stream = TcpStream::connect(("127.0.0.1", self.control)).unwrap();
+        stream.set_read_timeout(Some(DEADLINE)).unwrap();
+        stream.write_all(format!("{command}\n").as_bytes()).unwrap();
+        let mut answer = String::new();
+        BufReader::new(stream).read_line(&mut answer).unwrap();
+        assert!(answer.starts_with("OK"), "{command}: {answer}");
+        answer.trim_end().to_string()
+    }
+
+    #[track_caller]
+    fn kill(&mut self) {
+        self.proc.child.kill().expect("kill plcsim");
+        let status = self.proc.child.wait().expect("wait plcsim");
+        assert!(!status.success(), "{status}");
+    }
+
+    /// A new plcsim process on the same ports and files.
+    fn restart(&mut self) {
+        self.proc = Plcsim::spawn(self.files.path(), self.udp, self.control, self.program);
+    }
+}
+
+/// A client on a server port, reading lines against a deadline.
+struct Client {
+    stream: TcpStream,
+    buf: Vec<u8>,
+}
+
+impl Client {
+    fn connect(port: u16) -> Client {
+        let addr = SocketAddr::from(([127, 0, 0, 1], port));
+        let stream = TcpStream::connect_timeout(&addr, DEADLINE).expect("connect");
+        Client {
+            stream,
+            buf: Vec::new(),
+        }
+    }
+
+    fn send(&mut self, text: &str) {
+        self.stream.write_all(text.as_bytes()).unwrap();
+    }
+
+    /// Reads more bytes; 0 at EOF.
+    #[track_caller]
+    fn fill(&mut self, until: Instant) -> usize {
+        let left = until.saturating_duration_since(Instant::now());
+        assert!(
+            !left.is_zero(),
+            "timed out; received so far: {:?}",
+            String::from_utf8_lossy(&self.buf)
+        );
+        self.stream.set_read_timeout(Some(left)).unwrap();
+        let mut chunk = [0u8; 65536];
+        match self.stream.read(&mut chunk) {
+            Ok(n) => {
+                self.buf.extend_from_slice(&chunk[..n]);
+                n
+            }
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                ) =>
+            {
+                self.fill(until)
+            }
+            Err(e) => panic!("read: {e}"),
+        }
+    }
+
+    /// The next line with its line end (which must be CRLF) removed.
+    #[track_caller]
+    fn line(&mut self) -> String {
+        let until = Instant::now() + DEADLINE;
+        loop {
+            if let Some(pos) = self.buf.iter().position(|&b| b == b'\n') {
+                let line: Vec<u8> = self.buf.drain(..=pos).collect();
+                let text = String::from_utf8_lossy(&line).into_owned();
+                return match text.strip_suffix("\r\n") {
+                    Some(text) => text.to_string(),
+                    None => panic!("line without CRLF: {text:?}"),
+                };
+            }
+            if self.fill(until) == 0 {
+                panic!(
+                    "connection closed; partial: {:?}",
+                    String::from_utf8_lossy(&self.buf)
+                );
+            }
+        }
+    }
+
+    /// The next line, raw, with its line end.
+    #[track_caller]
+    fn raw_line(&mut self) -> Vec<u8> {
+        let until = Instant::now() + DEADLINE;
+        loop {
+            if let Some(pos) = self.buf.iter().position(|&b| b == b'\n') {
+                return self.buf.drain(..=pos).collect();
+            }
+            assert!(self.fill(until) > 0, "connection closed");
+        }
+    }
+
+    /// Reads lines until one equals `want`; returns the lines before it.
+    #[track_caller]
+    fn until(&mut self, want: &str) -> Vec<String> {
+        let mut before = Vec::new();
+        loop {
+            let line = self.line();
+            if line == want {
+                return before;
+            }
+            before.push(line);
+            assert!(before.len() < 100_000, "never got {want:?}");
+        }
+    }
+
+    /// Reads lines until one satisfies `pred`, which it returns.
+    #[track_caller]
+    fn until_match(&mut self, what: &str, pred: impl Fn(&str) -> bool) -> String {
+        let until = Instant::now() + DEADLINE;
+        loop {
+            assert!(Instant::now() < until, "never got {what}");
+            let line = self.line();
+            if pred(&line) {
+                return line;
+            }
+        }
+    }
+
+    /// Sends `request` and expects `answer` as the next line.
+    #[track_caller]
+    fn ask(&mut self, request: &str, answer: &str) {
+        self.send(request);
+        assert_eq!(self.line(), answer, "answer to {request:?}");
+    }
+
+    /// Reads everything up to EOF (which must come within the deadline).
+    #[track_caller]
+    fn rest(&mut self) -> String {
+        let until = Instant::now() + DEADLINE;
+        while self.fill(until) > 0 {}
+        String::from_utf8_lossy(&std::mem::take(&mut self.buf)).into_owned()
+    }
+}
+
+/// A log line starts with an RFC 3339 time stamp: `2024-05-01T12:00:00...`.
+fn timestamped(line: &str) -> bool {
+    let b = line.as_bytes();
+    b.len() > 20
+        && b[..4].iter().all(u8::is_ascii_digit)
+        && b[4] == b'-'
+        && b[7] == b'-'
+        && b[10] == b'T'
+        && b[13] == b':'
+        && b[16] == b':'
+}
+
+/// A `-d` run: the parent's exit status and what it printed. The parent
+/// also gets a descriptor that is not a standard stream (fd 100, a socket
+/// whose other end is returned), as launchers often leak one.
+fn daemon_start(site: &Site) -> (ExitStatus, String, String, UnixStream) {
+    use std::os::fd::AsRawFd;
+    use std::os::unix::process::CommandExt;
+    let out = site.dir.path().join("parent.out");
+    let err = site.dir.path().join("parent.err");
+    let (ours, leaked) = UnixStream::pair().unwrap();
+    let leaked_fd = leaked.as_raw_fd();
+    let mut command = site.command(&["-d"]);
+    command
+        .stdout(std::fs::File::create(&out).unwrap())
+        .stderr(std::fs::File::create(&err).unwrap());
+    // SAFETY: only dup2 (async-signal-safe) between fork and exec; dup2
+    // clears close-on-exec on the copy.
+    unsafe {
+        command.pre_exec(move || {
+            if libc::dup2(leaked_fd, 100) < 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    let mut parent = Proc::spawn(&mut command);
+    drop(leaked);
+    let status = parent.exit();
+    (status, read(&out), read(&err), ours)
+}
+
+/// True when every holder of the other end of `stream` has closed it.
+fn peer_closed(mut stream: UnixStream) -> bool {
+    stream
+        .set_read_timeout(Some(Duration::from_secs(2)))
+        .unwrap();
+    matches!(stream.read(&mut [0u8; 16]), Ok(0))
+}
+
+// ------------------------------------------------------------------ tests --
+
+#[test]
+fn daemon_starts_listening_and_appends_to_its_log() {
+    become_subreaper();
+    let site = Site::new();
+    site.simulated();
+    let mut runs = Vec::new();
+    for run in 0..2 {
+        let (status, out, err, leaked) = daemon_start(&site);
+        let daemon = Daemon::find(&site.ini());
+        assert!(status.success(), "run {run}: {status}; {err}");
+        assert!(
+            peer_closed(leaked),
+            "the daemon keeps a descriptor it inherited"
+        );
+        // The parent returned only once the child listens.
+        TcpStream::connect(("127.0.0.1", site.port)).expect("listening when the parent exits");
+        assert_eq!(
+            (out.as_str(), err.as_str()),
+            ("", ""),
+            "nothing on the terminal"
+        );
+        let daemon = daemon.expect("the daemon process");
+        let mut c = site.client();
+        c.ask("GETINFO:epsport\n", "GETINFO:EPSPORT,61682");
+        drop(c);
+        assert_eq!(daemon.terminate(), 0);
+        runs.push(site.log_text());
+    }
+    let (first, second) = (&runs[0], &runs[1]);
+    assert!(
+        second.starts_with(first.as_str()),
+        "the log was not appended"
+    );
+    for line in second.lines() {
+        assert!(timestamped(line), "no time stamp: {line:?}");
+    }
+    for log in [first, &second[first.len()..]] {
+        assert_eq!(count(log, "listening"), 1, "{log}");
+        assert!(
+            log.lines()
+                .any(|l| l.contains("listening") && l.contains("section=Demo")),
+            "section not named: {log}"
+        );
+        assert!(log.contains("SIGTERM"), "{log}");
+        assert!(log.trim_end().ends_with("stopped"), "{log}");
+    }
+}
+
+#[test]
+fn daemon_start_up_errors_are_printed_by_the_parent() {
+    become_subreaper();
+    // A bad [*] value: file, line, key, value and range.
+    let site = Site::new();
+    site.write_ini(&format!(
+        "[*]\nCOMM_LOOP_DELAY = 5000\n[Demo]\nSIMULATOR = Yes\nSERVER_PORT = {}\n",
+        site.port
+    ));
+    let (status, out, err, _) = daemon_start(&site);
+    assert_eq!(status.code(), Some(1), "{err}");
+    assert_eq!(out, "");
+    let ini = site.ini().display().to_string();
+    assert!(
+        err.contains(&format!("{ini}:2:"))
+            && err.contains("COMM_LOOP_DELAY = 5000")
+            && err.contains("1-1000"),
+        "{err}"
+    );
+    wait_for("no daemon left", || Daemon::find(&site.ini()).is_none());
+
+    // The only section cannot listen: its port is taken.
+    let site = Site::new();
+    let taken = TcpListener::bind(("127.0.0.1", site.port)).unwrap();
+    site.simulated();
+    let (status, out, err, _) = daemon_start(&site);
+    assert_eq!(status.code(), Some(1), "{err}");
+    assert_eq!(out, "");
+    assert!(
+        err.contains("Demo") && err.contains(&site.port.to_string()) && err.contains("in use"),
+        "the reason is missing: {err}"
+    );
+    assert!(site.log_text().contains("in use"), "{}", site.log_text());
+    wait_for("no daemon left", || Daemon::find(&site.ini()).is_none());
+    drop(taken);
+}
+
+#[test]
+fn dash_t_exits_when_the_configuration_changes() {
+    // An appended comment.
+    let site = Site::new();
+    site.simulated();
+    let mut server = site.run(&["-t"]);
+    let mut file = std::fs::OpenOptions::new()
+        .append(true)
+        .open(site.ini())
+        .unwrap();
+    file.write_all(b"# edited\n").unwrap();
+    drop(file);
+    assert_eq!(server.exit().code(), Some(0));
+    let log = site.log_text();
+    assert!(log.contains("changed: exiting (-t)"), "{log}");
+    assert!(log.trim_end().ends_with("stopped"), "{log}");
+
+    // Replaced by rename, as editors do.
+    let site = Site::new();
+    site.simulated();
+    let mut server = site.run(&["-t"]);
+    let new = site.dir.path().join("PLCComS.ini.new");
+    std::fs::write(&new, read(&site.ini()) + "# edited\n").unwrap();
+    std::fs::rename(&new, site.ini()).unwrap();
+    assert_eq!(server.exit().code(), Some(0));
+    let log = site.log_text();
+    assert!(log.contains("changed: exiting (-t)"), "{log}");
+    assert!(log.trim_end().ends_with("stopped"), "{log}");
+}
+
+/// SIGTERM or SIGINT with two clients: one with requests in flight, one only
+/// receiving DIFFs. (No WRITEFILE part: file transfers are not on main yet.)
+fn graceful_stop(sig: libc::c_int, name: &str) {
+    let site = Site::new();
+    site.simulated();
+    let mut server = site.run(&[]);
+    let mut watcher = site.client();
+    watcher.ask(
+        "EN:sinus\n",
+        "WARNING:252 Changed active variables in public file: '[3/29]'",
+    );
+    watcher.until_match("a DIFF", |l| l.starts_with("DIFF:SINUS,"));
+    let mut busy = site.client();
+    busy.ask("GET:counter\n", "GET:COUNTER,0");
+    busy.send(&"LIST:\nGETINFO:\nGET:counter\n".repeat(20));
+    // The server is answering: stop it now.
+    assert!(busy.line().starts_with("LIST:"));
+    signal(server.pid(), sig);
+    let rest = busy.rest();
+    // Every request got its whole answer, then the connection closed.
+    assert_eq!(count(&rest, "GET:COUNTER,0"), 20, "{rest}");
+    assert_eq!(rest.matches("\r\nLIST:\r\n").count(), 20, "{rest}");
+    assert_eq!(rest.matches("\r\nGETINFO:\r\n").count(), 20, "{rest}");
+    assert!(rest.ends_with("GET:COUNTER,0\r\n"), "{rest:?}");
+    let tail = watcher.rest();
+    assert!(tail.lines().all(|l| l.starts_with("DIFF:SINUS,")), "{tail}");
+    assert_eq!(server.exit().code(), Some(0));
+    let log = site.log_text();
+    let last: Vec<&str> = log.lines().rev().take(2).collect();
+    assert!(
+        last[0].ends_with("stopped") && last[1].contains(&format!("{name}: shutting down")),
+        "{log}"
+    );
+}
+
+#[test]
+fn sigterm_answers_clients_then_exits_0() {
+    graceful_stop(libc::SIGTERM, "SIGTERM");
+}
+
+#[test]
+fn sigint_answers_clients_then_exits_0() {
+    graceful_stop(libc::SIGINT, "SIGINT");
+}
+
+/// demo.pub without `v_byte`, with a new `extra`, and a fresh CRC trailer.
+fn changed_demo_pub() -> Vec<u8> {
+    let mut text: Vec<u8> = DEMO_PUB
+        .split_inclusive(|&b| b == b'\n')
+        .filter(|line| !line.starts_with(b" v_byte ") && !line.starts_with(b";*"))
+        .flatten()
+        .copied()
+        .collect();
+    text.extend_from_slice(b" extra R B 300 INT PUB_INOUT\r\n");
+    let crc = plccoms::pubfile::crc_of(&text);
+    text.extend_from_slice(format!(";* Crc=\"{crc:08X}\"\r\n").as_bytes());
+    text
+}
+
+#[test]
+fn a_program_change_in_the_plc_reloads_the_public_file() {
+    let plc = Plcsim::start("idle");
+    let site = Site::new();
+    site.external(plc.udp);
+    let _server = site.run(&[]);
+    let mut c = site.client();
+    c.ask(
+        "EN:counter\n",
+        "WARNING:252 Changed active variables in public file: '[3/29]'",
+    );
+    assert_eq!(c.line(), "DIFF:COUNTER,0");
+    c.ask(
+        "EN:setpoint\n",
+        "WARNING:252 Changed active variables in public file: '[4/29]'",
+    );
+    assert_eq!(c.line(), "DIFF:SETPOINT,0.000000");
+    c.ask(
+        "HIDE:note\n",
+        "WARNING:253 Changed hidden variables in public file: '[1]'",
+    );
+    let mut other = site.client();
+    other.ask("GET:v_byte\n", "GET:V_BYTE,0");
+
+    // The PLC gets a new program.
+    let new_pub = changed_demo_pub();
+    let path = plc.files.path().join("demo.pub");
+    std::fs::write(&path, &new_pub).unwrap();
+    plc.control(&format!("pub {}", path.display()));
+    let warning = "WARNING:250 Changed public file: 'demo.pub'";
+    let before = c.until(warning);
+    assert!(before.iter().all(|l| l.starts_with("DIFF:")), "{before:?}");
+    other.until(warning);
+
+    c.send("LIST:\n");
+    let list = c.until("LIST:");
+    assert_eq!(list.len(), 29, "{list:?}");
+    for want in [
+        "LIST:__PLC_RUN,BOOL",
+        "LIST:__PF_CRC,DWORD",
+        "LIST:COUNTER,INT",
+        "LIST:SETPOINT,REAL",
+        "LIST:NOTE,STRING[40]*~",
+        "LIST:EXTRA,INT*",
+        "LIST:V_WORD,WORD*",
+    ] {
+        assert!(list.iter().any(|l| l == want), "{want} missing: {list:?}");
+    }
+    assert!(
+        !list.iter().any(|l| l.starts_with("LIST:V_BYTE")),
+        "{list:?}"
+    );
+    other.ask(
+        "GET:v_byte\n",
+        "ERROR:33 Unknown variable name in request: 'GET:v_byte'",
+    );
+    other.ask("GET:extra\n", "GET:EXTRA,0");
+
+    // Polling goes on through the new table for the still-enabled variables.
+    plc.control("animate counter extra");
+    let mut seen = std::collections::BTreeSet::new();
+    while seen.len() < 3 {
+        let line = c.line();
+        assert!(
+            line.starts_with("DIFF:COUNTER,") || line.starts_with("DIFF:SETPOINT,"),
+            "{line}"
+        );
+        seen.insert(line);
+    }
+    let log = site.log_text();
+    assert!(log.contains("__PF_CRC changed"), "{log}");
+}
+
+#[test]
+fn setconf_every_key() {
+    let plc = Plcsim::start("idle");
+    let other_pub = changed_demo_pub();
+    std::fs::write(plc.files.path().join("other.pub"), &other_pub).unwrap();
+    let site = Site::new();
+    site.external(plc.udp);
+    let _server = site.run(&[]);
+    let mut c = site.client();
+    let mut other = site.client();
+    c.ask("GET:counter\n", "GET:COUNTER,0");
+    let same = "WARNING:251 Public file not changed: 'demo.pub'";
+    let mut notices = Vec::new();
+
+    // ipaddr: a loopback address where nothing answers, then back.
+    c.ask(
+        "SETCONF:ipaddr,127.0.0.2\n",
+        "ERROR:10 Unable to connect to PLC.",
+    );
+    c.ask("GETINFO:ipaddr\n", "GETINFO:IPADDR,127.0.0.2");
+    c.ask("GET:counter\n", "ERROR:10 Unable to connect to PLC.");
+    c.ask("SETCONF:ipaddr,127.0.0.1\n", same);
+    notices.push(same);
+    c.ask("GET:counter\n", "GET:COUNTER,0");
+    c.ask(
+        "SETCONF:ipaddr,127.0.0.256\n",
+        "ERROR:35 Wrong parameter value in request: 'SETCONF:ipaddr,127.0.0.256'",
+    );
+
+    // epsaddr: 1-126.
+    for bad in ["0", "127", "x"] {
+        c.ask(
+            &format!("SETCONF:epsaddr,{bad}\n"),
+            &format!("ERROR:35 Wrong parameter value in request: 'SETCONF:epsaddr,{bad}'"),
+        );
+    }
+    for good in ["1", "126"] {
+        c.ask(&format!("SETCONF:epsaddr,{good}\n"), same);
+        notices.push(same);
+        c.ask("GETINFO:epsaddr\n", &format!("GETINFO:EPSADDR,{good}"));
+    }
+
+    // epsport: a port where nothing answers, then the PLC's.
+    let dead = udp_port();
+    c.ask(
+        &format!("SETCONF:epsport,{dead}\n"),
+        "ERROR:10 Unable to connect to PLC.",
+    );
+    c.ask("GETINFO:epsport\n", &format!("GETINFO:EPSPORT,{dead}"));
+    c.ask(&format!("SETCONF:epsport,{}\n", plc.udp), same);
+    notices.push(same);
+    c.ask("GETINFO:epsport\n", &format!("GETINFO:EPSPORT,{}", plc.udp));
+    c.ask(
+        "SETCONF:epsport,0\n",
+        "ERROR:35 Wrong parameter value in request: 'SETCONF:epsport,0'",
+    );
+
+    // serial_device / serial_speed: this server has no serial lines, so no
+    // PLC answers there (ERROR:10), and the section stays on its link.
+    c.ask(
+        "SETCONF:serial_device,/dev/ttyS0\n",
+        "ERROR:10 Unable to connect to PLC.",
+    );
+    c.ask("GETINFO:serial_device\n", "GETINFO:SERIAL_DEVICE,");
+    // A speed alone changes nothing on an Ethernet link: reconnected, 251.
+    c.ask("SETCONF:serial_speed,115200\n", same);
+    notices.push(same);
+    c.ask(
+        "SETCONF:serial_speed,fast\n",
+        "ERROR:35 Wrong parameter value in request: 'SETCONF:serial_speed,fast'",
+    );
+    c.ask("GET:counter\n", "GET:COUNTER,0");
+    c.ask("SETCONF:ipaddr,127.0.0.1\n", same);
+    notices.push(same);
+
+    // pubfile: the same file, another one, and back.
+    c.ask("SETCONF:pubfile,//demo.pub\n", same);
+    notices.push(same);
+    let other_changed = "WARNING:250 Changed public file: 'other.pub'";
+    c.ask("SETCONF:pubfile,//other.pub\n", other_changed);
+    notices.push(other_changed);
+    c.ask("GET:extra\n", "GET:EXTRA,0");
+    c.ask(
+        "GETINFO:pubfile\n",
+        "GETINFO:PUBFILE,2/29 [FIXED.pub (built in),other.pub]",
+    );
+    let demo_changed = "WARNING:250 Changed public file: 'demo.pub'";
+    c.ask("SETCONF:pubfile,//demo.pub\n", demo_changed);
+    notices.push(demo_changed);
+    c.ask(
+        "SETCONF:pubfile,//missing.pub\n",
+        "ERROR:35 Wrong parameter value in request: 'SETCONF:pubfile,//missing.pub'",
+    );
+
+    // crlf and diff: this client only, echoed.
+    c.send("SETCONF:crlf,no\n");
+    assert_eq!(c.raw_line(), b"SETCONF:CRLF,NO\n");
+    c.send("GET:counter\n");
+    assert_eq!(c.raw_line(), b"GET:COUNTER,0\n");
+    c.ask("SETCONF:crlf,yes\n", "SETCONF:CRLF,YES");
+    c.ask(
+        "SETCONF:crlf,maybe\n",
+        "ERROR:35 Wrong parameter value in request: 'SETCONF:crlf,maybe'",
+    );
+    c.ask("SETCONF:diff,no\n", "SETCONF:DIFF,NO");
+    c.ask("SETCONF:diff,yes\n", "SETCONF:DIFF,YES");
+
+    c.ask(
+        "SETCONF:nothing,1\n",
+        "ERROR:50 Unknown name in request: 'SETCONF:nothing,1'",
+    );
+
+    // The other client heard of every reload, in order, and its line end
+    // did not change.
+    for notice in notices {
+        assert_eq!(other.line(), notice);
+    }
+    other.ask("GET:counter\n", "GET:COUNTER,0");
+}
+
+#[test]
+fn getinfo_with_several_clients() {
+    let plc = Plcsim::start("idle");
+    let site = Site::new();
+    site.external(plc.udp);
+    let _server = site.run(&[]);
+    let mut clients: Vec<Client> = (0..3).map(|_| site.client()).collect();
+    let c = &mut clients[0];
+    // The PLC's identification once the link is up.
+    let mut version_plc = String::new();
+    wait_for("VERSION_PLC", || {
+        c.send("GETINFO:version_plc\n");
+        version_plc = c.line();
+        version_plc != "GETINFO:VERSION_PLC,"
+    });
+    // The server's start-up probe connection may still be leaving.
+    wait_for("three clients listed", || {
+        c.send("GETINFO:network\n");
+        c.until("GETINFO:").len() == 3
+    });
+    c.send("GETINFO:\n");
+    let lines = c.until("GETINFO:");
+    let version = env!("CARGO_PKG_VERSION");
+    let head = [
+        format!("GETINFO:VERSION,Ver {version} (plccoms)"),
+        format!("GETINFO:VERSION_EPSNET,Ver {version} (plccoms EPSNET)"),
+        "GETINFO:VERSION_INI,Ver 0.21 (rust-ini)".to_string(),
+        version_plc.clone(),
+        "GETINFO:IPADDR,127.0.0.1".to_string(),
+    ];
+    assert_eq!(lines[..5], head, "{lines:#?}");
+    assert!(lines[5].starts_with("GETINFO:EPSADDR,"), "{lines:#?}");
+    assert_eq!(lines[6], format!("GETINFO:EPSPORT,{}", plc.udp));
+    assert_eq!(
+        lines[7],
+        "GETINFO:PUBFILE,2/29 [FIXED.pub (built in),demo.pub]"
+    );
+    let network = &lines[8..];
+    assert_eq!(network.len(), 3, "{lines:#?}");
+    let today = chrono::Local::now().format("%Y-%m-%d").to_string();
+    for (i, line) in network.iter().enumerate() {
+        let prefix = format!("GETINFO:NETWORK,{}/128 [127.0.0.1       ", i + 1);
+        let rest = line
+            .strip_prefix(&prefix)
+            .unwrap_or_else(|| panic!("{line:?}"));
+        // yyyy-mm-dd hh:mm:ss]
+        let b = rest.as_bytes();
+        assert_eq!(b.len(), 20, "{line:?}");
+        assert!(
+            b[10] == b' ' && b[13] == b':' && b[16] == b':' && b[19] == b']',
+            "{line:?}"
+        );
+        assert!(
+            rest[..10] <= *today.as_str() && rest[..4] >= *"2024",
+            "{line:?}"
+        );
+    }
+
+    c.send("GETINFO:network\n");
+    assert_eq!(c.until("GETINFO:"), network);
+    c.ask("GETINFO:version_plc\n", &version_plc);
+    c.ask("GETINFO:VERSION_plc\n", &version_plc);
+    c.ask(
+        "GETINFO:pubfile\n",
+        "GETINFO:PUBFILE,2/29 [FIXED.pub (built in),demo.pub]",
+    );
+    c.ask(
+        "GETINFO:nothing\n",
+        "ERROR:60 Unknown name in request: 'GETINFO:nothing'",
+    );
+    // One client leaves: the list follows.
+    drop(clients.pop());
+    let c = &mut clients[0];
+    wait_for("two clients listed", || {
+        c.send("GETINFO:network\n");
+        c.until("GETINFO:").len() == 2
+    });
+}
+
+#[test]
+fn a_lost_plc_is_logged_once_and_comes_back() {
+    let mut plc = Plcsim::start("demo");
+    let site = Site::new();
+    site.external(plc.udp);
+    let mut server = site.run(&[]);
+    let mut c = site.client();
+    c.ask(
+        "EN:sinus\n",
+        "WARNING:252 Changed active variables in public file: '[3/29]'",
+    );
+    c.until_match("a DIFF", |l| l.starts_with("DIFF:SINUS,"));
+    site.wait_log("PLC connected");
+
+    plc.kill();
+    wait_for("PLC lost", || {
+        match server.child.try_wait() {
+            Ok(None) => {}
+            other => panic!("server ended: {other:?}\n{}", site.log_text()),
+        }
+        site.log_text().contains("PLC lost")
+    });
+    // Many poll cycles and reconnect attempts later, still one line.
+    let lost_at = Instant::now();
+    c.ask("GET:sinus\n", "ERROR:10 Unable to connect to PLC.");
+    std::thread::sleep(Duration::from_secs(2).saturating_sub(lost_at.elapsed()));
+    let log = site.log_text();
+    assert_eq!(count(&log, "PLC lost"), 1, "{log}");
+    assert_eq!(count(&log, "cannot reach PLC"), 0, "{log}");
+    assert_eq!(count(&log, "PLC connected"), 1, "{log}");
+
+    plc.restart();
+    wait_for("PLC connected again", || {
+        count(&site.log_text(), "PLC connected") == 2
+    });
+    // DIFFs resume.
+    c.buf.clear();
+    let mut values = std::collections::BTreeSet::new();
+    while values.len() < 3 {
+        let line = c.until_match("a DIFF", |l| l.starts_with("DIFF:SINUS,"));
+        values.insert(line);
+    }
+    let log = site.log_text();
+    assert_eq!(count(&log, "PLC lost"), 1, "{log}");
+    assert_eq!(count(&log, "PLC connected"), 2, "{log}");
+}
+
+#[test]
+fn halt_then_run_reinitialises_the_link() {
+    let plc = Plcsim::start("demo");
+    let site = Site::new();
+    site.external(plc.udp);
+    let _server = site.run(&[]);
+    let mut c = site.client();
+    c.ask(
+        "EN:__PLC_RUN\n",
+        "WARNING:252 Changed active variables in public file: '[2/29]'",
+    );
+    assert_eq!(c.line(), "DIFF:__PLC_RUN,1");
+    plc.control("halt");
+    assert_eq!(c.line(), "DIFF:__PLC_RUN,0");
+    plc.control("run");
+    assert_eq!(c.line(), "DIFF:__PLC_RUN,1");
+    site.wait_log("HALT -> RUN: PLC link re-initialised");
+    let log = site.log_text();
+    assert_eq!(count(&log, "PLC is in HALT"), 1, "{log}");
+    assert_eq!(count(&log, "PLC is in RUN"), 1, "{log}");
+}
