@@ -11,7 +11,7 @@ pub mod reload;
 use std::time::Duration;
 
 use tokio::sync::{mpsc, oneshot, watch};
-use tokio::time::{Instant, MissedTickBehavior};
+use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
@@ -177,6 +177,21 @@ impl PollerHandle {
     }
 }
 
+/// How early the tokio timer wakes the poller before a cycle's deadline.
+const TIMER_SLACK: Duration = Duration::from_micros(1500);
+
+/// The first deadline of the schedule `previous + k * period` after `now`
+/// (cycles that are already late are skipped, not bunched).
+fn next_deadline(previous: Instant, period: Duration, now: Instant) -> Instant {
+    let next = previous + period;
+    if next > now {
+        return next;
+    }
+    let period_ns = period.as_nanos().max(1);
+    let missed = (now - next).as_nanos() / period_ns + 1;
+    next + period * u32::try_from(missed).unwrap_or(u32::MAX)
+}
+
 /// Retry delays while the PLC is unreachable: short, so polling resumes
 /// within a second of the PLC coming back.
 const RECONNECT_MIN: Duration = Duration::from_millis(100);
@@ -297,13 +312,24 @@ impl Poller {
 
     /// Runs until stopped or every handle is dropped.
     pub async fn run(mut self) {
-        let mut ticks = tokio::time::interval(self.loop_delay);
         // Fixed deadlines: a late cycle does not shift the ones after it.
-        ticks.set_missed_tick_behavior(MissedTickBehavior::Skip);
+        let mut deadline = Instant::now();
         loop {
             tokio::select! {
                 biased;
                 _ = self.stop.cancelled() => break,
+                // A due cycle goes before queued requests, so a flood of
+                // them cannot delay polling.
+                _ = tokio::time::sleep_until(deadline.checked_sub(TIMER_SLACK).unwrap_or(deadline)) => {
+                    // tokio's timer has millisecond granularity; the last
+                    // stretch is slept precisely on this dedicated thread.
+                    let now = Instant::now();
+                    if deadline > now {
+                        std::thread::sleep(deadline - now);
+                    }
+                    self.cycle().await;
+                    deadline = next_deadline(deadline, self.loop_delay, Instant::now());
+                }
                 job = self.jobs.recv() => {
                     let Some(job) = job else { break };
                     let mut batch = vec![job];
@@ -315,7 +341,6 @@ impl Poller {
                     }
                     self.serve(batch).await;
                 }
-                _ = ticks.tick() => self.cycle().await,
             }
         }
         debug!(section = %self.section, "poller stopped");
@@ -916,5 +941,25 @@ fn set_realtime_priority(priority: u8) -> std::io::Result<()> {
         Ok(())
     } else {
         Err(std::io::Error::from_raw_os_error(rc))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn deadlines_stay_on_the_schedule_and_skip_missed_cycles() {
+        let start = Instant::now();
+        let period = Duration::from_millis(100);
+        // On time: the next slot.
+        let now = start + Duration::from_millis(30);
+        assert_eq!(next_deadline(start, period, now), start + period);
+        // 250 ms late: slots 100 and 200 are gone, 300 is next.
+        let now = start + Duration::from_millis(250);
+        assert_eq!(next_deadline(start, period, now), start + period * 3);
+        // Exactly on a slot counts as missed: no zero-length cycle.
+        let now = start + period * 2;
+        assert_eq!(next_deadline(start, period, now), start + period * 3);
     }
 }
