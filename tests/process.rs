@@ -582,7 +582,7 @@ fn daemon_starts_listening_and_appends_to_its_log() {
         );
         let daemon = daemon.expect("the daemon process");
         let mut c = site.client();
-        c.ask("GETINFO:epsport\n", "GETINFO:EPSPORT,61682");
+        c.ask("GETINFO:ipaddr\n", "GETINFO:IPADDR,127.0.0.1");
         drop(c);
         assert_eq!(daemon.terminate(), 0);
         runs.push(site.log_text());
@@ -890,7 +890,7 @@ fn setconf_every_key() {
     c.ask("GET:extra\n", "GET:EXTRA,0");
     c.ask(
         "GETINFO:pubfile\n",
-        "GETINFO:PUBFILE,2/29 [FIXED.pub (built in),other.pub]",
+        "GETINFO:PUBFILE,2/29 [FIXED.pub,other.pub]",
     );
     let demo_changed = "WARNING:250 Changed public file: 'demo.pub'";
     c.ask("SETCONF:pubfile,//demo.pub\n", demo_changed);
@@ -961,7 +961,7 @@ fn getinfo_with_several_clients() {
     assert_eq!(lines[6], format!("GETINFO:EPSPORT,{}", plc.udp));
     assert_eq!(
         lines[7],
-        "GETINFO:PUBFILE,2/29 [FIXED.pub (built in),demo.pub]"
+        "GETINFO:PUBFILE,2/29 [FIXED.pub,demo.pub]"
     );
     let network = &lines[8..];
     assert_eq!(network.len(), 3, "{lines:#?}");
@@ -990,7 +990,7 @@ fn getinfo_with_several_clients() {
     c.ask("GETINFO:VERSION_plc\n", &version_plc);
     c.ask(
         "GETINFO:pubfile\n",
-        "GETINFO:PUBFILE,2/29 [FIXED.pub (built in),demo.pub]",
+        "GETINFO:PUBFILE,2/29 [FIXED.pub,demo.pub]",
     );
     c.ask(
         "GETINFO:nothing\n",
