@@ -959,10 +959,7 @@ fn getinfo_with_several_clients() {
     assert_eq!(lines[..5], head, "{lines:#?}");
     assert!(lines[5].starts_with("GETINFO:EPSADDR,"), "{lines:#?}");
     assert_eq!(lines[6], format!("GETINFO:EPSPORT,{}", plc.udp));
-    assert_eq!(
-        lines[7],
-        "GETINFO:PUBFILE,2/29 [FIXED.pub,demo.pub]"
-    );
+    assert_eq!(lines[7], "GETINFO:PUBFILE,2/29 [FIXED.pub,demo.pub]");
     let network = &lines[8..];
     assert_eq!(network.len(), 3, "{lines:#?}");
     let today = chrono::Local::now().format("%Y-%m-%d").to_string();
