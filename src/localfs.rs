@@ -83,30 +83,7 @@ pub fn info(path: &Path) -> io::Result<FileInfo> {
 /// A directory's entries by name; names not representable in cp1250 and
 /// staging files are left out.
 pub fn list(path: &Path) -> io::Result<Vec<DirEntry>> {
-    let mut entries = Vec::new();
-    for entry in fs::read_dir(path)? {
-        let Ok(entry) = entry else { continue };
-        let name = entry.file_name();
-        let Some(name) = name.to_str() else { continue };
-        if name.starts_with(STAGING_PREFIX) {
-            continue;
-        }
-        let Some(bytes) = cp1250::try_encode(name) else {
-            continue;
-        };
-        let Ok(meta) = fs::metadata(entry.path()) else {
-            continue;
-        };
-        entries.push(DirEntry {
-            name: bytes,
-            info: info_of(&entry.path(), &meta),
-        });
-        if entries.len() >= MAX_ENTRIES {
-            break;
-        }
-    }
-    entries.sort_by(|a, b| a.name.cmp(&b.name));
-    Ok(entries)
+    crate::plc::files::list_dir(path, STAGING_PREFIX, MAX_ENTRIES)
 }
 
 /// A GETFILE directory listing: one entry a line, directories with a

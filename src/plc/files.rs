@@ -252,29 +252,39 @@ impl FileStore {
     /// are left out.
     pub fn list(&self, path: &[u8]) -> Result<Vec<DirEntry>, Exception> {
         let host = self.resolve(path)?;
-        let mut entries = Vec::new();
-        for entry in fs::read_dir(&host).map_err(bad)? {
-            let Ok(entry) = entry else { continue };
-            let name = entry.file_name();
-            let Some(name) = name.to_str() else { continue };
-            if name.starts_with(STAGING_PREFIX) {
-                continue;
-            }
-            let Some(bytes) = cp1250::try_encode(name) else {
-                continue;
-            };
-            let Ok(meta) = entry.metadata() else { continue };
-            entries.push(DirEntry {
-                name: bytes,
-                info: info_of(&entry.path(), &meta),
-            });
-            if entries.len() >= MAX_ENTRIES {
-                break;
-            }
-        }
-        entries.sort_by(|a, b| a.name.cmp(&b.name));
-        Ok(entries)
+        list_dir(&host, STAGING_PREFIX, MAX_ENTRIES).map_err(bad)
     }
+}
+
+/// A host directory's entries by cp1250 name, sorted: names that cp1250
+/// cannot hold and names starting with `hidden_prefix` (staging files) are
+/// left out, at most `max` entries. Shared by the simulated PLC's store and
+/// the server's local files.
+pub fn list_dir(host: &Path, hidden_prefix: &str, max: usize) -> io::Result<Vec<DirEntry>> {
+    let mut entries = Vec::new();
+    for entry in fs::read_dir(host)? {
+        let Ok(entry) = entry else { continue };
+        let name = entry.file_name();
+        let Some(name) = name.to_str() else { continue };
+        if name.starts_with(hidden_prefix) {
+            continue;
+        }
+        let Some(bytes) = cp1250::try_encode(name) else {
+            continue;
+        };
+        let Ok(meta) = fs::metadata(entry.path()) else {
+            continue;
+        };
+        entries.push(DirEntry {
+            name: bytes,
+            info: info_of(&entry.path(), &meta),
+        });
+        if entries.len() >= max {
+            break;
+        }
+    }
+    entries.sort_by(|a, b| a.name.cmp(&b.name));
+    Ok(entries)
 }
 
 /// GETFILEINFO's view of a host file: size, attributes (directory or
