@@ -257,6 +257,9 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     });
     shared.set_loss(config.loss);
     shared.set_latency(config.latency);
+    // A PLC has run its program before anyone can read it: without this the
+    // first datagram may be answered before the first timer tick.
+    shared.cycle();
 
     let socket = Arc::new(UdpSocket::bind(config.bind).await?);
     let local_addr = socket.local_addr()?;

@@ -2,6 +2,7 @@
 //! and a raw TCP client that checks exact bytes.
 #![allow(dead_code)]
 
+pub mod epsnet;
 pub mod process;
 
 use std::net::SocketAddr;
@@ -62,6 +63,29 @@ pub struct TestServer {
     pub plc_files: tempfile::TempDir,
 }
 
+/// The configuration of a test section `[Test]` with the `[*]` keys in
+/// `global_ini`, and its variable table from a fixed and a user public file.
+pub fn section_parts(
+    global_ini: &str,
+    fixed: &[u8],
+    (user_name, user): (&str, &[u8]),
+) -> (Arc<config::Global>, config::Section, VarTable) {
+    let ini = format!("[*]\n{global_ini}\n[Test]\nSERVER_PORT = 5010\n");
+    let loaded = config::parse(Path::new("test.ini"), &ini).expect("test ini");
+    let global = Arc::new(loaded.config.global);
+    let section = loaded.config.sections.into_iter().next().unwrap();
+    let mut warnings = Vec::new();
+    let table = VarTable::build(
+        "FIXED.pub",
+        &pubfile::parse(fixed),
+        Some((user_name, &pubfile::parse(user))),
+        &MemoryMap::FOXTROT,
+        &mut warnings,
+    )
+    .expect("table");
+    (global, section, table)
+}
+
 /// Starts a section configured by the `[*]` keys in `global_ini` on the
 /// in-process backend with `user_pub()`.
 pub async fn start(global_ini: &str) -> TestServer {
@@ -79,19 +103,7 @@ pub async fn start_on(
     user: &[u8],
     backend: Option<Box<dyn plccoms::backend::PlcBackend>>,
 ) -> TestServer {
-    let ini = format!("[*]\n{global_ini}\n[Test]\nSERVER_PORT = 5010\n");
-    let loaded = config::parse(Path::new("test.ini"), &ini).expect("test ini");
-    let global = Arc::new(loaded.config.global);
-    let section = loaded.config.sections.into_iter().next().unwrap();
-    let mut warnings = Vec::new();
-    let table = VarTable::build(
-        "FIXED.pub",
-        &pubfile::parse(FIXED_PUB),
-        Some(("test.pub", &pubfile::parse(user))),
-        &MemoryMap::FOXTROT,
-        &mut warnings,
-    )
-    .expect("table");
+    let (global, section, table) = section_parts(global_ini, FIXED_PUB, ("test.pub", user));
     let device = Arc::new(Mutex::new(Device::new(MemoryMap::FOXTROT)));
     let root = tempfile::tempdir().expect("root dir");
     let plc_files = tempfile::tempdir().expect("plc files dir");
