@@ -1,49 +1,18 @@
 //! The public-file parser on a generated 50,000-variable project (the same
 //! layout `loadgen genpub` writes for the load tests).
 
-use std::fmt::Write as _;
 use std::hint::black_box;
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 
-/// A 50,000-line public file: mixed types, packed R-area offsets, CRC line.
+/// A project of `count` mixed-type variables packed in the R area, with
+/// a CRC line.
 fn project(count: usize) -> Vec<u8> {
-    let types = [
-        "BOOL",
-        "INT",
-        "DINT",
-        "UDINT",
-        "REAL",
-        "LREAL",
-        "WORD",
-        "STRING[16]",
-    ];
-    let sizes = [0usize, 2, 4, 4, 4, 8, 2, 17];
-    let mut text = String::with_capacity(count * 48);
-    let (mut offset, mut bit) = (0usize, 0u8);
-    for i in 0..count {
-        let k = i % types.len();
-        if k == 0 {
-            let _ = writeln!(text, " VAR_{i:05} R B {offset} .{bit} BOOL PUB_INOUT");
-            bit += 1;
-            if bit == 8 {
-                bit = 0;
-                offset += 1;
-            }
-            continue;
-        }
-        if bit != 0 {
-            bit = 0;
-            offset += 1;
-        }
-        let kind = if types[k].contains("REAL") { "F" } else { "B" };
-        let _ = writeln!(text, " VAR_{i:05} R {kind} {offset} {} PUB_INOUT", types[k]);
-        offset += sizes[k];
-    }
-    let mut bytes = text.into_bytes();
-    let crc = plccoms::pubfile::crc_of(plccoms::pubfile::crc_content(&bytes));
-    bytes.extend_from_slice(format!(";* Crc=\"{crc:08X}\"\r\n").as_bytes());
-    bytes
+    plccoms::sim::genpub::generate(&plccoms::sim::genpub::Layout {
+        vars: count,
+        animated: 0,
+        setvars: 0,
+    })
 }
 
 fn parse(c: &mut Criterion) {

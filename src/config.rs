@@ -638,7 +638,8 @@ struct RawSection {
     errors: Vec<Diagnostic>,
 }
 
-const GLOBAL_KEYS: [&str; 21] = [
+/// Every key of the `[*]` section.
+pub const GLOBAL_KEYS: [&str; 21] = [
     "COMM_LOOP_DELAY",
     "COMM_SCHED_PRI",
     "NET_CONNECT_MAX",
@@ -663,7 +664,8 @@ const GLOBAL_KEYS: [&str; 21] = [
     "OUTPUT_SOFT_TIMEOUT",
 ];
 
-const SECTION_KEYS: [&str; 23] = [
+/// Every key of a PLC section.
+pub const SECTION_KEYS: [&str; 23] = [
     "IPADDR",
     "IPADDR_LOCAL",
     "EPSADDR",

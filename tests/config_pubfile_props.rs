@@ -21,46 +21,13 @@ const FIXED_PUB: &[u8] = include_bytes!("../conf/FIXED.pub");
 // INI
 
 /// Keys of both kinds of section, so generated text hits the real paths.
-const KEYS: [&str; 38] = [
-    "COMM_LOOP_DELAY",
-    "COMM_SCHED_PRI",
-    "NET_CONNECT_MAX",
-    "MEM_BLKSIZE",
-    "MEM_USE_THREADS",
-    "FFILE_BLKSIZE",
-    "FFILE_TIMEOUT",
-    "FFILE_TIMEOUT_WR",
-    "FFILE_MAXRECS",
-    "END_LINE_CRLF",
-    "PF_VAR_DISABLED",
-    "DIFF_VAR_ENABLED",
-    "SYNC_VAR_ENABLED",
-    "DATE_TIME_DECIMAL",
-    "LIM_OF_DECIMALS",
-    "NUM_OF_DECIMALS",
-    "SCIENT_NOTATION",
-    "SERIAL_DEVICE_CFG",
-    "IPADDR",
-    "IPADDR_LOCAL",
-    "EPSADDR",
-    "EPSTOUT",
-    "EPSTOUT_STEP",
-    "EPSPORT",
-    "SERVER_PORT",
-    "SERIAL_DEVICE",
-    "SERIAL_SPEED",
-    "SERIAL_RTS",
-    "SHM_NAME",
-    "SHM_SOCKET",
-    "SHM_PORT",
-    "PUBFILE_CRC",
-    "PUBFILE_WRITE",
-    "PUBFILE",
-    "PUBFILE_FIXED",
-    "SIMULATOR",
-    "SIMULATOR_PROGRAM",
-    "SIMULATOR_PUB",
-];
+fn keys() -> Vec<&'static str> {
+    config::GLOBAL_KEYS
+        .iter()
+        .chain(&config::SECTION_KEYS)
+        .copied()
+        .collect()
+}
 
 /// Ini-shaped text: section headers, known and unknown keys with values of
 /// every kind, comments, quotes, stray bytes.
@@ -86,7 +53,7 @@ fn ini_like() -> impl Strategy<Value = String> {
         "[A-Za-z0-9_ *]{0,8}".prop_map(|name| format!("[{name}]")),
         Just("[unclosed".to_string()),
         (
-            proptest::sample::select(&KEYS[..]),
+            proptest::sample::select(keys()),
             "[ \t]{0,2}",
             value.clone(),
             "( *[#;].{0,8})?"

@@ -8,6 +8,7 @@
 //! adds a loopback TCP control port ([`control`]).
 
 pub mod control;
+pub mod genpub;
 pub mod program;
 pub mod server;
 

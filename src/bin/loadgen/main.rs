@@ -7,7 +7,6 @@
 //! bench script (bench/run), which turns them into BENCHMARKS.md.
 
 mod fanout;
-mod genpub;
 mod proxy;
 mod scenarios;
 mod util;
@@ -113,7 +112,7 @@ fn main() -> ExitCode {
             Scenario::Memory(a) => scenarios::memory(a).await,
             Scenario::Startup(a) => scenarios::startup(a).await,
             Scenario::Genpub(a) => {
-                let bytes = genpub::generate(&genpub::Layout {
+                let bytes = plccoms::sim::genpub::generate(&plccoms::sim::genpub::Layout {
                     vars: a.vars,
                     animated: a.animated,
                     setvars: a.setvars,

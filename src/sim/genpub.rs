@@ -1,16 +1,18 @@
-//! Generated public files for the load tests: `ANIM_nnnnn` (UDINT, for the
-//! simulator's `--animate 'ANIM_*'`: each holds the PLC cycle counter),
-//! `SETV_nnn` (DINT, targets of SET) and `VAR_nnnnn` of mixed types, packed
-//! in the R area, with a CRC trailer.
+//! Generated public files for load tests and benchmarks: `ANIM_nnnnn`
+//! (UDINT, for the simulator's `--animate 'ANIM_*'`: each holds the PLC
+//! cycle counter), `SETV_nnn` (DINT, targets of SET) and `VAR_nnnnn` of
+//! mixed types, packed in the R area, with a CRC trailer.
 
 use std::fmt::Write as _;
 
+/// How many variables of each kind a generated project has.
 pub struct Layout {
     pub vars: usize,
     pub animated: usize,
     pub setvars: usize,
 }
 
+/// The public file of `layout`: ANIM, then SETV, then VAR variables.
 pub fn generate(layout: &Layout) -> Vec<u8> {
     let mut text = String::with_capacity(layout.vars * 40);
     let mut offset = 0usize;
@@ -57,7 +59,32 @@ pub fn generate(layout: &Layout) -> Vec<u8> {
         offset += sizes[k];
     }
     let mut bytes = text.into_bytes();
-    let crc = plccoms::pubfile::crc_of(plccoms::pubfile::crc_content(&bytes));
+    let crc = crate::pubfile::crc_of(crate::pubfile::crc_content(&bytes));
     bytes.extend_from_slice(format!(";* Crc=\"{crc:08X}\"\n").as_bytes());
     bytes
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pubfile;
+
+    #[test]
+    fn a_generated_project_parses_cleanly_with_its_crc() {
+        let bytes = generate(&Layout {
+            vars: 1000,
+            animated: 10,
+            setvars: 5,
+        });
+        let file = pubfile::parse(&bytes);
+        assert!(file.warnings.is_empty(), "{:?}", file.warnings);
+        assert_eq!(file.vars.len(), 1000);
+        assert_eq!(&file.vars[0].name[..], b"ANIM_00000");
+        assert_eq!(&file.vars[10].name[..], b"SETV_000");
+        assert_eq!(&file.vars[15].name[..], b"VAR_00000");
+        assert_eq!(
+            file.crc,
+            Some(pubfile::crc_of(pubfile::crc_content(&bytes)))
+        );
+    }
 }
