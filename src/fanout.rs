@@ -18,6 +18,10 @@ use crate::vars::{Var, VarId, VarTable};
 /// Slots per copy-on-write chunk: a publish copies only the chunks it changed.
 const CHUNK: usize = 256;
 
+/// Public-file notices kept for clients that missed snapshots: reloads come
+/// one per SETCONF or file change, so a session is never this far behind.
+const NOTICE_HISTORY: usize = 32;
+
 /// The last known value of one variable.
 #[derive(Debug, Clone, Default)]
 pub struct Slot {
@@ -80,8 +84,9 @@ pub struct Snapshot {
     pub interest: Arc<Interest>,
     /// Variables whose value changed in this publish.
     pub changed: Vec<VarId>,
-    /// The latest public-file notice, if any was made.
-    pub notice: Option<Arc<Notice>>,
+    /// The latest public-file notices, oldest first: a session that missed
+    /// snapshots still tells its client of every reload, in order.
+    pub notices: Arc<[Arc<Notice>]>,
     /// The DIFF lines of every variable in `changed`, with the section's
     /// default line end: what a client that enabled everything is owed, so
     /// a thousand such clients copy one block instead of each picking lines.
@@ -96,6 +101,16 @@ pub struct DiffBlock {
 }
 
 impl Snapshot {
+    /// Sequence of the latest notice (0: none yet).
+    pub fn notice_seq(&self) -> u64 {
+        self.notices.last().map_or(0, |n| n.seq)
+    }
+
+    /// The notices after `seq`, oldest first.
+    pub fn notices_after(&self, seq: u64) -> impl Iterator<Item = &Arc<Notice>> {
+        self.notices.iter().filter(move |n| n.seq > seq)
+    }
+
     pub fn slot(&self, id: VarId) -> &Slot {
         let id = id as usize;
         &self.chunks[id / CHUNK][id % CHUNK]
@@ -122,7 +137,7 @@ pub struct Publisher {
     changed: Vec<VarId>,
     format: FormatOptions,
     scratch: Vec<u8>,
-    notice: Option<Arc<Notice>>,
+    notices: Arc<[Arc<Notice>]>,
     /// Line end of the shared DIFF block; `None`: no block (DIFF lines off).
     block_eol: Option<&'static [u8]>,
 }
@@ -141,7 +156,7 @@ impl Publisher {
             table: table.clone(),
             interest: interest.clone(),
             changed: Vec::new(),
-            notice: None,
+            notices: Arc::new([]),
             diff_block: None,
             chunks: chunks.clone(),
         });
@@ -157,7 +172,7 @@ impl Publisher {
             changed: Vec::new(),
             format,
             scratch: Vec::new(),
-            notice: None,
+            notices: Arc::new([]),
             block_eol: None,
         };
         (publisher, rx)
@@ -267,7 +282,7 @@ impl Publisher {
             table: self.table.clone(),
             interest: self.interest.clone(),
             changed: std::mem::take(&mut self.changed),
-            notice: self.notice.clone(),
+            notices: self.notices.clone(),
             diff_block,
             chunks: self.chunks.clone(),
         };
@@ -290,9 +305,14 @@ impl Publisher {
 
     /// Announces a public-file load to every client with the next publish.
     pub fn announce(&mut self, changed: bool, name: String) -> Arc<Notice> {
-        let seq = self.notice.as_ref().map_or(1, |n| n.seq + 1);
+        let seq = self.notices.last().map_or(1, |n| n.seq + 1);
         let notice = Arc::new(Notice { seq, changed, name });
-        self.notice = Some(notice.clone());
+        let skip = (self.notices.len() + 1).saturating_sub(NOTICE_HISTORY);
+        self.notices = self.notices[skip..]
+            .iter()
+            .cloned()
+            .chain([notice.clone()])
+            .collect();
         notice
     }
 }
@@ -308,4 +328,54 @@ fn empty_chunks(len: usize) -> Vec<Arc<Vec<Slot>>> {
 fn string_equals(text: &[u8], raw: &[u8]) -> bool {
     let end = raw.iter().position(|&b| b == 0).unwrap_or(raw.len());
     text.len() == end + 2 && text[1..text.len() - 1] == raw[..end]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn publisher() -> (Publisher, watch::Receiver<Arc<Snapshot>>) {
+        Publisher::new(Arc::new(VarTable::default()), FormatOptions::default())
+    }
+
+    fn told(snapshot: &Snapshot, after: u64) -> Vec<(u64, bool, &str)> {
+        snapshot
+            .notices_after(after)
+            .map(|n| (n.seq, n.changed, n.name.as_str()))
+            .collect()
+    }
+
+    #[test]
+    fn a_session_that_missed_snapshots_still_learns_of_every_reload() {
+        let (mut publisher, rx) = publisher();
+        assert_eq!(rx.borrow().notice_seq(), 0);
+        publisher.announce(true, "other.pub".into());
+        publisher.publish(false, true);
+        publisher.announce(false, "other.pub".into());
+        publisher.publish(false, true);
+        publisher.publish(true, true);
+        // Only the latest snapshot is looked at: a "changed" reload followed
+        // by an unchanged one must not read as "nothing changed".
+        let latest = rx.borrow().clone();
+        assert_eq!(latest.notice_seq(), 2);
+        assert_eq!(
+            told(&latest, 0),
+            [(1, true, "other.pub"), (2, false, "other.pub")]
+        );
+        assert_eq!(told(&latest, 1), [(2, false, "other.pub")]);
+        assert!(told(&latest, 2).is_empty());
+    }
+
+    #[test]
+    fn the_notice_history_is_bounded() {
+        let (mut publisher, rx) = publisher();
+        for i in 0..NOTICE_HISTORY + 10 {
+            publisher.announce(i % 2 == 0, format!("{i}.pub"));
+        }
+        publisher.publish(false, true);
+        let latest = rx.borrow().clone();
+        assert_eq!(latest.notices.len(), NOTICE_HISTORY);
+        assert_eq!(latest.notice_seq(), (NOTICE_HISTORY + 10) as u64);
+        assert_eq!(latest.notices[0].seq, 11);
+    }
 }

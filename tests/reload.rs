@@ -234,3 +234,24 @@ async fn setconf_pubfile_and_link_keys() {
     assert_eq!(heard, 3);
     tokio::time::sleep(Duration::from_millis(10)).await;
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn requests_pipelined_after_setconf_use_the_public_file_it_loads() {
+    let s = setup().await;
+    let other_pub = common::demo_pub_with_extra();
+    std::fs::write(s.files.path().join("other.pub"), &other_pub).unwrap();
+    let mut c = s.client().await;
+    // One write: the GETs are read while the SETCONF is still under way.
+    c.send(b"GET:extra\nSETCONF:pubfile,//other.pub\nGET:extra\nSETCONF:pubfile,//demo.pub\nGET:extra\n")
+        .await;
+    c.expect(b"ERROR:33 Unknown variable name in request: 'GET:extra'\r\n")
+        .await;
+    c.expect(b"WARNING:250 Changed public file: 'other.pub'\r\n")
+        .await;
+    c.expect(b"GET:EXTRA,0\r\n").await;
+    c.expect(b"WARNING:250 Changed public file: 'demo.pub'\r\n")
+        .await;
+    c.expect(b"ERROR:33 Unknown variable name in request: 'GET:extra'\r\n")
+        .await;
+    c.silent(200).await;
+}

@@ -85,7 +85,12 @@ pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
 pub fn complete(session: &mut Session, then: ConfThen, reply: ReconfReply, out: &mut Vec<u8>) {
     match reply {
         Ok(outcome) => {
-            // This client hears of the reload through this answer only.
+            // The poller published the reload before answering: from the
+            // next request on, this client uses the new table.
+            session.latest_snapshot();
+            // Reloads before this one that the client has not heard of yet,
+            // then this one, told by this answer only.
+            session.notices_up_to(outcome.notice.seq - 1, out);
             session.notice_seen = session.notice_seen.max(outcome.notice.seq);
             write_notice(&outcome.notice, out);
         }

@@ -108,7 +108,7 @@ impl Session {
         let mut snapshots = shared.snapshots.clone();
         let snapshot = snapshots.borrow_and_update().clone();
         let vars = ClientTable::new(&snapshot, !shared.global.pf_var_disabled);
-        let notice_seen = snapshot.notice.as_ref().map_or(0, |n| n.seq);
+        let notice_seen = snapshot.notice_seq();
         let crlf = shared.global.end_line_crlf;
         let diff = shared.global.diff_var_enabled;
         Session {
@@ -282,9 +282,12 @@ impl Session {
     /// Handles every complete request already received, while the queue and
     /// output have room.
     async fn take_requests(&mut self) {
+        // Requests after a SETCONF wait for it: they may name variables of
+        // the public file it loads.
         while !self.close
             && self.pending.len() < MAX_PENDING
             && self.conn.backlog() < OUTPUT_HIGH_WATER
+            && !self.conf_outstanding()
         {
             let Some(frame) = self.conn.next_frame() else {
                 break;
@@ -443,6 +446,12 @@ impl Session {
             .any(|p| matches!(p, Pending::Set { .. }))
     }
 
+    fn conf_outstanding(&self) -> bool {
+        self.pending
+            .iter()
+            .any(|p| matches!(p, Pending::Conf { .. }))
+    }
+
     fn complete_head(&mut self, completion: Completion) {
         let Some(head) = self.pending.pop_front() else {
             return;
@@ -510,22 +519,26 @@ impl Session {
             let all_enabled = !self.shared.global.pf_var_disabled;
             self.vars = self.vars.remap(&self.snapshot, all_enabled);
         }
-        let conf_pending = self
-            .pending
-            .iter()
-            .any(|p| matches!(p, Pending::Conf { .. }));
-        if conf_pending {
+        if self.conf_outstanding() {
             return;
         }
-        if let Some(notice) = self.snapshot.notice.clone() {
-            if notice.seq > self.notice_seen {
-                self.notice_seen = notice.seq;
-                let mut line = Vec::new();
-                cmd::setconf::write_notice(&notice, &mut line);
-                line.extend_from_slice(self.conn.eol);
-                // Between answers, like a DIFF line.
-                self.conn.extend(&line);
+        let mut lines = Vec::new();
+        self.notices_up_to(u64::MAX, &mut lines);
+        // Between answers, like a DIFF line.
+        self.conn.extend(&lines);
+    }
+
+    /// Writes the WARNING lines of the notices this client has not heard of,
+    /// up to sequence `last`, oldest first.
+    pub fn notices_up_to(&mut self, last: u64, out: &mut Vec<u8>) {
+        let snapshot = self.snapshot.clone();
+        for notice in snapshot.notices_after(self.notice_seen) {
+            if notice.seq > last {
+                break;
             }
+            self.notice_seen = notice.seq;
+            cmd::setconf::write_notice(notice, out);
+            out.extend_from_slice(self.conn.eol);
         }
     }
 

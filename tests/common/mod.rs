@@ -63,6 +63,19 @@ pub struct TestServer {
     pub plc_files: tempfile::TempDir,
 }
 
+/// The simulator's demo.pub with one more variable, `extra` (INT at R300),
+/// and no CRC trailer: a changed user program.
+pub fn demo_pub_with_extra() -> Vec<u8> {
+    let mut text: Vec<u8> = plccoms::sim::DEMO_PUB
+        .split_inclusive(|&b| b == b'\n')
+        .filter(|line| !line.starts_with(b";*"))
+        .flatten()
+        .copied()
+        .collect();
+    text.extend_from_slice(b" extra R B 300 INT PUB_INOUT\r\n");
+    text
+}
+
 /// The configuration of a test section `[Test]` with the `[*]` keys in
 /// `global_ini`, and its variable table from a fixed and a user public file.
 pub fn section_parts(
