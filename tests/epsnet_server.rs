@@ -795,3 +795,34 @@ async fn twenty_percent_packet_loss() {
     }
     assert!(server.shared.poller.info().online);
 }
+
+#[tokio::test]
+async fn shutdown_answers_every_request_already_received() {
+    let sim = spawn_sim(any_port(), ProgramKind::Idle).await;
+    let slow = Link {
+        timeout_ms: 5000,
+        step_ms: 0,
+        retries: 0,
+    };
+    let server = start_server(sim.local_addr(), "", slow).await;
+    let mut c = Client::connect(server.local_addr).await;
+    c.ask("GET:counter\n", "GET:COUNTER,0\r\n").await;
+    // Every PLC answer now takes 300 ms: the GET and the SETCONF are under
+    // way, the 50 GETs behind the SETCONF received but not yet handled, when
+    // the server is told to stop.
+    sim.set_latency(Duration::from_millis(300));
+    let mut requests = b"LIST:counter\nGET:%RW130\nSETCONF:pubfile,//x.pub\n".to_vec();
+    for _ in 0..50 {
+        requests.extend_from_slice(b"GET:%RW130\n");
+    }
+    c.send(&requests).await;
+    c.expect(b"LIST:COUNTER,INT*\r\nLIST:\r\n").await;
+    server.stop_accepting();
+    c.expect(b"GET:%RW130,0\r\n").await;
+    c.expect(b"ERROR:35 Wrong parameter value in request: 'SETCONF:pubfile,//x.pub'\r\n")
+        .await;
+    for _ in 0..50 {
+        c.expect(b"GET:%RW130,0\r\n").await;
+    }
+    c.closed().await;
+}

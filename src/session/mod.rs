@@ -88,6 +88,9 @@ pub struct Session {
     pub diff: bool,
     pub peer: SocketAddr,
     close: bool,
+    /// The server is stopping: no more input is read; what was received is
+    /// answered, then the session closes.
+    stopping: bool,
     /// A snapshot arrived while a SET was unanswered; its DIFFs wait so the
     /// SET's own answer is not doubled by a DIFF for the same change.
     diffs_deferred: bool,
@@ -121,6 +124,7 @@ impl Session {
             diff,
             peer,
             close: false,
+            stopping: false,
             diffs_deferred: false,
             notice_seen,
             upload: None,
@@ -189,7 +193,10 @@ impl Session {
 
     async fn serve(&mut self) -> std::io::Result<()> {
         loop {
-            self.take_requests().await;
+            let drained = self.take_requests().await;
+            if self.stopping && drained {
+                self.close = true;
+            }
             self.release_ready();
             self.pump_stream().await;
             if let Some(why) = self.check_output_limits() {
@@ -214,12 +221,13 @@ impl Session {
             let backlog = self.conn.backlog();
             let can_read = !self.conn.eof
                 && !self.close
+                && !self.stopping
                 && self.pending.len() < MAX_PENDING
                 && backlog < OUTPUT_HIGH_WATER;
             // Snapshots also carry public-file changes, so every client takes
             // them, DIFF lines on or off; never inside a streamed answer.
             let want_diffs = backlog < self.shared.global.output_soft_limit && !streaming;
-            let closing = self.close;
+            let closing = self.close || self.stopping;
             let soft_deadline = self
                 .over_soft_since
                 .map(|since| since + self.shared.global.output_soft_timeout);
@@ -267,7 +275,7 @@ impl Session {
                     }
                 }
                 _ = shared.shutdown.cancelled(), if !closing => {
-                    self.close = true;
+                    self.stopping = true;
                 }
                 _ = tokio::time::sleep_until(write_deadline.unwrap_or_else(tokio::time::Instant::now)), if write_deadline.is_some() => {
                     self.write_timeout();
@@ -280,8 +288,8 @@ impl Session {
     }
 
     /// Handles every complete request already received, while the queue and
-    /// output have room.
-    async fn take_requests(&mut self) {
+    /// output have room. Returns whether no complete request is left.
+    async fn take_requests(&mut self) -> bool {
         // Requests after a SETCONF wait for it: they may name variables of
         // the public file it loads.
         while !self.close
@@ -290,7 +298,7 @@ impl Session {
             && !self.conf_outstanding()
         {
             let Some(frame) = self.conn.next_frame() else {
-                break;
+                return true;
             };
             match frame {
                 Frame::Line(line) => self.handle_line(&line).await,
@@ -311,6 +319,7 @@ impl Session {
                 }
             }
         }
+        false
     }
 
     async fn handle_line(&mut self, line: &[u8]) {
