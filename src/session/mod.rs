@@ -41,6 +41,9 @@ use table::ClientTable;
 
 /// Answers waiting for the PLC at most, before the session stops reading.
 const MAX_PENDING: usize = 1024;
+/// Received bytes not yet handed to the decoder (requests waiting behind a
+/// SETCONF): past this, the session stops reading until they are handled.
+const MAX_UNPARSED_INPUT: usize = 64 * 1024;
 
 /// An answer in the ordered queue.
 pub enum Pending {
@@ -223,6 +226,7 @@ impl Session {
                 && !self.close
                 && !self.stopping
                 && self.pending.len() < MAX_PENDING
+                && self.conn.input.len() < MAX_UNPARSED_INPUT
                 && backlog < OUTPUT_HIGH_WATER;
             // Snapshots also carry public-file changes, so every client takes
             // them, DIFF lines on or off; never inside a streamed answer.
