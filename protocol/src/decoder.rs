@@ -268,7 +268,17 @@ impl Decoder {
                 self.mode = Mode::Line;
                 Step::Continue
             }
-            _ => Step::Frame(Frame::Line(std::mem::take(&mut self.line))),
+            _ => {
+                // One exact-size allocation per line; the buffer is reused
+                // unless a long line grew it.
+                let line = self.line.clone();
+                if self.line.capacity() > 1024 {
+                    self.line = Vec::new();
+                } else {
+                    self.line.clear();
+                }
+                Step::Frame(Frame::Line(line))
+            }
         }
     }
 

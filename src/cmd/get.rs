@@ -38,6 +38,11 @@ pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
         return direct(session, args).await;
     }
     let selection = select(session.vars.table(), args, |id| session.vars.is_hidden(id));
+    if let Selection::One(id) = selection {
+        if answer_from_poll(session, id) {
+            return;
+        }
+    }
     let single = matches!(selection, Selection::One(_));
     if let Selection::Unknown = selection {
         return error(session, ErrorCode::UnknownVariable, context);
@@ -79,6 +84,35 @@ pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
     }
     let rx = session.shared.poller.read(requests).await;
     session.pending.push_back(Pending::Read { rx, then });
+}
+
+/// One variable whose polled value is current, and no SET of this client
+/// unanswered: the answer comes straight from the newest snapshot, without
+/// allocating (the bulk of what SCADA and home-automation clients send).
+fn answer_from_poll(session: &mut Session, id: VarId) -> bool {
+    if session.set_outstanding() {
+        return false;
+    }
+    session.refresh_newest();
+    let snapshot = &session.newest;
+    if !Arc::ptr_eq(&snapshot.table, session.vars.table()) {
+        return false;
+    }
+    let Some(text) = snapshot.current(id).and_then(|slot| slot.text()) else {
+        return false;
+    };
+    let name = &snapshot.table.var(id).name;
+    let eol = session.conn.eol;
+    let parts: [&[u8]; 5] = [b"GET:", name, b",", text, eol];
+    if session.pending.is_empty() {
+        for part in parts {
+            session.conn.extend(part);
+        }
+    } else {
+        let answer = parts.concat();
+        session.answer(answer);
+    }
+    true
 }
 
 async fn direct(session: &mut Session, args: &[u8]) {

@@ -84,6 +84,10 @@ pub struct Session {
     pub vars: ClientTable,
     pub snapshot: Arc<Snapshot>,
     snapshots: watch::Receiver<Arc<Snapshot>>,
+    /// The newest published snapshot, for answers from the poll; may be
+    /// ahead of `snapshot` while DIFF lines wait. See [`Session::refresh_newest`].
+    pub newest: Arc<Snapshot>,
+    newest_rx: watch::Receiver<Arc<Snapshot>>,
     pub pending: VecDeque<Pending>,
     /// The variable command a bare continuation line repeats.
     continuation: Option<Command>,
@@ -113,6 +117,8 @@ impl Session {
     pub fn new(shared: Arc<SectionShared>, stream: TcpStream, peer: SocketAddr) -> Session {
         let mut snapshots = shared.snapshots.clone();
         let snapshot = snapshots.borrow_and_update().clone();
+        let mut newest_rx = shared.snapshots.clone();
+        let newest = newest_rx.borrow_and_update().clone();
         let vars = ClientTable::new(&snapshot, !shared.global.pf_var_disabled);
         let notice_seen = snapshot.notice_seq();
         let crlf = shared.global.end_line_crlf;
@@ -122,6 +128,8 @@ impl Session {
             vars,
             snapshot,
             snapshots,
+            newest,
+            newest_rx,
             pending: VecDeque::new(),
             continuation: None,
             diff,
@@ -331,8 +339,7 @@ impl Session {
             Line::Empty => {}
             Line::Command { command, args } => {
                 self.continuation = command.accepts_continuation().then_some(command);
-                let context = trim(line).to_vec();
-                cmd::dispatch(self, command, args, &context).await;
+                cmd::dispatch(self, command, args, trim(line)).await;
             }
             Line::UnknownCommand => {
                 self.continuation = None;
@@ -459,10 +466,10 @@ impl Session {
             .any(|p| matches!(p, Pending::Set { .. }))
     }
 
+    /// A SETCONF is unanswered. Nothing is queued behind one, so it can only
+    /// be the last entry: checked in O(1) for every request parsed.
     fn conf_outstanding(&self) -> bool {
-        self.pending
-            .iter()
-            .any(|p| matches!(p, Pending::Conf { .. }))
+        matches!(self.pending.back(), Some(Pending::Conf { .. }))
     }
 
     fn complete_head(&mut self, completion: Completion) {
@@ -552,6 +559,14 @@ impl Session {
             self.notice_seen = notice.seq;
             cmd::setconf::write_notice(notice, out);
             out.extend_from_slice(self.conn.eol);
+        }
+    }
+
+    /// Brings `newest` up to date: one atomic load when nothing was
+    /// published since, so a burst of GETs does not contend on the channel.
+    pub fn refresh_newest(&mut self) {
+        if self.newest_rx.has_changed().unwrap_or(false) {
+            self.newest = self.newest_rx.borrow_and_update().clone();
         }
     }
 
