@@ -52,7 +52,11 @@ pub enum TableError {
 #[derive(Debug, Default)]
 pub struct VarTable {
     vars: Vec<Var>,
-    index: HashMap<Box<[u8]>, VarId>,
+    /// Folded name -> id. foldhash rather than SipHash: every GET, SET and
+    /// EN looks a name up, and the keys come from the public file, not from
+    /// clients, so collision flooding is not a concern (seeded per process
+    /// all the same).
+    index: HashMap<Box<[u8]>, VarId, foldhash::fast::RandomState>,
     fixed_count: usize,
     plc_run: VarId,
     pf_crc: VarId,
