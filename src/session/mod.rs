@@ -513,6 +513,9 @@ impl Session {
     fn take_snapshot(&mut self) {
         let snapshot = self.snapshots.borrow_and_update().clone();
         self.snapshot = snapshot;
+        // An idle client must not keep an old snapshot (and the value
+        // chunks changed since) alive through `newest`.
+        self.refresh_newest();
         self.sync_table();
         if !self.diff {
             return;
