@@ -13,7 +13,6 @@ use std::time::{Duration, Instant};
 
 use common::Client;
 use plccoms::backend::WriteData;
-use plccoms::config;
 use plccoms::sim::{self, SimConfig, SimHandle};
 use plccoms_protocol::Area;
 
@@ -48,20 +47,13 @@ async fn rig(section_keys: &str) -> Rig {
     let files = tempfile::tempdir().unwrap();
     std::fs::write(files.path().join("demo.pub"), sim::DEMO_PUB).unwrap();
     let sim = spawn_sim("127.0.0.1:0".parse().unwrap(), files.path()).await;
-    let conf = tempfile::tempdir().unwrap();
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let ini = format!(
-        "[*]\nCOMM_LOOP_DELAY = 20\n[PLC]\nIPADDR = 127.0.0.1\nEPSPORT = {}\nIPADDR_LOCAL = 127.0.0.1\nSERVER_PORT = {port}\nPUBFILE = //demo.pub\n{section_keys}\n",
-        sim.local_addr().port()
-    );
-    let path = conf.path().join("PLCComS.ini");
-    std::fs::write(&path, ini).unwrap();
-    let loaded = config::load(&path).unwrap();
-    let server = plccoms::startup::start(&loaded.config).await.unwrap();
+    let epsport = sim.local_addr().port();
+    let (server, port, conf) = common::start_on_free_port(|port| {
+        format!(
+            "[*]\nCOMM_LOOP_DELAY = 20\n[PLC]\nIPADDR = 127.0.0.1\nEPSPORT = {epsport}\nIPADDR_LOCAL = 127.0.0.1\nSERVER_PORT = {port}\nPUBFILE = //demo.pub\n{section_keys}\n"
+        )
+    })
+    .await;
     Rig {
         _server: server,
         sim_addr: sim.local_addr(),

@@ -1,7 +1,8 @@
 //! The built binaries as processes: `plccoms` (daemon, log file, start-up
 //! errors, `-t`, signals, SETCONF, GETINFO, outages) and `plcsim` as the PLC.
 //!
-//! Everything listens on 127.0.0.1 ports found free by binding port 0; every
+//! Everything listens on 127.0.0.1 ports found free below the ephemeral
+//! range (`common::process::free_port`); every
 //! child is killed on every path (the guards' `Drop`); waits poll against a
 //! generous deadline instead of sleeping a fixed time (the one exception:
 //! the outage test watches the log for two seconds to see that a lost PLC
@@ -14,12 +15,16 @@
 //! Not covered yet: SIGTERM during a WRITEFILE (the file commands are not on
 //! main).
 
+mod common;
+
 use std::io::{BufRead, BufReader, Read, Write};
-use std::net::{SocketAddr, TcpListener, TcpStream, UdpSocket};
+use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
+
+use common::process::{free_port, free_udp_port};
 
 const PLCCOMS: &str = env!("CARGO_BIN_EXE_plccoms");
 const PLCSIM: &str = env!("CARGO_BIN_EXE_plcsim");
@@ -28,22 +33,6 @@ const DEADLINE: Duration = Duration::from_secs(20);
 const DEMO_PUB: &[u8] = include_bytes!("../conf/demo.pub");
 
 // ---------------------------------------------------------------- helpers --
-
-fn tcp_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn udp_port() -> u16 {
-    UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
 
 /// Polls `ready` until it holds; panics with `what` after [`DEADLINE`].
 #[track_caller]
@@ -219,7 +208,7 @@ impl Site {
     fn new() -> Site {
         Site {
             dir: tempfile::tempdir().unwrap(),
-            port: tcp_port(),
+            port: free_port(),
         }
     }
 
@@ -319,7 +308,7 @@ impl Plcsim {
     fn start(program: &'static str) -> Plcsim {
         let files = tempfile::tempdir().unwrap();
         std::fs::write(files.path().join("demo.pub"), DEMO_PUB).unwrap();
-        let (udp, control) = (udp_port(), tcp_port());
+        let (udp, control) = (free_udp_port(), free_port());
         let proc = Plcsim::spawn(files.path(), udp, control, program);
         Plcsim {
             proc,
@@ -849,7 +838,7 @@ fn setconf_every_key() {
     }
 
     // epsport: a port where nothing answers, then the PLC's.
-    let dead = udp_port();
+    let dead = free_udp_port();
     c.ask(
         &format!("SETCONF:epsport,{dead}\n"),
         "ERROR:10 Unable to connect to PLC.",

@@ -3,11 +3,9 @@
 
 mod common;
 
-use std::path::Path;
 use std::time::Duration;
 
 use common::Client;
-use plccoms::config;
 use plccoms::sim::{self, SimConfig, SimHandle};
 
 struct Setup {
@@ -29,20 +27,13 @@ async fn setup() -> Setup {
     })
     .await
     .unwrap();
-    let conf = tempfile::tempdir().unwrap();
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let ini = format!(
-        "[*]\nCOMM_LOOP_DELAY = 20\n[PLC]\nIPADDR = 127.0.0.1\nEPSPORT = {}\nEPSTOUT = 50\nEPSTOUT_STEP = 0\nIPADDR_LOCAL = 127.0.0.1\nSERVER_PORT = {port}\nPUBFILE_CRC = Yes\nPUBFILE = //demo.pub\n",
-        sim.local_addr().port()
-    );
-    let path = conf.path().join("PLCComS.ini");
-    std::fs::write(&path, ini).unwrap();
-    let loaded = config::load(Path::new(&path)).unwrap();
-    let server = plccoms::startup::start(&loaded.config).await.unwrap();
+    let epsport = sim.local_addr().port();
+    let (server, port, conf) = common::start_on_free_port(|port| {
+        format!(
+            "[*]\nCOMM_LOOP_DELAY = 20\n[PLC]\nIPADDR = 127.0.0.1\nEPSPORT = {epsport}\nEPSTOUT = 50\nEPSTOUT_STEP = 0\nIPADDR_LOCAL = 127.0.0.1\nSERVER_PORT = {port}\nPUBFILE_CRC = Yes\nPUBFILE = //demo.pub\n"
+        )
+    })
+    .await;
     Setup {
         server,
         sim,

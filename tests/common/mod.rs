@@ -362,3 +362,25 @@ pub fn rss_kib() -> u64 {
 pub fn fd_count() -> usize {
     std::fs::read_dir("/proc/self/fd").unwrap().count()
 }
+
+/// Starts the server as `plccoms -c` does, from the INI text `ini(port)` for
+/// a server port that was free a moment ago. Concurrent tests take ports of
+/// the same range for their own connections, so on "Address already in
+/// use" another port is tried.
+pub async fn start_on_free_port(
+    ini: impl Fn(u16) -> String,
+) -> (plccoms::startup::Server, u16, tempfile::TempDir) {
+    for _ in 0..20 {
+        let port = process::free_port();
+        let conf = tempfile::tempdir().expect("config dir");
+        let path = conf.path().join("PLCComS.ini");
+        std::fs::write(&path, ini(port)).expect("write PLCComS.ini");
+        let loaded = config::load(&path).expect("load PLCComS.ini");
+        match plccoms::startup::start(&loaded.config).await {
+            Ok(server) => return (server, port, conf),
+            Err(e) if e.contains("Address already in use") => continue,
+            Err(e) => panic!("start: {e}"),
+        }
+    }
+    panic!("no free port for the server in 20 tries");
+}

@@ -113,10 +113,33 @@ impl Capture {
 
 /// A TCP port on 127.0.0.1 that was free a moment ago.
 pub fn free_port() -> u16 {
-    TcpListener::bind((Ipv4Addr::LOCALHOST, 0))
-        .and_then(|l| l.local_addr())
-        .expect("bind 127.0.0.1:0")
-        .port()
+    unused_port(|port| TcpListener::bind((Ipv4Addr::LOCALHOST, port)).is_ok())
+}
+
+/// A UDP port on 127.0.0.1 that was free a moment ago.
+pub fn free_udp_port() -> u16 {
+    unused_port(|port| std::net::UdpSocket::bind((Ipv4Addr::LOCALHOST, port)).is_ok())
+}
+
+/// A random port below Linux's ephemeral range (32768-60999) that `free`
+/// accepts. The tests' own connections and `:0` binds draw from the
+/// ephemeral range, so a port found free there could be taken before the
+/// server binds it; down here only another test's pick can, and picks are
+/// random.
+fn unused_port(free: impl Fn(u16) -> bool) -> u16 {
+    use std::hash::{BuildHasher, Hasher};
+    static PICKS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    for _ in 0..1000 {
+        let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
+        hasher.write_u64(PICKS.fetch_add(1, std::sync::atomic::Ordering::Relaxed));
+        hasher.write_u32(std::process::id());
+        // 23000..32000: clear of bench/run's and the soak's default ports.
+        let port = 23_000 + (hasher.finish() % 9_000) as u16;
+        if free(port) {
+            return port;
+        }
+    }
+    panic!("no free port in 23000..32000");
 }
 
 /// Whether a server could listen on `port` on all interfaces now.
