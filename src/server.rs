@@ -36,6 +36,7 @@ pub struct RunningSection {
     pub local_addr: SocketAddr,
     accept: JoinHandle<()>,
     poller_stop: CancellationToken,
+    poller_thread: std::thread::JoinHandle<()>,
     sessions: TaskTracker,
 }
 
@@ -62,6 +63,20 @@ impl RunningSection {
             .is_err()
         {
             warn!(section = %self.shared.name, "{} session(s) still busy at shutdown", self.sessions.len());
+        }
+    }
+
+    /// Waits, at most `grace`, for the poll thread to finish what it is doing
+    /// with the PLC after [`RunningSection::abort`], so that nothing it logs
+    /// comes after the server says it stopped.
+    pub async fn wait_poller(&self, grace: Duration) {
+        let start = tokio::time::Instant::now();
+        while !self.poller_thread.is_finished() {
+            if start.elapsed() >= grace {
+                warn!(section = %self.shared.name, "the poll thread is still waiting for the PLC at shutdown");
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
         }
     }
 }
@@ -106,7 +121,7 @@ pub async fn start_section(
         None => poller,
     };
     let poller_stop = poller.stop_token();
-    poller::spawn_thread(poller, global.comm_sched_pri)?;
+    let poller_thread = poller::spawn_thread(poller, global.comm_sched_pri)?;
     let shared = Arc::new(SectionShared::new(
         global, config, handle, snapshots, config_dir,
     ));
@@ -118,6 +133,7 @@ pub async fn start_section(
         local_addr,
         accept,
         poller_stop,
+        poller_thread,
         sessions,
     })
 }

@@ -30,7 +30,8 @@ impl Server {
 
     /// Stops accepting, lets every session answer what it has received
     /// (bounded by a grace period; the pollers still serve their reads),
-    /// then stops polling and the simulators.
+    /// then stops polling (waiting, bounded, for each poll thread to end)
+    /// and the simulators.
     pub async fn shutdown(self) {
         for section in &self.sections {
             section.stop_accepting();
@@ -40,6 +41,9 @@ impl Server {
         }
         for section in &self.sections {
             section.abort();
+        }
+        for section in &self.sections {
+            section.wait_poller(SHUTDOWN_GRACE).await;
         }
         for simulator in self.simulators {
             simulator.stop().await;
