@@ -191,6 +191,19 @@ mod tests {
         Range { area, offset, len }
     }
 
+    /// The bytes of `memory` a range or block covers (areas share one memory).
+    fn slice<'a>(memory: &'a [u8], range: &Range) -> &'a [u8] {
+        &memory[range.offset as usize..(range.offset + range.len) as usize]
+    }
+
+    /// What a PLC holding `memory` answers to every block of `plan`.
+    fn answers_from(memory: &[u8], plan: &ReadPlan) -> Vec<Answer<Vec<u8>>> {
+        plan.blocks()
+            .iter()
+            .map(|b| Ok(slice(memory, &r(b.area, b.offset, b.len)).to_vec()))
+            .collect()
+    }
+
     #[test]
     fn dense_region_costs_the_minimum() {
         let ranges: Vec<Range> = (0..10_000).map(|i| r(Area::R, i * 4, 4)).collect();
@@ -255,16 +268,14 @@ mod tests {
             r(Area::R, 4005, 3),
         ];
         let plan = ReadPlan::new(&ranges, 7);
-        let answers = plan
-            .blocks()
-            .iter()
-            .map(|b| Ok(memory[b.offset as usize..(b.offset + b.len) as usize].to_vec()))
-            .collect();
-        let (data, refused) = plan.assemble_answers(answers);
+        let (data, refused) = plan.assemble_answers(answers_from(&memory, &plan));
         assert!(refused.is_empty());
         for (i, range) in ranges.iter().enumerate() {
-            let want = &memory[range.offset as usize..(range.offset + range.len) as usize];
-            assert_eq!(plan.range_answer(&data, i).unwrap(), want, "range {i}");
+            assert_eq!(
+                plan.range_answer(&data, i).unwrap(),
+                slice(&memory, range),
+                "range {i}"
+            );
         }
         assert!(plan.blocks().iter().all(|b| b.len <= 7));
     }
@@ -299,16 +310,10 @@ mod tests {
                 .map(|&(a, offset, len)| r(if a == 0 { Area::R } else { Area::S }, offset, len))
                 .collect();
             let plan = ReadPlan::new(&ranges, max);
-            let answers = plan
-                .blocks()
-                .iter()
-                .map(|b| Ok(memory[b.offset as usize..(b.offset + b.len) as usize].to_vec()))
-                .collect();
-            let (data, refused) = plan.assemble_answers(answers);
+            let (data, refused) = plan.assemble_answers(answers_from(&memory, &plan));
             proptest::prop_assert!(refused.is_empty());
             for (i, range) in ranges.iter().enumerate() {
-                let want = &memory[range.offset as usize..(range.offset + range.len) as usize];
-                proptest::prop_assert_eq!(plan.range_answer(&data, i).unwrap(), want);
+                proptest::prop_assert_eq!(plan.range_answer(&data, i).unwrap(), slice(&memory, range));
             }
             proptest::prop_assert!(plan.blocks().iter().all(|b| b.len <= max && b.len > 0));
             let naive: u32 = ranges.iter().map(|r| r.len.div_ceil(max)).sum();
