@@ -554,6 +554,10 @@ impl Session {
     /// Writes the WARNING lines of the notices this client has not heard of,
     /// up to sequence `last`, oldest first.
     pub fn notices_up_to(&mut self, last: u64, out: &mut Vec<u8>) {
+        if self.snapshot.notice_seq() <= self.notice_seen {
+            // Nearly always: no Arc clone on every answer completed.
+            return;
+        }
         let snapshot = self.snapshot.clone();
         for notice in snapshot.notices_after(self.notice_seen) {
             if notice.seq > last {
