@@ -8,7 +8,7 @@ use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 /// A project of `count` mixed-type variables packed in the R area, with
 /// a CRC line.
 fn project(count: usize) -> Vec<u8> {
-    plccoms::sim::genpub::generate(&plccoms::sim::genpub::Layout {
+    plcsim::genpub::generate(&plcsim::genpub::Layout {
         vars: count,
         animated: 0,
         setvars: 0,
@@ -22,7 +22,7 @@ fn parse(c: &mut Criterion) {
     group.sample_size(20);
     group.bench_function("parse_50k_vars", |b| {
         b.iter(|| {
-            let file = plccoms::pubfile::parse(black_box(&bytes));
+            let file = plccoms_plc::pubfile::parse(black_box(&bytes));
             assert_eq!(file.vars.len(), 50_000);
             black_box(file.warnings.len())
         })

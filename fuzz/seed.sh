@@ -2,7 +2,7 @@
 # Builds the seed corpora fuzz/corpus/<target>/ from the repository: request
 # lines from the command tests, the ini files, the public files, and EPSNET
 # datagrams laid out as the codec and service tests and the service table in
-# src/backend/epsnet/service.rs describe them. Seeds are named seed-<sha1>, so
+# plc/src/epsnet/service.rs describe them. Seeds are named seed-<sha1>, so
 # running it again adds nothing twice and keeps what the fuzzer found.
 #
 # Usage: fuzz/seed.sh            (needs bash and python3)

@@ -14,7 +14,7 @@ use crate::backend::{epsnet_config, PlcBackend};
 use crate::config::{Config, Global, Section};
 use crate::poller::reload::{plc_path, PubSource};
 use crate::server::{start_section, RunningSection};
-use crate::sim::{self, SimConfig, SimHandle};
+use plcsim::{SimConfig, SimHandle};
 
 /// Every section that started, and what keeps them alive.
 pub struct Server {
@@ -166,7 +166,7 @@ async fn spawn_simulator(
             let path = dir.join(path);
             std::fs::read(&path).map_err(|e| format!("SIMULATOR_PUB {}: {e}", path.display()))?
         }
-        None => sim::DEMO_PUB.to_vec(),
+        None => plcsim::DEMO_PUB.to_vec(),
     };
     let store = tempfile::Builder::new()
         .prefix("plccoms-sim-")
@@ -185,12 +185,12 @@ async fn spawn_simulator(
         .map_err(|e| format!("SIMULATOR_PROGRAM: {e}"))?;
     let config = SimConfig {
         bind: SocketAddr::from((Ipv4Addr::LOCALHOST, 0)),
-        pubfile: sim::PubSource::Bytes(bytes),
+        pubfile: plcsim::PubSource::Bytes(bytes),
         files: Some(store.path().to_path_buf()),
         program,
         ..SimConfig::default()
     };
-    let handle = sim::spawn(config)
+    let handle = plcsim::spawn(config)
         .await
         .map_err(|e| format!("cannot start the simulated PLC: {e}"))?;
     let addr = handle.local_addr();

@@ -6,8 +6,8 @@ use std::collections::HashMap;
 use plccoms_protocol::value::Value;
 use plccoms_protocol::{cp1250, Area, IecType};
 
-use crate::plc::MemoryMap;
-use crate::pubfile::PubFile;
+use plccoms_plc::pubfile::PubFile;
+use plccoms_plc::MemoryMap;
 
 /// Index of a variable in its table.
 pub type VarId = u32;

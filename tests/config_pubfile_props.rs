@@ -9,9 +9,9 @@ use std::net::Ipv4Addr;
 use std::path::Path;
 
 use plccoms::config;
-use plccoms::plc::MemoryMap;
-use plccoms::pubfile::{self, PubVar};
 use plccoms::vars::VarTable;
+use plccoms_plc::pubfile::{self, PubVar};
+use plccoms_plc::MemoryMap;
 use plccoms_protocol::{cp1250, Area, IecType};
 use proptest::prelude::*;
 

@@ -8,13 +8,13 @@ use plccoms::backend::{
     Exception, FileInfo, PlcBackend, PlcError, ReadRequest, WriteData, WriteRequest,
     FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_READONLY,
 };
-use plccoms::plc::time::ttida_from_unix;
-use plccoms::sim::program::ProgramKind;
-use plccoms::sim::{self, SimConfig, SimHandle};
+use plccoms_plc::time::ttida_from_unix;
 use plccoms_protocol::Area;
+use plcsim::program::ProgramKind;
+use plcsim::{SimConfig, SimHandle};
 
 async fn sim_with(config: SimConfig) -> SimHandle {
-    sim::spawn(SimConfig {
+    plcsim::spawn(SimConfig {
         bind: "127.0.0.1:0".parse().unwrap(),
         program: ProgramKind::Idle,
         ..config
@@ -49,7 +49,7 @@ async fn connect_status_and_halt() {
     assert_eq!(plc.max_read_block(), 1230);
     assert_eq!(plc.max_file_block(), 1150);
     let ident = plc.connect().await.unwrap();
-    assert_eq!(ident, plccoms::plc::device::DEFAULT_IDENT);
+    assert_eq!(ident, plcsim::device::DEFAULT_IDENT);
     assert!(plc.status().await.unwrap().run);
     sim.halt();
     assert!(!plc.status().await.unwrap().run);
@@ -392,7 +392,7 @@ async fn recovers_when_the_plc_restarts_on_the_same_port() {
     }
     let mut restarted = None;
     for _ in 0..50 {
-        match sim::spawn(SimConfig {
+        match plcsim::spawn(SimConfig {
             bind: addr,
             program: ProgramKind::Idle,
             ..SimConfig::default()

@@ -1,8 +1,8 @@
 //! EPSNET codec properties: round trips, and no panic on any input.
 
-use plccoms::backend::epsnet::codec::{decode_packet, encode_packet};
-use plccoms::backend::epsnet::frame::{DataFrame, Frame, Packet, MAX_PACKET};
-use plccoms::backend::epsnet::service::{decode_answer, Request, FC_REQUEST};
+use plccoms_plc::epsnet::codec::{decode_packet, encode_packet};
+use plccoms_plc::epsnet::frame::{DataFrame, Frame, Packet, MAX_PACKET};
+use plccoms_plc::epsnet::service::{decode_answer, Request, FC_REQUEST};
 use proptest::prelude::*;
 
 fn frame() -> impl Strategy<Value = Frame> {

@@ -11,9 +11,9 @@ use common::epsnet::{
 };
 use common::Client;
 use plccoms::backend::epsnet::{EpsnetBackend, EpsnetConfig};
-use plccoms::sim::program::ProgramKind;
-use plccoms::sim::{self, SimConfig};
 use plccoms_protocol::Area;
+use plcsim::program::ProgramKind;
+use plcsim::SimConfig;
 
 fn date_bits(unix_seconds: f64) -> u64 {
     unix_seconds.to_bits()
@@ -646,7 +646,7 @@ async fn demo_program_values_arrive_as_diffs() {
     let mut eps = EpsnetConfig::new(sim.local_addr());
     eps.local_ip = "127.0.0.1".parse().unwrap();
     let mut other = EpsnetBackend::new(eps);
-    let set = plccoms::backend::epsnet::service::PlcTime {
+    let set = plccoms_plc::epsnet::service::PlcTime {
         year: 2030,
         month: 1,
         day: 2,
@@ -715,7 +715,7 @@ async fn plc_stopped_then_restarted_on_the_same_port() {
 
     // The PLC comes back on the same address with fresh memory. It drops
     // everything until its memory is set, so the first poll sees 2.5.
-    let sim = sim::spawn(SimConfig {
+    let sim = plcsim::spawn(SimConfig {
         bind: plc,
         program: ProgramKind::Idle,
         loss: 1.0,

@@ -9,7 +9,7 @@ use std::path::Path;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use common::{start, start_on, user_pub, Client, TestServer};
-use plccoms::plc::time::{ttida_from_system, ttida_from_unix};
+use plccoms_plc::time::{ttida_from_system, ttida_from_unix};
 use plccoms_protocol::Area;
 
 /// Bytes every binary test carries: NUL, CR, LF, CRLF, 0xFF, IAC-like runs.
@@ -542,12 +542,12 @@ async fn diff_lines_never_land_inside_a_getfile_answer() {
 #[tokio::test]
 async fn files_through_the_epsnet_simulator() {
     use plccoms::backend::epsnet::{EpsnetBackend, EpsnetConfig};
-    use plccoms::sim::{self, program::ProgramKind, SimConfig};
+    use plcsim::{program::ProgramKind, SimConfig};
     let files = tempfile::tempdir().unwrap();
     let big = pattern(5000);
     fs::write(files.path().join("big.bin"), &big).unwrap();
     fs::write(files.path().join("bin.dat"), BINARY).unwrap();
-    let sim = sim::spawn(SimConfig {
+    let sim = plcsim::spawn(SimConfig {
         bind: "127.0.0.1:0".parse().unwrap(),
         program: ProgramKind::Idle,
         files: Some(files.path().to_path_buf()),

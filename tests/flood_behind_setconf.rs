@@ -13,7 +13,7 @@ use tokio::io::AsyncWriteExt;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_flood_behind_a_slow_setconf_is_not_buffered() {
-    let sim = spawn_sim(any_port(), plccoms::sim::program::ProgramKind::Idle).await;
+    let sim = spawn_sim(any_port(), plcsim::program::ProgramKind::Idle).await;
     let link = Link {
         timeout_ms: 5_000,
         step_ms: 0,

@@ -12,9 +12,9 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use common::epsnet::{eventually, poke, watched_idle_plc, SLOW};
-use plccoms::sim::program::ProgramKind;
-use plccoms::sim::{self, SimConfig};
 use plccoms_protocol::Area;
+use plcsim::program::ProgramKind;
+use plcsim::SimConfig;
 
 /// Every log line of this process, as the plain-text log file shows them.
 #[derive(Clone, Default)]
@@ -67,7 +67,7 @@ async fn an_outage_is_logged_once_and_the_recovery_once() {
     tokio::time::sleep(Duration::from_millis(2500)).await;
     assert!(!server.shared.poller.info().online);
 
-    let sim = sim::spawn(SimConfig {
+    let sim = plcsim::spawn(SimConfig {
         bind: plc,
         program: ProgramKind::Idle,
         ..SimConfig::default()

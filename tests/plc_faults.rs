@@ -13,8 +13,8 @@ use std::time::{Duration, Instant};
 
 use common::Client;
 use plccoms::backend::WriteData;
-use plccoms::sim::{self, SimConfig, SimHandle};
 use plccoms_protocol::Area;
+use plcsim::{SimConfig, SimHandle};
 
 /// Bound for "resumes after recovery" (the reconnect back-off is at most a
 /// second): generous, since a loaded CI machine is slow; the measured times
@@ -33,7 +33,7 @@ struct Rig {
 }
 
 async fn spawn_sim(bind: SocketAddr, files: &Path) -> SimHandle {
-    sim::spawn(SimConfig {
+    plcsim::spawn(SimConfig {
         bind,
         files: Some(files.to_path_buf()),
         program: "idle".parse().unwrap(),
@@ -45,7 +45,7 @@ async fn spawn_sim(bind: SocketAddr, files: &Path) -> SimHandle {
 
 async fn rig(section_keys: &str) -> Rig {
     let files = tempfile::tempdir().unwrap();
-    std::fs::write(files.path().join("demo.pub"), sim::DEMO_PUB).unwrap();
+    std::fs::write(files.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
     let sim = spawn_sim("127.0.0.1:0".parse().unwrap(), files.path()).await;
     let epsport = sim.local_addr().port();
     let (server, port, conf) = common::start_on_free_port(|port| {
@@ -105,7 +105,7 @@ impl Rig {
     async fn restart(&mut self) {
         let start = Instant::now();
         loop {
-            match sim::spawn(SimConfig {
+            match plcsim::spawn(SimConfig {
                 bind: self.sim_addr,
                 files: Some(self.files.path().to_path_buf()),
                 program: "idle".parse().unwrap(),

@@ -1,17 +1,19 @@
 //! The simulated PLC: demo program, public-file changes, animation, the wire
 //! side under malformed input, the control port and the plcsim binary.
 
+mod common;
+
 use std::time::Duration;
 
-use plccoms::backend::epsnet::codec::encode_packet;
-use plccoms::backend::epsnet::frame::{DataFrame, Frame, Packet};
-use plccoms::backend::epsnet::service::{Request, SETTID};
 use plccoms::backend::epsnet::{EpsnetBackend, EpsnetConfig};
 use plccoms::backend::{PlcBackend, ReadRequest};
-use plccoms::pubfile;
-use plccoms::sim::program::ProgramKind;
-use plccoms::sim::{self, PubSource, SimConfig, DEMO_PUB};
+use plccoms_plc::epsnet::codec::encode_packet;
+use plccoms_plc::epsnet::frame::{DataFrame, Frame, Packet};
+use plccoms_plc::epsnet::service::{Request, SETTID};
+use plccoms_plc::pubfile;
 use plccoms_protocol::Area;
+use plcsim::program::ProgramKind;
+use plcsim::{PubSource, SimConfig, DEMO_PUB};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{TcpStream, UdpSocket};
 
@@ -72,13 +74,13 @@ fn demo_pub_is_complete_and_its_crc_matches() {
         "every IEC type, two STRING sizes: {types:?}"
     );
     assert!(file.vars.iter().any(|v| v.name.contains(&0xEC)));
-    let fixed = pubfile::parse(sim::FIXED_PUB);
+    let fixed = pubfile::parse(plcsim::FIXED_PUB);
     assert_eq!(fixed.vars.len(), 2);
 }
 
 #[tokio::test]
 async fn demo_program_runs_by_name_and_stops_in_halt() {
-    let sim = sim::spawn(SimConfig {
+    let sim = plcsim::spawn(SimConfig {
         bind: local(),
         cycle: Duration::from_millis(5),
         ..SimConfig::default()
@@ -125,7 +127,7 @@ async fn demo_program_runs_by_name_and_stops_in_halt() {
 
 #[tokio::test]
 async fn another_pub_file_changes_pf_crc_and_animation_follows_it() {
-    let sim = sim::spawn(SimConfig {
+    let sim = plcsim::spawn(SimConfig {
         bind: local(),
         program: ProgramKind::Idle,
         animate: vec!["LEVEL*".into(), "Alarm".into()],
@@ -158,7 +160,7 @@ async fn another_pub_file_changes_pf_crc_and_animation_follows_it() {
 
 #[tokio::test]
 async fn malformed_datagrams_never_stop_the_plc() {
-    let sim = sim::spawn(SimConfig {
+    let sim = plcsim::spawn(SimConfig {
         bind: local(),
         program: ProgramKind::Idle,
         ..SimConfig::default()
@@ -217,7 +219,7 @@ async fn malformed_datagrams_never_stop_the_plc() {
             .await
             .expect("the PLC still answers")
             .unwrap();
-        seen.push(plccoms::backend::epsnet::codec::decode_packet(&buf[..n]).unwrap());
+        seen.push(plccoms_plc::epsnet::codec::decode_packet(&buf[..n]).unwrap());
     }
     let by_mesi = |m| seen.iter().find(|p| p.mesi == m).unwrap();
     let e = by_mesi(78);
@@ -233,7 +235,7 @@ async fn malformed_datagrams_never_stop_the_plc() {
 
 #[tokio::test]
 async fn settid_sets_the_plc_clock() {
-    let sim = sim::spawn(SimConfig {
+    let sim = plcsim::spawn(SimConfig {
         bind: local(),
         cycle: Duration::from_millis(5),
         ..SimConfig::default()
@@ -241,7 +243,7 @@ async fn settid_sets_the_plc_clock() {
     .await
     .unwrap();
     let mut plc = backend(sim.local_addr());
-    let t = plccoms::backend::epsnet::service::PlcTime {
+    let t = plccoms_plc::epsnet::service::PlcTime {
         year: 2030,
         month: 6,
         day: 1,
@@ -254,7 +256,7 @@ async fn settid_sets_the_plc_clock() {
     tokio::time::sleep(Duration::from_millis(30)).await;
     let file = pubfile::parse(DEMO_PUB);
     let dat = f64_of(&read(&mut plc, var(&file, "dat")).await);
-    let days = plccoms::plc::time::days_from_civil(2030, 6, 1);
+    let days = plccoms_plc::time::days_from_civil(2030, 6, 1);
     assert_eq!(dat, days as f64 * 86_400.0);
 }
 
@@ -274,7 +276,7 @@ async fn control_port_commands() {
     let dir = tempfile::tempdir().unwrap();
     let other = dir.path().join("other.pub");
     std::fs::write(&other, b" x R B 0 INT\n").unwrap();
-    let sim = sim::spawn(SimConfig {
+    let sim = plcsim::spawn(SimConfig {
         bind: local(),
         control: Some(local()),
         pubfile: PubSource::Bytes(DEMO_PUB.to_vec()),
@@ -321,7 +323,7 @@ async fn plcsim_binary_serves_and_obeys_its_control_port() {
     drop(tcp);
     let pub_path = concat!(env!("CARGO_MANIFEST_DIR"), "/conf/demo.pub");
     let fixed_path = concat!(env!("CARGO_MANIFEST_DIR"), "/conf/FIXED.pub");
-    let mut child = tokio::process::Command::new(env!("CARGO_BIN_EXE_plcsim"))
+    let mut child = tokio::process::Command::new(common::process::plcsim_bin())
         .args(["--bind", &udp_addr.to_string()])
         .args(["--control", &tcp_addr.to_string()])
         .args(["--pub", pub_path, "--fixed", fixed_path])

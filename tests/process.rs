@@ -27,7 +27,7 @@ use std::time::{Duration, Instant};
 use common::process::{free_port, free_udp_port};
 
 const PLCCOMS: &str = env!("CARGO_BIN_EXE_plccoms");
-const PLCSIM: &str = env!("CARGO_BIN_EXE_plcsim");
+
 /// Longest wait for anything: the machine is shared and may be slow.
 const DEADLINE: Duration = Duration::from_secs(20);
 const DEMO_PUB: &[u8] = include_bytes!("../conf/demo.pub");
@@ -322,7 +322,7 @@ impl Plcsim {
     fn spawn(files: &Path, udp: u16, control: u16, program: &str) -> Proc {
         let log = std::fs::File::create(files.join("plcsim.log")).unwrap();
         let mut proc = Proc::spawn(
-            Command::new(PLCSIM)
+            Command::new(common::process::plcsim_bin())
                 .arg("--bind")
                 .arg(format!("127.0.0.1:{udp}"))
                 .arg("--control")
@@ -717,7 +717,7 @@ fn changed_demo_pub() -> Vec<u8> {
         .copied()
         .collect();
     text.extend_from_slice(b" extra R B 300 INT PUB_INOUT\r\n");
-    let crc = plccoms::pubfile::crc_of(&text);
+    let crc = plccoms_plc::pubfile::crc_of(&text);
     text.extend_from_slice(format!(";* Crc=\"{crc:08X}\"\r\n").as_bytes());
     text
 }

@@ -6,7 +6,7 @@ mod common;
 use std::time::Duration;
 
 use common::Client;
-use plccoms::sim::{self, SimConfig, SimHandle};
+use plcsim::{SimConfig, SimHandle};
 
 struct Setup {
     server: plccoms::startup::Server,
@@ -18,8 +18,8 @@ struct Setup {
 
 async fn setup() -> Setup {
     let files = tempfile::tempdir().unwrap();
-    std::fs::write(files.path().join("demo.pub"), sim::DEMO_PUB).unwrap();
-    let sim = sim::spawn(SimConfig {
+    std::fs::write(files.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
+    let sim = plcsim::spawn(SimConfig {
         bind: "127.0.0.1:0".parse().unwrap(),
         files: Some(files.path().to_path_buf()),
         program: "idle".parse().unwrap(),
@@ -85,14 +85,14 @@ async fn a_program_change_reloads_the_public_file_and_keeps_client_settings() {
     c.expect(b"DIFF:SETPOINT,0.000000\r\n").await;
 
     // The PLC gets a new program: v_byte is gone, `extra` is new.
-    let mut new_pub: Vec<u8> = sim::DEMO_PUB
+    let mut new_pub: Vec<u8> = plcsim::DEMO_PUB
         .split(|&b| b == b'\n')
         .filter(|line| !line.starts_with(b" v_byte ") && !line.starts_with(b";*"))
         .flat_map(|line| line.iter().copied().chain(std::iter::once(b'\n')))
         .collect();
     new_pub.truncate(new_pub.len() - 1);
     new_pub.extend_from_slice(b" extra R B 300 INT PUB_INOUT\r\n");
-    let crc = plccoms::pubfile::crc_of(&new_pub);
+    let crc = plccoms_plc::pubfile::crc_of(&new_pub);
     new_pub.extend_from_slice(format!(";* Crc=\"{crc:08X}\"\r\n").as_bytes());
     std::fs::write(s.files.path().join("demo.pub"), &new_pub).unwrap();
     s.sim.load_pub(&new_pub);
@@ -129,7 +129,7 @@ async fn a_program_change_reloads_the_public_file_and_keeps_client_settings() {
         let mut device = sim.lock().unwrap();
         let id = new_pub.windows(7).position(|w| w == b"counter").unwrap();
         let _ = id;
-        let counter = plccoms::pubfile::parse(&new_pub)
+        let counter = plccoms_plc::pubfile::parse(&new_pub)
             .vars
             .into_iter()
             .find(|v| &*v.name == b"counter")

@@ -11,13 +11,13 @@ use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
 use bytes::BytesMut;
-use plccoms::backend::epsnet::codec::{decode_packet, encode_packet, EpsnetCodec};
-use plccoms::backend::epsnet::frame::{Frame as EpsFrame, MAX_PACKET};
-use plccoms::backend::epsnet::service::{answer_frame, decode_answer, PlcTime, Request, Response};
-use plccoms::backend::epsnet::PLC_EPS_ADDR;
 use plccoms::backend::FileInfo;
-use plccoms::plc::{Device, FileStore, MemoryMap};
 use plccoms::vars::VarTable;
+use plccoms_plc::epsnet::codec::{decode_packet, encode_packet, EpsnetCodec};
+use plccoms_plc::epsnet::frame::{Frame as EpsFrame, MAX_PACKET};
+use plccoms_plc::epsnet::service::{answer_frame, decode_answer, PlcTime, Request, Response};
+use plccoms_plc::epsnet::PLC_EPS_ADDR;
+use plccoms_plc::MemoryMap;
 use plccoms_protocol::request::{
     parse_block, parse_getmem, parse_mask_delta, parse_set, parse_setconf, trim,
 };
@@ -25,6 +25,7 @@ use plccoms_protocol::{
     classify, cp1250, parse_direct, Area, Decoder, Delta, FormatOptions, Frame, IecType, Line,
     Mask, Value,
 };
+use plcsim::{Device, FileStore};
 
 // ---------------------------------------------------------------------------
 // Allocation accounting (for the decoder's memory bound).
@@ -412,8 +413,8 @@ pub const FIXED_PUB: &[u8] = include_bytes!("../../conf/FIXED.pub");
 /// A public file, then the variable table a section builds from it with the
 /// fixed file, and with it as the fixed file.
 pub fn pubfile(data: &[u8]) {
-    let parsed = plccoms::pubfile::parse(data);
-    let _ = plccoms::pubfile::crc_of(plccoms::pubfile::crc_content(data));
+    let parsed = plccoms_plc::pubfile::parse(data);
+    let _ = plccoms_plc::pubfile::crc_of(plccoms_plc::pubfile::crc_content(data));
     let lines = data.split(|&b| b == b'\n').count();
     let mut names = HashSet::new();
     for v in &parsed.vars {
@@ -431,7 +432,7 @@ pub fn pubfile(data: &[u8]) {
     }
 
     let map = MemoryMap::FOXTROT;
-    let fixed = plccoms::pubfile::parse(FIXED_PUB);
+    let fixed = plccoms_plc::pubfile::parse(FIXED_PUB);
     let mut warnings = Vec::new();
     let table = VarTable::build(
         "FIXED.pub",
@@ -614,7 +615,7 @@ pub fn epsnet_device(data: &[u8]) {
 }
 
 fn one_datagram(datagram: &[u8], device: &mut Device, clock_offset: &mut f64) {
-    let answer = plccoms::sim::server::handle_datagram(datagram, device, clock_offset);
+    let answer = plcsim::server::handle_datagram(datagram, device, clock_offset);
     let Ok(request) = decode_packet(datagram) else {
         assert!(answer.is_none(), "answered a datagram that does not decode");
         return;

@@ -9,7 +9,7 @@ use super::{
     Answer, DirEntry, Exception, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest,
     WriteRequest,
 };
-use crate::plc::{Device, FileStore};
+use plcsim::{Device, FileStore};
 
 /// Same block limit as EPSNET, so plans made against this backend are the
 /// plans a real PLC gets.
@@ -130,7 +130,7 @@ impl PlcBackend for MemoryBackend {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::plc::MemoryMap;
+    use plccoms_plc::MemoryMap;
 
     #[tokio::test]
     async fn files_go_to_the_device_store() {

@@ -8,10 +8,15 @@
 pub mod epsnet;
 pub mod memory;
 
-use std::fmt;
-
 use async_trait::async_trait;
 use plccoms_protocol::Area;
+
+pub use plccoms_plc::epsnet::Exception;
+pub use plccoms_plc::files::{
+    DirEntry, FileInfo, FILE_ATTRIBUTE_ARCHIVE, FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_HIDDEN,
+    FILE_ATTRIBUTE_READONLY, FILE_ATTRIBUTE_SYSTEM,
+};
+pub use plccoms_plc::memory::WriteData;
 
 /// A block of PLC memory to read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -21,68 +26,11 @@ pub struct ReadRequest {
     pub len: u32,
 }
 
-/// What a write puts into memory: whole bytes, or one bit of one byte (so two
-/// BOOLs sharing a byte never overwrite each other).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum WriteData {
-    Bytes(Vec<u8>),
-    Bit { bit: u8, value: bool },
-}
-
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct WriteRequest {
     pub area: Area,
     pub offset: u32,
     pub data: WriteData,
-}
-
-/// An error byte the PLC answered with (EPSNET's public error codes).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum Exception {
-    UnknownService,
-    NotActivated,
-    PasswordBlocked,
-    NotReady,
-    /// Wrong service parameters; also reading past the end of an area.
-    BadParameters,
-    Other(u8),
-}
-
-impl Exception {
-    pub fn from_byte(byte: u8) -> Exception {
-        match byte {
-            0x02 => Exception::UnknownService,
-            0x03 => Exception::NotActivated,
-            0x04 => Exception::PasswordBlocked,
-            0x09 => Exception::NotReady,
-            0x0C => Exception::BadParameters,
-            other => Exception::Other(other),
-        }
-    }
-
-    pub fn to_byte(self) -> u8 {
-        match self {
-            Exception::UnknownService => 0x02,
-            Exception::NotActivated => 0x03,
-            Exception::PasswordBlocked => 0x04,
-            Exception::NotReady => 0x09,
-            Exception::BadParameters => 0x0C,
-            Exception::Other(byte) => byte,
-        }
-    }
-}
-
-impl fmt::Display for Exception {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            Exception::UnknownService => f.write_str("unknown service (0x02)"),
-            Exception::NotActivated => f.write_str("service not activated (0x03)"),
-            Exception::PasswordBlocked => f.write_str("service blocked by password (0x04)"),
-            Exception::NotReady => f.write_str("data not ready (0x09)"),
-            Exception::BadParameters => f.write_str("wrong service parameters (0x0C)"),
-            Exception::Other(byte) => write!(f, "error byte 0x{byte:02X}"),
-        }
-    }
 }
 
 /// The link to the PLC failed: nothing is known about what the PLC did.
@@ -109,30 +57,6 @@ pub type Answer<T> = Result<T, Exception>;
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct PlcStatus {
     pub run: bool,
-}
-
-/// File attributes and times as PLCComS reports them (GETFILEINFO). Times are
-/// the 8-byte `ttida` structure packed little-endian into a u64: year-1900,
-/// month, day, hour, minute, second, 0, 0.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct FileInfo {
-    pub size: u64,
-    pub attributes: u32,
-    pub created: u64,
-    pub modified: u64,
-}
-
-pub const FILE_ATTRIBUTE_READONLY: u32 = 0x01;
-pub const FILE_ATTRIBUTE_HIDDEN: u32 = 0x02;
-pub const FILE_ATTRIBUTE_SYSTEM: u32 = 0x04;
-pub const FILE_ATTRIBUTE_DIRECTORY: u32 = 0x10;
-pub const FILE_ATTRIBUTE_ARCHIVE: u32 = 0x20;
-
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct DirEntry {
-    /// cp1250 bytes, as the PLC names it.
-    pub name: Vec<u8>,
-    pub info: FileInfo,
 }
 
 /// One PLC, reached some way. The server owns one per PLC section, driven by

@@ -8,9 +8,9 @@ use tracing::{info, warn};
 
 use crate::backend::PlcBackend;
 use crate::config::Section;
-use crate::plc::MemoryMap;
-use crate::pubfile::{self, PubFile};
 use crate::vars::VarTable;
+use plccoms_plc::pubfile::{self, PubFile};
+use plccoms_plc::MemoryMap;
 
 /// Largest public file fetched from a PLC.
 const MAX_PUBFILE: u64 = 64 * 1024 * 1024;

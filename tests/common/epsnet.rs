@@ -7,9 +7,9 @@ use std::time::Duration;
 use plccoms::backend::epsnet::{EpsnetBackend, EpsnetConfig};
 use plccoms::backend::WriteData;
 use plccoms::server::{start_section, RunningSection};
-use plccoms::sim::program::ProgramKind;
-use plccoms::sim::{self, SimConfig, SimHandle};
 use plccoms_protocol::Area;
+use plcsim::program::ProgramKind;
+use plcsim::{SimConfig, SimHandle};
 
 use super::Client;
 
@@ -32,7 +32,7 @@ pub const FAST_LINK: Link = Link {
 };
 
 pub async fn spawn_sim(bind: SocketAddr, program: ProgramKind) -> SimHandle {
-    sim::spawn(SimConfig {
+    plcsim::spawn(SimConfig {
         bind,
         program,
         ..SimConfig::default()
@@ -48,8 +48,11 @@ pub fn any_port() -> SocketAddr {
 /// A section serving `conf/demo.pub` (with the fixed file) from the PLC at
 /// `plc`, configured by the `[*]` keys in `global_ini`.
 pub async fn start_server(plc: SocketAddr, global_ini: &str, link: Link) -> RunningSection {
-    let (global, section, table) =
-        super::section_parts(global_ini, sim::FIXED_PUB, ("demo.pub", sim::DEMO_PUB));
+    let (global, section, table) = super::section_parts(
+        global_ini,
+        plcsim::FIXED_PUB,
+        ("demo.pub", plcsim::DEMO_PUB),
+    );
     let mut eps = EpsnetConfig::new(plc);
     eps.local_ip = "127.0.0.1".parse().unwrap();
     eps.timeout = Duration::from_millis(link.timeout_ms);

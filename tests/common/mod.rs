@@ -12,10 +12,11 @@ use std::time::Duration;
 
 use plccoms::backend::memory::MemoryBackend;
 use plccoms::config;
-use plccoms::plc::{Device, MemoryMap};
-use plccoms::pubfile;
 use plccoms::server::{start_section, RunningSection};
 use plccoms::vars::VarTable;
+use plccoms_plc::pubfile;
+use plccoms_plc::MemoryMap;
+use plcsim::Device;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
@@ -66,7 +67,7 @@ pub struct TestServer {
 /// The simulator's demo.pub with one more variable, `extra` (INT at R300),
 /// and no CRC trailer: a changed user program.
 pub fn demo_pub_with_extra() -> Vec<u8> {
-    let mut text: Vec<u8> = plccoms::sim::DEMO_PUB
+    let mut text: Vec<u8> = plcsim::DEMO_PUB
         .split_inclusive(|&b| b == b'\n')
         .filter(|line| !line.starts_with(b";*"))
         .flatten()
@@ -121,7 +122,7 @@ pub async fn start_on(
     let root = tempfile::tempdir().expect("root dir");
     let plc_files = tempfile::tempdir().expect("plc files dir");
     device.lock().unwrap().files =
-        Some(plccoms::plc::FileStore::open(plc_files.path()).expect("file store"));
+        Some(plcsim::FileStore::open(plc_files.path()).expect("file store"));
     let backend = backend.unwrap_or_else(|| Box::new(MemoryBackend::new(device.clone())));
     let section = start_section(
         global,

@@ -13,6 +13,35 @@ use std::time::{Duration, Instant};
 /// The binary under test, as cargo built it for this test run.
 pub const PLCCOMS: &str = env!("CARGO_BIN_EXE_plccoms");
 
+/// The `plcsim` binary of this build. It belongs to another workspace crate,
+/// so cargo does not hand its path to these tests: it sits beside `plccoms`,
+/// and is built here when a narrower `cargo test -p plccoms` left it out.
+pub fn plcsim_bin() -> std::path::PathBuf {
+    static BUILT: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
+    BUILT
+        .get_or_init(|| {
+            let dir = std::path::Path::new(PLCCOMS).parent().expect("bin dir");
+            let bin = dir.join("plcsim");
+            if !bin.exists() {
+                let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+                let profile = if dir.ends_with("release") {
+                    vec!["--release"]
+                } else {
+                    vec![]
+                };
+                let status = std::process::Command::new(cargo)
+                    .args(["build", "-p", "plcsim", "--bin", "plcsim"])
+                    .args(profile)
+                    .current_dir(env!("CARGO_MANIFEST_DIR"))
+                    .status()
+                    .expect("run cargo build -p plcsim");
+                assert!(status.success(), "cargo build -p plcsim failed");
+            }
+            bin
+        })
+        .clone()
+}
+
 /// How long a server gets from spawn to accepting connections.
 pub const START_TIMEOUT: Duration = Duration::from_secs(10);
 

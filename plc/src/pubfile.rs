@@ -442,7 +442,7 @@ mod tests {
 
     #[test]
     fn vendor_fixed_file() {
-        let file = parse(include_bytes!("../tests/data/vendor/FIXED_Foxtrot.pub"));
+        let file = parse(include_bytes!("../../tests/data/vendor/FIXED_Foxtrot.pub"));
         assert!(file.warnings.is_empty(), "{:?}", file.warnings);
         assert_eq!(file.crc, None);
         assert_eq!(

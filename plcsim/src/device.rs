@@ -4,9 +4,9 @@
 
 use plccoms_protocol::Area;
 
-use super::files::FileStore;
-use super::image::{MemoryImage, MemoryMap};
-use crate::backend::{Exception, WriteData};
+use plccoms_plc::{Exception, MemoryImage, MemoryMap, WriteData};
+
+use crate::store::FileStore;
 
 /// Byte and bit of `__PLC_RUN`, and byte of `__PF_CRC`, in the S area (as the
 /// vendor's fixed public files place them).

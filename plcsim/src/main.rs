@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use clap::Parser;
-use plccoms::sim::{self, program::ProgramKind, PubSource, SimConfig};
+use plcsim::{program::ProgramKind, PubSource, SimConfig};
 
 /// A simulated Tecomat PLC that speaks EPSNET over UDP, for testing plccoms
 /// (or the vendor's server) without hardware.
@@ -123,7 +123,7 @@ async fn main() -> std::process::ExitCode {
     if let Some(ident) = args.ident {
         config.ident = ident;
     }
-    let handle = match sim::spawn(config).await {
+    let handle = match plcsim::spawn(config).await {
         Ok(handle) => handle,
         Err(e) => {
             eprintln!("plcsim: {e}");

@@ -1,7 +1,7 @@
 //! EPSNET over UDP: the backend that talks to a Tecomat PLC (or `plcsim`).
 //!
-//! Layers: [`frame`] (plain data) -> [`codec`] (bytes <-> packets) ->
-//! [`service`] (requests and answers, the one table of service codes) -> this
+//! Layers (in the `plccoms-plc` crate): `frame` (plain data) -> `codec`
+//! (bytes <-> packets) -> `service` (requests and answers, the one table of service codes) -> this
 //! module (the client: packing, matching, retries).
 //!
 //! How a batch travels:
@@ -19,10 +19,6 @@
 //! - a datagram unanswered within `timeout + step * attempt` is sent again, up
 //!   to `retries` times, then the batch fails with [`PlcError::Timeout`].
 
-pub mod codec;
-pub mod frame;
-pub mod service;
-
 use std::collections::HashMap;
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::ops::Range;
@@ -33,16 +29,16 @@ use async_trait::async_trait;
 use tokio::net::UdpSocket;
 use tokio::time::Instant;
 
-use self::frame::{Frame, Packet, MAX_DPLEN, MAX_PACKET};
-use self::service::{PlcTime, Request, Response, MAX_FILE_BLOCK, MAX_PATH, MAX_READ};
 use super::{
     Answer, DirEntry, Exception, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteData,
     WriteRequest,
 };
+use plccoms_plc::epsnet::frame::{Frame, Packet, MAX_DPLEN, MAX_PACKET};
+use plccoms_plc::epsnet::service::{
+    PlcTime, Request, Response, MAX_FILE_BLOCK, MAX_PATH, MAX_READ,
+};
+use plccoms_plc::epsnet::{codec, service, PLC_EPS_ADDR};
 use plccoms_protocol::cp1250;
-
-/// EPSNET address of the PLC itself (DA of every request).
-pub const PLC_EPS_ADDR: u8 = 0;
 
 /// Settings of one EPSNET link (the PLC section's INI keys).
 #[derive(Debug, Clone)]
@@ -715,7 +711,7 @@ mod tests {
         assert_eq!(plan.len(), 5);
         for range in plan {
             let answer: usize = requests[range].iter().map(Request::max_answer_len).sum();
-            assert!(frame::packet_len(answer) <= MAX_PACKET);
+            assert!(plccoms_plc::epsnet::frame::packet_len(answer) <= MAX_PACKET);
         }
         let small: Vec<Request> = (0..50)
             .map(|i| Request::Read {

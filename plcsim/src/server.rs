@@ -6,14 +6,15 @@
 //! what is not for it. A well-formed frame with an unknown or malformed
 //! request is answered with the PLC's error byte.
 
-use crate::backend::epsnet::codec;
-use crate::backend::epsnet::frame::{Frame, Packet, MAX_DPLEN};
-use crate::backend::epsnet::service::{
+use plccoms_plc::epsnet::codec;
+use plccoms_plc::epsnet::frame::{Frame, Packet, MAX_DPLEN};
+use plccoms_plc::epsnet::service::{
     self, answer_frame, dir_entry_len, Request, Response, MAX_DIR_PAGE, MAX_FILE_BLOCK, MAX_READ,
 };
-use crate::backend::epsnet::PLC_EPS_ADDR;
-use crate::backend::{Exception, WriteData};
-use crate::plc::{time, Device};
+use plccoms_plc::epsnet::PLC_EPS_ADDR;
+use plccoms_plc::{time, Exception, WriteData};
+
+use crate::Device;
 use plccoms_protocol::cp1250;
 
 /// Runs one request against the device. `clock_offset` is the PLC clock's
@@ -124,7 +125,7 @@ pub fn execute(
     }
 }
 
-fn files(device: &mut Device) -> Result<&mut crate::plc::FileStore, Exception> {
+fn files(device: &mut Device) -> Result<&mut crate::FileStore, Exception> {
     device.files.as_mut().ok_or(Exception::NotActivated)
 }
 
@@ -213,7 +214,7 @@ impl Rng {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::plc::MemoryMap;
+    use plccoms_plc::MemoryMap;
     use plccoms_protocol::Area;
 
     fn request_packet(requests: &[Request]) -> Vec<u8> {
@@ -294,7 +295,7 @@ mod tests {
         };
         let bytes = request_packet(&[read.clone(), read.clone()]);
         let answer = handle_datagram(&bytes, &mut device, &mut clock).unwrap();
-        assert!(answer.len() <= crate::backend::epsnet::frame::MAX_PACKET);
+        assert!(answer.len() <= plccoms_plc::epsnet::frame::MAX_PACKET);
         let packet = codec::decode_packet(&answer).unwrap();
         let errors = packet
             .frames

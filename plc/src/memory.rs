@@ -1,8 +1,17 @@
-//! A byte image of PLC memory, one buffer per area.
+//! PLC memory: the areas' sizes, a byte image of them, and what a write
+//! puts into it.
 
 use plccoms_protocol::Area;
 
-use crate::backend::{Exception, WriteData};
+use crate::epsnet::Exception;
+
+/// What a write puts into memory: whole bytes, or one bit of one byte (so two
+/// BOOLs sharing a byte never overwrite each other).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum WriteData {
+    Bytes(Vec<u8>),
+    Bit { bit: u8, value: bool },
+}
 
 /// Size of each memory area in bytes. Not public for real PLCs; these are the
 /// sizes of current Foxtrot CPUs as far as public files show them (R up to

@@ -40,7 +40,8 @@
 use plccoms_protocol::Area;
 
 use super::frame::{data_frame_len, DataFrame, Frame};
-use crate::backend::{DirEntry, Exception, FileInfo};
+use super::Exception;
+use crate::files::{DirEntry, FileInfo};
 
 /// Function code of every request (public for SETTID, adopted for the rest).
 pub const FC_REQUEST: u8 = 0x63;

@@ -15,7 +15,7 @@
 
 use plccoms_protocol::{Area, IecType};
 
-use crate::plc::MemoryImage;
+use plccoms_plc::MemoryImage;
 
 /// A variable the program can address: name, place and type.
 #[derive(Debug, Clone, PartialEq)]
@@ -305,7 +305,7 @@ pub fn write_f64(image: &mut MemoryImage, v: &ProgVar, x: f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::plc::MemoryMap;
+    use plccoms_plc::MemoryMap;
 
     fn var(name: &str, offset: u32, bit: Option<u8>, ty: IecType) -> ProgVar {
         ProgVar {

@@ -300,8 +300,8 @@ fn write_ini(dir: &Path, port: u16) -> PathBuf {
         "[*]\nCOMM_LOOP_DELAY = 50\nNET_CONNECT_MAX = 64\n\n[Soak]\nIPADDR = 127.0.0.1\nIPADDR_LOCAL = 127.0.0.1\nEPSPORT = {}\nEPSTOUT = 300\nEPSTOUT_STEP = 100\nSERVER_PORT = {port}\nPUBFILE_FIXED = FIXED.pub\nPUBFILE = //demo.pub\n",
         port + 1,
     );
-    std::fs::write(dir.join("FIXED.pub"), plccoms::sim::FIXED_PUB).unwrap();
-    std::fs::write(dir.join("demo.pub"), plccoms::sim::DEMO_PUB).unwrap();
+    std::fs::write(dir.join("FIXED.pub"), plcsim::FIXED_PUB).unwrap();
+    std::fs::write(dir.join("demo.pub"), plcsim::DEMO_PUB).unwrap();
     let path = dir.join("PLCComS.ini");
     std::fs::write(&path, ini).unwrap();
     path

@@ -112,7 +112,7 @@ fn main() -> ExitCode {
             Scenario::Memory(a) => scenarios::memory(a).await,
             Scenario::Startup(a) => scenarios::startup(a).await,
             Scenario::Genpub(a) => {
-                let bytes = plccoms::sim::genpub::generate(&plccoms::sim::genpub::Layout {
+                let bytes = plcsim::genpub::generate(&plcsim::genpub::Layout {
                     vars: a.vars,
                     animated: a.animated,
                     setvars: a.setvars,

@@ -177,13 +177,13 @@ async fn client(shared: Arc<Shared>, mut conn: LineConn) -> std::io::Result<Clie
 pub async fn run(args: FanoutArgs) -> Result<(), String> {
     let addr = args.common.addr;
     check_loopback(addr)?;
-    let file = plccoms::pubfile::load(&args.pubfile)
+    let file = plccoms_plc::pubfile::load(&args.pubfile)
         .map_err(|e| format!("{}: {e}", args.pubfile.display()))?;
     let mut names = Names::default();
     let mut watched = Vec::new();
     for (i, v) in file.vars.iter().enumerate() {
         let upper = plccoms_protocol::cp1250::to_upper(&v.name);
-        let anim = if plccoms::sim::program::mask_matches(args.animated.as_bytes(), &v.name)
+        let anim = if plcsim::program::mask_matches(args.animated.as_bytes(), &v.name)
             && !v.ty.is_string()
             && v.ty.size() >= 2
         {

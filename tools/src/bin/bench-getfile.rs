@@ -12,11 +12,11 @@ use std::time::Instant;
 
 use plccoms::backend::epsnet::{EpsnetBackend, EpsnetConfig};
 use plccoms::config;
-use plccoms::plc::MemoryMap;
-use plccoms::pubfile;
 use plccoms::server::start_section;
-use plccoms::sim::{self, program::ProgramKind, SimConfig};
 use plccoms::vars::VarTable;
+use plccoms_plc::pubfile;
+use plccoms_plc::MemoryMap;
+use plcsim::{program::ProgramKind, SimConfig};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
@@ -101,7 +101,7 @@ async fn main() {
     make_file(&root.join("big.bin"), local_mib);
     make_file(&plc.join("big.bin"), plc_mib);
 
-    let sim = sim::spawn(SimConfig {
+    let sim = plcsim::spawn(SimConfig {
         bind: "127.0.0.1:0".parse().unwrap(),
         program: ProgramKind::Idle,
         files: Some(plc.clone()),

@@ -8,9 +8,14 @@
 //! adds a loopback TCP control port ([`control`]).
 
 pub mod control;
+pub mod device;
 pub mod genpub;
 pub mod program;
 pub mod server;
+pub mod store;
+
+pub use device::Device;
+pub use store::FileStore;
 
 use std::io;
 use std::net::{Ipv4Addr, SocketAddr};
@@ -24,10 +29,10 @@ use tokio::task::JoinHandle;
 
 use self::program::{ProgVar, Program, ProgramKind};
 use self::server::Rng;
-use crate::backend::epsnet::frame::{DEFAULT_PORT, MAX_PACKET};
-use crate::plc::device::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
-use crate::plc::{time, Device, FileStore, MemoryMap};
-use crate::pubfile;
+use plccoms_plc::epsnet::frame::{DEFAULT_PORT, MAX_PACKET};
+use plccoms_plc::{pubfile, time, MemoryMap};
+
+use crate::device::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
 
 /// The demo program's public file, built in (same bytes as `conf/demo.pub`).
 pub const DEMO_PUB: &[u8] = include_bytes!("../../conf/demo.pub");
@@ -86,7 +91,7 @@ impl Default for SimConfig {
             latency: Duration::ZERO,
             cycle: Duration::from_millis(10),
             control: None,
-            ident: crate::plc::device::DEFAULT_IDENT.to_string(),
+            ident: crate::device::DEFAULT_IDENT.to_string(),
             map: MemoryMap::FOXTROT,
             seed: None,
         }

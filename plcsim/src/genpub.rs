@@ -59,7 +59,7 @@ pub fn generate(layout: &Layout) -> Vec<u8> {
         offset += sizes[k];
     }
     let mut bytes = text.into_bytes();
-    let crc = crate::pubfile::crc_of(crate::pubfile::crc_content(&bytes));
+    let crc = plccoms_plc::pubfile::crc_of(plccoms_plc::pubfile::crc_content(&bytes));
     bytes.extend_from_slice(format!(";* Crc=\"{crc:08X}\"\n").as_bytes());
     bytes
 }
@@ -67,7 +67,7 @@ pub fn generate(layout: &Layout) -> Vec<u8> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pubfile;
+    use plccoms_plc::pubfile;
 
     #[test]
     fn a_generated_project_parses_cleanly_with_its_crc() {

@@ -15,11 +15,11 @@ use std::io::{self, Read, Seek, SeekFrom, Write};
 use std::path::{Component, Path, PathBuf};
 use std::time::{Duration, Instant, UNIX_EPOCH};
 
-use super::time;
-use crate::backend::{
-    DirEntry, Exception, FileInfo, FILE_ATTRIBUTE_ARCHIVE, FILE_ATTRIBUTE_DIRECTORY,
-    FILE_ATTRIBUTE_HIDDEN, FILE_ATTRIBUTE_READONLY,
+use plccoms_plc::files::{
+    DirEntry, FileInfo, FILE_ATTRIBUTE_ARCHIVE, FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_HIDDEN,
+    FILE_ATTRIBUTE_READONLY,
 };
+use plccoms_plc::{time, Exception};
 use plccoms_protocol::cp1250;
 
 /// Name prefix of staging files; hidden from listings and unreachable by path.

@@ -30,17 +30,19 @@ use clap::Parser;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpStream, UdpSocket};
 
-use plccoms::backend::epsnet::frame::MAX_PACKET;
-use plccoms::backend::epsnet::{codec, EpsnetBackend, EpsnetConfig};
+use plccoms::backend::epsnet::{EpsnetBackend, EpsnetConfig};
 use plccoms::backend::{
     Answer, DirEntry, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteRequest,
 };
-use plccoms::plc::MemoryMap;
+use plccoms::config;
 use plccoms::server::start_section;
-use plccoms::sim::program::ProgramKind;
-use plccoms::sim::{self, PubSource, SimConfig};
 use plccoms::vars::VarTable;
-use plccoms::{config, pubfile};
+use plccoms_plc::epsnet::codec;
+use plccoms_plc::epsnet::frame::MAX_PACKET;
+use plccoms_plc::pubfile;
+use plccoms_plc::MemoryMap;
+use plcsim::program::ProgramKind;
+use plcsim::{PubSource, SimConfig};
 
 /// Measures poll cycles of a generated large project against the simulated
 /// PLC over EPSNET/UDP on 127.0.0.1 and prints a markdown report.
@@ -444,7 +446,7 @@ async fn run(
     count: bool,
     cycles_wanted: usize,
 ) -> Run {
-    let sim = sim::spawn(SimConfig {
+    let sim = plcsim::spawn(SimConfig {
         bind: "127.0.0.1:0".parse().unwrap(),
         pubfile: PubSource::Bytes(layout.text.clone()),
         program: ProgramKind::Idle,
@@ -473,7 +475,7 @@ async fn run(
     let mut warnings = Vec::new();
     let table = VarTable::build(
         "FIXED.pub",
-        &pubfile::parse(sim::FIXED_PUB),
+        &pubfile::parse(plcsim::FIXED_PUB),
         Some(("bench.pub", &pubfile::parse(&layout.text))),
         &MemoryMap::FOXTROT,
         &mut warnings,
@@ -656,7 +658,7 @@ async fn main() {
         .sum();
     // An answer datagram carries at most MAX_DPLEN bytes: one 1230-byte
     // READ answer (13 bytes of frame) and a second, smaller one.
-    let per_datagram = (plccoms::backend::epsnet::frame::MAX_DPLEN - 2 * 13) as u64;
+    let per_datagram = (plccoms_plc::epsnet::frame::MAX_DPLEN - 2 * 13) as u64;
     let min_datagrams = all_bytes.div_ceil(per_datagram);
     let _ = writeln!(
         out,

@@ -14,9 +14,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use plccoms::backend::epsnet::codec::decode_packet;
-use plccoms::backend::epsnet::frame::Frame;
-use plccoms::backend::epsnet::service::{decode_answer, Request, Response};
+use plccoms_plc::epsnet::codec::decode_packet;
+use plccoms_plc::epsnet::frame::Frame;
+use plccoms_plc::epsnet::service::{decode_answer, Request, Response};
 use plccoms_protocol::Area;
 use tokio::net::UdpSocket;
 

@@ -438,16 +438,16 @@ pub fn min_reads(mut ranges: Vec<(Area, u32, u32)>, max: u32) -> u64 {
 pub async fn poll(args: PollArgs) -> Result<(), String> {
     let addr = args.common.addr;
     check_loopback(addr)?;
-    let user = plccoms::pubfile::load(&args.pubfile)
+    let user = plccoms_plc::pubfile::load(&args.pubfile)
         .map_err(|e| format!("{}: {e}", args.pubfile.display()))?;
-    let fixed = plccoms::pubfile::parse(plccoms::sim::FIXED_PUB);
+    let fixed = plccoms_plc::pubfile::parse(plcsim::FIXED_PUB);
     let ranges: Vec<(Area, u32, u32)> = user
         .vars
         .iter()
         .chain(&fixed.vars)
         .map(|v| (v.area, v.offset, v.ty.size() as u32))
         .collect();
-    let minimum = min_reads(ranges, plccoms::backend::epsnet::service::MAX_READ);
+    let minimum = min_reads(ranges, plccoms_plc::epsnet::service::MAX_READ);
     let obs = start_proxy(&args.proxy, addr, Vec::new()).await?;
     let mut conn = LineConn::connect(addr).await.map_err(|e| e.to_string())?;
     conn.command("SETCONF:diff,no", b"SETCONF:")
