@@ -1,20 +1,33 @@
 //! plccoms: an open drop-in replacement for PLCComS, the communication server
-//! of Tecomat PLCs.
+//! of Tecomat PLCs, and a gateway around PLCs.
 //!
-//! Layout: `config` and `pubfile` read the files; `vars` is a section's
-//! variable table; `backend` is the one interface to a PLC (and `plc` the
-//! device model the in-process backend uses); `poller` reads the PLC and
-//! serves direct requests; `fanout` publishes what it read; `session` serves a
-//! client and `cmd` holds one module per protocol command; `server` listens.
+//! Layout, from the wire inwards:
+//! - `server` listens, one port per section; `session` serves one client:
+//!   framing, the ordered answer queue and every "wait behind" rule;
+//! - `cmd` holds one module per protocol command, all of one shape
+//!   (`run(&mut Cx, args, ..) -> Reply`); `client` is one client's view of
+//!   the variable table (enabled, hidden, deltas, DIFFs owed);
+//! - `section` is a running section (live state, clients); `changes` is its
+//!   change stream (snapshots, quality, subscriptions for in-process
+//!   consumers);
+//! - `link` is the task that owns a section's backend: health, poll cycle,
+//!   client jobs, SETCONF, file transfers, public-file tables;
+//! - `backend` is the one interface to a PLC, chosen by `PROTOCOL`;
+//! - `config` reads the INI file, `vars` is a section's variable table.
+//!
+//! The line protocol (`plccoms-protocol`), the PLC model and EPSNET wire
+//! format (`plccoms-plc`) and the simulated PLC (`plcsim`) are crates of
+//! their own.
 
 pub mod backend;
+pub mod changes;
 pub mod cli;
+pub mod client;
 pub mod cmd;
 pub mod config;
 pub mod daemon;
-pub mod fanout;
+pub mod link;
 pub mod localfs;
-pub mod poller;
 pub mod section;
 pub mod server;
 pub mod session;

@@ -22,36 +22,36 @@ use tracing::{info, warn};
 use plccoms_protocol::answer::{write_error, ErrorCode};
 
 use crate::backend::PlcBackend;
-use crate::config::{Global, Section};
-use crate::fanout::Publisher;
-use crate::poller::reload::{PubSource, UserFile};
-use crate::poller::{self, FileSettings, Poller};
-use crate::section::SectionShared;
+use crate::changes::Publisher;
+use crate::config::{Global, Section as SectionConfig};
+use crate::link::files::FileSettings;
+use crate::link::{self, Link, LinkSetup, Tables};
+use crate::section::Section;
 use crate::session::Session;
 use crate::vars::VarTable;
 
 /// A section that is serving clients.
 pub struct RunningSection {
-    pub shared: Arc<SectionShared>,
+    pub section: Arc<Section>,
     pub local_addr: SocketAddr,
     accept: JoinHandle<()>,
-    poller_stop: CancellationToken,
-    poller_thread: std::thread::JoinHandle<()>,
+    link_stop: CancellationToken,
+    link_thread: std::thread::JoinHandle<()>,
     sessions: TaskTracker,
 }
 
 impl RunningSection {
-    /// Stops accepting and polling. Sessions end when their poller is gone.
+    /// Stops accepting and polling. Sessions end when their link is gone.
     pub fn abort(&self) {
         self.stop_accepting();
-        self.poller_stop.cancel();
+        self.link_stop.cancel();
     }
 
     /// Stops accepting and tells every session to close once it has
-    /// answered what it received; the poller keeps serving their reads.
+    /// answered what it received; the link keeps serving their reads.
     pub fn stop_accepting(&self) {
         self.accept.abort();
-        self.shared.shutdown.cancel();
+        self.section.shutdown.cancel();
         self.sessions.close();
     }
 
@@ -62,18 +62,18 @@ impl RunningSection {
             .await
             .is_err()
         {
-            warn!(section = %self.shared.name, "{} session(s) still busy at shutdown", self.sessions.len());
+            warn!(section = %self.section.name, "{} session(s) still busy at shutdown", self.sessions.len());
         }
     }
 
-    /// Waits, at most `grace`, for the poll thread to finish what it is doing
-    /// with the PLC after [`RunningSection::abort`], so that nothing it logs
-    /// comes after the server says it stopped.
-    pub async fn wait_poller(&self, grace: Duration) {
+    /// Waits, at most `grace`, for the link's thread to finish what it is
+    /// doing with the PLC after [`RunningSection::abort`], so that nothing it
+    /// logs comes after the server says it stopped.
+    pub async fn wait_link(&self, grace: Duration) {
         let start = tokio::time::Instant::now();
-        while !self.poller_thread.is_finished() {
+        while !self.link_thread.is_finished() {
             if start.elapsed() >= grace {
-                warn!(section = %self.shared.name, "the poll thread is still waiting for the PLC at shutdown");
+                warn!(section = %self.section.name, "the link's thread is still waiting for the PLC at shutdown");
                 return;
             }
             tokio::time::sleep(Duration::from_millis(5)).await;
@@ -87,53 +87,51 @@ impl Drop for RunningSection {
     }
 }
 
-/// Starts serving one section: its poller on `backend` (none: no PLC yet)
-/// and a listener on `bind`. `config_dir` is the configuration file's
-/// folder, the root of the section's local files.
+/// Starts serving one section: its link on `backend` (none: no PLC yet)
+/// and a listener on `bind`, at once, whatever the PLC does. `config_dir` is
+/// the configuration file's folder, the root of the section's local files;
+/// `tables` how to (re)load its public files (`None`: `table` stays).
 pub async fn start_section(
     global: Arc<Global>,
-    config: Section,
+    config: SectionConfig,
     table: VarTable,
     backend: Option<Box<dyn PlcBackend>>,
     bind: SocketAddr,
     config_dir: PathBuf,
-    reload: Option<(PubSource, Option<UserFile>)>,
+    tables: Option<Tables>,
 ) -> io::Result<RunningSection> {
     let listener = listen(bind)?;
     let local_addr = listener.local_addr()?;
     let format = crate::section::format_options(&global);
-    let (publisher, snapshots) = Publisher::new(Arc::new(table), format);
+    let fresh_for = link::fresh_for(global.comm_loop_delay, config.epstout);
+    let (publisher, changes) = Publisher::new(Arc::new(table), format, fresh_for);
     let eol: &'static [u8] = if global.end_line_crlf { b"\r\n" } else { b"\n" };
     let publisher = publisher.with_diff_block(eol);
-    let (poller, handle) = Poller::new(
-        config.name.clone(),
+    let (link, handle, state) = Link::new(LinkSetup {
+        name: config.name.clone(),
         backend,
         publisher,
-        global.comm_loop_delay,
-    );
-    let poller = poller.with_file_settings(FileSettings {
-        cache_recs: global.ffile_maxrecs,
-        cache_timeout: global.ffile_timeout,
-        sync_var_enabled: global.sync_var_enabled,
+        config,
+        loop_delay: global.comm_loop_delay,
+        files: FileSettings {
+            cache_recs: global.ffile_maxrecs,
+            cache_timeout: global.ffile_timeout,
+            sync_var_enabled: global.sync_var_enabled,
+        },
+        tables,
     });
-    let poller = match reload {
-        Some((source, user)) => poller.with_source(source, user),
-        None => poller,
-    };
-    let poller_stop = poller.stop_token();
-    let poller_thread = poller::spawn_thread(poller, global.comm_sched_pri)?;
-    let shared = Arc::new(SectionShared::new(
-        global, config, handle, snapshots, config_dir,
-    ));
+    let link_stop = link.stop_token();
+    let link_thread = link::spawn_thread(link, global.comm_sched_pri)?;
+    let section = Arc::new(Section::new(global, handle, changes, state, config_dir));
     let sessions = TaskTracker::new();
-    let accept = tokio::spawn(accept_loop(listener, shared.clone(), sessions.clone()));
-    info!(section = %shared.name, listen = %local_addr, "listening");
+    let accept = tokio::spawn(accept_loop(listener, section.clone(), sessions.clone()));
+    info!(section = %section.name, listen = %local_addr, "listening");
     Ok(RunningSection {
-        shared,
+        section,
         local_addr,
         accept,
-        poller_stop,
-        poller_thread,
+        link_stop,
+        link_thread,
         sessions,
     })
 }
@@ -194,7 +192,7 @@ impl RefusalLog {
     }
 }
 
-async fn accept_loop(listener: TcpListener, shared: Arc<SectionShared>, sessions: TaskTracker) {
+async fn accept_loop(listener: TcpListener, section: Arc<Section>, sessions: TaskTracker) {
     let mut refusals = RefusalLog {
         last: None,
         quiet: 0,
@@ -204,35 +202,35 @@ async fn accept_loop(listener: TcpListener, shared: Arc<SectionShared>, sessions
             Ok(accepted) => accepted,
             Err(err) => {
                 // Out of descriptors and the like: wait instead of spinning.
-                warn!(section = %shared.name, "accept failed: {err}");
+                warn!(section = %section.name, "accept failed: {err}");
                 tokio::time::sleep(Duration::from_millis(100)).await;
                 continue;
             }
         };
-        if !crate::config::allowed(shared.config.allow.as_deref(), peer.ip()) {
+        if !crate::config::allowed(section.state().config.allow.as_deref(), peer.ip()) {
             // Closed at once without a word: nothing about the server is
             // told to a client that may not use it.
-            refusals.refused(&shared.name, peer);
+            refusals.refused(&section.name, peer);
             drop(stream);
             continue;
         }
         if let Err(err) = set_keepalive(&stream) {
-            warn!(section = %shared.name, client = %peer, "cannot set TCP keepalive: {err}");
+            warn!(section = %section.name, client = %peer, "cannot set TCP keepalive: {err}");
         }
-        match shared.admit(peer) {
+        match section.admit(peer) {
             Some(id) => {
-                let shared = shared.clone();
+                let section = section.clone();
                 sessions.spawn(async move {
                     let _registration = Registration {
-                        shared: shared.clone(),
+                        section: section.clone(),
                         id,
                     };
-                    Session::new(shared, stream, peer).run().await;
+                    Session::serve_client(section, stream, peer).await;
                 });
             }
             None => {
-                warn!(section = %shared.name, client = %peer, "refused: NET_CONNECT_MAX ({}) reached", shared.global.net_connect_max);
-                let crlf = shared.global.end_line_crlf;
+                warn!(section = %section.name, client = %peer, "refused: NET_CONNECT_MAX ({}) reached", section.global.net_connect_max);
+                let crlf = section.global.end_line_crlf;
                 tokio::spawn(refuse(stream, crlf));
             }
         }
@@ -241,13 +239,13 @@ async fn accept_loop(listener: TcpListener, shared: Arc<SectionShared>, sessions
 
 /// Removes a client from the section's list however its session ends.
 struct Registration {
-    shared: Arc<SectionShared>,
+    section: Arc<Section>,
     id: u64,
 }
 
 impl Drop for Registration {
     fn drop(&mut self) {
-        self.shared.leave(self.id);
+        self.section.leave(self.id);
     }
 }
 

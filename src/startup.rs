@@ -1,7 +1,9 @@
 //! From a loaded configuration to running sections: choose each section's
-//! backend (a PLC over EPSNET, the embedded simulated PLC, or none yet), load
-//! its public files (local first, else fetched from the PLC), and start it.
-//! A section that cannot start is reported and skipped; the others run.
+//! backend (by its PROTOCOL, the embedded simulated PLC, or none yet), load
+//! its local public files, and start it. Nothing here waits for a PLC: every
+//! section listens at once, and a public file that must come from the PLC is
+//! fetched by the section's link when the PLC answers. A section that cannot
+//! start is reported and skipped; the others run.
 
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::path::{Path, PathBuf};
@@ -12,7 +14,8 @@ use tracing::{error, info, warn};
 use crate::backend::epsnet::EpsnetBackend;
 use crate::backend::{epsnet_config, PlcBackend};
 use crate::config::{Config, Global, Section};
-use crate::poller::reload::{plc_path, PubSource};
+use crate::link::tables::{plc_path, LoadError, PubSource};
+use crate::link::Tables;
 use crate::server::{start_section, RunningSection};
 use plcsim::{SimConfig, SimHandle};
 
@@ -29,22 +32,24 @@ impl Server {
     }
 
     /// Stops accepting, lets every session answer what it has received
-    /// (bounded by a grace period; the pollers still serve their reads),
-    /// then stops polling (waiting, bounded, for each poll thread to end)
-    /// and the simulators.
+    /// (bounded by a grace period; the links still serve their reads), then
+    /// stops polling (waiting, bounded, for each link's thread to end) and
+    /// the simulators. Sections stop together: the whole takes at most two
+    /// grace periods, however many there are.
     pub async fn shutdown(self) {
         for section in &self.sections {
             section.stop_accepting();
         }
-        for section in &self.sections {
-            section.wait_sessions(SHUTDOWN_GRACE).await;
-        }
+        futures::future::join_all(
+            self.sections
+                .iter()
+                .map(|s| s.wait_sessions(SHUTDOWN_GRACE)),
+        )
+        .await;
         for section in &self.sections {
             section.abort();
         }
-        for section in &self.sections {
-            section.wait_poller(SHUTDOWN_GRACE).await;
-        }
+        futures::future::join_all(self.sections.iter().map(|s| s.wait_link(SHUTDOWN_GRACE))).await;
         for simulator in self.simulators {
             simulator.stop().await;
         }
@@ -99,18 +104,29 @@ async fn start_one(
     server: &mut Server,
 ) -> Result<RunningSection, String> {
     let mut section = section.clone();
-    let section = &mut section;
-    let mut backend = backend_for(section, dir, server).await?;
-    let section = &*section;
+    let backend = backend_for(&mut section, dir, server).await?;
+    let section = &section;
     let source = PubSource::new(section, dir)?;
-    let user = source.load_user(backend.as_deref_mut()).await?;
-    let table = source.build(user.as_ref())?;
+    let (user, from_plc) = match source.load_local(section) {
+        Ok(user) => (user, false),
+        Err(LoadError::FromPlc) => (None, true),
+        Err(LoadError::Failed(message)) => return Err(message),
+    };
+    let table = source.build(&section.name, user.as_ref())?;
     info!(
         section = %section.name,
         variables = table.len(),
-        "public files loaded: {}{}",
+        "public files loaded: {}{}{}",
         source.fixed_name,
-        user.as_ref().map(|u| format!(", {}", u.name)).unwrap_or_default()
+        user.as_ref().map(|u| format!(", {}", u.name)).unwrap_or_default(),
+        if from_plc {
+            format!(
+                "; {} is read from the PLC when it answers",
+                section.pubfile.as_deref().unwrap_or_default()
+            )
+        } else {
+            String::new()
+        }
     );
     let bind_ip = section.ipaddr_local.unwrap_or(Ipv4Addr::UNSPECIFIED);
     let bind = SocketAddr::new(IpAddr::V4(bind_ip), section.server_port);
@@ -121,7 +137,7 @@ async fn start_one(
         backend,
         bind,
         dir.to_path_buf(),
-        Some((source, user)),
+        Some(Tables::new(source, user, from_plc)),
     )
     .await
     .map_err(|e| format!("cannot listen on {bind}: {e}"))
@@ -145,7 +161,7 @@ async fn backend_for(
             section, plc,
         )))));
     }
-    let backend = crate::backend::for_section(section)?;
+    let backend = crate::backend::open(section)?;
     if backend.is_none() {
         warn!(section = %section.name, "no PLC address (IPADDR) yet: serving clients without a PLC until SETCONF:ipaddr");
     }

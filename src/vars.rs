@@ -193,3 +193,29 @@ impl VarTable {
         (id as usize) < self.fixed_count
     }
 }
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    /// A table of the standard fixed file and user variables of the given
+    /// names and types, laid out one after another in R.
+    pub fn table_of(vars: &[(&str, &str)]) -> VarTable {
+        let mut text = String::new();
+        let mut offset = 0;
+        for (name, ty) in vars {
+            text.push_str(&format!(" {name} R B {offset} {ty} PUB_INOUT\r\n"));
+            offset += 16;
+        }
+        let fixed = plccoms_plc::pubfile::parse(crate::link::tables::STANDARD_FIXED);
+        let user = plccoms_plc::pubfile::parse(text.as_bytes());
+        VarTable::build(
+            "FIXED.pub",
+            &fixed,
+            Some(("test.pub", &user)),
+            &MemoryMap::FOXTROT,
+            &mut Vec::new(),
+        )
+        .expect("table")
+    }
+}

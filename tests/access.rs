@@ -58,7 +58,7 @@ async fn allow_admits_listed_addresses_and_networks_only() {
         let stream = connect_from(source, &server).await;
         refused(stream).await;
     }
-    assert_eq!(server.section.shared.clients().len(), 2);
+    assert_eq!(server.section.section.clients().len(), 2);
     served(listed).await;
 
     // Open by default, as PLCComS.

@@ -207,7 +207,7 @@ async fn a_connection_flood_over_net_connect_max() {
     for c in &mut admitted {
         still_works(c).await;
     }
-    assert_eq!(server.section.shared.clients().len(), MAX);
+    assert_eq!(server.section.section.clients().len(), MAX);
     drop(admitted.pop());
     let started = Instant::now();
     loop {

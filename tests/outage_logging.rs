@@ -58,14 +58,14 @@ async fn an_outage_is_logged_once_and_the_recovery_once() {
     let plc = sim.local_addr();
 
     sim.stop().await;
-    eventually("the poller notices", SLOW, || {
-        !server.shared.poller.info().online
+    eventually("the link notices", SLOW, || {
+        server.section.link.state() != plccoms::link::LinkState::Online
     })
     .await;
     // Long enough for the reconnect back-off to try several times (100 ms,
     // doubling to 1 s): each failed attempt must stay quiet.
     tokio::time::sleep(Duration::from_millis(2500)).await;
-    assert!(!server.shared.poller.info().online);
+    assert!(server.section.link.state() != plccoms::link::LinkState::Online);
 
     let sim = plcsim::spawn(SimConfig {
         bind: plc,

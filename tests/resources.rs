@@ -86,7 +86,7 @@ async fn ten_thousand_connections_leave_memory_and_descriptors_where_they_were()
         cycle(i % 2 == 0).await;
     }
     let settle = |target: usize| {
-        let shared = server.section.shared.clone();
+        let shared = server.section.section.clone();
         async move {
             let start = Instant::now();
             while shared.clients().len() != target {

@@ -33,11 +33,11 @@ async fn stalled_client(server: &TestServer) -> TcpStream {
 
 async fn wait_clients(server: &TestServer, count: usize, within: Duration) {
     let start = Instant::now();
-    while server.section.shared.clients().len() != count {
+    while server.section.section.clients().len() != count {
         assert!(
             start.elapsed() < within,
             "{} clients connected after {within:?}, expected {count}",
-            server.section.shared.clients().len()
+            server.section.section.clients().len()
         );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
@@ -130,7 +130,7 @@ async fn a_client_that_stops_reading_is_dropped_and_others_keep_their_diffs() {
     let stalled_at = Instant::now();
     let mut during = Vec::new();
     let mut mark = 100;
-    while server.section.shared.clients().len() == 2 {
+    while server.section.section.clients().len() == 2 {
         assert!(
             stalled_at.elapsed() < Duration::from_secs(40),
             "the stalled client was not dropped within 40 s"
@@ -213,7 +213,7 @@ async fn a_list_of_50000_variables_reaches_a_reading_client_with_the_default_lim
     assert!(bytes > 1_500_000, "{bytes}");
     c.ask("LIST:__PLC_RUN\n", "LIST:__PLC_RUN,BOOL\r\nLIST:\r\n")
         .await;
-    assert_eq!(server.section.shared.clients().len(), 1);
+    assert_eq!(server.section.section.clients().len(), 1);
 }
 
 #[tokio::test]

@@ -56,7 +56,8 @@ pub struct EpsnetConfig {
     pub timeout: Duration,
     /// EPSTOUT_STEP: added to the timeout on each retry.
     pub timeout_step: Duration,
-    /// Retries after the first attempt.
+    /// Retries after the first attempt. One: a silent PLC is declared lost
+    /// within EPSTOUT + (EPSTOUT + EPSTOUT_STEP), 2.5 s at the defaults.
     pub retries: u32,
     /// Datagrams of one read batch in flight at once (1 = strictly one).
     pub window: usize,
@@ -70,7 +71,7 @@ impl EpsnetConfig {
             eps_addr: None,
             timeout: Duration::from_millis(1000),
             timeout_step: Duration::from_millis(500),
-            retries: 3,
+            retries: 1,
             window: 4,
         }
     }
@@ -461,6 +462,10 @@ impl PlcBackend for EpsnetBackend {
 
     fn max_read_block(&self) -> u32 {
         MAX_READ
+    }
+
+    fn answer_timeout(&self) -> Duration {
+        self.config.timeout
     }
 
     fn max_file_block(&self) -> u32 {

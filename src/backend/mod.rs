@@ -50,6 +50,17 @@ pub enum PlcError {
     Unsupported(&'static str),
 }
 
+impl PlcError {
+    /// Whether the PLC itself is unreachable (as opposed to answering
+    /// garbage or refusing a request).
+    pub fn is_link_failure(&self) -> bool {
+        matches!(
+            self,
+            PlcError::NotConfigured | PlcError::Timeout(_) | PlcError::Io(_)
+        )
+    }
+}
+
 /// Answer to one request inside a batch: data, or the PLC's error byte.
 pub type Answer<T> = Result<T, Exception>;
 
@@ -78,6 +89,13 @@ pub trait PlcBackend: Send {
 
     /// Largest block one file read or write request may carry.
     fn max_file_block(&self) -> u32;
+
+    /// How long the PLC has to answer one request (EPSTOUT): the freshness
+    /// bound of polled values and the longest a SET may wait to be sent
+    /// build on it.
+    fn answer_timeout(&self) -> std::time::Duration {
+        std::time::Duration::from_secs(1)
+    }
 
     /// (Re)initialise the link and return the PLC's identification string.
     async fn connect(&mut self) -> Result<String, PlcError>;
@@ -122,12 +140,42 @@ pub trait PlcBackend: Send {
     async fn list_dir(&mut self, path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError>;
 }
 
-/// The link a section's keys describe: EPSNET to `IPADDR:EPSPORT`, or `None`
-/// when the section has no PLC yet (`IPADDR` unset or `0.0.0.0`). Serial
-/// lines and shared modules are refused with the reason.
-pub fn for_section(
-    section: &crate::config::Section,
-) -> Result<Option<Box<dyn PlcBackend>>, String> {
+/// A section's backend, `None` when it has no PLC yet; or why it cannot be
+/// made.
+pub type Opened = Result<Option<Box<dyn PlcBackend>>, String>;
+
+/// A backend: the name `PROTOCOL` gives it, and how to open one for a
+/// section's keys.
+pub struct Protocol {
+    pub name: &'static str,
+    pub open: fn(&crate::config::Section) -> Opened,
+}
+
+/// Every backend. A new one is a module and a line here (and its name in
+/// `config::PROTOCOLS`).
+pub const PROTOCOLS: &[Protocol] = &[Protocol {
+    name: "EPSNET",
+    open: open_epsnet,
+}];
+
+/// The backend of a section, chosen by its `PROTOCOL` key.
+pub fn open(section: &crate::config::Section) -> Opened {
+    let name = section_protocol(section);
+    let protocol = PROTOCOLS
+        .iter()
+        .find(|p| p.name.eq_ignore_ascii_case(name))
+        .ok_or_else(|| format!("PROTOCOL = {name} is not a backend of this server"))?;
+    (protocol.open)(section)
+}
+
+fn section_protocol(_section: &crate::config::Section) -> &str {
+    "EPSNET"
+}
+
+/// EPSNET over UDP to `IPADDR:EPSPORT`, or `None` when the section has no
+/// PLC yet (`IPADDR` unset or `0.0.0.0`). Serial lines and shared modules
+/// are refused with the reason.
+fn open_epsnet(section: &crate::config::Section) -> Opened {
     use std::net::{IpAddr, SocketAddr};
     if section.serial_device.is_some() {
         return Err("serial lines (SERIAL_DEVICE) are not supported by this server".to_string());

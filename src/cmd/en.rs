@@ -6,35 +6,31 @@ use plccoms_protocol::answer::{ErrorCode, WarningCode};
 use plccoms_protocol::request::parse_mask_delta;
 use plccoms_protocol::value::Delta;
 
-use super::{error, select, warning, Selection};
-use crate::session::Session;
+use super::{error, select, warning, Cx, Reply, Selection};
 
-pub fn apply(session: &mut Session, args: &[u8], context: &[u8], enable: bool) {
+pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], enable: bool, out: &mut Vec<u8>) -> Reply {
     let Ok((mask, delta)) = parse_mask_delta(args) else {
-        return error(session, ErrorCode::WrongValue, context);
+        return error(cx, ErrorCode::WrongValue, context, out);
     };
     let delta = match delta.map(Delta::parse).transpose() {
         Ok(delta) => delta,
-        Err(_) => return error(session, ErrorCode::WrongValue, context),
+        Err(_) => return error(cx, ErrorCode::WrongValue, context, out),
     };
-    let selection = select(session.vars.table(), mask, |id| session.vars.is_hidden(id));
+    let vars = &mut cx.client.vars;
+    let selection = select(vars.table(), mask, |id| vars.is_hidden(id));
     if let Selection::Unknown = selection {
-        return error(session, ErrorCode::UnknownVariable, context);
+        return error(cx, ErrorCode::UnknownVariable, context, out);
     }
     for id in selection.ids() {
         if enable {
-            session.vars.enable(id);
+            vars.enable(id);
         } else {
-            session.vars.disable(id);
+            vars.disable(id);
         }
         if let Some(delta) = &delta {
-            session.vars.set_delta(id, *delta);
+            vars.set_delta(id, *delta);
         }
     }
-    let counts = format!(
-        "[{}/{}]",
-        session.vars.enabled_total(),
-        session.vars.table().len()
-    );
-    warning(session, WarningCode::ActiveChanged, counts.as_bytes());
+    let counts = format!("[{}/{}]", vars.enabled_total(), vars.table().len());
+    warning(cx, WarningCode::ActiveChanged, counts.as_bytes(), out)
 }

@@ -1,19 +1,22 @@
 //! `GET:<name|mask|%addr>`: `GET:<NAME>,<value>` per variable; a mask's
 //! answer ends with `GET:`. Values of polled variables come from the latest
-//! poll; the others (and any GET behind an unanswered SET of this client) are
-//! read from the PLC, batched with other clients' reads.
+//! poll while it is fresh (see `link::fresh_for`); the others (and any GET
+//! behind an unanswered SET of this client) are read from the PLC, batched
+//! with other clients' reads.
 
 use plccoms_protocol::address::{parse_direct, DirectAddress};
 use plccoms_protocol::answer::ErrorCode;
 use plccoms_protocol::cp1250;
 use plccoms_protocol::value::Value;
 
-use super::{error, select, Selection};
-use crate::backend::ReadRequest;
-use crate::poller::{LinkError, ReadReply};
-use crate::session::{Pending, Session};
-use crate::vars::{VarId, VarTable};
 use std::sync::Arc;
+
+use tokio::time::Instant;
+
+use super::{error, link_error, select, Cx, Reply, Selection};
+use crate::backend::ReadRequest;
+use crate::link::ReadReply;
+use crate::vars::{VarId, VarTable};
 
 /// What to do with the PLC's answer.
 pub enum ReadThen {
@@ -33,32 +36,34 @@ pub enum ReadThen {
     Mem { name: Vec<u8> },
 }
 
-pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
+pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> Reply {
     if args.first() == Some(&b'%') {
-        return direct(session, args).await;
+        return direct(cx, args, out);
     }
-    let selection = select(session.vars.table(), args, |id| session.vars.is_hidden(id));
+    let vars = &cx.client.vars;
+    let selection = select(vars.table(), args, |id| vars.is_hidden(id));
+    let now = Instant::now();
     if let Selection::One(id) = selection {
-        if answer_from_poll(session, id) {
-            return;
+        if answer_from_poll(cx, id, now, out) {
+            return Reply::Done;
         }
     }
     let single = matches!(selection, Selection::One(_));
     if let Selection::Unknown = selection {
-        return error(session, ErrorCode::UnknownVariable, context);
+        return error(cx, ErrorCode::UnknownVariable, context, out);
     }
     let ids = selection.ids();
-    let snapshot = session.latest_snapshot();
-    let table = session.vars.table().clone();
+    let snapshot = cx.newest;
+    let table = cx.client.vars.table().clone();
     // Behind an unanswered SET, or across a public-file change, only the PLC
     // knows.
-    let cache_ok = !session.set_outstanding() && Arc::ptr_eq(&snapshot.table, &table);
+    let cache_ok = !cx.behind_set && Arc::ptr_eq(&snapshot.table, &table);
     let mut requests = Vec::new();
     let cached: Vec<Option<Arc<[u8]>>> = ids
         .iter()
         .map(|&id| {
             if cache_ok {
-                if let Some(text) = snapshot.current(id).and_then(|slot| slot.shared_text()) {
+                if let Some(text) = snapshot.fresh(id, now).and_then(|slot| slot.shared_text()) {
                     return Some(text);
                 }
             }
@@ -78,67 +83,56 @@ pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
         single,
     };
     if requests.is_empty() {
-        let mut out = Vec::new();
-        complete(session, then, Ok(Vec::new()), &mut out);
-        return session.answer(out);
+        complete(cx, then, Ok(Vec::new()), out);
+        return Reply::Done;
     }
-    let rx = session.shared.poller.read(requests).await;
-    session.pending.push_back(Pending::Read { rx, then });
+    Reply::read(cx.section.link.read(requests), then)
 }
 
-/// One variable whose polled value is current, and no SET of this client
+/// One variable whose polled value is fresh, and no SET of this client
 /// unanswered: the answer comes straight from the newest snapshot, without
 /// allocating (the bulk of what SCADA and home-automation clients send).
-fn answer_from_poll(session: &mut Session, id: VarId) -> bool {
-    if session.set_outstanding() {
+fn answer_from_poll(cx: &Cx<'_>, id: VarId, now: Instant, out: &mut Vec<u8>) -> bool {
+    if cx.behind_set {
         return false;
     }
-    session.refresh_newest();
-    let snapshot = &session.newest;
-    if !Arc::ptr_eq(&snapshot.table, session.vars.table()) {
+    let snapshot = cx.newest;
+    if !Arc::ptr_eq(&snapshot.table, cx.client.vars.table()) {
         return false;
     }
-    let Some(text) = snapshot.current(id).and_then(|slot| slot.text()) else {
+    let Some(text) = snapshot.fresh(id, now).and_then(|slot| slot.text()) else {
         return false;
     };
     let name = &snapshot.table.var(id).name;
-    let eol = session.conn.eol;
-    let parts: [&[u8]; 5] = [b"GET:", name, b",", text, eol];
-    if session.pending.is_empty() {
-        for part in parts {
-            session.conn.extend(part);
-        }
-    } else {
-        let answer = parts.concat();
-        session.answer(answer);
+    for part in [b"GET:", &name[..], b",", text, cx.client.eol] {
+        out.extend_from_slice(part);
     }
     true
 }
 
-async fn direct(session: &mut Session, args: &[u8]) {
+fn direct(cx: &mut Cx<'_>, args: &[u8], out: &mut Vec<u8>) -> Reply {
     let Some(address) = parse_direct(args) else {
-        return error(session, ErrorCode::MemGet, args);
+        return error(cx, ErrorCode::MemGet, args, out);
     };
     let request = ReadRequest {
         area: address.area,
         offset: address.offset,
         len: address.ty.size() as u32,
     };
-    let rx = session.shared.poller.read(vec![request]).await;
     let then = ReadThen::Direct {
         name: cp1250::to_upper(args),
         address,
     };
-    session.pending.push_back(Pending::Read { rx, then });
+    Reply::read(cx.section.link.read(vec![request]), then)
 }
 
 /// Writes the answer once the PLC answered.
-pub fn complete(session: &mut Session, then: ReadThen, reply: ReadReply, out: &mut Vec<u8>) {
+pub fn complete(cx: &mut Cx<'_>, then: ReadThen, reply: ReadReply, out: &mut Vec<u8>) {
     if let ReadThen::Mem { name } = &then {
-        return super::getmem::complete(session, name, reply, out);
+        return super::getmem::complete(cx, name, reply, out);
     }
-    let eol = session.conn.eol;
-    let format = &session.shared.format;
+    let eol = cx.client.eol;
+    let format = &cx.section.format;
     let answers = match reply {
         Ok(answers) => answers,
         Err(err) => return link_error(err, ErrorCode::GetData, eol, out),
@@ -196,14 +190,4 @@ pub fn complete(session: &mut Session, then: ReadThen, reply: ReadReply, out: &m
             }
         }
     }
-}
-
-/// ERROR:10 when there is no link, `code` when the PLC failed the request.
-pub fn link_error(err: LinkError, code: ErrorCode, eol: &[u8], out: &mut Vec<u8>) {
-    let code = match err {
-        LinkError::Offline => ErrorCode::ConnectPlc,
-        LinkError::Plc(_) => code,
-    };
-    plccoms_protocol::answer::write_error(out, code, b"");
-    out.extend_from_slice(eol);
 }

@@ -22,11 +22,10 @@ use std::io::Read;
 use plccoms_protocol::answer::{write_error, ErrorCode};
 use tokio::sync::oneshot;
 
-use super::{error, is_local, write_block, FileThen};
+use super::{error, is_local, trim, write_block, Cx, FileThen, Reply};
+use crate::link::files::{FileJob, FileOutput, FileReply};
+use crate::link::LinkError;
 use crate::localfs;
-use crate::poller::files::{FileJob, FileOutput, FileReply};
-use crate::poller::LinkError;
-use crate::session::{trim, Pending, Session};
 
 /// A GETFILE answer being sent.
 pub struct Stream {
@@ -46,10 +45,6 @@ enum Source {
 }
 
 impl Stream {
-    pub fn is_local(&self) -> bool {
-        matches!(self.source, Source::Local(_))
-    }
-
     /// The reply being waited for, if the stream waits on the PLC.
     pub fn waiting(&mut self) -> Option<&mut oneshot::Receiver<FileReply>> {
         match &mut self.source {
@@ -57,58 +52,71 @@ impl Stream {
             Source::Local(_) => None,
         }
     }
+
+    /// Moves the answer on: local blocks until `room` more bytes are
+    /// written, or a request for the PLC's next block. Returns whether the
+    /// answer is complete.
+    pub fn advance(&mut self, cx: &Cx<'_>, out: &mut Vec<u8>, room: usize) -> bool {
+        match self.source {
+            Source::Local(_) => pump_local(cx, self, out, room),
+            Source::Plc { .. } => {
+                request_next(cx, self);
+                false
+            }
+        }
+    }
+
+    /// Takes the PLC's answer for the block waited for; returns whether the
+    /// answer is complete.
+    pub fn on_reply(&mut self, cx: &Cx<'_>, reply: FileReply, out: &mut Vec<u8>) -> bool {
+        plc_block(cx, self, reply, out)
+    }
 }
 
-pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
+pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> Reply {
     let name = trim(args);
     if name.is_empty() {
-        return error(session, ErrorCode::Incomplete, context);
+        return error(cx, ErrorCode::Incomplete, context, out);
     }
     let listing = name.last() == Some(&b'/');
     if is_local(name) {
-        let path = match localfs::resolve(&session.shared.root, name) {
+        let path = match localfs::resolve(&cx.section.root, name) {
             Ok(path) => path,
             Err(err) => {
-                super::getfileinfo::refused(session, name, &err);
-                return error(session, ErrorCode::GetFile, name);
+                super::getfileinfo::refused(cx, name, &err);
+                return error(cx, ErrorCode::GetFile, name, out);
             }
         };
         if listing {
             return match localfs::list(&path) {
                 Ok(entries) => {
-                    let eol = session.conn.eol;
+                    let eol = cx.client.eol;
                     let data = localfs::format_listing(&entries, eol);
-                    let mut out = Vec::new();
-                    let blksize = session.shared.global.ffile_blksize;
-                    super::write_blocks(&mut out, b"GETFILE", name, &data, blksize, eol);
-                    session.answer(out);
+                    let blksize = cx.section.global.ffile_blksize;
+                    super::write_blocks(out, b"GETFILE", name, &data, blksize, eol);
+                    Reply::Done
                 }
-                Err(_) => error(session, ErrorCode::GetFile, name),
+                Err(_) => error(cx, ErrorCode::GetFile, name, out),
             };
         }
         let file = match File::open(&path) {
             Ok(file) if file.metadata().is_ok_and(|m| m.is_file()) => file,
-            _ => return error(session, ErrorCode::GetFile, name),
+            _ => return error(cx, ErrorCode::GetFile, name, out),
         };
-        let stream = Stream {
+        return Reply::Stream(Box::new(Stream {
             name: name.to_vec(),
             source: Source::Local(file),
             offset: 0,
-        };
-        return session.pending.push_back(Pending::Stream(Box::new(stream)));
+        }));
     }
     if listing {
-        let rx = session
-            .shared
-            .poller
-            .file(FileJob::List {
-                path: name.to_vec(),
-            })
-            .await;
+        let rx = cx.section.link.file(FileJob::List {
+            path: name.to_vec(),
+        });
         let then = FileThen::List {
             name: name.to_vec(),
         };
-        return session.pending.push_back(Pending::File { rx, then });
+        return Reply::file(rx, then);
     }
     let mut stream = Stream {
         name: name.to_vec(),
@@ -118,17 +126,17 @@ pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
         },
         offset: 0,
     };
-    request_next(session, &mut stream).await;
-    session.pending.push_back(Pending::Stream(Box::new(stream)));
+    request_next(cx, &mut stream);
+    Reply::Stream(Box::new(stream))
 }
 
-fn blksize(session: &Session) -> usize {
-    session.shared.global.ffile_blksize.clamp(1, 65536)
+fn blksize(cx: &Cx<'_>) -> usize {
+    cx.section.global.ffile_blksize.clamp(1, 65536)
 }
 
-/// Asks the poller for the next block of a PLC file, unless a request is out.
-pub async fn request_next(session: &Session, stream: &mut Stream) {
-    let len = blksize(session) as u32;
+/// Asks the link for the next block of a PLC file, unless a request is out.
+fn request_next(cx: &Cx<'_>, stream: &mut Stream) {
+    let len = blksize(cx) as u32;
     if let Source::Plc { path, rx } = &mut stream.source {
         if rx.is_none() {
             let job = FileJob::Read {
@@ -136,21 +144,22 @@ pub async fn request_next(session: &Session, stream: &mut Stream) {
                 offset: stream.offset,
                 len,
             };
-            *rx = Some(session.shared.poller.file(job).await);
+            *rx = Some(cx.section.link.file(job));
         }
     }
 }
 
-/// Makes the stream's next local blocks while output is below `limit`.
-/// Returns whether the answer is complete.
-pub fn pump_local(session: &mut Session, stream: &mut Stream, limit: usize) -> bool {
-    let blksize = blksize(session);
-    let eol = session.conn.eol;
+/// Makes the stream's next local blocks until `room` more bytes are in
+/// `out`. Returns whether the answer is complete.
+fn pump_local(cx: &Cx<'_>, stream: &mut Stream, out: &mut Vec<u8>, room: usize) -> bool {
+    let blksize = blksize(cx);
+    let eol = cx.client.eol;
     let Source::Local(file) = &mut stream.source else {
         return false;
     };
     let mut buf = vec![0; blksize];
-    while session.conn.backlog() < limit {
+    let limit = out.len() + room;
+    while out.len() < limit {
         // Blocking reads of one block: a page-cache read of at most 64 KiB
         // costs microseconds, less than a trip to a blocking thread.
         let mut filled = 0;
@@ -167,7 +176,6 @@ pub fn pump_local(session: &mut Session, stream: &mut Stream, limit: usize) -> b
                 Err(_) => break true,
             }
         };
-        let out = &mut session.conn.out;
         if failed {
             abort(out, &stream.name, stream.offset, eol);
             return true;
@@ -185,13 +193,12 @@ pub fn pump_local(session: &mut Session, stream: &mut Stream, limit: usize) -> b
 }
 
 /// Handles a PLC block; returns whether the answer is complete.
-pub fn plc_block(session: &mut Session, stream: &mut Stream, reply: FileReply) -> bool {
-    let eol = session.conn.eol;
-    let requested = blksize(session);
+fn plc_block(cx: &Cx<'_>, stream: &mut Stream, reply: FileReply, out: &mut Vec<u8>) -> bool {
+    let eol = cx.client.eol;
+    let requested = blksize(cx);
     if let Source::Plc { rx, .. } = &mut stream.source {
         *rx = None;
     }
-    let out = &mut session.conn.out;
     let data = match reply {
         Ok(Ok(FileOutput::Data(data))) => data,
         Err(LinkError::Offline) if stream.offset == 0 => {

@@ -6,45 +6,39 @@
 use plccoms_protocol::answer::ErrorCode;
 use tracing::warn;
 
-use super::{error, is_local, FileThen};
+use super::{error, is_local, trim, Cx, FileThen, Reply};
 use crate::backend::FileInfo;
+use crate::link::files::FileJob;
 use crate::localfs::{self, LocalError};
-use crate::poller::files::FileJob;
-use crate::session::{trim, Pending, Session};
 
-pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
+pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> Reply {
     let name = trim(args);
     if name.is_empty() {
-        return error(session, ErrorCode::Incomplete, context);
+        return error(cx, ErrorCode::Incomplete, context, out);
     }
     if is_local(name) {
-        let info = match localfs::resolve(&session.shared.root, name) {
+        let info = match localfs::resolve(&cx.section.root, name) {
             Ok(path) => localfs::info(&path).ok(),
             Err(err) => {
-                refused(session, name, &err);
+                refused(cx, name, &err);
                 None
             }
         };
         return match info {
             Some(info) => {
-                let mut out = Vec::new();
-                write_info(&mut out, name, &info, session.conn.eol);
-                session.answer(out);
+                write_info(out, name, &info, cx.client.eol);
+                Reply::Done
             }
-            None => error(session, ErrorCode::FileInfo, name),
+            None => error(cx, ErrorCode::FileInfo, name, out),
         };
     }
-    let rx = session
-        .shared
-        .poller
-        .file(FileJob::Info {
-            path: name.to_vec(),
-        })
-        .await;
+    let rx = cx.section.link.file(FileJob::Info {
+        path: name.to_vec(),
+    });
     let then = FileThen::Info {
         name: name.to_vec(),
     };
-    session.pending.push_back(Pending::File { rx, then });
+    Reply::file(rx, then)
 }
 
 pub fn write_info(out: &mut Vec<u8>, name: &[u8], info: &FileInfo, eol: &[u8]) {
@@ -56,11 +50,11 @@ pub fn write_info(out: &mut Vec<u8>, name: &[u8], info: &FileInfo, eol: &[u8]) {
 }
 
 /// Logs a local name refused for leading outside the root folder.
-pub fn refused(session: &Session, name: &[u8], err: &LocalError) {
+pub fn refused(cx: &Cx<'_>, name: &[u8], err: &LocalError) {
     if let LocalError::Outside = err {
         warn!(
-            section = %session.shared.name,
-            client = %session.peer,
+            section = %cx.section.name,
+            client = %cx.client.peer,
             name = %String::from_utf8_lossy(name),
             "refused local file access outside the root folder"
         );

@@ -6,8 +6,7 @@ use std::fmt::Write;
 
 use plccoms_protocol::answer::ErrorCode;
 
-use super::error;
-use crate::session::Session;
+use super::{error, Cx, Reply};
 
 const KEYS: &[&str] = &[
     "VERSION",
@@ -22,12 +21,12 @@ const KEYS: &[&str] = &[
     "NETWORK",
 ];
 
-pub fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
-    let eol = session.conn.eol;
+pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> Reply {
+    let eol = cx.client.eol;
     let mut text = String::new();
     if args.is_empty() {
         for key in KEYS {
-            lines(session, key, &mut text, true);
+            lines(cx, key, &mut text, true);
         }
         text.push_str("GETINFO:\n");
     } else {
@@ -39,23 +38,23 @@ pub fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
             key
         };
         if !KEYS.contains(&key.as_str()) {
-            return error(session, ErrorCode::GetInfoUnknown, context);
+            return error(cx, ErrorCode::GetInfoUnknown, context, out);
         }
-        lines(session, &key, &mut text, false);
+        lines(cx, &key, &mut text, false);
     }
-    let mut out = Vec::with_capacity(text.len() + 16);
+    out.reserve(text.len() + 16);
     for line in text.lines() {
         out.extend_from_slice(line.as_bytes());
         out.extend_from_slice(eol);
     }
-    session.answer(out);
+    Reply::Done
 }
 
 /// Appends the lines of `key`, each ended by `\n`.
-fn lines(session: &Session, key: &str, text: &mut String, listing_all: bool) {
-    let link = session.shared.poller.info();
-    // The settings as SETCONF left them.
-    let config = link.section.as_ref().unwrap_or(&session.shared.config);
+fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
+    // The settings as SETCONF left them, and the link as it is.
+    let state = cx.section.state();
+    let (config, link) = (&state.config, &state.link);
     match key {
         "VERSION" => line(
             text,
@@ -99,7 +98,7 @@ fn lines(session: &Session, key: &str, text: &mut String, listing_all: bool) {
             }
         }
         "PUBFILE" => {
-            let table = session.vars.table();
+            let table = cx.client.vars.table();
             let files = match &table.user_file {
                 Some(user) => format!("{},{}", table.fixed_file, user),
                 None => table.fixed_file.clone(),
@@ -111,8 +110,8 @@ fn lines(session: &Session, key: &str, text: &mut String, listing_all: bool) {
             );
         }
         "NETWORK" => {
-            let max = session.shared.global.net_connect_max;
-            for (i, client) in session.shared.clients().iter().enumerate() {
+            let max = cx.section.global.net_connect_max;
+            for (i, client) in cx.section.clients().iter().enumerate() {
                 let ip = client.peer.ip().to_string();
                 line(
                     text,

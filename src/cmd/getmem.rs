@@ -11,55 +11,54 @@ use plccoms_protocol::address::parse_direct;
 use plccoms_protocol::answer::{write_error, ErrorCode};
 use plccoms_protocol::request::{parse_getmem, ArgError};
 
-use super::error;
 use super::get::ReadThen;
+use super::{error, link_error, Cx, Reply};
 use crate::backend::ReadRequest;
-use crate::poller::{LinkError, ReadReply};
-use crate::session::{Pending, Session};
+use crate::link::ReadReply;
 
 /// Largest block one GETMEM reads.
 pub const MAX_SIZE: u32 = 1024 * 1024;
 
-pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
+pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> Reply {
     let (name, size) = match parse_getmem(args) {
         Ok(parts) => parts,
-        Err(ArgError::Incomplete) => return error(session, ErrorCode::Incomplete, context),
-        Err(ArgError::Bad) => return error(session, ErrorCode::MemSet, args),
+        Err(ArgError::Incomplete) => return error(cx, ErrorCode::Incomplete, context, out),
+        Err(ArgError::Bad) => return error(cx, ErrorCode::MemSet, args, out),
     };
     let (area, offset) = if name.first() == Some(&b'%') {
         match parse_direct(name) {
             Some(address) if address.bit.is_none() => (address.area, address.offset),
-            _ => return error(session, ErrorCode::MemSet, name),
+            _ => return error(cx, ErrorCode::MemSet, name, out),
         }
     } else {
-        let Some(id) = session.vars.table().lookup(name) else {
-            return error(session, ErrorCode::UnknownVariable, context);
+        let table = cx.client.vars.table();
+        let Some(id) = table.lookup(name) else {
+            return error(cx, ErrorCode::UnknownVariable, context, out);
         };
-        let var = session.vars.table().var(id);
+        let var = table.var(id);
         (var.area, var.offset)
     };
     if size == 0 || size > MAX_SIZE || offset.checked_add(size).is_none() {
-        return error(session, ErrorCode::MemSet, name);
+        return error(cx, ErrorCode::MemSet, name, out);
     }
     let request = ReadRequest {
         area,
         offset,
         len: size,
     };
-    let rx = session.shared.poller.read(vec![request]).await;
     let then = ReadThen::Mem {
         name: name.to_vec(),
     };
-    session.pending.push_back(Pending::Read { rx, then });
+    Reply::read(cx.section.link.read(vec![request]), then)
 }
 
 /// Writes the blocks once the PLC answered.
-pub fn complete(session: &Session, name: &[u8], reply: ReadReply, out: &mut Vec<u8>) {
-    let eol = session.conn.eol;
+pub fn complete(cx: &Cx<'_>, name: &[u8], reply: ReadReply, out: &mut Vec<u8>) {
+    let eol = cx.client.eol;
     match reply {
         Ok(answers) => match answers.into_iter().next() {
             Some(Ok(bytes)) => {
-                let blksize = session.shared.global.mem_blksize;
+                let blksize = cx.section.global.mem_blksize;
                 super::write_blocks(out, b"GETMEM", name, &bytes, blksize, eol);
             }
             _ => {
@@ -67,11 +66,8 @@ pub fn complete(session: &Session, name: &[u8], reply: ReadReply, out: &mut Vec<
                 out.extend_from_slice(eol);
             }
         },
-        Err(LinkError::Offline) => {
-            write_error(out, ErrorCode::ConnectPlc, b"");
-            out.extend_from_slice(eol);
-        }
-        Err(LinkError::Plc(_)) => {
+        Err(err @ crate::link::LinkError::Offline) => link_error(err, ErrorCode::MemGet, eol, out),
+        Err(_) => {
             write_error(out, ErrorCode::MemGet, name);
             out.extend_from_slice(eol);
         }

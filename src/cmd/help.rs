@@ -1,6 +1,6 @@
 //! `HELP:`: the command list, one `HELP:` line each, then `HELP:`.
 
-use crate::session::Session;
+use super::{Cx, Reply};
 
 const TEXT: &[&str] = &[
     "LIST:[mask]                 List variables (* = disabled, ~ = hidden).",
@@ -20,9 +20,8 @@ const TEXT: &[&str] = &[
     "HELP:                       This help.",
 ];
 
-pub fn apply(session: &mut Session) {
-    let eol = session.conn.eol;
-    let mut out = Vec::new();
+pub fn run(cx: &mut Cx<'_>, out: &mut Vec<u8>) -> Reply {
+    let eol = cx.client.eol;
     for line in TEXT {
         out.extend_from_slice(b"HELP:");
         out.extend_from_slice(line.as_bytes());
@@ -30,5 +29,5 @@ pub fn apply(session: &mut Session) {
     }
     out.extend_from_slice(b"HELP:");
     out.extend_from_slice(eol);
-    session.answer(out);
+    Reply::Done
 }

@@ -4,18 +4,17 @@
 
 use plccoms_protocol::answer::{ErrorCode, WarningCode};
 
-use super::{error, select, warning, Selection};
-use crate::session::Session;
+use super::{error, select, warning, Cx, Reply, Selection};
 
-pub fn apply(session: &mut Session, args: &[u8], context: &[u8], hide: bool) {
+pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], hide: bool, out: &mut Vec<u8>) -> Reply {
     // Hiding works on every variable the mask names, hidden or not.
-    let selection = select(session.vars.table(), args, |_| false);
+    let selection = select(cx.client.vars.table(), args, |_| false);
     if let Selection::Unknown = selection {
-        return error(session, ErrorCode::UnknownVariable, context);
+        return error(cx, ErrorCode::UnknownVariable, context, out);
     }
     for id in selection.ids() {
-        session.vars.set_hidden(id, hide);
+        cx.client.vars.set_hidden(id, hide);
     }
-    let count = format!("[{}]", session.vars.hidden_count());
-    warning(session, WarningCode::HiddenChanged, count.as_bytes());
+    let count = format!("[{}]", cx.client.vars.hidden_count());
+    warning(cx, WarningCode::HiddenChanged, count.as_bytes(), out)
 }

@@ -5,15 +5,15 @@ use std::io::Write;
 
 use plccoms_protocol::mask::Mask;
 
-use crate::session::Session;
+use super::{Cx, Reply};
 
-pub fn apply(session: &mut Session, args: &[u8]) {
+pub fn run(cx: &mut Cx<'_>, args: &[u8], out: &mut Vec<u8>) -> Reply {
     let mask = Mask::new(args);
     let all = mask.is_all();
-    let eol = session.conn.eol;
-    let vars = &session.vars;
+    let eol = cx.client.eol;
+    let vars = &cx.client.vars;
     let table = vars.table();
-    let mut out = Vec::with_capacity(if all { table.len() * 32 } else { 256 });
+    out.reserve(if all { table.len() * 32 } else { 256 });
     for (id, var) in table.vars().iter().enumerate() {
         if !all && !mask.matches(&var.name) {
             continue;
@@ -32,5 +32,5 @@ pub fn apply(session: &mut Session, args: &[u8]) {
     }
     out.extend_from_slice(b"LIST:");
     out.extend_from_slice(eol);
-    session.answer(out);
+    Reply::Done
 }

@@ -1,5 +1,17 @@
-//! One module per protocol command. Each takes the session and the request's
-//! arguments, applies the command and queues its answer.
+//! The protocol's commands, one module each, all of one shape:
+//!
+//! ```text
+//! run(&mut Cx, args, context, &mut out) -> Reply
+//! ```
+//!
+//! A command reads and changes the client's state ([`ClientState`]) and the
+//! section ([`Cx::section`]), and either writes its whole answer into `out`
+//! at once ([`Reply::Done`]) or hands back a [`Waiting`]: a job the link is
+//! doing, whose completion renders the answer. GETFILE hands back a
+//! [`getfile::Stream`] that makes its blocks as the client reads them.
+//!
+//! Commands never write to the connection and know nothing of ordering: the
+//! session owns the ordered answer queue and every "wait behind" rule.
 
 pub mod en;
 pub mod get;
@@ -14,60 +26,214 @@ pub mod set;
 pub mod setconf;
 pub mod writefile;
 
+use std::net::SocketAddr;
+use std::sync::Arc;
+
 use plccoms_protocol::answer::{write_error, write_warning, ErrorCode, WarningCode};
 use plccoms_protocol::mask::Mask;
 use plccoms_protocol::request::Command;
+use tokio::sync::oneshot;
 
-use crate::poller::files::{FileOutput, FileReply};
-use crate::poller::LinkError;
-use crate::session::Session;
+use crate::changes::{Notice, Snapshot};
+use crate::client::ClientTable;
+use crate::link::files::{FileOutput, FileReply};
+use crate::link::{LinkError, ReadReply, ReconfError, ReconfReply, SetReply};
+use crate::section::Section;
 use crate::vars::{VarId, VarTable};
+
+/// One client's state that commands read and change.
+pub struct ClientState {
+    pub vars: ClientTable,
+    /// DIFF lines on for this client (`SETCONF:diff`).
+    pub diff: bool,
+    /// This client's line end (`SETCONF:crlf`).
+    pub eol: &'static [u8],
+    pub peer: SocketAddr,
+    /// A WRITEFILE transfer in progress.
+    pub upload: Option<writefile::Upload>,
+}
+
+/// What a command runs with.
+pub struct Cx<'a> {
+    pub section: &'a Section,
+    pub client: &'a mut ClientState,
+    /// The newest snapshot, for answers from the poll.
+    pub newest: &'a Arc<Snapshot>,
+    /// A SET of this client is unanswered: a GET must read through the PLC,
+    /// behind it, to see its effect.
+    pub behind_set: bool,
+}
+
+/// A command's answer.
+pub enum Reply {
+    /// Written into `out` (possibly nothing).
+    Done,
+    /// Rendered when the link's job completes.
+    Wait(Waiting),
+    /// A GETFILE answer, made block by block.
+    Stream(Box<getfile::Stream>),
+}
+
+/// Which rule of the session an answer waits under.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WaitKind {
+    /// A read through the PLC.
+    Read,
+    /// A SET: DIFF lines wait until it is answered (its answer carries the
+    /// new value).
+    Set,
+    /// A SETCONF of the section: later requests and public-file notices wait.
+    Conf,
+    /// A PLC file service.
+    File,
+}
+
+/// An answer the link is working on.
+pub struct Waiting(Job);
+
+enum Job {
+    Read {
+        rx: oneshot::Receiver<ReadReply>,
+        then: get::ReadThen,
+    },
+    Set {
+        rx: oneshot::Receiver<SetReply>,
+        then: set::SetThen,
+    },
+    Conf {
+        rx: oneshot::Receiver<ReconfReply>,
+        then: setconf::ConfThen,
+    },
+    File {
+        rx: oneshot::Receiver<FileReply>,
+        then: FileThen,
+    },
+}
+
+/// What the link answered for a [`Waiting`].
+pub struct Completion(Completed);
+
+enum Completed {
+    Read(ReadReply),
+    Set(SetReply),
+    Conf(ReconfReply),
+    File(FileReply),
+}
+
+/// What an answer did besides its bytes, for the session to act on.
+pub enum Effect {
+    None,
+    /// SETCONF loaded a public file: the client switches to the new table
+    /// and is told of every notice up to this one, this one by the answer.
+    Reconfigured(Arc<Notice>),
+}
+
+impl Waiting {
+    pub fn kind(&self) -> WaitKind {
+        match self.0 {
+            Job::Read { .. } => WaitKind::Read,
+            Job::Set { .. } => WaitKind::Set,
+            Job::Conf { .. } => WaitKind::Conf,
+            Job::File { .. } => WaitKind::File,
+        }
+    }
+
+    /// Waits for the link's answer (a link gone at shutdown is offline).
+    pub async fn ready(&mut self) -> Completion {
+        Completion(match &mut self.0 {
+            Job::Read { rx, .. } => Completed::Read(rx.await.unwrap_or(Err(LinkError::Offline))),
+            Job::Set { rx, .. } => Completed::Set(rx.await.unwrap_or(Err(LinkError::Offline))),
+            Job::Conf { rx, .. } => Completed::Conf(rx.await.unwrap_or(Err(
+                ReconfError::Unreachable("the server is stopping".to_string()),
+            ))),
+            Job::File { rx, .. } => Completed::File(rx.await.unwrap_or(Err(LinkError::Offline))),
+        })
+    }
+
+    /// Renders the answer into `out`.
+    pub fn finish(self, done: Completion, cx: &mut Cx<'_>, out: &mut Vec<u8>) -> Effect {
+        match (self.0, done.0) {
+            (Job::Read { then, .. }, Completed::Read(reply)) => get::complete(cx, then, reply, out),
+            (Job::Set { then, .. }, Completed::Set(reply)) => set::complete(cx, then, reply, out),
+            (Job::Conf { then, .. }, Completed::Conf(reply)) => {
+                return setconf::complete(cx, then, reply, out)
+            }
+            (Job::File { then, .. }, Completed::File(reply)) => complete_file(cx, then, reply, out),
+            _ => unreachable!("a completion comes from its own job"),
+        }
+        Effect::None
+    }
+}
+
+impl Reply {
+    fn read(rx: oneshot::Receiver<ReadReply>, then: get::ReadThen) -> Reply {
+        Reply::Wait(Waiting(Job::Read { rx, then }))
+    }
+
+    fn set(rx: oneshot::Receiver<SetReply>, then: set::SetThen) -> Reply {
+        Reply::Wait(Waiting(Job::Set { rx, then }))
+    }
+
+    fn conf(rx: oneshot::Receiver<ReconfReply>, then: setconf::ConfThen) -> Reply {
+        Reply::Wait(Waiting(Job::Conf { rx, then }))
+    }
+
+    fn file(rx: oneshot::Receiver<FileReply>, then: FileThen) -> Reply {
+        Reply::Wait(Waiting(Job::File { rx, then }))
+    }
+}
 
 /// Runs one request. `context` is the request as the client wrote it, for
 /// error texts.
-pub async fn dispatch(session: &mut Session, command: Command, args: &[u8], context: &[u8]) {
-    if session.shared.config.read_only && matches!(command, Command::Set) {
-        return read_only(session, context);
+pub fn run(
+    cx: &mut Cx<'_>,
+    command: Command,
+    args: &[u8],
+    context: &[u8],
+    out: &mut Vec<u8>,
+) -> Reply {
+    if matches!(command, Command::Set) && cx.section.read_only() {
+        return read_only(cx, context, out);
     }
     match command {
-        Command::List => list::apply(session, args),
-        Command::Get => get::apply(session, args, context).await,
-        Command::Set => set::apply(session, args, context).await,
-        Command::En => en::apply(session, args, context, true),
-        Command::Di => en::apply(session, args, context, false),
-        Command::Hide => hide::apply(session, args, context, true),
-        Command::Unhide => hide::apply(session, args, context, false),
-        Command::GetInfo => getinfo::apply(session, args, context),
-        Command::SetConf => setconf::apply(session, args, context).await,
-        Command::Help => help::apply(session),
-        Command::GetMem => getmem::apply(session, args, context).await,
-        Command::GetFile => getfile::apply(session, args, context).await,
-        Command::GetFileInfo => getfileinfo::apply(session, args, context).await,
+        Command::List => list::run(cx, args, out),
+        Command::Get => get::run(cx, args, context, out),
+        Command::Set => set::run(cx, args, context, out),
+        Command::En => en::run(cx, args, context, true, out),
+        Command::Di => en::run(cx, args, context, false, out),
+        Command::Hide => hide::run(cx, args, context, true, out),
+        Command::Unhide => hide::run(cx, args, context, false, out),
+        Command::GetInfo => getinfo::run(cx, args, context, out),
+        Command::SetConf => setconf::run(cx, args, context, out),
+        Command::Help => help::run(cx, out),
+        Command::GetMem => getmem::run(cx, args, context, out),
+        Command::GetFile => getfile::run(cx, args, context, out),
+        Command::GetFileInfo => getfileinfo::run(cx, args, context, out),
         Command::WriteFile | Command::WriteFileInfo => {
-            // Data blocks come as `Frame::Block`s (see `writefile::block`);
-            // a line here has no `[n]=`.
-            error(session, ErrorCode::Incomplete, context);
+            // Data blocks come as blocks (see `writefile::block`); a line
+            // here has no `[n]=`.
+            error(cx, ErrorCode::Incomplete, context, out)
         }
     }
 }
 
 /// READ_ONLY = Yes: a request that would change the PLC or the section
 /// answers ERROR:30 with the request, and nothing is changed.
-pub fn read_only(session: &mut Session, context: &[u8]) {
-    error(session, ErrorCode::BadRequest, context);
+pub fn read_only(cx: &Cx<'_>, context: &[u8], out: &mut Vec<u8>) -> Reply {
+    error(cx, ErrorCode::BadRequest, context, out)
 }
 
-/// Queues `ERROR:<code> <text> '<context>'`.
-pub fn error(session: &mut Session, code: ErrorCode, context: &[u8]) {
-    let mut out = Vec::new();
-    write_error(&mut out, code, context);
-    session.answer_line(out);
+/// Writes `ERROR:<code> <text> '<context>'` and the line end.
+pub fn error(cx: &Cx<'_>, code: ErrorCode, context: &[u8], out: &mut Vec<u8>) -> Reply {
+    write_error(out, code, context);
+    out.extend_from_slice(cx.client.eol);
+    Reply::Done
 }
 
-pub fn warning(session: &mut Session, code: WarningCode, context: &[u8]) {
-    let mut out = Vec::new();
-    write_warning(&mut out, code, context);
-    session.answer_line(out);
+pub fn warning(cx: &Cx<'_>, code: WarningCode, context: &[u8], out: &mut Vec<u8>) -> Reply {
+    write_warning(out, code, context);
+    out.extend_from_slice(cx.client.eol);
+    Reply::Done
 }
 
 /// Which variables a mask names.
@@ -152,6 +318,17 @@ pub fn is_local(name: &[u8]) -> bool {
     name.first() == Some(&b'.')
 }
 
+/// ERROR:10 when there is no link, `code` when the PLC failed the request
+/// or it could not be sent in time.
+pub fn link_error(err: LinkError, code: ErrorCode, eol: &[u8], out: &mut Vec<u8>) {
+    let code = match err {
+        LinkError::Offline => ErrorCode::ConnectPlc,
+        LinkError::Plc(_) | LinkError::Late => code,
+    };
+    write_error(out, code, b"");
+    out.extend_from_slice(eol);
+}
+
 /// What to answer when a PLC file service finishes.
 pub enum FileThen {
     Info { name: Vec<u8> },
@@ -161,8 +338,8 @@ pub enum FileThen {
 }
 
 /// Writes the answer to a PLC file service.
-pub fn complete_file(session: &mut Session, then: FileThen, reply: FileReply, out: &mut Vec<u8>) {
-    let eol = session.conn.eol;
+fn complete_file(cx: &mut Cx<'_>, then: FileThen, reply: FileReply, out: &mut Vec<u8>) {
+    let eol = cx.client.eol;
     let (name, code) = match &then {
         FileThen::Info { name } => (name, ErrorCode::FileInfo),
         FileThen::List { name } => (name, ErrorCode::GetFile),
@@ -171,7 +348,7 @@ pub fn complete_file(session: &mut Session, then: FileThen, reply: FileReply, ou
     };
     let output = match reply {
         Ok(Ok(output)) => output,
-        Ok(Err(_)) | Err(LinkError::Plc(_)) => {
+        Ok(Err(_)) | Err(LinkError::Plc(_) | LinkError::Late) => {
             write_error(out, code, name);
             out.extend_from_slice(eol);
             return;
@@ -188,25 +365,38 @@ pub fn complete_file(session: &mut Session, then: FileThen, reply: FileReply, ou
         }
         (FileThen::List { name }, FileOutput::List(entries)) => {
             let listing = crate::localfs::format_listing(&entries, eol);
-            let blksize = session.shared.global.ffile_blksize;
+            let blksize = cx.section.global.ffile_blksize;
             write_blocks(out, b"GETFILE", &name, &listing, blksize, eol);
         }
-        (FileThen::Write { name }, FileOutput::Done) => {
-            out.extend_from_slice(b"WRITEFILE:");
-            out.extend_from_slice(&name);
-            out.extend_from_slice(b" OK");
-            out.extend_from_slice(eol);
-        }
+        (FileThen::Write { name }, FileOutput::Done) => ok_line(out, b"WRITEFILE:", &name, eol),
         (FileThen::WriteInfo { name }, FileOutput::Done) => {
-            out.extend_from_slice(b"WRITEFILEINFO:");
-            out.extend_from_slice(&name);
-            out.extend_from_slice(b" OK");
-            out.extend_from_slice(eol);
+            ok_line(out, b"WRITEFILEINFO:", &name, eol)
         }
         (_, _) => {
-            // The poller answers each job with its own kind of output.
+            // The link answers each job with its own kind of output.
             write_error(out, ErrorCode::Unknown, b"");
             out.extend_from_slice(eol);
         }
     }
+}
+
+/// `<command><name> OK` and the line end.
+pub fn ok_line(out: &mut Vec<u8>, command: &[u8], name: &[u8], eol: &[u8]) {
+    out.extend_from_slice(command);
+    out.extend_from_slice(name);
+    out.extend_from_slice(b" OK");
+    out.extend_from_slice(eol);
+}
+
+/// `bytes` without leading and trailing spaces and tabs.
+pub fn trim(bytes: &[u8]) -> &[u8] {
+    let start = bytes
+        .iter()
+        .position(|b| !matches!(b, b' ' | b'\t'))
+        .unwrap_or(bytes.len());
+    let end = bytes
+        .iter()
+        .rposition(|b| !matches!(b, b' ' | b'\t'))
+        .map_or(start, |e| e + 1);
+    &bytes[start..end]
 }

@@ -9,13 +9,12 @@ use plccoms_protocol::request::{parse_set, ArgError};
 use plccoms_protocol::value::Value;
 use plccoms_protocol::{cp1250, IecType};
 
-use super::error;
-use super::get::link_error;
-use crate::backend::{ReadRequest, WriteData, WriteRequest};
-use crate::poller::{SetItem, SetReply};
-use crate::session::{Pending, Session};
-use crate::vars::{VarId, VarTable};
 use std::sync::Arc;
+
+use super::{error, link_error, Cx, Reply};
+use crate::backend::{ReadRequest, WriteData, WriteRequest};
+use crate::link::{SetItem, SetReply};
+use crate::vars::{VarId, VarTable};
 
 pub struct SetThen {
     name: Vec<u8>,
@@ -25,15 +24,16 @@ pub struct SetThen {
     bit: Option<u8>,
 }
 
-pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
+pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> Reply {
     let (name, text) = match parse_set(args) {
         Ok(parts) => parts,
-        Err(ArgError::Incomplete) => return error(session, ErrorCode::Incomplete, context),
-        Err(ArgError::Bad) => return error(session, ErrorCode::BadRequest, context),
+        Err(ArgError::Incomplete) => return error(cx, ErrorCode::Incomplete, context, out),
+        Err(ArgError::Bad) => return error(cx, ErrorCode::BadRequest, context, out),
     };
+    let table = cx.client.vars.table().clone();
     let (area, offset, ty, bit, var, printed) = if name.first() == Some(&b'%') {
         let Some(address) = parse_direct(name) else {
-            return error(session, ErrorCode::MemSet, name);
+            return error(cx, ErrorCode::MemSet, name, out);
         };
         (
             address.area,
@@ -44,15 +44,15 @@ pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
             cp1250::to_upper(name),
         )
     } else {
-        let Some(id) = session.vars.table().lookup(name) else {
-            return error(session, ErrorCode::UnknownVariable, context);
+        let Some(id) = table.lookup(name) else {
+            return error(cx, ErrorCode::UnknownVariable, context, out);
         };
-        let v = session.vars.table().var(id);
+        let v = table.var(id);
         (v.area, v.offset, v.ty, v.bit, Some(id), v.name.to_vec())
     };
-    let value = match Value::parse(ty, text, &session.shared.format) {
+    let value = match Value::parse(ty, text, &cx.section.format) {
         Ok(value) => value,
-        Err(_) => return error(session, ErrorCode::WrongValue, context),
+        Err(_) => return error(cx, ErrorCode::WrongValue, context, out),
     };
     let data = match (bit, &value) {
         (Some(bit), Value::Bool(on)) => WriteData::Bit { bit, value: *on },
@@ -69,21 +69,20 @@ pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
             offset,
             len: ty.size() as u32,
         },
-        var: var.map(|id| (session.vars.table().clone(), id)),
+        var: var.map(|id| (table.clone(), id)),
     };
-    let rx = session.shared.poller.set(item).await;
     let then = SetThen {
         name: printed,
-        table: session.vars.table().clone(),
+        table,
         var,
         ty,
         bit,
     };
-    session.pending.push_back(Pending::Set { rx, then });
+    Reply::set(cx.section.link.set(item), then)
 }
 
-pub fn complete(session: &mut Session, then: SetThen, reply: SetReply, out: &mut Vec<u8>) {
-    let eol = session.conn.eol;
+pub fn complete(cx: &mut Cx<'_>, then: SetThen, reply: SetReply, out: &mut Vec<u8>) {
+    let eol = cx.client.eol;
     let outcome = match reply {
         Ok(outcome) => outcome,
         Err(err) => return link_error(err, ErrorCode::SendData, eol, out),
@@ -104,15 +103,15 @@ pub fn complete(session: &mut Session, then: SetThen, reply: SetReply, out: &mut
         Some(bit) => Value::Bool(bytes.first().is_some_and(|b| b & (1 << bit) != 0)),
         None => Value::decode(then.ty, &bytes),
     };
-    if session.diff {
+    if cx.client.diff {
         out.extend_from_slice(b"DIFF:");
         out.extend_from_slice(&then.name);
         out.push(b',');
-        value.format(then.ty, &session.shared.format, out);
+        value.format(then.ty, &cx.section.format, out);
         out.extend_from_slice(eol);
     }
     // The table may have changed while the SET was under way.
-    if let (Some(id), true) = (then.var, Arc::ptr_eq(&then.table, session.vars.table())) {
-        session.vars.mark_sent(id, outcome.seq, Some(value));
+    if let (Some(id), true) = (then.var, Arc::ptr_eq(&then.table, cx.client.vars.table())) {
+        cx.client.vars.mark_sent(id, outcome.seq, Some(value));
     }
 }

@@ -11,21 +11,20 @@
 use plccoms_protocol::answer::{write_error, write_warning, ErrorCode, WarningCode};
 use plccoms_protocol::request::{parse_setconf, ArgError};
 
-use super::error;
+use super::{error, Cx, Effect, Reply};
+use crate::changes::Notice;
 use crate::config::parse_ipv4;
-use crate::fanout::Notice;
-use crate::poller::{ConfChange, ReconfError, ReconfReply};
-use crate::session::{Pending, Session};
+use crate::link::{ConfChange, ReconfError, ReconfReply};
 
 pub struct ConfThen {
     context: Vec<u8>,
 }
 
-pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
+pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> Reply {
     let (name, value) = match parse_setconf(args) {
         Ok(parts) => parts,
-        Err(ArgError::Incomplete) => return error(session, ErrorCode::Incomplete, context),
-        Err(ArgError::Bad) => return error(session, ErrorCode::BadRequest, context),
+        Err(ArgError::Incomplete) => return error(cx, ErrorCode::Incomplete, context, out),
+        Err(ArgError::Bad) => return error(cx, ErrorCode::BadRequest, context, out),
     };
     let key = String::from_utf8_lossy(name).to_ascii_lowercase();
     let text = String::from_utf8_lossy(value).into_owned();
@@ -33,24 +32,25 @@ pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
         key.as_str(),
         "ipaddr" | "epsaddr" | "epsport" | "serial_device" | "serial_speed" | "pubfile"
     );
-    if section_wide && session.shared.config.read_only {
-        return super::read_only(session, context);
+    if section_wide && cx.section.read_only() {
+        return super::read_only(cx, context, out);
     }
     let change = match key.as_str() {
         "crlf" | "diff" => {
             let Some(on) = yes_no(value) else {
-                return error(session, ErrorCode::WrongValue, context);
+                return error(cx, ErrorCode::WrongValue, context, out);
             };
             if key == "crlf" {
-                session.conn.set_crlf(on);
+                cx.client.eol = if on { b"\r\n" } else { b"\n" };
             } else {
-                session.diff = on;
+                cx.client.diff = on;
             }
-            let mut line = b"SETCONF:".to_vec();
-            line.extend_from_slice(key.to_ascii_uppercase().as_bytes());
-            line.push(b',');
-            line.extend_from_slice(if on { b"YES" } else { b"NO" });
-            return session.answer_line(line);
+            out.extend_from_slice(b"SETCONF:");
+            out.extend_from_slice(key.to_ascii_uppercase().as_bytes());
+            out.push(b',');
+            out.extend_from_slice(if on { b"YES" } else { b"NO" });
+            out.extend_from_slice(cx.client.eol);
+            return Reply::Done;
         }
         "ipaddr" => parse_ipv4(&text).map(ConfChange::IpAddr),
         "epsaddr" => text
@@ -70,34 +70,32 @@ pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
             .filter(|&s| s > 0)
             .map(ConfChange::SerialSpeed),
         "pubfile" => (!text.is_empty()).then(|| ConfChange::PubFile(text.clone())),
-        _ => return error(session, ErrorCode::SetConfUnknown, context),
+        _ => return error(cx, ErrorCode::SetConfUnknown, context, out),
     };
     let Some(change) = change else {
-        return error(session, ErrorCode::WrongValue, context);
+        return error(cx, ErrorCode::WrongValue, context, out);
     };
-    let rx = session.shared.poller.reconfigure(change).await;
     let then = ConfThen {
         context: context.to_vec(),
     };
-    session.pending.push_back(Pending::Conf { rx, then });
+    Reply::conf(cx.section.link.reconfigure(change), then)
 }
 
-pub fn complete(session: &mut Session, then: ConfThen, reply: ReconfReply, out: &mut Vec<u8>) {
-    match reply {
-        Ok(outcome) => {
-            // The poller published the reload before answering: from the
-            // next request on, this client uses the new table.
-            session.latest_snapshot();
-            // Reloads before this one that the client has not heard of yet,
-            // then this one, told by this answer only.
-            session.notices_up_to(outcome.notice.seq - 1, out);
-            session.notice_seen = session.notice_seen.max(outcome.notice.seq);
-            write_notice(&outcome.notice, out);
+/// The answer to a section-wide SETCONF. A public file it loaded is told by
+/// the session (with the notices before it), so only errors are written here.
+pub fn complete(cx: &mut Cx<'_>, then: ConfThen, reply: ReconfReply, out: &mut Vec<u8>) -> Effect {
+    let code = match reply {
+        Ok(outcome) => return Effect::Reconfigured(outcome.notice),
+        Err(ReconfError::Unreachable(_)) => {
+            write_error(out, ErrorCode::ConnectPlc, b"");
+            out.extend_from_slice(cx.client.eol);
+            return Effect::None;
         }
-        Err(ReconfError::Unreachable(_)) => write_error(out, ErrorCode::ConnectPlc, b""),
-        Err(ReconfError::PubFile(_)) => write_error(out, ErrorCode::WrongValue, &then.context),
-    }
-    out.extend_from_slice(session.conn.eol);
+        Err(ReconfError::PubFile(_)) => ErrorCode::WrongValue,
+    };
+    write_error(out, code, &then.context);
+    out.extend_from_slice(cx.client.eol);
+    Effect::None
 }
 
 /// `WARNING:250 Changed public file: '<name>'` or 251, without line end.

@@ -27,10 +27,9 @@ use plccoms_protocol::answer::ErrorCode;
 use plccoms_protocol::request::{classify, parse_block, Command, Line};
 use tokio::time::Instant;
 
-use super::{error, is_local, FileThen};
+use super::{error, is_local, ok_line, Cx, FileThen, Reply};
+use crate::link::files::FileJob;
 use crate::localfs::{self, Staging};
-use crate::poller::files::FileJob;
-use crate::session::{Pending, Session};
 
 /// Largest PLC file taken by WRITEFILE.
 pub const MAX_PLC_FILE: usize = 16 * 1024 * 1024;
@@ -55,15 +54,16 @@ enum Target {
     TimedOut,
 }
 
-pub async fn block(session: &mut Session, header: &[u8], data: Vec<u8>) {
+/// One `<command>:<name>[<n>]=<data>` block of WRITEFILE or WRITEFILEINFO.
+pub fn block(cx: &mut Cx<'_>, header: &[u8], data: Vec<u8>, out: &mut Vec<u8>) -> Reply {
     let Line::Command { command, args } = classify(header) else {
-        return error(session, ErrorCode::BadRequest, header);
+        return error(cx, ErrorCode::BadRequest, header, out);
     };
     let name = match parse_block(args) {
         Ok((name, _, _)) => name.to_vec(),
-        Err(_) => return error(session, ErrorCode::BadRequest, header),
+        Err(_) => return error(cx, ErrorCode::BadRequest, header, out),
     };
-    if session.shared.config.read_only {
+    if cx.section.read_only() {
         // Blocks are dropped; the one that would be answered (WRITEFILE's
         // zero block, WRITEFILEINFO's data block) answers ERROR:30.
         let answered = match command {
@@ -74,32 +74,32 @@ pub async fn block(session: &mut Session, header: &[u8], data: Vec<u8>) {
             let mut context = command.name().as_bytes().to_vec();
             context.push(b':');
             context.extend_from_slice(&name);
-            super::read_only(session, &context);
+            return super::read_only(cx, &context, out);
         }
-        return;
+        return Reply::Done;
     }
     match command {
-        Command::WriteFileInfo => write_info(session, name, &data).await,
-        _ => write_block(session, name, data).await,
+        Command::WriteFileInfo => write_info(cx, name, &data, out),
+        _ => write_block(cx, name, data, out),
     }
 }
 
-async fn write_block(session: &mut Session, name: Vec<u8>, data: Vec<u8>) {
-    if session.upload.as_ref().is_some_and(|u| u.name != name) {
-        if let Some(open) = session.upload.take() {
+fn write_block(cx: &mut Cx<'_>, name: Vec<u8>, data: Vec<u8>, out: &mut Vec<u8>) -> Reply {
+    if cx.client.upload.as_ref().is_some_and(|u| u.name != name) {
+        if let Some(open) = cx.client.upload.take() {
             if !matches!(open.target, Target::TimedOut) {
-                error(session, ErrorCode::Unterminated, &open.name);
+                error(cx, ErrorCode::Unterminated, &open.name, out);
             }
         }
     }
     if data.is_empty() {
-        return finish(session, name).await;
+        return finish(cx, name, out);
     }
-    let deadline = Instant::now() + session.shared.global.ffile_timeout_wr;
-    let upload = match session.upload.take() {
+    let deadline = Instant::now() + cx.section.global.ffile_timeout_wr;
+    let upload = match cx.client.upload.take() {
         Some(upload) => upload,
         None => Upload {
-            target: start(session, &name),
+            target: start(cx, &name),
             name,
             deadline,
         },
@@ -120,99 +120,92 @@ async fn write_block(session: &mut Session, name: Vec<u8>, data: Vec<u8>) {
         }
         Target::Failed | Target::TimedOut => {}
     }
-    session.upload = Some(upload);
+    cx.client.upload = Some(upload);
+    Reply::Done
 }
 
-fn start(session: &Session, name: &[u8]) -> Target {
+fn start(cx: &Cx<'_>, name: &[u8]) -> Target {
     if !is_local(name) {
         return Target::Plc(Vec::new());
     }
-    match localfs::resolve(&session.shared.root, name) {
+    match localfs::resolve(&cx.section.root, name) {
         Ok(path) => Staging::create(path).map_or(Target::Failed, Target::Local),
         Err(err) => {
-            super::getfileinfo::refused(session, name, &err);
+            super::getfileinfo::refused(cx, name, &err);
             Target::Failed
         }
     }
 }
 
-async fn finish(session: &mut Session, name: Vec<u8>) {
-    let target = match session.upload.take() {
+fn finish(cx: &mut Cx<'_>, name: Vec<u8>, out: &mut Vec<u8>) -> Reply {
+    let target = match cx.client.upload.take() {
         Some(upload) => upload.target,
         // Only the zero block: an empty file.
-        None => start(session, &name),
+        None => start(cx, &name),
     };
     match target {
         Target::Local(staging) => match staging.commit() {
-            Ok(()) => ok(session, b"WRITEFILE:", &name),
-            Err(_) => error(session, ErrorCode::WriteFile, &name),
+            Ok(()) => {
+                ok_line(out, b"WRITEFILE:", &name, cx.client.eol);
+                Reply::Done
+            }
+            Err(_) => error(cx, ErrorCode::WriteFile, &name, out),
         },
         Target::Plc(data) => {
             let job = FileJob::Write {
                 path: name.clone(),
                 data,
             };
-            let rx = session.shared.poller.file(job).await;
-            let then = FileThen::Write { name };
-            session.pending.push_back(Pending::File { rx, then });
+            Reply::file(cx.section.link.file(job), FileThen::Write { name })
         }
-        Target::Failed => error(session, ErrorCode::WriteFile, &name),
-        Target::TimedOut => error(session, ErrorCode::WriteTimeout, &name),
+        Target::Failed => error(cx, ErrorCode::WriteFile, &name, out),
+        Target::TimedOut => error(cx, ErrorCode::WriteTimeout, &name, out),
     }
 }
 
 /// FFILE_TIMEOUT_WR passed since the last block: ERROR 45, data discarded.
-pub fn timed_out(session: &mut Session) {
-    let Some(mut upload) = session.upload.take() else {
+pub fn timed_out(cx: &mut Cx<'_>, out: &mut Vec<u8>) {
+    let Some(mut upload) = cx.client.upload.take() else {
         return;
     };
     if matches!(upload.target, Target::TimedOut) {
         // The remembered timeout expired: the name is free again.
         return;
     }
-    error(session, ErrorCode::WriteTimeout, &upload.name);
+    error(cx, ErrorCode::WriteTimeout, &upload.name, out);
     // Dropping a staging file removes it.
     upload.target = Target::TimedOut;
-    upload.deadline = Instant::now() + session.shared.global.ffile_timeout_wr * 12;
+    upload.deadline = Instant::now() + cx.section.global.ffile_timeout_wr * 12;
     // Stray blocks of the abandoned transfer are ignored for a while, then
     // the name is free again.
-    session.upload = Some(upload);
+    cx.client.upload = Some(upload);
 }
 
-async fn write_info(session: &mut Session, name: Vec<u8>, data: &[u8]) {
+fn write_info(cx: &mut Cx<'_>, name: Vec<u8>, data: &[u8], out: &mut Vec<u8>) -> Reply {
     if data.is_empty() {
-        return;
+        return Reply::Done;
     }
     let info = match (data.len() <= MAX_INFO).then(|| localfs::parse_info(data)) {
         Some(Some(info)) => info,
-        _ => return error(session, ErrorCode::WriteFileInfo, &name),
+        _ => return error(cx, ErrorCode::WriteFileInfo, &name, out),
     };
     if is_local(&name) {
-        let done = match localfs::resolve(&session.shared.root, &name) {
+        let done = match localfs::resolve(&cx.section.root, &name) {
             Ok(path) => localfs::write_info(&path, &info).is_ok(),
             Err(err) => {
-                super::getfileinfo::refused(session, &name, &err);
+                super::getfileinfo::refused(cx, &name, &err);
                 false
             }
         };
-        return if done {
-            ok(session, b"WRITEFILEINFO:", &name)
-        } else {
-            error(session, ErrorCode::WriteFileInfo, &name)
-        };
+        if !done {
+            return error(cx, ErrorCode::WriteFileInfo, &name, out);
+        }
+        ok_line(out, b"WRITEFILEINFO:", &name, cx.client.eol);
+        return Reply::Done;
     }
     let job = FileJob::WriteInfo {
         path: name.clone(),
         info,
     };
-    let rx = session.shared.poller.file(job).await;
-    let then = FileThen::WriteInfo { name };
-    session.pending.push_back(Pending::File { rx, then });
-}
-
-fn ok(session: &mut Session, command: &[u8], name: &[u8]) {
-    let mut line = command.to_vec();
-    line.extend_from_slice(name);
-    line.extend_from_slice(b" OK");
-    session.answer_line(line);
+    Reply::file(cx.section.link.file(job), FileThen::WriteInfo { name })
 }

@@ -1,6 +1,6 @@
 //! One client's socket: input framing (telnet bytes, line ends, limits, file
-//! blocks, via the protocol crate's decoder) and the output buffer with its
-//! line end. Everything above it sees frames and lines, never raw bytes.
+//! blocks, via the protocol crate's decoder) and the output buffer. Everything
+//! above it sees frames and lines, never raw bytes.
 
 use std::io;
 
@@ -21,9 +21,6 @@ pub const OUTPUT_HIGH_WATER: usize = 256 * 1024;
 /// Output buffer capacity kept once everything is written.
 const RETAINED_OUTPUT: usize = 16 * 1024;
 
-pub const CRLF: &[u8] = b"\r\n";
-pub const LF: &[u8] = b"\n";
-
 pub struct Connection {
     pub(crate) reader: OwnedReadHalf,
     pub(crate) writer: OwnedWriteHalf,
@@ -32,7 +29,6 @@ pub struct Connection {
     /// Bytes waiting to be written; `written` of them already are.
     pub(crate) out: Vec<u8>,
     pub(crate) written: usize,
-    pub eol: &'static [u8],
     /// The client closed its side: answer what it sent, then close.
     pub eof: bool,
     /// When input last arrived.
@@ -40,7 +36,7 @@ pub struct Connection {
 }
 
 impl Connection {
-    pub fn new(stream: TcpStream, crlf: bool) -> Connection {
+    pub fn new(stream: TcpStream) -> Connection {
         let _ = stream.set_nodelay(true);
         let (reader, writer) = stream.into_split();
         Connection {
@@ -50,7 +46,6 @@ impl Connection {
             decoder: Decoder::new(MAX_LINE, MAX_BLOCK),
             out: Vec::new(),
             written: 0,
-            eol: if crlf { CRLF } else { LF },
             eof: false,
             last_input: tokio::time::Instant::now(),
         }
@@ -71,19 +66,9 @@ impl Connection {
         self.decoder.abandon_block();
     }
 
-    pub fn set_crlf(&mut self, crlf: bool) {
-        self.eol = if crlf { CRLF } else { LF };
-    }
-
     /// Bytes queued and not yet written.
     pub fn backlog(&self) -> usize {
         self.out.len() - self.written
-    }
-
-    /// Appends one line and the line end.
-    pub fn line(&mut self, line: &[u8]) {
-        self.out.extend_from_slice(line);
-        self.out.extend_from_slice(self.eol);
     }
 
     /// Appends already terminated lines.

@@ -1,43 +1,42 @@
-//! A client session: reads requests, answers them in order, and sends DIFF
-//! lines between answers.
+//! A client session: reads requests, runs them (`cmd`), answers them in
+//! order, and sends DIFF lines between answers.
 //!
 //! Requests are taken as fast as they arrive (clients pipeline hundreds at
-//! once); answers that need the PLC wait in an ordered queue while later
-//! requests are already parsed and sent on to the poller, so a burst of SETs
-//! or GETs shares PLC round trips. Output is bounded: when the client does not
-//! read, the session stops taking requests (at `OUTPUT_HIGH_WATER`) and defers
-//! DIFFs (at OUTPUT_SOFT_LIMIT; it can always recompute them from the latest
+//! once); answers that need the PLC wait in the ordered queue ([`queue`],
+//! which also holds every "wait behind" rule) while later requests are
+//! already parsed and sent on to the link, so a burst of SETs or GETs shares
+//! PLC round trips. Output is bounded: when the client does not read, the
+//! session stops taking requests (at `OUTPUT_HIGH_WATER`) and defers DIFFs
+//! (at OUTPUT_SOFT_LIMIT; it can always recompute them from the latest
 //! snapshot, so they coalesce) instead of buffering.
 //!
 //! A client that does not read its output is disconnected: at once when its
 //! queued output (written-out buffer plus finished answers waiting behind a
 //! PLC request) passes OUTPUT_HARD_LIMIT, and when it stays at or above
 //! OUTPUT_SOFT_LIMIT for OUTPUT_SOFT_TIMEOUT. Nothing a session does waits for
-//! another session or holds up the poller: snapshots reach it on a `watch`
+//! another session or holds up the link: snapshots reach it on a `watch`
 //! channel.
 
 pub mod connection;
-pub mod table;
+pub mod queue;
 
-use std::collections::VecDeque;
 use std::net::SocketAddr;
 use std::sync::Arc;
 
-use plccoms_protocol::answer::{write_error, ErrorCode};
+use plccoms_protocol::answer::ErrorCode;
 use plccoms_protocol::decoder::Frame;
 use plccoms_protocol::request::{classify, Command, Line};
 use tokio::io::AsyncWriteExt;
 use tokio::net::TcpStream;
-use tokio::sync::{oneshot, watch};
+use tokio::sync::watch;
 use tracing::{debug, info, warn};
 
-use crate::cmd;
-use crate::fanout::Snapshot;
-use crate::poller::files::FileReply;
-use crate::poller::{ReadReply, ReconfReply, SetReply};
-use crate::section::SectionShared;
+use crate::changes::{Notice, Snapshot};
+use crate::client::ClientTable;
+use crate::cmd::{self, trim, ClientState, Cx, Effect, Reply};
+use crate::section::Section;
 use connection::{Connection, OUTPUT_HIGH_WATER};
-use table::ClientTable;
+use queue::{AnswerQueue, Entry, HeadDone};
 
 /// Answers waiting for the PLC at most, before the session stops reading.
 const MAX_PENDING: usize = 1024;
@@ -45,68 +44,29 @@ const MAX_PENDING: usize = 1024;
 /// SETCONF): past this, the session stops reading until they are handled.
 const MAX_UNPARSED_INPUT: usize = 64 * 1024;
 
-/// An answer in the ordered queue.
-pub enum Pending {
-    Ready(Vec<u8>),
-    Read {
-        rx: oneshot::Receiver<ReadReply>,
-        then: cmd::get::ReadThen,
-    },
-    Set {
-        rx: oneshot::Receiver<SetReply>,
-        then: cmd::set::SetThen,
-    },
-    Conf {
-        rx: oneshot::Receiver<ReconfReply>,
-        then: cmd::setconf::ConfThen,
-    },
-    /// A PLC file service (GETFILEINFO, a directory listing, WRITEFILE,
-    /// WRITEFILEINFO).
-    File {
-        rx: oneshot::Receiver<FileReply>,
-        then: cmd::FileThen,
-    },
-    /// A GETFILE answer, sent block by block. While it is at the head of the
-    /// queue it is being written, so DIFF lines wait until it ends.
-    Stream(Box<cmd::getfile::Stream>),
-}
-
-enum Completion {
-    Read(ReadReply),
-    Set(SetReply),
-    Conf(ReconfReply),
-    File(FileReply),
-}
-
 pub struct Session {
-    pub shared: Arc<SectionShared>,
-    pub conn: Connection,
-    pub vars: ClientTable,
-    pub snapshot: Arc<Snapshot>,
+    section: Arc<Section>,
+    conn: Connection,
+    client: ClientState,
+    /// The snapshot DIFF lines were last taken from.
+    snapshot: Arc<Snapshot>,
     snapshots: watch::Receiver<Arc<Snapshot>>,
     /// The newest published snapshot, for answers from the poll; may be
     /// ahead of `snapshot` while DIFF lines wait. See [`Session::refresh_newest`].
-    pub newest: Arc<Snapshot>,
+    newest: Arc<Snapshot>,
     newest_rx: watch::Receiver<Arc<Snapshot>>,
-    pub pending: VecDeque<Pending>,
+    queue: AnswerQueue,
     /// The variable command a bare continuation line repeats.
     continuation: Option<Command>,
-    /// DIFF lines on for this client (`SETCONF:diff`).
-    pub diff: bool,
-    pub peer: SocketAddr,
     close: bool,
     /// The server is stopping: no more input is read; what was received is
     /// answered, then the session closes.
     stopping: bool,
-    /// A snapshot arrived while a SET was unanswered; its DIFFs wait so the
-    /// SET's own answer is not doubled by a DIFF for the same change.
+    /// A snapshot arrived while a SET was unanswered or a file streamed; its
+    /// DIFFs wait until then.
     diffs_deferred: bool,
     /// Sequence of the last public-file notice this client was told of.
-    pub notice_seen: u64,
-    /// A WRITEFILE transfer in progress.
-    pub upload: Option<cmd::writefile::Upload>,
-    /// Bytes of the finished answers (`Pending::Ready`) in `pending`.
-    ready_bytes: usize,
+    notice_seen: u64,
     /// Since when queued output has been at or above OUTPUT_SOFT_LIMIT.
     over_soft_since: Option<tokio::time::Instant>,
     /// Why the session was cut off (output limits); nothing more is written.
@@ -114,42 +74,51 @@ pub struct Session {
 }
 
 impl Session {
-    pub fn new(shared: Arc<SectionShared>, stream: TcpStream, peer: SocketAddr) -> Session {
-        let mut snapshots = shared.snapshots.clone();
+    pub fn new(section: Arc<Section>, stream: TcpStream, peer: SocketAddr) -> Session {
+        let mut snapshots = section.changes.receiver();
         let snapshot = snapshots.borrow_and_update().clone();
-        let mut newest_rx = shared.snapshots.clone();
+        let mut newest_rx = section.changes.receiver();
         let newest = newest_rx.borrow_and_update().clone();
-        let vars = ClientTable::new(&snapshot, !shared.global.pf_var_disabled);
-        let notice_seen = snapshot.notice_seq();
-        let crlf = shared.global.end_line_crlf;
-        let diff = shared.global.diff_var_enabled;
+        let global = &section.global;
+        let client = ClientState {
+            vars: ClientTable::new(&snapshot, !global.pf_var_disabled),
+            diff: global.diff_var_enabled,
+            eol: if global.end_line_crlf { b"\r\n" } else { b"\n" },
+            peer,
+            upload: None,
+        };
         Session {
-            conn: Connection::new(stream, crlf),
-            vars,
+            conn: Connection::new(stream),
+            client,
+            notice_seen: snapshot.notice_seq(),
             snapshot,
             snapshots,
             newest,
             newest_rx,
-            pending: VecDeque::new(),
+            queue: AnswerQueue::default(),
             continuation: None,
-            diff,
-            peer,
             close: false,
             stopping: false,
             diffs_deferred: false,
-            notice_seen,
-            upload: None,
-            ready_bytes: 0,
             over_soft_since: None,
             dropped: None,
-            shared,
+            section,
         }
+    }
+
+    /// Serves a client until it leaves, once the section is ready for it.
+    pub async fn serve_client(section: Arc<Section>, stream: TcpStream, peer: SocketAddr) {
+        tokio::select! {
+            _ = section.ready() => {}
+            _ = section.shutdown.cancelled() => return,
+        }
+        Session::new(section, stream, peer).run().await;
     }
 
     /// Serves the client until it leaves.
     pub async fn run(mut self) {
-        let section = self.shared.name.clone();
-        let peer = self.peer;
+        let section = self.section.name.clone();
+        let peer = self.client.peer;
         debug!(section = %section, client = %peer, "client connected");
         if let Err(err) = self.serve().await {
             debug!(section = %section, client = %peer, "connection error: {err}");
@@ -162,7 +131,7 @@ impl Session {
         }
         // A client that asked to close but does not read what it is owed
         // gets as long as a soft-limit stall.
-        let grace = self.shared.global.output_soft_timeout;
+        let grace = self.section.global.output_soft_timeout;
         let _ = tokio::time::timeout(grace, self.conn.flush()).await;
         let _ = self.conn.writer.shutdown().await;
         debug!(section = %section, client = %peer, "client disconnected");
@@ -170,14 +139,14 @@ impl Session {
 
     /// Output queued for the client: the unwritten buffer and the finished
     /// answers waiting behind a PLC request.
-    pub fn queued_output(&self) -> usize {
-        self.conn.backlog() + self.ready_bytes
+    fn queued_output(&self) -> usize {
+        self.conn.backlog() + self.queue.ready_bytes()
     }
 
     /// Applies OUTPUT_HARD_LIMIT and OUTPUT_SOFT_LIMIT; `Some(why)` when the
     /// client must go.
     fn check_output_limits(&mut self) -> Option<String> {
-        let global = &self.shared.global;
+        let global = &self.section.global;
         let queued = self.queued_output();
         if queued > global.output_hard_limit {
             return Some(format!(
@@ -204,50 +173,41 @@ impl Session {
 
     async fn serve(&mut self) -> std::io::Result<()> {
         loop {
-            let drained = self.take_requests().await;
+            let drained = self.take_requests();
             if self.stopping && drained {
                 self.close = true;
             }
             self.release_ready();
-            self.pump_stream().await;
+            self.pump_stream();
             if let Some(why) = self.check_output_limits() {
                 self.dropped = Some(why);
                 return Ok(());
             }
-            if (self.close || self.conn.eof) && self.pending.is_empty() {
+            if (self.close || self.conn.eof) && self.queue.is_empty() {
                 return Ok(());
             }
-            let head_waiting = match self.pending.front_mut() {
-                Some(
-                    Pending::Read { .. }
-                    | Pending::Set { .. }
-                    | Pending::Conf { .. }
-                    | Pending::File { .. },
-                ) => true,
-                Some(Pending::Stream(stream)) => stream.waiting().is_some(),
-                _ => false,
-            };
-            let streaming = matches!(self.pending.front(), Some(Pending::Stream(_)));
+            let head_waiting = self.queue.head_waiting();
+            let streaming = self.queue.streaming();
             let write_deadline = self.write_deadline();
             let backlog = self.conn.backlog();
             let can_read = !self.conn.eof
                 && !self.close
                 && !self.stopping
-                && self.pending.len() < MAX_PENDING
+                && self.queue.len() < MAX_PENDING
                 && self.conn.input.len() < MAX_UNPARSED_INPUT
                 && backlog < OUTPUT_HIGH_WATER;
             // Snapshots also carry public-file changes, so every client takes
             // them, DIFF lines on or off; never inside a streamed answer.
-            let want_diffs = backlog < self.shared.global.output_soft_limit && !streaming;
+            let want_diffs = backlog < self.section.global.output_soft_limit && !streaming;
             let closing = self.close || self.stopping;
             let soft_deadline = self
                 .over_soft_since
-                .map(|since| since + self.shared.global.output_soft_timeout);
+                .map(|since| since + self.section.global.output_soft_timeout);
             let Session {
                 conn,
-                pending,
+                queue,
                 snapshots,
-                shared,
+                section,
                 ..
             } = self;
             let Connection {
@@ -260,8 +220,8 @@ impl Session {
             } = conn;
             tokio::select! {
                 biased;
-                completion = head_reply(pending), if head_waiting => {
-                    self.complete_head(completion);
+                done = queue.head_done(), if head_waiting => {
+                    self.complete_head(done);
                 }
                 result = writer.write(&out[*written..]), if backlog > 0 => {
                     let n = result?;
@@ -280,13 +240,13 @@ impl Session {
                 }
                 changed = snapshots.changed(), if want_diffs => {
                     if changed.is_err() {
-                        // The poller is gone: the server is shutting down.
+                        // The link is gone: the server is shutting down.
                         self.close = true;
                     } else {
                         self.take_snapshot();
                     }
                 }
-                _ = shared.shutdown.cancelled(), if !closing => {
+                _ = section.shutdown.cancelled(), if !closing => {
                     self.stopping = true;
                 }
                 _ = tokio::time::sleep_until(write_deadline.unwrap_or_else(tokio::time::Instant::now)), if write_deadline.is_some() => {
@@ -301,32 +261,30 @@ impl Session {
 
     /// Handles every complete request already received, while the queue and
     /// output have room. Returns whether no complete request is left.
-    async fn take_requests(&mut self) -> bool {
+    fn take_requests(&mut self) -> bool {
         // Requests after a SETCONF wait for it: they may name variables of
         // the public file it loads.
         while !self.close
-            && self.pending.len() < MAX_PENDING
+            && self.queue.len() < MAX_PENDING
             && self.conn.backlog() < OUTPUT_HIGH_WATER
-            && !self.conf_outstanding()
+            && !self.queue.conf_outstanding()
         {
             let Some(frame) = self.conn.next_frame() else {
                 return true;
             };
             match frame {
-                Frame::Line(line) => self.handle_line(&line).await,
+                Frame::Line(line) => self.handle_line(&line),
                 Frame::Block { header, data } => {
                     self.continuation = None;
-                    cmd::writefile::block(self, &header, data).await;
+                    self.dispatch(|cx, out| cmd::writefile::block(cx, &header, data, out));
                 }
                 Frame::TooLong(prefix) => {
                     let mut context = prefix;
                     context.extend_from_slice(b"...");
-                    let mut out = Vec::new();
-                    write_error(&mut out, ErrorCode::BadRequest, &context);
-                    self.answer_line(out);
+                    self.answer_error(ErrorCode::BadRequest, &context);
                 }
                 Frame::Close => {
-                    info!(section = %self.shared.name, client = %self.peer, "client closed the session (Ctrl+D)");
+                    info!(section = %self.section.name, client = %self.client.peer, "client closed the session (Ctrl+D)");
                     self.close = true;
                 }
             }
@@ -334,76 +292,80 @@ impl Session {
         false
     }
 
-    async fn handle_line(&mut self, line: &[u8]) {
+    fn handle_line(&mut self, line: &[u8]) {
         match classify(line) {
             Line::Empty => {}
             Line::Command { command, args } => {
                 self.continuation = command.accepts_continuation().then_some(command);
-                cmd::dispatch(self, command, args, trim(line)).await;
+                self.dispatch(|cx, out| cmd::run(cx, command, args, trim(line), out));
             }
             Line::UnknownCommand => {
                 self.continuation = None;
-                let mut out = Vec::new();
-                write_error(&mut out, ErrorCode::UnknownCommand, trim(line));
-                self.answer_line(out);
+                self.answer_error(ErrorCode::UnknownCommand, trim(line));
             }
             Line::Continuation(args) => match self.continuation {
                 Some(command) => {
                     let mut context = command.name().as_bytes().to_vec();
                     context.push(b':');
                     context.extend_from_slice(args);
-                    cmd::dispatch(self, command, args, &context).await;
+                    self.dispatch(|cx, out| cmd::run(cx, command, args, &context, out));
                 }
-                None => {
-                    let mut out = Vec::new();
-                    write_error(&mut out, ErrorCode::UnknownCommand, trim(line));
-                    self.answer_line(out);
-                }
+                None => self.answer_error(ErrorCode::UnknownCommand, trim(line)),
             },
         }
     }
 
-    /// Queues a complete answer (lines already terminated).
-    pub fn answer(&mut self, bytes: Vec<u8>) {
-        if bytes.is_empty() {
-            return;
-        }
-        if self.pending.is_empty() {
-            self.conn.extend(&bytes);
+    /// Runs a command and queues its answer in order: written straight to
+    /// the connection when nothing waits ahead of it.
+    fn dispatch(&mut self, command: impl FnOnce(&mut Cx<'_>, &mut Vec<u8>) -> Reply) {
+        self.refresh_newest();
+        let direct = self.queue.is_empty();
+        let mut behind = Vec::new();
+        let out = if direct {
+            &mut self.conn.out
         } else {
-            self.ready_bytes += bytes.len();
-            self.pending.push_back(Pending::Ready(bytes));
+            &mut behind
+        };
+        let mut cx = Cx {
+            section: &self.section,
+            client: &mut self.client,
+            newest: &self.newest,
+            behind_set: self.queue.set_outstanding(),
+        };
+        let reply = command(&mut cx, out);
+        self.queue.push_ready(behind);
+        match reply {
+            Reply::Done => {}
+            Reply::Wait(waiting) => self.queue.push_wait(waiting),
+            Reply::Stream(stream) => self.queue.push_stream(stream),
         }
     }
 
-    /// Queues a one-line answer given without its line end.
-    pub fn answer_line(&mut self, mut line: Vec<u8>) {
-        line.extend_from_slice(self.conn.eol);
-        self.answer(line);
+    fn answer_error(&mut self, code: ErrorCode, context: &[u8]) {
+        self.dispatch(|cx, out| cmd::error(cx, code, context, out));
     }
 
     /// Keeps the GETFILE answer at the head of the queue going: local blocks
     /// while output is below the high-water mark, or the next PLC request.
-    async fn pump_stream(&mut self) {
+    fn pump_stream(&mut self) {
         loop {
-            let Some(Pending::Stream(_)) = self.pending.front() else {
+            let backlog = self.conn.backlog();
+            let Some(stream) = self.queue.head_stream() else {
                 return;
             };
-            let Some(Pending::Stream(mut stream)) = self.pending.pop_front() else {
-                return;
-            };
-            let done = if stream.waiting().is_some() || self.conn.backlog() >= OUTPUT_HIGH_WATER {
-                false
-            } else if stream.is_local() {
-                cmd::getfile::pump_local(self, &mut stream, OUTPUT_HIGH_WATER)
-            } else {
-                cmd::getfile::request_next(self, &mut stream).await;
-                false
-            };
-            if !done {
-                self.pending.push_front(Pending::Stream(stream));
+            if stream.waiting().is_some() || backlog >= OUTPUT_HIGH_WATER {
                 return;
             }
+            let cx = Cx {
+                section: &self.section,
+                client: &mut self.client,
+                newest: &self.newest,
+                behind_set: false,
+            };
+            if !stream.advance(&cx, &mut self.conn.out, OUTPUT_HIGH_WATER - backlog) {
+                return;
+            }
+            self.queue.pop_head();
             self.stream_done();
         }
     }
@@ -411,7 +373,7 @@ impl Session {
     /// A GETFILE answer ended: what waited behind it may go out.
     fn stream_done(&mut self) {
         self.release_ready();
-        if self.diffs_deferred && !self.set_outstanding() {
+        if self.diffs_deferred && !self.queue.set_outstanding() {
             self.diffs_deferred = false;
             self.take_snapshot();
         }
@@ -420,11 +382,11 @@ impl Session {
     /// When the WRITEFILE transfer times out: data of a block stopped
     /// arriving, or no next block came.
     fn write_deadline(&self) -> Option<tokio::time::Instant> {
-        let wait = self.shared.global.ffile_timeout_wr;
+        let wait = self.section.global.ffile_timeout_wr;
         if self.conn.pending_block().is_some() {
             return Some(self.conn.last_input + wait);
         }
-        self.upload.as_ref().map(|u| u.deadline)
+        self.client.upload.as_ref().map(|u| u.deadline)
     }
 
     fn write_timeout(&mut self) {
@@ -437,77 +399,68 @@ impl Session {
                 _ => Vec::new(),
             };
             self.conn.abandon_block();
-            if self.upload.as_ref().is_some_and(|u| u.name == name) {
-                self.upload = None;
+            if self.client.upload.as_ref().is_some_and(|u| u.name == name) {
+                self.client.upload = None;
             }
-            let mut out = Vec::new();
-            write_error(&mut out, ErrorCode::Unterminated, &name);
-            self.answer_line(out);
-            return;
+            return self.answer_error(ErrorCode::Unterminated, &name);
         }
-        cmd::writefile::timed_out(self);
+        self.dispatch(|cx, out| {
+            cmd::writefile::timed_out(cx, out);
+            Reply::Done
+        });
     }
 
     /// Moves answers that are complete at the head of the queue to output.
     fn release_ready(&mut self) {
-        while let Some(Pending::Ready(_)) = self.pending.front() {
-            if let Some(Pending::Ready(bytes)) = self.pending.pop_front() {
-                self.ready_bytes -= bytes.len();
-                self.conn.extend(&bytes);
-            }
+        while let Some(bytes) = self.queue.pop_ready() {
+            self.conn.extend(&bytes);
         }
     }
 
-    /// Whether a SET of this client has not been answered yet (a GET must
-    /// then read through the PLC, behind it, to see its effect).
-    pub fn set_outstanding(&self) -> bool {
-        self.pending
-            .iter()
-            .any(|p| matches!(p, Pending::Set { .. }))
-    }
-
-    /// A SETCONF is unanswered. Nothing is queued behind one, so it can only
-    /// be the last entry: checked in O(1) for every request parsed.
-    fn conf_outstanding(&self) -> bool {
-        matches!(self.pending.back(), Some(Pending::Conf { .. }))
-    }
-
-    fn complete_head(&mut self, completion: Completion) {
-        let Some(head) = self.pending.pop_front() else {
-            return;
-        };
+    fn complete_head(&mut self, done: HeadDone) {
         let mut out = Vec::new();
-        match (head, completion) {
-            (Pending::Stream(mut stream), Completion::File(reply)) => {
-                if cmd::getfile::plc_block(self, &mut stream, reply) {
+        let mut cx = Cx {
+            section: &self.section,
+            client: &mut self.client,
+            newest: &self.newest,
+            behind_set: false,
+        };
+        match (self.queue.pop_head(), done) {
+            (Some(Entry::Stream(mut stream)), HeadDone::Stream(reply)) => {
+                if stream.on_reply(&cx, reply, &mut self.conn.out) {
                     self.stream_done();
                 } else {
-                    self.pending.push_front(Pending::Stream(stream));
+                    self.queue.push_front_stream(stream);
                 }
                 return;
             }
-            (Pending::File { then, .. }, Completion::File(reply)) => {
-                cmd::complete_file(self, then, reply, &mut out)
+            (Some(Entry::Wait(waiting)), HeadDone::Wait(done)) => {
+                if let Effect::Reconfigured(notice) = waiting.finish(done, &mut cx, &mut out) {
+                    self.reconfigured(&notice, &mut out);
+                }
             }
-            (Pending::Read { then, .. }, Completion::Read(reply)) => {
-                cmd::get::complete(self, then, reply, &mut out)
-            }
-            (Pending::Set { then, .. }, Completion::Set(reply)) => {
-                cmd::set::complete(self, then, reply, &mut out)
-            }
-            (Pending::Conf { then, .. }, Completion::Conf(reply)) => {
-                cmd::setconf::complete(self, then, reply, &mut out)
-            }
-            _ => unreachable!("completion matches the head it came from"),
+            _ => unreachable!("the head's completion comes from the head"),
         }
         self.conn.extend(&out);
         self.release_ready();
-        if self.diffs_deferred && !self.set_outstanding() {
+        if self.diffs_deferred && !self.queue.set_outstanding() && !self.queue.streaming() {
             self.diffs_deferred = false;
             self.take_snapshot();
         } else {
             self.sync_table();
         }
+    }
+
+    /// This client's SETCONF loaded a public file: from the next request on
+    /// it uses the new table (the link published it before answering), and
+    /// hears of every reload before this one, then this one, in the answer.
+    fn reconfigured(&mut self, notice: &Notice, out: &mut Vec<u8>) {
+        self.snapshot = self.snapshots.borrow().clone();
+        self.sync_vars();
+        self.notices_up_to(notice.seq - 1, out);
+        self.notice_seen = self.notice_seen.max(notice.seq);
+        cmd::setconf::write_notice(notice, out);
+        out.extend_from_slice(self.client.eol);
     }
 
     fn take_snapshot(&mut self) {
@@ -517,32 +470,40 @@ impl Session {
         // chunks changed since) alive through `newest`.
         self.refresh_newest();
         self.sync_table();
-        if !self.diff {
+        if !self.client.diff {
             return;
         }
-        if self.set_outstanding() || matches!(self.pending.front(), Some(Pending::Stream(_))) {
+        if self.queue.set_outstanding() || self.queue.streaming() {
             self.diffs_deferred = true;
             return;
         }
         let Session {
-            vars,
+            client,
             conn,
-            shared,
+            section,
             snapshot,
             ..
         } = self;
-        vars.collect_diffs(snapshot, &shared.format, conn.eol, &mut conn.out);
+        client
+            .vars
+            .collect_diffs(snapshot, &section.format, client.eol, &mut conn.out);
     }
 
-    /// Follows a new public file: carries this client's settings over to the
-    /// new table and tells it WARNING:250 (or 251 when only reloaded). While
-    /// its own SETCONF is unanswered the SETCONF's answer does the telling.
-    pub fn sync_table(&mut self) {
-        if !Arc::ptr_eq(&self.snapshot.table, self.vars.table()) {
-            let all_enabled = !self.shared.global.pf_var_disabled;
-            self.vars = self.vars.remap(&self.snapshot, all_enabled);
+    /// Carries this client's settings over to a new table (a new public
+    /// file).
+    fn sync_vars(&mut self) {
+        if !Arc::ptr_eq(&self.snapshot.table, self.client.vars.table()) {
+            let all_enabled = !self.section.global.pf_var_disabled;
+            self.client.vars = self.client.vars.remap(&self.snapshot, all_enabled);
         }
-        if self.conf_outstanding() {
+    }
+
+    /// Follows a new public file: carries this client's settings over and
+    /// tells it WARNING:250 (or 251 when only reloaded). While its own
+    /// SETCONF is unanswered the SETCONF's answer does the telling.
+    fn sync_table(&mut self) {
+        self.sync_vars();
+        if self.queue.conf_outstanding() {
             return;
         }
         let mut lines = Vec::new();
@@ -553,7 +514,7 @@ impl Session {
 
     /// Writes the WARNING lines of the notices this client has not heard of,
     /// up to sequence `last`, oldest first.
-    pub fn notices_up_to(&mut self, last: u64, out: &mut Vec<u8>) {
+    fn notices_up_to(&mut self, last: u64, out: &mut Vec<u8>) {
         if self.snapshot.notice_seq() <= self.notice_seen {
             // Nearly always: no Arc clone on every answer completed.
             return;
@@ -565,58 +526,15 @@ impl Session {
             }
             self.notice_seen = notice.seq;
             cmd::setconf::write_notice(notice, out);
-            out.extend_from_slice(self.conn.eol);
+            out.extend_from_slice(self.client.eol);
         }
     }
 
     /// Brings `newest` up to date: one atomic load when nothing was
     /// published since, so a burst of GETs does not contend on the channel.
-    pub fn refresh_newest(&mut self) {
+    fn refresh_newest(&mut self) {
         if self.newest_rx.has_changed().unwrap_or(false) {
             self.newest = self.newest_rx.borrow_and_update().clone();
         }
     }
-
-    /// The latest snapshot, without waiting for the next change.
-    pub fn latest_snapshot(&mut self) -> Arc<Snapshot> {
-        self.snapshot = self.snapshots.borrow().clone();
-        self.snapshot.clone()
-    }
-}
-
-async fn head_reply(pending: &mut VecDeque<Pending>) -> Completion {
-    match pending.front_mut() {
-        Some(Pending::Read { rx, .. }) => {
-            Completion::Read(rx.await.unwrap_or(Err(crate::poller::LinkError::Offline)))
-        }
-        Some(Pending::Set { rx, .. }) => {
-            Completion::Set(rx.await.unwrap_or(Err(crate::poller::LinkError::Offline)))
-        }
-        Some(Pending::Conf { rx, .. }) => Completion::Conf(rx.await.unwrap_or(Err(
-            crate::poller::ReconfError::Unreachable("the server is stopping".to_string()),
-        ))),
-        Some(Pending::File { rx, .. }) => {
-            Completion::File(rx.await.unwrap_or(Err(crate::poller::LinkError::Offline)))
-        }
-        Some(Pending::Stream(stream)) => match stream.waiting() {
-            Some(rx) => {
-                Completion::File(rx.await.unwrap_or(Err(crate::poller::LinkError::Offline)))
-            }
-            None => std::future::pending().await,
-        },
-        _ => std::future::pending().await,
-    }
-}
-
-/// `bytes` without leading and trailing spaces and tabs.
-pub fn trim(bytes: &[u8]) -> &[u8] {
-    let start = bytes
-        .iter()
-        .position(|b| !matches!(b, b' ' | b'\t'))
-        .unwrap_or(bytes.len());
-    let end = bytes
-        .iter()
-        .rposition(|b| !matches!(b, b' ' | b'\t'))
-        .map_or(start, |e| e + 1);
-    &bytes[start..end]
 }

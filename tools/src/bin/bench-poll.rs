@@ -526,7 +526,7 @@ async fn run(
         } else if progress.1.elapsed() > Duration::from_secs(30) {
             eprintln!(
                 "bench-poll: no poll cycle for 30 s after {len} cycles (link: {:?})",
-                server.shared.poller.info()
+                server.section.state().link
             );
             std::process::exit(2);
         }

@@ -1,19 +1,28 @@
-//! The fan-out of changes: the poller publishes what it read as an immutable
-//! `Snapshot`; every client session holds the latest one and picks the DIFF
-//! lines it owes its client from it.
+//! The change stream of a section: the link publishes what it read as an
+//! immutable [`Snapshot`]; every consumer (client sessions, and in-process
+//! consumers through [`Subscription`]) holds the latest one and picks what it
+//! owes from it.
 //!
-//! A snapshot never blocks the poller: it goes out on a `watch` channel, so a
-//! slow client simply sees a later snapshot and catches up by comparing change
-//! sequence numbers, instead of an ever-growing queue. Values are formatted
-//! once per change here, not once per client.
+//! A snapshot never blocks the link: it goes out on a `watch` channel, so a
+//! slow consumer simply sees a later snapshot and catches up by comparing
+//! change sequence numbers, instead of an ever-growing queue. Values are
+//! formatted once per change here, not once per consumer. Each snapshot
+//! carries the poll's time (monotonic, for freshness, and UTC, for records)
+//! and the link's state, so every value has a [`Quality`].
+
+pub mod interest;
+pub mod subscription;
 
 use std::sync::Arc;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use plccoms_protocol::value::{FormatOptions, Value};
 use tokio::sync::watch;
+use tokio::time::Instant;
 
-use crate::poller::interest::Interest;
 use crate::vars::{Var, VarId, VarTable};
+pub use interest::Interest;
+pub use subscription::{ChangeBatch, LinkEvent, Subscription};
 
 /// Slots per copy-on-write chunk: a publish copies only the chunks it changed.
 const CHUNK: usize = 256;
@@ -34,6 +43,9 @@ pub struct Slot {
     pub changed_seq: u64,
     /// Snapshot sequence at which the value was last read from the PLC.
     pub read_seq: u64,
+    /// UTC milliseconds of the poll (or SET read-back) that read the value
+    /// as it is now.
+    pub changed_ms: i64,
 }
 
 impl Slot {
@@ -54,6 +66,53 @@ impl Slot {
         } else {
             Value::decode(var.ty, &self.raw.to_le_bytes()[..var.ty.size().min(8)])
         })
+    }
+}
+
+/// How far a value can be trusted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Quality {
+    /// Read by the last poll, with the link up.
+    Good,
+    /// The link is up but the last poll did not read it (not polled, or its
+    /// read refused): the value is an older one.
+    Stale,
+    /// The link to the PLC is lost: the value is the last one known.
+    LinkLost,
+}
+
+impl Quality {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Quality::Good => "good",
+            Quality::Stale => "stale",
+            Quality::LinkLost => "link_lost",
+        }
+    }
+}
+
+/// When a poll read its values: a monotonic instant (freshness) and UTC
+/// milliseconds (records).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PollStamp {
+    pub at: Instant,
+    pub unix_ms: i64,
+}
+
+impl PollStamp {
+    pub fn now() -> PollStamp {
+        PollStamp {
+            at: Instant::now(),
+            unix_ms: unix_ms(SystemTime::now()),
+        }
+    }
+}
+
+/// UTC milliseconds since 1970 of `time`.
+pub fn unix_ms(time: SystemTime) -> i64 {
+    match time.duration_since(UNIX_EPOCH) {
+        Ok(d) => i64::try_from(d.as_millis()).unwrap_or(i64::MAX),
+        Err(e) => -i64::try_from(e.duration().as_millis()).unwrap_or(i64::MAX),
     }
 }
 
@@ -79,6 +138,10 @@ pub struct Snapshot {
     pub poll_seq: u64,
     /// The link to the PLC answered the last poll.
     pub online: bool,
+    /// The last poll cycle that completed, if any.
+    pub polled: Option<PollStamp>,
+    /// How long after its poll a value may still be served as current.
+    pub fresh_for: Duration,
     pub table: Arc<VarTable>,
     /// Which variables the clients of this table enabled.
     pub interest: Arc<Interest>,
@@ -117,20 +180,66 @@ impl Snapshot {
     }
 
     /// The slot if its value is current: read in the last poll cycle or later,
-    /// with the PLC online.
+    /// with the PLC online. What DIFF lines are made of.
     pub fn current(&self, id: VarId) -> Option<&Slot> {
         let slot = self.slot(id);
         (self.online && slot.text.is_some() && slot.read_seq >= self.poll_seq && self.poll_seq > 0)
             .then_some(slot)
     }
+
+    /// The slot if its value may be served as live at `now`: current, and
+    /// its poll completed no longer ago than `fresh_for`. A link that went
+    /// silent stops this within the bound, long before it is declared lost.
+    pub fn fresh(&self, id: VarId, now: Instant) -> Option<&Slot> {
+        let polled = self.polled?;
+        if now.saturating_duration_since(polled.at) > self.fresh_for {
+            return None;
+        }
+        self.current(id)
+    }
+
+    pub fn quality(&self, id: VarId) -> Quality {
+        if !self.online {
+            Quality::LinkLost
+        } else if self.current(id).is_some() {
+            Quality::Good
+        } else {
+            Quality::Stale
+        }
+    }
 }
 
-/// The poller's side: owns the master copy of the slots and publishes.
+/// The consumers' side: the latest snapshot, and subscriptions.
+#[derive(Clone)]
+pub struct ChangeStream {
+    rx: watch::Receiver<Arc<Snapshot>>,
+}
+
+impl ChangeStream {
+    /// A receiver of every snapshot (what sessions hold).
+    pub fn receiver(&self) -> watch::Receiver<Arc<Snapshot>> {
+        self.rx.clone()
+    }
+
+    pub fn latest(&self) -> Arc<Snapshot> {
+        self.rx.borrow().clone()
+    }
+
+    /// The changes of the variables matching `masks` (`*` wildcards, case
+    /// insensitive), polled for as long as the subscription lives.
+    pub fn subscribe<M: AsRef<[u8]>>(&self, masks: &[M]) -> Subscription {
+        Subscription::new(self.rx.clone(), masks)
+    }
+}
+
+/// The link's side: owns the master copy of the slots and publishes.
 pub struct Publisher {
     tx: watch::Sender<Arc<Snapshot>>,
     seq: u64,
     poll_seq: u64,
     online: bool,
+    polled: Option<PollStamp>,
+    fresh_for: Duration,
     table: Arc<VarTable>,
     interest: Arc<Interest>,
     chunks: Vec<Arc<Vec<Slot>>>,
@@ -143,16 +252,21 @@ pub struct Publisher {
 }
 
 impl Publisher {
+    /// A publisher of values of `table` whose polls are fresh for
+    /// `fresh_for`.
     pub fn new(
         table: Arc<VarTable>,
         format: FormatOptions,
-    ) -> (Publisher, watch::Receiver<Arc<Snapshot>>) {
+        fresh_for: Duration,
+    ) -> (Publisher, ChangeStream) {
         let interest = Arc::new(Interest::new(table.len()));
         let chunks = empty_chunks(table.len());
         let snapshot = Arc::new(Snapshot {
             seq: 0,
             poll_seq: 0,
             online: false,
+            polled: None,
+            fresh_for,
             table: table.clone(),
             interest: interest.clone(),
             changed: Vec::new(),
@@ -166,6 +280,8 @@ impl Publisher {
             seq: 0,
             poll_seq: 0,
             online: false,
+            polled: None,
+            fresh_for,
             table,
             interest,
             chunks,
@@ -175,7 +291,12 @@ impl Publisher {
             notices: Arc::new([]),
             block_eol: None,
         };
-        (publisher, rx)
+        (publisher, ChangeStream { rx })
+    }
+
+    /// Changes the freshness bound (a new link with another timeout).
+    pub fn set_fresh_for(&mut self, fresh_for: Duration) {
+        self.fresh_for = fresh_for;
     }
 
     pub fn table(&self) -> &Arc<VarTable> {
@@ -192,8 +313,10 @@ impl Publisher {
         &self.interest
     }
 
-    pub fn subscribe(&self) -> watch::Receiver<Arc<Snapshot>> {
-        self.tx.subscribe()
+    pub fn stream(&self) -> ChangeStream {
+        ChangeStream {
+            rx: self.tx.subscribe(),
+        }
     }
 
     /// Sequence the next publish will carry; updates are stamped with it.
@@ -206,9 +329,10 @@ impl Publisher {
         &self.chunks[id / CHUNK][id % CHUNK]
     }
 
-    /// Records a value read from the PLC (`bytes` as read for the variable;
-    /// the bit of a BOOL is extracted here). Returns whether it changed.
-    pub fn update(&mut self, id: VarId, bytes: &[u8]) -> bool {
+    /// Records a value read from the PLC at `unix_ms` (`bytes` as read for
+    /// the variable; the bit of a BOOL is extracted here). Returns whether it
+    /// changed.
+    pub fn update(&mut self, id: VarId, bytes: &[u8], unix_ms: i64) -> bool {
         let var = self.table.var(id);
         let seq = self.seq + 1;
         let ty = var.ty;
@@ -242,14 +366,31 @@ impl Publisher {
             slot.raw = raw;
             slot.text = Some(Arc::from(&self.scratch[..]));
             slot.changed_seq = seq;
+            slot.changed_ms = unix_ms;
             self.changed.push(id);
         }
         changed
     }
 
-    /// Publishes the current state. `polled` marks the end of a full poll
-    /// cycle, which makes every slot it read current.
-    pub fn publish(&mut self, polled: bool, online: bool) {
+    /// A poll cycle completed at `stamp`: every slot it read is current.
+    pub fn publish_poll(&mut self, stamp: PollStamp) {
+        self.polled = Some(stamp);
+        self.publish_state(true, true);
+    }
+
+    /// Publishes what changed outside a poll (SET read-backs, a new table),
+    /// the link as it is.
+    pub fn publish(&mut self) {
+        let online = self.online;
+        self.publish_state(false, online);
+    }
+
+    /// The link is lost: every value becomes [`Quality::LinkLost`].
+    pub fn publish_offline(&mut self) {
+        self.publish_state(false, false);
+    }
+
+    fn publish_state(&mut self, polled: bool, online: bool) {
         self.seq += 1;
         if polled {
             self.poll_seq = self.seq;
@@ -279,6 +420,8 @@ impl Publisher {
             seq: self.seq,
             poll_seq: self.poll_seq,
             online,
+            polled: self.polled,
+            fresh_for: self.fresh_for,
             table: self.table.clone(),
             interest: self.interest.clone(),
             changed: std::mem::take(&mut self.changed),
@@ -335,7 +478,12 @@ mod tests {
     use super::*;
 
     fn publisher() -> (Publisher, watch::Receiver<Arc<Snapshot>>) {
-        Publisher::new(Arc::new(VarTable::default()), FormatOptions::default())
+        let (publisher, stream) = Publisher::new(
+            Arc::new(VarTable::default()),
+            FormatOptions::default(),
+            Duration::from_secs(1),
+        );
+        (publisher, stream.receiver())
     }
 
     fn told(snapshot: &Snapshot, after: u64) -> Vec<(u64, bool, &str)> {
@@ -350,10 +498,10 @@ mod tests {
         let (mut publisher, rx) = publisher();
         assert_eq!(rx.borrow().notice_seq(), 0);
         publisher.announce(true, "other.pub".into());
-        publisher.publish(false, true);
+        publisher.publish();
         publisher.announce(false, "other.pub".into());
-        publisher.publish(false, true);
-        publisher.publish(true, true);
+        publisher.publish();
+        publisher.publish_poll(PollStamp::now());
         // Only the latest snapshot is looked at: a "changed" reload followed
         // by an unchanged one must not read as "nothing changed".
         let latest = rx.borrow().clone();
@@ -372,7 +520,7 @@ mod tests {
         for i in 0..NOTICE_HISTORY + 10 {
             publisher.announce(i % 2 == 0, format!("{i}.pub"));
         }
-        publisher.publish(false, true);
+        publisher.publish();
         let latest = rx.borrow().clone();
         assert_eq!(latest.notices.len(), NOTICE_HISTORY);
         assert_eq!(latest.notice_seq(), (NOTICE_HISTORY + 10) as u64);

@@ -1,12 +1,13 @@
 //! Where a section's public files come from, and building its variable table
-//! from them: at start-up, when the PLC's program changes (`__PF_CRC`), and on
-//! `SETCONF:pubfile` or a new PLC address.
+//! from them: at start-up (a local file at once; one that must be fetched
+//! from the PLC when the link first connects), when the PLC's program changes
+//! (`__PF_CRC`), and on `SETCONF:pubfile` or a new PLC address.
 
 use std::path::{Path, PathBuf};
 
 use tracing::{info, warn};
 
-use crate::backend::PlcBackend;
+use crate::backend::{Exception, PlcBackend};
 use crate::config::Section;
 use crate::vars::VarTable;
 use plccoms_plc::pubfile::{self, PubFile};
@@ -27,14 +28,23 @@ pub struct UserFile {
     pub bytes: Vec<u8>,
 }
 
-/// Everything needed to (re)load a section's public files.
+/// Where a section's public files are: everything but the section's own
+/// settings (PUBFILE, PUBFILE_WRITE), which come from its live state.
 #[derive(Debug, Clone)]
 pub struct PubSource {
-    pub section: Section,
     /// The configuration file's folder.
     pub dir: PathBuf,
     pub fixed_name: String,
     pub fixed: PubFile,
+}
+
+/// Why the user public file is not loaded.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum LoadError {
+    /// It is not on this machine and must be fetched from the PLC, which
+    /// cannot be asked now: the link fetches it when it connects.
+    FromPlc,
+    Failed(String),
 }
 
 impl PubSource {
@@ -51,7 +61,6 @@ impl PubSource {
             None => ("FIXED.pub".to_string(), pubfile::parse(STANDARD_FIXED)),
         };
         Ok(PubSource {
-            section: section.clone(),
             dir: dir.to_path_buf(),
             fixed_name,
             fixed,
@@ -61,9 +70,9 @@ impl PubSource {
     /// Where a PUBFILE value lives on this machine: `//name` in the root
     /// folder (the configuration's, or the section's subfolder with
     /// PUBFILE_WRITE), anything else relative to the configuration.
-    pub fn local_path(&self, name: &str) -> PathBuf {
-        let root = if self.section.pubfile_write {
-            self.dir.join(&self.section.name)
+    pub fn local_path(&self, section: &Section, name: &str) -> PathBuf {
+        let root = if section.pubfile_write {
+            self.dir.join(&section.name)
         } else {
             self.dir.clone()
         };
@@ -73,32 +82,45 @@ impl PubSource {
         }
     }
 
+    /// The user public file if it is on this machine (`Ok(None)` when the
+    /// section names none); [`LoadError::FromPlc`] when it must be fetched.
+    pub fn load_local(&self, section: &Section) -> Result<Option<UserFile>, LoadError> {
+        let Some(name) = &section.pubfile else {
+            return Ok(None);
+        };
+        let local = self.local_path(section, name);
+        if local.is_file() {
+            let bytes = std::fs::read(&local)
+                .map_err(|e| LoadError::Failed(format!("public file {}: {e}", local.display())))?;
+            return Ok(Some(UserFile {
+                name: file_name(name),
+                bytes,
+            }));
+        }
+        if name.starts_with("../") {
+            return Err(LoadError::Failed(format!(
+                "public file {} not found (paths starting with ../ are local only)",
+                local.display()
+            )));
+        }
+        Err(LoadError::FromPlc)
+    }
+
     /// The user public file: the local file if there is one, else fetched
     /// from the PLC (and stored locally with PUBFILE_WRITE). `None` when the
     /// section names none.
     pub async fn load_user(
         &self,
+        section: &Section,
         backend: Option<&mut (dyn PlcBackend + 'static)>,
     ) -> Result<Option<UserFile>, String> {
-        let Some(name) = &self.section.pubfile else {
-            return Ok(None);
-        };
-        let local = self.local_path(name);
-        let display = file_name(name);
-        if local.is_file() {
-            let bytes = std::fs::read(&local)
-                .map_err(|e| format!("public file {}: {e}", local.display()))?;
-            return Ok(Some(UserFile {
-                name: display,
-                bytes,
-            }));
+        match self.load_local(section) {
+            Ok(user) => return Ok(user),
+            Err(LoadError::Failed(message)) => return Err(message),
+            Err(LoadError::FromPlc) => {}
         }
-        if name.starts_with("../") {
-            return Err(format!(
-                "public file {} not found (paths starting with ../ are local only)",
-                local.display()
-            ));
-        }
+        let name = section.pubfile.as_deref().unwrap_or_default();
+        let local = self.local_path(section, name);
         let Some(backend) = backend else {
             return Err(format!(
                 "public file {} not found, and there is no PLC to fetch it from",
@@ -109,17 +131,18 @@ impl PubSource {
             .await
             .map_err(|e| {
                 format!(
-                    "public file {name} is neither at {} nor readable from the PLC: {e}",
+                    "public file {name}: not at {} on this machine, and {e}",
                     local.display()
                 )
             })?;
-        info!(section = %self.section.name, "public file {name} fetched from the PLC ({} bytes)", bytes.len());
-        if self.section.pubfile_write {
+        let display = file_name(name);
+        info!(section = %section.name, "public file {name} fetched from the PLC ({} bytes)", bytes.len());
+        if section.pubfile_write {
             if let Some(parent) = local.parent() {
                 let _ = std::fs::create_dir_all(parent);
             }
             if let Err(e) = std::fs::write(&local, &bytes) {
-                warn!(section = %self.section.name, "cannot store {}: {e}", local.display());
+                warn!(section = %section.name, "cannot store {}: {e}", local.display());
             }
         }
         Ok(Some(UserFile {
@@ -129,7 +152,7 @@ impl PubSource {
     }
 
     /// The variable table of the fixed file and `user`; bad lines are logged.
-    pub fn build(&self, user: Option<&UserFile>) -> Result<VarTable, String> {
+    pub fn build(&self, section: &str, user: Option<&UserFile>) -> Result<VarTable, String> {
         let parsed = user.map(|u| (u.name.as_str(), pubfile::parse(&u.bytes)));
         let mut warnings = Vec::new();
         let table = VarTable::build(
@@ -141,7 +164,7 @@ impl PubSource {
         )
         .map_err(|e| e.to_string())?;
         for warning in &warnings {
-            warn!(section = %self.section.name, "public file {warning}");
+            warn!(section = %section, "public file {warning}");
         }
         Ok(table)
     }
@@ -163,12 +186,15 @@ fn file_name(name: &str) -> String {
 
 /// Reads a whole file from the PLC's file system.
 pub async fn fetch_file(backend: &mut dyn PlcBackend, path: &[u8]) -> Result<Vec<u8>, String> {
-    backend.connect().await.map_err(|e| e.to_string())?;
     let info = backend
         .file_info(path)
         .await
-        .map_err(|e| e.to_string())?
-        .map_err(|e| format!("the PLC answered {e}"))?;
+        .map_err(|e| format!("the PLC cannot be asked for it: {e}"))?
+        .map_err(|e| match e {
+            // What EPSNET answers for a missing file (see plc::epsnet::service).
+            Exception::BadParameters => format!("file not found on the PLC (it answered {e})"),
+            e => format!("the PLC refused it: {e}"),
+        })?;
     if info.size > MAX_PUBFILE {
         return Err(format!(
             "{} bytes is more than the {MAX_PUBFILE} accepted",
@@ -181,8 +207,8 @@ pub async fn fetch_file(backend: &mut dyn PlcBackend, path: &[u8]) -> Result<Vec
         let chunk = backend
             .read_file(path, bytes.len() as u64, block)
             .await
-            .map_err(|e| e.to_string())?
-            .map_err(|e| format!("the PLC answered {e}"))?;
+            .map_err(|e| format!("reading it from the PLC failed: {e}"))?
+            .map_err(|e| format!("the PLC refused to read it: {e}"))?;
         let done = (chunk.len() as u32) < block;
         bytes.extend_from_slice(&chunk);
         if done || bytes.len() as u64 >= info.size {

@@ -10,8 +10,8 @@ use std::sync::Arc;
 
 use plccoms_protocol::value::{Delta, FormatOptions, Value};
 
-use crate::fanout::Snapshot;
-use crate::poller::interest::Interest;
+use crate::changes::Interest;
+use crate::changes::Snapshot;
 use crate::vars::{VarId, VarTable};
 
 /// `sent` marker: take the next value seen as known without sending it.

@@ -1,5 +1,8 @@
-//! What the sessions of one PLC section share: its configuration, its
-//! poller, the latest snapshot, and the list of connected clients.
+//! A running section as its sessions and consumers see it: the global
+//! settings, the live state (settings as SETCONF left them, link status),
+//! the link's handle, the change stream, and the connected clients.
+
+pub mod state;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -9,9 +12,10 @@ use plccoms_protocol::value::FormatOptions;
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 
-use crate::config::{Global, Section};
-use crate::fanout::Snapshot;
-use crate::poller::PollerHandle;
+use crate::changes::ChangeStream;
+use crate::config::Global;
+use crate::link::LinkHandle;
+use state::SectionState;
 
 /// A connected client, for GETINFO's NETWORK list.
 #[derive(Debug, Clone)]
@@ -22,13 +26,13 @@ pub struct ClientInfo {
     pub connected: String,
 }
 
-pub struct SectionShared {
+pub struct Section {
     pub name: String,
     pub global: Arc<Global>,
-    pub config: Section,
     pub format: FormatOptions,
-    pub poller: PollerHandle,
-    pub snapshots: watch::Receiver<Arc<Snapshot>>,
+    pub link: LinkHandle,
+    pub changes: ChangeStream,
+    state: watch::Receiver<Arc<SectionState>>,
     /// Cancelled when the server stops: sessions answer what they have and
     /// close.
     pub shutdown: CancellationToken,
@@ -45,31 +49,49 @@ struct Clients {
     list: Vec<ClientInfo>,
 }
 
-impl SectionShared {
+impl Section {
     pub fn new(
         global: Arc<Global>,
-        config: Section,
-        poller: PollerHandle,
-        snapshots: watch::Receiver<Arc<Snapshot>>,
+        link: LinkHandle,
+        changes: ChangeStream,
+        state: watch::Receiver<Arc<SectionState>>,
         config_dir: PathBuf,
-    ) -> SectionShared {
+    ) -> Section {
         let format = format_options(&global);
+        let config = state.borrow().config.clone();
         let root = if config.pubfile_write {
             config_dir.join(&config.name)
         } else {
             config_dir
         };
-        SectionShared {
-            name: config.name.clone(),
+        Section {
+            name: config.name,
             global,
-            config,
             format,
-            poller,
-            snapshots,
+            link,
+            changes,
+            state,
             shutdown: CancellationToken::new(),
             root,
             clients: Mutex::new(Clients::default()),
         }
+    }
+
+    /// The live state: settings as SETCONF left them, and the link.
+    pub fn state(&self) -> Arc<SectionState> {
+        self.state.borrow().clone()
+    }
+
+    /// Waits until a new session may start serving (see
+    /// [`SectionState::ready`]).
+    pub async fn ready(&self) {
+        let mut state = self.state.clone();
+        let _ = state.wait_for(|s| s.ready()).await;
+    }
+
+    /// READ_ONLY = Yes.
+    pub fn read_only(&self) -> bool {
+        self.state.borrow().config.read_only
     }
 
     /// Registers a client unless NET_CONNECT_MAX are connected already.

@@ -1,6 +1,7 @@
-//! PLC file services, run by the poller (the backend's one owner): file
+//! PLC file services, run by the link (the backend's one owner): file
 //! information, directory listings, reads in blocks and whole-file writes,
-//! plus the cache of recently read files (FFILE_MAXRECS, FFILE_TIMEOUT).
+//! plus the cache of recently read files (FFILE_MAXRECS, FFILE_TIMEOUT) and
+//! SYNC_VAR_ENABLED (whether polling goes on during a transfer).
 //!
 //! The cache keeps whole files only, filled while a client reads one from
 //! offset 0 to its end. It is bounded in entries (FFILE_MAXRECS; 0 turns it
@@ -15,7 +16,9 @@ use std::time::Duration;
 
 use tokio::time::Instant;
 
-use crate::backend::{Answer, DirEntry, FileInfo};
+use super::cycle::Cycle;
+use crate::backend::{Answer, DirEntry, FileInfo, PlcBackend, PlcError};
+use crate::changes::Publisher;
 
 /// Largest file the cache keeps.
 pub const CACHE_MAX_FILE: usize = 1024 * 1024;
@@ -70,6 +73,138 @@ pub enum FileOutput {
 }
 
 pub type FileReply = Result<Answer<FileOutput>, super::LinkError>;
+
+/// File transfer settings (FFILE_MAXRECS, FFILE_TIMEOUT, SYNC_VAR_ENABLED).
+#[derive(Debug, Clone, Copy)]
+pub struct FileSettings {
+    pub cache_recs: usize,
+    pub cache_timeout: Duration,
+    /// Whether polling goes on while a file transfer is in progress.
+    pub sync_var_enabled: bool,
+}
+
+impl Default for FileSettings {
+    fn default() -> Self {
+        FileSettings {
+            cache_recs: 0,
+            cache_timeout: Duration::ZERO,
+            sync_var_enabled: true,
+        }
+    }
+}
+
+/// How long after its last file request a transfer counts as in progress
+/// (for SYNC_VAR_ENABLED = No): a client reading a file asks for the next
+/// block well within this.
+const TRANSFER_IDLE: Duration = Duration::from_millis(500);
+
+/// The link's file side: settings, cache, and whether a transfer is on.
+pub struct Files {
+    settings: FileSettings,
+    cache: FileCache,
+    /// A file transfer counts as in progress until then.
+    transfer_until: Instant,
+    /// COMM_LOOP_DELAY: how often a long upload polls.
+    loop_delay: Duration,
+}
+
+impl Files {
+    pub fn new(settings: FileSettings, loop_delay: Duration) -> Files {
+        Files {
+            cache: FileCache::new(settings.cache_recs, settings.cache_timeout),
+            settings,
+            transfer_until: Instant::now(),
+            loop_delay,
+        }
+    }
+
+    /// SYNC_VAR_ENABLED = No and a transfer is in progress: no polling.
+    pub fn polling_paused(&self) -> bool {
+        !self.settings.sync_var_enabled && Instant::now() < self.transfer_until
+    }
+
+    /// Runs one file job. A long upload polls between its blocks (unless
+    /// SYNC_VAR_ENABLED = No), so it does not stop the values.
+    pub async fn run(
+        &mut self,
+        job: FileJob,
+        backend: &mut dyn PlcBackend,
+        cycle: &mut Cycle,
+        publisher: &mut Publisher,
+    ) -> Result<Answer<FileOutput>, PlcError> {
+        self.transfer_until = Instant::now() + TRANSFER_IDLE;
+        let result = self.run_job(job, backend, cycle, publisher).await;
+        self.transfer_until = Instant::now() + TRANSFER_IDLE;
+        result
+    }
+
+    async fn run_job(
+        &mut self,
+        job: FileJob,
+        backend: &mut dyn PlcBackend,
+        cycle: &mut Cycle,
+        publisher: &mut Publisher,
+    ) -> Result<Answer<FileOutput>, PlcError> {
+        let block = backend.max_file_block().max(1);
+        Ok(match job {
+            FileJob::Info { path } => backend.file_info(&path).await?.map(FileOutput::Info),
+            FileJob::List { path } => backend.list_dir(&path).await?.map(FileOutput::List),
+            FileJob::Read { path, offset, len } => {
+                if let Some(data) = self.cache.get(&path, offset, len) {
+                    return Ok(Ok(FileOutput::Data(data)));
+                }
+                let mut data = Vec::with_capacity(len as usize);
+                while data.len() < len as usize {
+                    let want = (len - data.len() as u32).min(block);
+                    let at = offset + data.len() as u64;
+                    match backend.read_file(&path, at, want).await? {
+                        Ok(piece) => {
+                            let short = piece.len() < want as usize;
+                            data.extend_from_slice(&piece);
+                            if short {
+                                break;
+                            }
+                        }
+                        Err(e) => return Ok(Err(e)),
+                    }
+                }
+                self.cache.note_read(&path, offset, len, &data);
+                Ok(FileOutput::Data(data))
+            }
+            FileJob::Write { path, data } => {
+                self.cache.invalidate(&path);
+                let pieces = data.len().div_ceil(block as usize).max(1);
+                let mut last_poll = Instant::now();
+                for index in 0..pieces {
+                    let start = index * block as usize;
+                    let end = (start + block as usize).min(data.len());
+                    let last = index + 1 == pieces;
+                    if let Err(e) = backend
+                        .write_file(&path, start as u64, &data[start..end], last)
+                        .await?
+                    {
+                        return Ok(Err(e));
+                    }
+                    self.transfer_until = Instant::now() + TRANSFER_IDLE;
+                    if self.settings.sync_var_enabled && last_poll.elapsed() >= self.loop_delay {
+                        // What the poll finds (HALT -> RUN, a new program)
+                        // the link handles after the upload.
+                        cycle.poll(backend, publisher).await?;
+                        last_poll = Instant::now();
+                    }
+                }
+                Ok(FileOutput::Done)
+            }
+            FileJob::WriteInfo { path, info } => {
+                self.cache.invalidate(&path);
+                backend
+                    .write_file_info(&path, &info)
+                    .await?
+                    .map(|()| FileOutput::Done)
+            }
+        })
+    }
+}
 
 struct Entry {
     path: Vec<u8>,

@@ -1,0 +1,160 @@
+//! One poll cycle: the plan (what to read: every variable some client or
+//! subscriber enabled, plus the fixed ones, in as few block reads as
+//! possible), the read, the publish with the poll's time, and what the
+//! system variables say (`__PLC_RUN` HALT -> RUN, `__PF_CRC` changed).
+
+use plccoms_protocol::value::Value;
+use tracing::{debug, info, warn};
+
+use super::plan::{Range, ReadPlan};
+use crate::backend::{PlcBackend, PlcError};
+use crate::changes::{PollStamp, Publisher};
+use crate::vars::VarId;
+
+/// What the system variables of a completed poll say.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct SystemEvents {
+    /// `__PLC_RUN` went from HALT to RUN: the link is re-initialised.
+    pub halt_to_run: bool,
+    /// `__PF_CRC` changed: the PLC runs another program.
+    pub program_changed: bool,
+    /// `__PF_CRC` as read, once known.
+    pub pf_crc: Option<u64>,
+}
+
+#[derive(Default)]
+pub struct Cycle {
+    section: String,
+    poll_vars: Vec<VarId>,
+    plan: ReadPlan,
+    last_run: Option<bool>,
+    last_crc: Option<u64>,
+    /// Blocks the PLC refused, logged once per plan.
+    refused_logged: bool,
+    /// What polls found that the link has not handled yet.
+    events: SystemEvents,
+}
+
+impl Cycle {
+    pub fn new(section: String) -> Cycle {
+        Cycle {
+            section,
+            ..Cycle::default()
+        }
+    }
+
+    /// A new table or a new link: plan anew, forget what was seen.
+    pub fn reset(&mut self) {
+        self.poll_vars.clear();
+        self.plan = ReadPlan::default();
+        self.last_run = None;
+        self.last_crc = None;
+        self.events = SystemEvents::default();
+    }
+
+    /// The link was lost: a PLC that comes back is a new start for HALT/RUN.
+    pub fn link_lost(&mut self) {
+        self.last_run = None;
+    }
+
+    /// Block reads of the current plan.
+    pub fn requests(&self) -> usize {
+        self.plan.blocks().len()
+    }
+
+    fn rebuild_plan(&mut self, publisher: &Publisher, max_block: u32) {
+        let table = publisher.table().clone();
+        let interest = publisher.interest().clone();
+        self.poll_vars = (0..table.len() as VarId)
+            .filter(|&id| table.is_fixed(id) || interest.is_wanted(id))
+            .collect();
+        let ranges: Vec<Range> = self
+            .poll_vars
+            .iter()
+            .map(|&id| {
+                let var = table.var(id);
+                Range {
+                    area: var.area,
+                    offset: var.offset,
+                    len: var.byte_len(),
+                }
+            })
+            .collect();
+        self.plan = ReadPlan::new(&ranges, max_block);
+        self.refused_logged = false;
+        debug!(
+            section = %self.section,
+            variables = self.poll_vars.len(),
+            requests = self.plan.blocks().len(),
+            bytes = self.plan.bytes(),
+            "poll plan rebuilt"
+        );
+    }
+
+    /// What the polls since the last call found in the system variables.
+    pub fn take_events(&mut self) -> SystemEvents {
+        std::mem::take(&mut self.events)
+    }
+
+    /// Reads every planned block once and publishes what changed, stamped
+    /// with the time the answers were complete; system-variable events wait
+    /// in [`Cycle::take_events`]. A failed read is the link's to judge:
+    /// nothing is published.
+    pub async fn poll(
+        &mut self,
+        backend: &mut dyn PlcBackend,
+        publisher: &mut Publisher,
+    ) -> Result<(), PlcError> {
+        if publisher.interest().take_dirty() || self.poll_vars.is_empty() {
+            self.rebuild_plan(publisher, backend.max_read_block());
+        }
+        let answers = backend.read(self.plan.blocks()).await?;
+        let stamp = PollStamp::now();
+        let (data, refused) = self.plan.assemble_answers(answers);
+        if !refused.is_empty() && !self.refused_logged {
+            warn!(section = %self.section, blocks = ?refused, "PLC refused some poll reads; those variables are not updated");
+            self.refused_logged = true;
+        }
+        for (index, &id) in self.poll_vars.iter().enumerate() {
+            if let Ok(bytes) = self.plan.range_answer(&data, index) {
+                publisher.update(id, bytes, stamp.unix_ms);
+            }
+        }
+        publisher.publish_poll(stamp);
+        self.system_events(publisher);
+        Ok(())
+    }
+
+    fn system_events(&mut self, publisher: &Publisher) {
+        let table = publisher.table();
+        let events = &mut self.events;
+        let run = publisher
+            .slot(table.plc_run())
+            .value(table.var(table.plc_run()))
+            .map(|v| matches!(v, Value::Bool(true)));
+        if let Some(run) = run {
+            if self.last_run != Some(run) {
+                if self.last_run.is_some() {
+                    info!(section = %self.section, "PLC is in {}", if run { "RUN" } else { "HALT" });
+                }
+                events.halt_to_run |= self.last_run == Some(false) && run;
+                self.last_run = Some(run);
+            }
+        }
+        let crc = match publisher
+            .slot(table.pf_crc())
+            .value(table.var(table.pf_crc()))
+        {
+            Some(Value::Unsigned(crc)) => Some(crc),
+            _ => None,
+        };
+        if let (Some(last), Some(now)) = (self.last_crc, crc) {
+            if last != now {
+                info!(section = %self.section, "__PF_CRC changed ({last:08X} -> {now:08X}): the PLC's program changed, reloading the public file");
+                events.program_changed = true;
+            }
+        }
+        self.last_crc = crc;
+        events.pf_crc = crc;
+    }
+}

@@ -1,0 +1,50 @@
+//! SETCONF of a section-wide key: what it changes in the section's settings,
+//! and whether the link must be made anew. The link applies the result
+//! (reconnect, reload the public file, tell every client).
+
+use crate::config::Section;
+
+/// A section setting changed at run time (SETCONF).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ConfChange {
+    IpAddr(std::net::Ipv4Addr),
+    EpsAddr(u8),
+    EpsPort(u16),
+    SerialDevice(String),
+    SerialSpeed(u32),
+    PubFile(String),
+}
+
+/// `config` with `change` applied, and whether the link changes.
+pub fn apply(config: &Section, change: &ConfChange) -> (Section, bool) {
+    let mut config = config.clone();
+    let relink = match change {
+        ConfChange::IpAddr(ip) => {
+            config.ipaddr = Some(*ip);
+            // A real address replaces the simulated PLC.
+            config.simulator = None;
+            true
+        }
+        ConfChange::EpsAddr(addr) => {
+            config.epsaddr = Some(*addr);
+            true
+        }
+        ConfChange::EpsPort(port) => {
+            config.epsport = *port;
+            true
+        }
+        ConfChange::SerialDevice(device) => {
+            config.serial_device = Some(device.clone());
+            true
+        }
+        ConfChange::SerialSpeed(speed) => {
+            config.serial_speed = Some(*speed);
+            true
+        }
+        ConfChange::PubFile(name) => {
+            config.pubfile = Some(name.clone());
+            false
+        }
+    };
+    (config, relink)
+}
