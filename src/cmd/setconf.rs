@@ -1,5 +1,7 @@
-//! `SETCONF:<name>,<value>`. `crlf` and `diff` change this client only and
-//! are answered by echoing the setting. `ipaddr`, `epsaddr`, `epsport`,
+//! `SETCONF:<name>,<value>`, with the names and values of the table of keys
+//! (`config::setconf_key`). `crlf` and `diff` change this client only and
+//! are answered by echoing the setting (`Yes`/`No`, `True`/`False`, `On`/`Off`
+//! or `1`/`0`, as in the ini file). `ipaddr`, `epsaddr`, `epsport`,
 //! `serial_device`, `serial_speed` and `pubfile` change the section for all
 //! its clients: the link is re-established and the public file reloaded,
 //! answered `WARNING:250 Changed public file: '<name>'` (or 251 when its
@@ -12,7 +14,7 @@ use plccoms_protocol::answer::{write_error, write_warning, ErrorCode, WarningCod
 use plccoms_protocol::request::{parse_setconf, ArgError};
 
 use super::error;
-use crate::config::parse_ipv4;
+use crate::config::{self, SetConfScope};
 use crate::fanout::Notice;
 use crate::poller::{ConfChange, ReconfError, ReconfReply};
 use crate::session::{Pending, Session};
@@ -27,53 +29,46 @@ pub async fn apply(session: &mut Session, args: &[u8], context: &[u8]) {
         Err(ArgError::Incomplete) => return error(session, ErrorCode::Incomplete, context),
         Err(ArgError::Bad) => return error(session, ErrorCode::BadRequest, context),
     };
-    let key = String::from_utf8_lossy(name).to_ascii_lowercase();
-    let text = String::from_utf8_lossy(value).into_owned();
-    let section_wide = matches!(
-        key.as_str(),
-        "ipaddr" | "epsaddr" | "epsport" | "serial_device" | "serial_speed" | "pubfile"
-    );
-    if section_wide && session.shared.config.read_only {
+    let Some(key) = config::setconf_key(&String::from_utf8_lossy(name)) else {
+        return error(session, ErrorCode::SetConfUnknown, context);
+    };
+    let text = String::from_utf8_lossy(value);
+    if key.setconf_scope() == Some(SetConfScope::Client) {
+        let Some(on) = config::parse_bool(&text) else {
+            return error(session, ErrorCode::WrongValue, context);
+        };
+        let name = key.setconf_name().unwrap_or_default();
+        if name == "crlf" {
+            session.conn.set_crlf(on);
+        } else {
+            session.diff = on;
+        }
+        let mut line = b"SETCONF:".to_vec();
+        line.extend_from_slice(name.to_ascii_uppercase().as_bytes());
+        line.push(b',');
+        line.extend_from_slice(if on { b"YES" } else { b"NO" });
+        return session.answer_line(line);
+    }
+    if session.shared.config.read_only {
         return super::read_only(session, context);
     }
-    let change = match key.as_str() {
-        "crlf" | "diff" => {
-            let Some(on) = yes_no(value) else {
-                return error(session, ErrorCode::WrongValue, context);
-            };
-            if key == "crlf" {
-                session.conn.set_crlf(on);
-            } else {
-                session.diff = on;
-            }
-            let mut line = b"SETCONF:".to_vec();
-            line.extend_from_slice(key.to_ascii_uppercase().as_bytes());
-            line.push(b',');
-            line.extend_from_slice(if on { b"YES" } else { b"NO" });
-            return session.answer_line(line);
-        }
-        "ipaddr" => parse_ipv4(&text).map(ConfChange::IpAddr),
-        "epsaddr" => text
-            .parse()
-            .ok()
-            .filter(|a| (1..=126).contains(a))
-            .map(ConfChange::EpsAddr),
-        "epsport" => text
-            .parse()
-            .ok()
-            .filter(|&p| p > 0)
-            .map(ConfChange::EpsPort),
-        "serial_device" => (!text.is_empty()).then(|| ConfChange::SerialDevice(text.clone())),
-        "serial_speed" => text
-            .parse()
-            .ok()
-            .filter(|&s| s > 0)
-            .map(ConfChange::SerialSpeed),
-        "pubfile" => (!text.is_empty()).then(|| ConfChange::PubFile(text.clone())),
-        _ => return error(session, ErrorCode::SetConfUnknown, context),
+    // The value is parsed and range-checked as the ini key is; the poller
+    // gets the field it sets.
+    let mut section = session.shared.config.clone();
+    if key.apply_setconf(&mut section, &text).is_err() {
+        return error(session, ErrorCode::WrongValue, context);
+    }
+    let change = match key.name {
+        "IPADDR" => section.ipaddr.map(ConfChange::IpAddr),
+        "EPSADDR" => section.epsaddr.map(ConfChange::EpsAddr),
+        "EPSPORT" => Some(ConfChange::EpsPort(section.epsport)),
+        "SERIAL_DEVICE" => section.serial_device.map(ConfChange::SerialDevice),
+        "SERIAL_SPEED" => section.serial_speed.map(ConfChange::SerialSpeed),
+        "PUBFILE" => section.pubfile.map(ConfChange::PubFile),
+        _ => None,
     };
     let Some(change) = change else {
-        return error(session, ErrorCode::WrongValue, context);
+        return error(session, ErrorCode::SetConfUnknown, context);
     };
     let rx = session.shared.poller.reconfigure(change).await;
     let then = ConfThen {
@@ -108,13 +103,4 @@ pub fn write_notice(notice: &Notice, out: &mut Vec<u8>) {
         WarningCode::PubfileSame
     };
     write_warning(out, code, notice.name.as_bytes());
-}
-
-/// `yes`/`no` (also `1`/`0`, `true`/`false`), any case.
-pub fn yes_no(value: &[u8]) -> Option<bool> {
-    match String::from_utf8_lossy(value).to_ascii_lowercase().as_str() {
-        "yes" | "1" | "true" => Some(true),
-        "no" | "0" | "false" => Some(false),
-        _ => None,
-    }
 }

@@ -253,7 +253,7 @@ impl Kind {
                 .collect::<Vec<_>>()
                 .join(", "),
             Kind::Ipv4 => "a.b.c.d, each part 0-255".to_string(),
-            Kind::Text => "any text".to_string(),
+            Kind::Text => "any non-empty text".to_string(),
             Kind::Networks => "a.b.c.d, a.b.c.d/n, x:y::z, x:y::/n".to_string(),
             Kind::Choice { choices, .. } => choices.join(", "),
         }

@@ -989,3 +989,219 @@ fn bool_grammar() {
         assert_eq!(parse_bool(bad), None, "{bad}");
     }
 }
+
+#[test]
+fn setconf_names() {
+    for (name, key, scope) in [
+        ("crlf", "END_LINE_CRLF", SetConfScope::Client),
+        ("CRLF", "END_LINE_CRLF", SetConfScope::Client),
+        ("diff", "DIFF_VAR_ENABLED", SetConfScope::Client),
+        ("ipaddr", "IPADDR", SetConfScope::Section),
+        ("EpsAddr", "EPSADDR", SetConfScope::Section),
+        ("epsport", "EPSPORT", SetConfScope::Section),
+        ("serial_device", "SERIAL_DEVICE", SetConfScope::Section),
+        ("serial_speed", "SERIAL_SPEED", SetConfScope::Section),
+        ("pubfile", "PUBFILE", SetConfScope::Section),
+    ] {
+        let found = setconf_key(name).unwrap_or_else(|| panic!("{name}"));
+        assert_eq!(
+            (found.name, found.setconf_scope()),
+            (key, Some(scope)),
+            "{name}"
+        );
+    }
+    for unknown in ["nothing", "END_LINE_CRLF", "pubfile_crc", "server_port", ""] {
+        assert!(setconf_key(unknown).is_none(), "{unknown}");
+    }
+    assert_eq!(
+        keys().iter().filter(|k| k.setconf_name().is_some()).count(),
+        8
+    );
+}
+
+#[test]
+fn setconf_crlf_and_diff_take_every_boolean_spelling() {
+    for name in ["crlf", "diff"] {
+        let key = setconf_key(name).unwrap();
+        for (yes, no) in [("Yes", "No"), ("True", "False"), ("On", "Off"), ("1", "0")] {
+            for (text, value) in [(yes, true), (no, false)] {
+                for spelling in [
+                    text.to_string(),
+                    text.to_ascii_lowercase(),
+                    text.to_ascii_uppercase(),
+                ] {
+                    assert_eq!(parse_bool(&spelling), Some(value), "{name},{spelling}");
+                    // The same words as the ini key.
+                    assert_eq!(key.parse(&spelling), Ok(Value::Bool(value)));
+                }
+            }
+        }
+        // A client setting is not a section's.
+        let mut section = plain_section("PLC", 5010);
+        assert!(key.apply_setconf(&mut section, "yes").is_err());
+        assert_eq!(section, plain_section("PLC", 5010));
+    }
+}
+
+#[test]
+fn setconf_section_keys_parse_as_the_ini_keys() {
+    let base = plain_section("PLC", 5010);
+    let good: [(&str, &str, Section); 12] = [
+        (
+            "ipaddr",
+            "192.168.1.10",
+            Section {
+                ipaddr: Some(Ipv4Addr::new(192, 168, 1, 10)),
+                ..base.clone()
+            },
+        ),
+        (
+            "ipaddr",
+            "010.0.0.001",
+            Section {
+                ipaddr: Some(Ipv4Addr::new(10, 0, 0, 1)),
+                ..base.clone()
+            },
+        ),
+        (
+            "ipaddr",
+            "0.0.0.0",
+            Section {
+                ipaddr: Some(Ipv4Addr::UNSPECIFIED),
+                ..base.clone()
+            },
+        ),
+        (
+            "epsaddr",
+            "1",
+            Section {
+                epsaddr: Some(1),
+                ..base.clone()
+            },
+        ),
+        (
+            "epsaddr",
+            "126",
+            Section {
+                epsaddr: Some(126),
+                ..base.clone()
+            },
+        ),
+        (
+            "epsport",
+            "1",
+            Section {
+                epsport: 1,
+                ..base.clone()
+            },
+        ),
+        (
+            "epsport",
+            "65535",
+            Section {
+                epsport: 65535,
+                ..base.clone()
+            },
+        ),
+        (
+            "serial_device",
+            "/dev/ttyS0",
+            Section {
+                serial_device: Some("/dev/ttyS0".into()),
+                ..base.clone()
+            },
+        ),
+        (
+            "serial_speed",
+            "1",
+            Section {
+                serial_speed: Some(1),
+                ..base.clone()
+            },
+        ),
+        (
+            "serial_speed",
+            "4294967295",
+            Section {
+                serial_speed: Some(u32::MAX),
+                ..base.clone()
+            },
+        ),
+        (
+            "pubfile",
+            "//demo.pub",
+            Section {
+                pubfile: Some("//demo.pub".into()),
+                ..base.clone()
+            },
+        ),
+        (
+            "pubfile",
+            "a b.pub",
+            Section {
+                pubfile: Some("a b.pub".into()),
+                ..base.clone()
+            },
+        ),
+    ];
+    for (name, value, expected) in good {
+        let mut section = base.clone();
+        let key = setconf_key(name).unwrap();
+        assert_eq!(
+            key.apply_setconf(&mut section, value),
+            Ok(()),
+            "{name},{value}"
+        );
+        assert_eq!(section, expected, "{name},{value}");
+    }
+    let bad = [
+        (
+            "ipaddr",
+            "192.168.1.300",
+            "is not an IPv4 address (allowed a.b.c.d, each part 0-255)",
+        ),
+        (
+            "ipaddr",
+            "1.2.3",
+            "is not an IPv4 address (allowed a.b.c.d, each part 0-255)",
+        ),
+        (
+            "ipaddr",
+            "",
+            "is not an IPv4 address (allowed a.b.c.d, each part 0-255)",
+        ),
+        ("epsaddr", "0", "is out of range (allowed 1-126)"),
+        ("epsaddr", "127", "is out of range (allowed 1-126)"),
+        ("epsaddr", "x", "is not a number (allowed 1-126)"),
+        ("epsport", "0", "is out of range (allowed 1-65535)"),
+        ("epsport", "65536", "is out of range (allowed 1-65535)"),
+        ("epsport", "+5", "is not a number (allowed 1-65535)"),
+        ("serial_device", "", "is empty (allowed any non-empty text)"),
+        (
+            "serial_speed",
+            "0",
+            "is out of range (allowed 1-4294967295 baud)",
+        ),
+        (
+            "serial_speed",
+            "4294967296",
+            "is out of range (allowed 1-4294967295 baud)",
+        ),
+        (
+            "serial_speed",
+            "fast",
+            "is not a number (allowed 1-4294967295 baud)",
+        ),
+        ("pubfile", "", "is empty (allowed any non-empty text)"),
+    ];
+    for (name, value, problem) in bad {
+        let mut section = base.clone();
+        assert_eq!(
+            setconf_key(name)
+                .unwrap()
+                .apply_setconf(&mut section, value),
+            Err(format!("{name} = {value} {problem}")),
+        );
+        assert_eq!(section, base, "{name},{value}: changed");
+    }
+}
