@@ -1205,3 +1205,35 @@ fn setconf_section_keys_parse_as_the_ini_keys() {
         assert_eq!(section, base, "{name},{value}: changed");
     }
 }
+
+/// The keys `PLCComS.ini.example` writes or documents: `KEY =` at the start
+/// of a line, possibly after `#`.
+fn example_keys(text: &str) -> std::collections::BTreeSet<&str> {
+    text.lines()
+        .filter_map(|line| {
+            let line = line.strip_prefix('#').unwrap_or(line);
+            let end = line
+                .find(|c: char| !(c.is_ascii_uppercase() || c.is_ascii_digit() || c == '_'))
+                .unwrap_or(line.len());
+            let (key, rest) = line.split_at(end);
+            (!key.is_empty() && rest.trim_start().starts_with('=')).then_some(key)
+        })
+        .collect()
+}
+
+#[test]
+fn the_example_documents_every_key() {
+    let text = include_str!("../../PLCComS.ini.example");
+    let documented = example_keys(text);
+    let table: std::collections::BTreeSet<&str> = keys().iter().map(|k| k.name).collect();
+    let missing: Vec<_> = table.difference(&documented).collect();
+    assert!(
+        missing.is_empty(),
+        "not in PLCComS.ini.example: {missing:?}"
+    );
+    let unknown: Vec<_> = documented.difference(&table).collect();
+    assert!(unknown.is_empty(), "not in the table of keys: {unknown:?}");
+    // And it loads cleanly: it is the built-in configuration.
+    let loaded = ok(text);
+    assert!(loaded.diagnostics.is_empty(), "{:?}", messages(&loaded));
+}
