@@ -3,16 +3,16 @@
 //!
 //! Every key is a row of one table ([`keys()`], in `keys.rs`): its scope,
 //! default, kind of value and range, the field it sets and its SETCONF name.
-//! The file is read by a line scan of our own ([`ini`](self) module), which
-//! pairs every key with its line, and rust-ini for quotes.
+//! The file is read by a line scan of our own (`ini.rs`), which pairs every
+//! key with its line, and rust-ini for quotes.
 //!
 //! Keys are case-insensitive; booleans are `Yes`/`No`, `True`/`False`,
 //! `On`/`Off` or `1`/`0` in any case ([`parse_bool`]); numbers are decimal;
 //! an empty value leaves the key at its default. Problems are
-//! [`Diagnostic`]s, all of them reported at once: an unknown key is a warning
-//! (with the key it is probably a typo of); a bad value in `[*]` stops
-//! start-up ([`ConfigError::Invalid`]); a bad value in a PLC section skips
-//! that section and the others load.
+//! [`Diagnostic`]s (`diag.rs`) naming file and line, all of them reported at
+//! once: an unknown key is a warning (with the key it is probably a typo
+//! of); a bad value in `[*]` stops start-up ([`ConfigError::Invalid`]); a bad
+//! value in a PLC section skips that section and the others load.
 //!
 //! `SIMULATOR = Yes` (with `SIMULATOR_PROGRAM` and `SIMULATOR_PUB`) is this
 //! project's addition: the section is served by a simulated PLC inside the
@@ -39,6 +39,7 @@ pub use keys::{
 use diag::Diags;
 use ini::{Entry, RawSection};
 use keys::Settings;
+
 /// A loaded ini file.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Config {
