@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use clap::Parser;
 use plccoms::cli::Cli;
-use plccoms::config::{self, Severity};
+use plccoms::config::{self, Diagnostic, Severity};
 use plccoms::daemon::{self, Notifier};
 use plccoms::watch;
 use tracing::{error, info, warn};
@@ -79,6 +79,13 @@ fn init_logging(cli: &Cli) -> Result<(), String> {
     Ok(())
 }
 
+fn log_diagnostic(diagnostic: &Diagnostic) {
+    match diagnostic.severity {
+        Severity::Warning => warn!("{diagnostic}"),
+        Severity::Error => error!("{diagnostic}"),
+    }
+}
+
 async fn run(cli: Cli, mut notifier: Notifier) -> ExitCode {
     let embedded = cli.config == Path::new(DEFAULT_CONFIG) && !cli.config.exists();
     let loaded = if embedded {
@@ -90,16 +97,21 @@ async fn run(cli: Cli, mut notifier: Notifier) -> ExitCode {
     let loaded = match loaded {
         Ok(loaded) => loaded,
         Err(err) => {
+            // Every problem found, one line each, then why start-up stops;
+            // the parent of -d prints the same.
+            let mut report = String::new();
+            for diagnostic in err.diagnostics() {
+                log_diagnostic(diagnostic);
+                report.push_str(&format!("{diagnostic}\n"));
+            }
             error!("{err}");
-            notifier.fail(&err.to_string());
+            report.push_str(&err.to_string());
+            notifier.fail(&report);
             return ExitCode::FAILURE;
         }
     };
     for diagnostic in &loaded.diagnostics {
-        match diagnostic.severity {
-            Severity::Warning => warn!("{diagnostic}"),
-            Severity::Error => error!("{diagnostic}"),
-        }
+        log_diagnostic(diagnostic);
     }
     // -t: exit when the configuration file changes (watching starts before
     // the sections, so no edit is missed).

@@ -436,6 +436,11 @@ async fn line_ends_follow_the_setting_and_setconf() {
     c.ask("SETCONF:crlf,yes\n", "SETCONF:CRLF,YES\r\n").await;
     c.ask("GET:test_1\n", "GET:TEST_1,0\r\n").await;
     c.ask("SETCONF: crlf , no\n", "SETCONF:CRLF,NO\n").await;
+    // The booleans of the ini file.
+    c.ask("SETCONF:crlf,On\n", "SETCONF:CRLF,YES\r\n").await;
+    c.ask("SETCONF:CRLF,off\n", "SETCONF:CRLF,NO\n").await;
+    c.ask("SETCONF:crlf,TRUE\n", "SETCONF:CRLF,YES\r\n").await;
+    c.ask("SETCONF:crlf,0\n", "SETCONF:CRLF,NO\n").await;
     c.ask(
         "SETCONF:crlf,maybe\n",
         "ERROR:35 Wrong parameter value in request: 'SETCONF:crlf,maybe'\n",

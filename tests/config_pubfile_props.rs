@@ -22,10 +22,8 @@ const FIXED_PUB: &[u8] = include_bytes!("../conf/FIXED.pub");
 
 /// Keys of both kinds of section, so generated text hits the real paths.
 fn keys() -> Vec<&'static str> {
-    config::GLOBAL_KEYS
-        .iter()
-        .chain(&config::SECTION_KEYS)
-        .copied()
+    config::global_keys()
+        .chain(config::section_keys())
         .collect()
 }
 

@@ -809,13 +809,14 @@ fn setconf_every_key() {
     let same = "WARNING:251 Public file not changed: 'demo.pub'";
     let mut notices = Vec::new();
 
-    // ipaddr: a loopback address where nothing answers, then back.
+    // ipaddr: a loopback address where nothing answers is refused and
+    // changes nothing; the same address again reloads.
     c.ask(
         "SETCONF:ipaddr,127.0.0.2\n",
         "ERROR:10 Unable to connect to PLC.",
     );
-    c.ask("GETINFO:ipaddr\n", "GETINFO:IPADDR,127.0.0.2");
-    c.ask("GET:counter\n", "ERROR:10 Unable to connect to PLC.");
+    c.ask("GETINFO:ipaddr\n", "GETINFO:IPADDR,127.0.0.1");
+    c.ask("GET:counter\n", "GET:COUNTER,0");
     c.ask("SETCONF:ipaddr,127.0.0.1\n", same);
     notices.push(same);
     c.ask("GET:counter\n", "GET:COUNTER,0");
@@ -837,13 +838,14 @@ fn setconf_every_key() {
         c.ask("GETINFO:epsaddr\n", &format!("GETINFO:EPSADDR,{good}"));
     }
 
-    // epsport: a port where nothing answers, then the PLC's.
+    // epsport: a port where nothing answers is refused and changes nothing;
+    // the PLC's own port again reloads.
     let dead = free_udp_port();
     c.ask(
         &format!("SETCONF:epsport,{dead}\n"),
         "ERROR:10 Unable to connect to PLC.",
     );
-    c.ask("GETINFO:epsport\n", &format!("GETINFO:EPSPORT,{dead}"));
+    c.ask("GETINFO:epsport\n", &format!("GETINFO:EPSPORT,{}", plc.udp));
     c.ask(&format!("SETCONF:epsport,{}\n", plc.udp), same);
     notices.push(same);
     c.ask("GETINFO:epsport\n", &format!("GETINFO:EPSPORT,{}", plc.udp));

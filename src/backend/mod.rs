@@ -144,32 +144,18 @@ pub trait PlcBackend: Send {
 /// made.
 pub type Opened = Result<Option<Box<dyn PlcBackend>>, String>;
 
-/// A backend: the name `PROTOCOL` gives it, and how to open one for a
-/// section's keys.
-pub struct Protocol {
-    pub name: &'static str,
-    pub open: fn(&crate::config::Section) -> Opened,
-}
-
-/// Every backend. A new one is a module and a line here (and its name in
-/// `config::PROTOCOLS`).
-pub const PROTOCOLS: &[Protocol] = &[Protocol {
-    name: "EPSNET",
-    open: open_epsnet,
-}];
+/// The backends, by the name the section key `PROTOCOL` gives them. A new
+/// backend is a module, its name here and its arm in [`open`].
+pub const PROTOCOLS: &[&str] = &["EPSNET"];
 
 /// The backend of a section, chosen by its `PROTOCOL` key.
 pub fn open(section: &crate::config::Section) -> Opened {
-    let name = section_protocol(section);
-    let protocol = PROTOCOLS
-        .iter()
-        .find(|p| p.name.eq_ignore_ascii_case(name))
-        .ok_or_else(|| format!("PROTOCOL = {name} is not a backend of this server"))?;
-    (protocol.open)(section)
-}
-
-fn section_protocol(_section: &crate::config::Section) -> &str {
-    "EPSNET"
+    match section.protocol.as_str() {
+        "EPSNET" => open_epsnet(section),
+        other => Err(format!(
+            "PROTOCOL = {other} is not a backend of this server"
+        )),
+    }
 }
 
 /// EPSNET over UDP to `IPADDR:EPSPORT`, or `None` when the section has no

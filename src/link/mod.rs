@@ -577,14 +577,18 @@ impl Link {
     }
 
     /// SETCONF of a section key: apply it, reconnect when the link changed,
-    /// reload the public file, and tell every client.
+    /// reload the public file, and tell every client. A SETCONF that fails
+    /// (the PLC does not answer, the public file cannot be loaded) is undone:
+    /// the section keeps its settings and its link.
     async fn reconfigure(&mut self, change: ConfChange) -> ReconfReply {
-        if self.tables.is_none() {
+        let Some(tables) = self.tables.as_ref() else {
             return Err(ReconfError::PubFile(
                 "this section cannot be reconfigured".to_string(),
             ));
-        }
-        let (config, relink) = reconf::apply(&self.config(), &change);
+        };
+        let pending_before = tables.pending_fetch;
+        let before = self.config();
+        let (config, relink) = reconf::apply(&before, &change);
         // A link this server cannot make is refused before anything
         // changes, so the section keeps its working link.
         let backend = if relink {
@@ -593,35 +597,71 @@ impl Link {
             None
         };
         info!(section = %self.name, "SETCONF: {change:?}");
-        self.state
-            .send_modify(|live| Arc::make_mut(live).config = config);
+        self.set_config(config);
+        let mut old_backend = None;
         if let Some(backend) = backend {
-            self.backend = backend;
-            self.health.reset(self.backend.is_some(), Instant::now());
-            self.cycle.reset();
-            self.update_freshness();
+            old_backend = Some(std::mem::replace(&mut self.backend, backend));
             if let Some(tables) = self.tables.as_mut() {
-                tables.crc_checked = false;
                 // Loaded below once connected, not twice.
                 tables.pending_fetch = false;
             }
-            let text = describe(self.backend.as_deref());
-            self.publish_status(|link| {
-                link.describe = text;
-                link.ident = None;
-            });
+            self.relinked();
             if self.backend.is_none() || !self.probe().await {
-                // The new PLC's public file is loaded when it answers.
-                let has_plc = self.backend.is_some();
-                if let Some(tables) = self.tables.as_mut() {
-                    tables.pending_fetch = has_plc;
-                }
-                self.publisher.publish_offline();
-                return Err(ReconfError::Unreachable(describe(self.backend.as_deref())));
+                let describe = describe(self.backend.as_deref());
+                warn!(section = %self.name, "SETCONF {change:?} refused: the PLC at {describe} does not answer; the section keeps its settings");
+                self.undo(before, old_backend, pending_before);
+                return Err(ReconfError::Unreachable(describe));
             }
         }
-        let notice = self.reload().await.map_err(ReconfError::PubFile)?;
-        Ok(ReconfOutcome { notice })
+        match self.reload().await {
+            Ok(notice) => Ok(ReconfOutcome { notice }),
+            Err(err) => {
+                warn!(section = %self.name, "SETCONF {change:?} refused: {err}; the section keeps its settings");
+                self.undo(before, old_backend, pending_before);
+                Err(ReconfError::PubFile(err))
+            }
+        }
+    }
+
+    fn set_config(&mut self, config: config::Section) {
+        self.state
+            .send_modify(|live| Arc::make_mut(live).config = config);
+    }
+
+    /// A new backend is in place: connect to it from scratch.
+    fn relinked(&mut self) {
+        self.health.reset(self.backend.is_some(), Instant::now());
+        self.cycle.reset();
+        self.update_freshness();
+        if let Some(tables) = self.tables.as_mut() {
+            tables.crc_checked = false;
+        }
+        let text = describe(self.backend.as_deref());
+        self.publish_status(|link| {
+            link.describe = text;
+            link.ident = None;
+        });
+    }
+
+    /// Puts back the settings (and the link, if it was replaced) a refused
+    /// SETCONF changed.
+    fn undo(
+        &mut self,
+        config: config::Section,
+        backend: Option<Option<Box<dyn PlcBackend>>>,
+        pending_fetch: bool,
+    ) {
+        self.set_config(config);
+        if let Some(tables) = self.tables.as_mut() {
+            tables.pending_fetch = pending_fetch;
+        }
+        if let Some(backend) = backend {
+            self.backend = backend;
+            self.relinked();
+            if self.backend.is_none() {
+                self.publisher.publish_offline();
+            }
+        }
     }
 
     /// Serves a batch of jobs in arrival order; consecutive reads share one

@@ -1,0 +1,605 @@
+//! The ini file (`PLCComS.ini`): global settings in `[*]`, then one section per
+//! PLC.
+//!
+//! Every key is a row of one table ([`keys()`], in `keys.rs`): its scope,
+//! default, kind of value and range, the field it sets and its SETCONF name.
+//! The file is read by a line scan of our own (`ini.rs`), which pairs every
+//! key with its line, and rust-ini for quotes.
+//!
+//! Keys are case-insensitive; booleans are `Yes`/`No`, `True`/`False`,
+//! `On`/`Off` or `1`/`0` in any case ([`parse_bool`]); numbers are decimal;
+//! an empty value leaves the key at its default. Problems are
+//! [`Diagnostic`]s (`diag.rs`) naming file and line, all of them reported at
+//! once: an unknown key is a warning (with the key it is probably a typo
+//! of); a bad value in `[*]` stops start-up ([`ConfigError::Invalid`]); a bad
+//! value in a PLC section skips that section and the others load.
+//!
+//! `SIMULATOR = Yes` (with `SIMULATOR_PROGRAM` and `SIMULATOR_PUB`) is this
+//! project's addition: the section is served by a simulated PLC inside the
+//! server instead of a real one.
+
+mod diag;
+mod ini;
+mod keys;
+#[cfg(test)]
+mod tests;
+
+use std::collections::HashMap;
+use std::fmt;
+use std::net::{IpAddr, Ipv4Addr, Ipv6Addr};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+pub use diag::{Diagnostic, Severity};
+pub use keys::{
+    global_keys, key, keys, parse_bool, parse_ipv4, section_keys, setconf_key, Key, Kind, Scope,
+    SetConfScope, Value, PROTOCOLS, SIMULATOR_PROGRAMS,
+};
+
+use diag::Diags;
+use ini::{Entry, RawSection};
+use keys::Settings;
+
+/// A loaded ini file.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Config {
+    /// The file it was loaded from.
+    pub path: PathBuf,
+    pub global: Global,
+    /// The PLC sections that loaded, in file order.
+    pub sections: Vec<Section>,
+}
+
+/// The `[*]` section.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Global {
+    pub comm_loop_delay: Duration,
+    pub comm_sched_pri: u8,
+    pub net_connect_max: usize,
+    pub mem_blksize: usize,
+    pub mem_use_threads: bool,
+    pub ffile_blksize: usize,
+    pub ffile_timeout: Duration,
+    pub ffile_timeout_wr: Duration,
+    pub ffile_maxrecs: usize,
+    pub end_line_crlf: bool,
+    pub pf_var_disabled: bool,
+    pub diff_var_enabled: bool,
+    pub sync_var_enabled: bool,
+    pub date_time_decimal: bool,
+    pub lim_of_decimals: bool,
+    pub num_of_decimals: u8,
+    pub scient_notation: bool,
+    pub serial_device_cfg: Option<String>,
+    /// OUTPUT_HARD_LIMIT: output queued for one client, in bytes, beyond
+    /// which it is disconnected at once (this server's own key).
+    pub output_hard_limit: usize,
+    /// OUTPUT_SOFT_LIMIT: output queued for one client, in bytes, that it may
+    /// hold only for OUTPUT_SOFT_TIMEOUT; DIFF lines wait (coalesced) while
+    /// it is reached.
+    pub output_soft_limit: usize,
+    /// OUTPUT_SOFT_TIMEOUT.
+    pub output_soft_timeout: Duration,
+}
+
+impl Default for Global {
+    /// The defaults of the table of keys.
+    fn default() -> Self {
+        keys::with_defaults(Global {
+            // Placeholders: every field is set by its key's default.
+            comm_loop_delay: Duration::ZERO,
+            comm_sched_pri: 0,
+            net_connect_max: 0,
+            mem_blksize: 0,
+            mem_use_threads: false,
+            ffile_blksize: 0,
+            ffile_timeout: Duration::ZERO,
+            ffile_timeout_wr: Duration::ZERO,
+            ffile_maxrecs: 0,
+            end_line_crlf: false,
+            pf_var_disabled: false,
+            diff_var_enabled: false,
+            sync_var_enabled: false,
+            date_time_decimal: false,
+            lim_of_decimals: false,
+            num_of_decimals: 0,
+            scient_notation: false,
+            serial_device_cfg: None,
+            output_hard_limit: 0,
+            output_soft_limit: 0,
+            output_soft_timeout: Duration::ZERO,
+        })
+    }
+}
+
+/// A PLC section.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Section {
+    /// The section name as written (used in log entries and as the folder for
+    /// `PUBFILE_WRITE = Yes`).
+    pub name: String,
+    /// The PLC's address; `Some(0.0.0.0)` means "no PLC yet, wait for
+    /// `SETCONF:ipaddr`". `None` when the key is absent (serial, shared module
+    /// or simulator sections).
+    pub ipaddr: Option<Ipv4Addr>,
+    pub ipaddr_local: Option<Ipv4Addr>,
+    /// EPSNET source address; `None` = chosen automatically.
+    pub epsaddr: Option<u8>,
+    pub epstout: Duration,
+    pub epstout_step: Duration,
+    pub epsport: u16,
+    pub server_port: u16,
+    pub serial_device: Option<String>,
+    pub serial_speed: Option<u32>,
+    pub serial_rts: Option<u32>,
+    pub shm_name: Option<String>,
+    pub shm_socket: Option<u32>,
+    pub shm_port: Option<u32>,
+    pub pubfile_crc: bool,
+    pub pubfile_write: bool,
+    pub pubfile: Option<String>,
+    pub pubfile_fixed: Option<String>,
+    /// `PROTOCOL`: the backend, upper case, one of [`PROTOCOLS`].
+    pub protocol: String,
+    /// Set when `SIMULATOR = Yes`.
+    pub simulator: Option<Simulator>,
+    /// `ALLOW`: the client addresses and networks admitted; `None` admits
+    /// every client, as PLCComS does (this server's own key).
+    pub allow: Option<Vec<Network>>,
+    /// `READ_ONLY = Yes`: requests that would change the PLC or the section
+    /// answer ERROR:30 (this server's own key).
+    pub read_only: bool,
+}
+
+/// An address or CIDR network of `ALLOW`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Network {
+    /// The network address (host bits cleared).
+    pub addr: IpAddr,
+    /// Leading bits that must match: 32 (IPv4) or 128 (IPv6) for a single
+    /// address.
+    pub prefix: u8,
+}
+
+impl Network {
+    /// `a.b.c.d`, `a.b.c.d/n`, an IPv6 address, or `ipv6/n`.
+    pub fn parse(text: &str) -> Option<Network> {
+        let (addr, prefix) = match text.split_once('/') {
+            Some((addr, prefix)) => (addr.trim(), Some(prefix.trim())),
+            None => (text.trim(), None),
+        };
+        let addr = match parse_ipv4(addr) {
+            Some(v4) => IpAddr::V4(v4),
+            None => IpAddr::V6(addr.parse::<Ipv6Addr>().ok()?),
+        };
+        let max = if addr.is_ipv4() { 32 } else { 128 };
+        let prefix = match prefix {
+            None => max,
+            Some(p) if !p.is_empty() && p.len() <= 3 && p.bytes().all(|b| b.is_ascii_digit()) => {
+                p.parse::<u8>().ok().filter(|&n| n <= max)?
+            }
+            Some(_) => return None,
+        };
+        let addr = match addr {
+            IpAddr::V4(a) => IpAddr::V4(Ipv4Addr::from(u32::from(a) & mask32(prefix))),
+            IpAddr::V6(a) => IpAddr::V6(Ipv6Addr::from(u128::from(a) & mask128(prefix))),
+        };
+        Some(Network { addr, prefix })
+    }
+
+    /// Whether `peer` is in this network. An IPv4 client seen on an IPv6
+    /// socket (`::ffff:a.b.c.d`) counts as its IPv4 address.
+    pub fn contains(&self, peer: IpAddr) -> bool {
+        let peer = match peer {
+            IpAddr::V6(v6) => v6.to_ipv4_mapped().map_or(peer, IpAddr::V4),
+            v4 => v4,
+        };
+        match (self.addr, peer) {
+            (IpAddr::V4(net), IpAddr::V4(p)) => {
+                u32::from(p) & mask32(self.prefix) == u32::from(net)
+            }
+            (IpAddr::V6(net), IpAddr::V6(p)) => {
+                u128::from(p) & mask128(self.prefix) == u128::from(net)
+            }
+            _ => false,
+        }
+    }
+}
+
+impl fmt::Display for Network {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}/{}", self.addr, self.prefix)
+    }
+}
+
+fn mask32(prefix: u8) -> u32 {
+    u32::MAX.checked_shl(32 - u32::from(prefix)).unwrap_or(0)
+}
+
+fn mask128(prefix: u8) -> u128 {
+    u128::MAX.checked_shl(128 - u32::from(prefix)).unwrap_or(0)
+}
+
+/// Whether `allow` (a section's ALLOW) admits `peer`.
+pub fn allowed(allow: Option<&[Network]>, peer: IpAddr) -> bool {
+    allow.is_none_or(|nets| nets.iter().any(|n| n.contains(peer)))
+}
+
+/// A simulated PLC that serves the section (`SIMULATOR = Yes`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Simulator {
+    /// `SIMULATOR_PROGRAM`: `demo` (default) or `idle`, lower case.
+    pub program: String,
+    /// `SIMULATOR_PUB`: the public file the simulated PLC serves.
+    pub pubfile: Option<String>,
+}
+
+/// A loaded file with the warnings and skipped-section errors found on the way.
+#[derive(Debug, Clone)]
+pub struct Loaded {
+    pub config: Config,
+    pub diagnostics: Vec<Diagnostic>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read {}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The file cannot be used: a bad `[*]` section, a missing `[*]`, or a line
+    /// that is not ini syntax there. Start-up stops. `diagnostics` holds every
+    /// problem found in the file, in line order, at least one an error.
+    #[error("{}: the configuration cannot be used (an error in [*] or outside the PLC sections)", path.display())]
+    Invalid {
+        path: PathBuf,
+        diagnostics: Vec<Diagnostic>,
+    },
+    /// No PLC section loaded; `diagnostics` holds every problem found, in line
+    /// order.
+    #[error("{}: no usable PLC section (at least one section besides [*], with a SERVER_PORT, is needed)", path.display())]
+    NoSections {
+        path: PathBuf,
+        diagnostics: Vec<Diagnostic>,
+    },
+}
+
+impl ConfigError {
+    /// Every problem found in the file, in line order; none for
+    /// [`ConfigError::Io`].
+    pub fn diagnostics(&self) -> &[Diagnostic] {
+        match self {
+            ConfigError::Io { .. } => &[],
+            ConfigError::Invalid { diagnostics, .. }
+            | ConfigError::NoSections { diagnostics, .. } => diagnostics,
+        }
+    }
+}
+
+/// `1 error`, `3 errors`.
+fn count_errors(n: usize) -> String {
+    format!("{n} error{}", if n == 1 { "" } else { "s" })
+}
+
+/// Reads and parses an ini file. Text that is not UTF-8 is decoded lossily;
+/// a value or section name that lost characters that way gets a warning.
+pub fn load(path: &Path) -> Result<Loaded, ConfigError> {
+    let bytes = std::fs::read(path).map_err(|source| ConfigError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let text = String::from_utf8_lossy(&bytes);
+    parse(path, &text)
+}
+
+/// Parses ini text; `path_for_messages` goes into [`Config::path`] and every
+/// diagnostic. Every section is read even when an earlier one failed, so that
+/// every problem of the file is reported at once.
+pub fn parse(path_for_messages: &Path, text: &str) -> Result<Loaded, ConfigError> {
+    let mut diags = Diags::new(path_for_messages);
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
+    let invalid = |mut diagnostics: Vec<Diagnostic>| {
+        diagnostics.sort_by_key(|d| d.line);
+        ConfigError::Invalid {
+            path: path_for_messages.to_path_buf(),
+            diagnostics,
+        }
+    };
+    let raw = match ini::read(text, &mut diags) {
+        Ok(raw) => raw,
+        Err(d) => {
+            diags.list.push(d);
+            return Err(invalid(diags.list));
+        }
+    };
+    // Whether start-up stops: a problem outside the PLC sections.
+    let mut unusable = !raw.errors.is_empty();
+    diags.list.extend(raw.errors);
+
+    // [*]: exactly one, and it must be clean.
+    let mut global = None;
+    let mut global_line = 0;
+    for section in raw.sections.iter().filter(|s| s.name == "*") {
+        if global.is_some() {
+            diags.push(
+                Severity::Error,
+                section.line,
+                format!("second [*] section (the first is on line {global_line})"),
+            );
+            unusable = true;
+            continue;
+        }
+        global_line = section.line;
+        let mut errors = section.errors.clone();
+        global = Some(read_global(section, &mut diags, &mut errors));
+        unusable |= !errors.is_empty();
+        diags.list.extend(errors);
+    }
+    if global.is_none() {
+        diags.push(
+            Severity::Error,
+            1,
+            "the mandatory [*] section is missing".to_string(),
+        );
+        unusable = true;
+    }
+
+    let mut sections: Vec<Section> = Vec::new();
+    let mut names: HashMap<String, usize> = HashMap::new();
+    let mut ports: HashMap<u16, (String, usize)> = HashMap::new();
+    for raw in raw.sections.iter().filter(|s| s.name != "*") {
+        let mut errors = raw.errors.clone();
+        if let Some(first) = names.get(&raw.name.to_lowercase()) {
+            errors.push(diags.make(
+                Severity::Error,
+                raw.line,
+                format!(
+                    "duplicate section [{}] (the first is on line {first})",
+                    raw.name
+                ),
+            ));
+        }
+        let section = read_section(raw, &mut diags, &mut errors);
+        if let Some(section) = &section {
+            if let Some((other, line)) = ports.get(&section.server_port) {
+                errors.push(diags.make(
+                    Severity::Error,
+                    line_of(raw, "SERVER_PORT"),
+                    format!(
+                        "SERVER_PORT = {} is already used by section [{other}] (line {line})",
+                        section.server_port
+                    ),
+                ));
+            }
+        }
+        match section {
+            Some(section) if errors.is_empty() => {
+                names.insert(raw.name.to_lowercase(), raw.line);
+                ports.insert(section.server_port, (section.name.clone(), raw.line));
+                sections.push(section);
+            }
+            _ => {
+                diags.push(
+                    Severity::Error,
+                    raw.line,
+                    format!(
+                        "section [{}] skipped ({})",
+                        raw.name,
+                        count_errors(errors.len())
+                    ),
+                );
+                diags.list.extend(errors);
+            }
+        }
+    }
+    let path = path_for_messages.to_path_buf();
+    let (Some(global), false) = (global, unusable) else {
+        return Err(invalid(diags.list));
+    };
+    diags.list.sort_by_key(|d| d.line);
+    if sections.is_empty() {
+        return Err(ConfigError::NoSections {
+            path,
+            diagnostics: diags.list,
+        });
+    }
+    Ok(Loaded {
+        config: Config {
+            path,
+            global,
+            sections,
+        },
+        diagnostics: diags.list,
+    })
+}
+
+/// The line of the key's last entry (the one that counts), else of the
+/// section header.
+fn line_of(section: &RawSection, key: &str) -> usize {
+    section
+        .entries
+        .iter()
+        .rev()
+        .find(|e| e.key == key)
+        .map_or(section.line, |e| e.line)
+}
+
+/// Reads one section's entries: checks for duplicates, unknown keys and
+/// non-UTF-8 text, and returns the value each key of `scope` ends up with.
+fn collect<'e>(
+    section: &'e RawSection,
+    scope: Scope,
+    diags: &mut Diags<'_>,
+) -> HashMap<&'e str, &'e Entry> {
+    let mut map: HashMap<&str, &Entry> = HashMap::new();
+    if section.name.contains('\u{fffd}') {
+        diags.push(
+            Severity::Warning,
+            section.line,
+            format!("section name [{}] is not valid UTF-8 text", section.name),
+        );
+    }
+    let other = match scope {
+        Scope::Global => Scope::Section,
+        Scope::Section => Scope::Global,
+    };
+    for entry in &section.entries {
+        let key = entry.key.as_str();
+        if keys::key(scope, key).is_none() {
+            let (name, value) = (&section.name, &entry.value);
+            let message = if keys::key(other, key).is_some() {
+                format!("{key} does not belong in section [{name}]; ignored")
+            } else if let Some(near) = keys::suggest(scope, key) {
+                format!("{key} = {value} is an unknown key in section [{name}] (did you mean {near}?); ignored")
+            } else {
+                format!("{key} = {value} is an unknown key in section [{name}]; ignored")
+            };
+            diags.push(Severity::Warning, entry.line, message);
+            continue;
+        }
+        if entry.value.contains('\u{fffd}') {
+            diags.push(
+                Severity::Warning,
+                entry.line,
+                format!("{key} = {} is not valid UTF-8 text", entry.value),
+            );
+        }
+        if let Some(first) = map.insert(key, entry) {
+            diags.push(
+                Severity::Warning,
+                entry.line,
+                format!(
+                    "{key} is given twice (first on line {}); this value counts",
+                    first.line
+                ),
+            );
+        }
+    }
+    map.retain(|_, e| !e.value.is_empty());
+    map
+}
+
+/// Sets every key of `T`'s scope: to its value in `map` or else its default.
+/// A value that does not parse is an error in `errors` (with the key, the
+/// value and what is allowed) and leaves the default.
+fn fill<T: Settings>(
+    target: &mut T,
+    map: &HashMap<&str, &Entry>,
+    diags: &Diags<'_>,
+    errors: &mut Vec<Diagnostic>,
+) {
+    for key in keys::of_scope(T::SCOPE) {
+        let given = map
+            .get(key.name)
+            .and_then(|entry| match key.parse(&entry.value) {
+                Ok(value) => Some(value),
+                Err(problem) => {
+                    errors.push(diags.make(
+                        Severity::Error,
+                        entry.line,
+                        format!("{} = {} {problem}", entry.key, entry.value),
+                    ));
+                    None
+                }
+            });
+        if let Some(value) = given.or_else(|| key.default_value()) {
+            key.set(target, value);
+        }
+    }
+}
+
+fn read_global(
+    section: &RawSection,
+    diags: &mut Diags<'_>,
+    errors: &mut Vec<Diagnostic>,
+) -> Global {
+    let map = collect(section, Scope::Global, diags);
+    let mut global = Global::default();
+    fill(&mut global, &map, diags, errors);
+    // OUTPUT_SOFT_LIMIT <= OUTPUT_HARD_LIMIT; without a (good) value of its
+    // own the soft limit follows a lower hard limit.
+    let hard = global.output_hard_limit;
+    if global.output_soft_limit > hard {
+        if let Some(entry) = map.get("OUTPUT_SOFT_LIMIT") {
+            if !errors.iter().any(|d| d.line == entry.line) {
+                errors.push(diags.make(
+                    Severity::Error,
+                    entry.line,
+                    format!(
+                        "{} = {} is above OUTPUT_HARD_LIMIT ({hard} bytes)",
+                        entry.key, entry.value
+                    ),
+                ));
+            }
+        }
+        global.output_soft_limit = hard;
+    }
+    global
+}
+
+/// The defaults of a PLC section (with no SERVER_PORT).
+fn section_defaults(name: &str) -> Section {
+    keys::with_defaults(Section {
+        name: name.to_string(),
+        // Placeholders: every field is set by its key's default, or stays
+        // unset.
+        ipaddr: None,
+        ipaddr_local: None,
+        epsaddr: None,
+        epstout: Duration::ZERO,
+        epstout_step: Duration::ZERO,
+        epsport: 0,
+        server_port: 0,
+        serial_device: None,
+        serial_speed: None,
+        serial_rts: None,
+        shm_name: None,
+        shm_socket: None,
+        shm_port: None,
+        pubfile_crc: false,
+        pubfile_write: false,
+        pubfile: None,
+        pubfile_fixed: None,
+        protocol: String::new(),
+        simulator: None,
+        allow: None,
+        read_only: false,
+    })
+}
+
+/// `None` when SERVER_PORT is missing or invalid (the error is in `errors`).
+fn read_section(
+    raw: &RawSection,
+    diags: &mut Diags<'_>,
+    errors: &mut Vec<Diagnostic>,
+) -> Option<Section> {
+    let map = collect(raw, Scope::Section, diags);
+    let mut section = section_defaults(&raw.name);
+    fill(&mut section, &map, diags, errors);
+    if section.simulator.is_none() {
+        for key in ["SIMULATOR_PROGRAM", "SIMULATOR_PUB"] {
+            if let Some(entry) = map.get(key) {
+                diags.push(
+                    Severity::Warning,
+                    entry.line,
+                    format!("{key} has no effect without SIMULATOR = Yes"),
+                );
+            }
+        }
+    }
+    if !map.contains_key("SERVER_PORT") {
+        errors.push(diags.make(
+            Severity::Error,
+            raw.line,
+            format!(
+                "section [{}] has no SERVER_PORT (required, allowed {})",
+                raw.name,
+                key(Scope::Section, "SERVER_PORT").map_or(String::new(), |k| k.kind.allowed())
+            ),
+        ));
+    }
+    // SERVER_PORT has no default and is never 0 when its value is good.
+    (section.server_port != 0).then_some(section)
+}
