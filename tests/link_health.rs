@@ -1,0 +1,380 @@
+//! Link health at the vendor's default timeouts (EPSTOUT 1000 ms,
+//! EPSTOUT_STEP 500 ms, COMM_LOOP_DELAY 100 ms), against the simulated PLC
+//! over real UDP, through the real start-up path:
+//! - a polled value is served only while its poll is fresh (2 x
+//!   COMM_LOOP_DELAY + EPSTOUT = 1.2 s); after that, GET reads the PLC or
+//!   answers the link error, never the old value;
+//! - a silent PLC is declared lost within EPSTOUT plus one retry (2.5 s);
+//!   while it is lost, requests are answered at once, SETs are refused and
+//!   never applied later;
+//! - a PLC that is off at start-up: every section listens at once, and the
+//!   section serves when the PLC appears (public file local or on the PLC);
+//! - the change stream marks the outage.
+//!
+//! Bounds on times are generous (CI machines are slow and shared); the
+//! measured figures are printed (`--nocapture`).
+
+mod common;
+
+use std::net::SocketAddr;
+use std::time::{Duration, Instant};
+
+use common::Client;
+use plccoms::changes::{LinkEvent, Quality};
+use plccoms_protocol::Area;
+use plcsim::{SimConfig, SimHandle};
+
+/// Freshness bound at the defaults: 2 x 100 ms + 1000 ms.
+const FRESH: Duration = Duration::from_millis(1200);
+/// Loss declared within EPSTOUT + (EPSTOUT + STEP) at the defaults.
+const LOSS: Duration = Duration::from_millis(2500);
+/// Scheduling slack on a loaded machine.
+const SLACK: Duration = Duration::from_millis(2000);
+const SETPOINT: u32 = 124;
+const COUNTER: u32 = 130;
+
+async fn spawn_sim(bind: SocketAddr, files: &std::path::Path) -> SimHandle {
+    plcsim::spawn(SimConfig {
+        bind,
+        files: Some(files.to_path_buf()),
+        program: "idle".parse().unwrap(),
+        ..SimConfig::default()
+    })
+    .await
+    .expect("spawn simulator")
+}
+
+/// Restarts a simulator on `addr` (the port may linger for a moment).
+async fn respawn(addr: SocketAddr, files: &std::path::Path) -> SimHandle {
+    let start = Instant::now();
+    loop {
+        match plcsim::spawn(SimConfig {
+            bind: addr,
+            files: Some(files.to_path_buf()),
+            program: "idle".parse().unwrap(),
+            ..SimConfig::default()
+        })
+        .await
+        {
+            Ok(sim) => return sim,
+            Err(e) => {
+                assert!(start.elapsed() < Duration::from_secs(10), "rebind: {e}");
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        }
+    }
+}
+
+fn poke(sim: &SimHandle, offset: u32, bytes: &[u8]) {
+    sim.device()
+        .lock()
+        .unwrap()
+        .write(
+            Area::R,
+            offset,
+            &plccoms::backend::WriteData::Bytes(bytes.to_vec()),
+        )
+        .unwrap();
+}
+
+fn peek(sim: &SimHandle, offset: u32, len: u32) -> Vec<u8> {
+    sim.device()
+        .lock()
+        .unwrap()
+        .read(Area::R, offset, len)
+        .unwrap()
+}
+
+/// A section at the vendor's default timeouts on the PLC at `plc`.
+fn section(name: &str, port: u16, plc: SocketAddr, extra: &str) -> String {
+    format!(
+        "[{name}]\nIPADDR = 127.0.0.1\nEPSPORT = {}\nIPADDR_LOCAL = 127.0.0.1\nSERVER_PORT = {port}\n\
+         PUBFILE = //demo.pub\n{extra}\n",
+        plc.port()
+    )
+}
+
+/// A UDP port on loopback where nothing answers (yet).
+fn silent_addr() -> SocketAddr {
+    SocketAddr::from(([127, 0, 0, 1], common::process::free_udp_port()))
+}
+
+async fn answer(c: &mut Client, request: &str) -> (String, Duration) {
+    let sent = Instant::now();
+    c.send(request.as_bytes()).await;
+    let line = loop {
+        let line = String::from_utf8_lossy(&c.line().await).into_owned();
+        if !line.starts_with("DIFF:") && !line.starts_with("WARNING:25") {
+            break line;
+        }
+    };
+    (line, sent.elapsed())
+}
+
+#[tokio::test]
+async fn a_silent_plc_stops_fresh_values_is_lost_in_time_and_refuses_sets_at_once() {
+    let files = tempfile::tempdir().unwrap();
+    std::fs::write(files.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
+    let sim = spawn_sim("127.0.0.1:0".parse().unwrap(), files.path()).await;
+    let plc = sim.local_addr();
+    poke(&sim, SETPOINT, &1.5f32.to_le_bytes());
+    let (server, port, _conf) =
+        common::start_on_free_port(|port| format!("[*]\n{}", section("PLC", port, plc, ""))).await;
+    let mut stream = server.sections[0].section.changes.subscribe(&["setpoint"]);
+    let mut c = Client::connect(SocketAddr::from(([127, 0, 0, 1], port))).await;
+    c.ask(
+        "EN:setpoint\n",
+        "WARNING:252 Changed active variables in public file: '[3/29]'\r\n",
+    )
+    .await;
+    c.expect(b"DIFF:SETPOINT,1.500000\r\n").await;
+    let batch = stream.next().await.unwrap();
+    let id = batch.changes[0];
+    assert_eq!(batch.snapshot.quality(id), Quality::Good);
+    let polled = batch.snapshot.polled.unwrap();
+    let now_ms = plccoms::changes::unix_ms(std::time::SystemTime::now());
+    assert!(
+        (now_ms - polled.unix_ms).abs() < 5000,
+        "poll time {polled:?}"
+    );
+
+    // kill -9 of the PLC: not one more answer.
+    sim.stop().await;
+    let killed = Instant::now();
+    let mut values_after_fresh = Vec::new();
+    let mut first_error = None;
+    let mut waits_after_loss = Vec::new();
+    while killed.elapsed() < LOSS + SLACK + Duration::from_millis(1500) {
+        let sent_at = killed.elapsed();
+        let (line, took) = answer(&mut c, "GET:setpoint\n").await;
+        if line == "GET:SETPOINT,1.500000\r\n" {
+            // Served from the poll: only while the poll was fresh (the last
+            // one completed before the kill).
+            if sent_at > FRESH {
+                values_after_fresh.push(sent_at);
+            }
+        } else {
+            assert!(
+                line == "ERROR:10 Unable to connect to PLC.\r\n"
+                    || line == "ERROR:20 Unable to get data from PLC.\r\n",
+                "{line:?}"
+            );
+            first_error.get_or_insert(sent_at + took);
+            if sent_at > LOSS + SLACK {
+                waits_after_loss.push(took);
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let first_error = first_error.expect("an error answer");
+    println!(
+        "first error {:.0} ms after the kill; answers while lost took at most {:.1} ms",
+        first_error.as_secs_f64() * 1000.0,
+        waits_after_loss
+            .iter()
+            .max()
+            .map_or(0.0, |d| d.as_secs_f64() * 1000.0)
+    );
+    assert!(
+        values_after_fresh.is_empty(),
+        "old value served to GETs sent {values_after_fresh:?} after the kill"
+    );
+    assert!(
+        first_error < LOSS + SLACK,
+        "first error after {first_error:?}"
+    );
+    assert!(!waits_after_loss.is_empty());
+    assert!(
+        waits_after_loss
+            .iter()
+            .all(|&d| d < Duration::from_millis(500)),
+        "not at once: {waits_after_loss:?}"
+    );
+    // The change stream marks the outage.
+    let lost = loop {
+        let batch = stream.next().await.unwrap();
+        if batch.link == Some(LinkEvent::Lost) {
+            break batch;
+        }
+    };
+    assert_eq!(lost.snapshot.quality(id), Quality::LinkLost);
+
+    // A SET while lost: refused at once, and never applied later.
+    let (line, took) = answer(&mut c, "SET:counter,77\n").await;
+    assert_eq!(line, "ERROR:10 Unable to connect to PLC.\r\n");
+    assert!(
+        took < Duration::from_millis(500),
+        "SET refused after {took:?}"
+    );
+
+    // The PLC returns: values again within 2 s.
+    let sim = respawn(plc, files.path()).await;
+    let back = Instant::now();
+    poke(&sim, SETPOINT, &2.5f32.to_le_bytes());
+    c.wait_for_line(b"DIFF:SETPOINT,2.500000\r\n", Duration::from_secs(20))
+        .await;
+    let resumed = back.elapsed();
+    println!(
+        "values again {:.0} ms after the PLC returned",
+        resumed.as_secs_f64() * 1000.0
+    );
+    assert!(resumed < Duration::from_secs(2) + SLACK, "{resumed:?}");
+    let restored = loop {
+        let batch = stream.next().await.unwrap();
+        if batch.link == Some(LinkEvent::Restored) {
+            break batch;
+        }
+    };
+    assert_eq!(restored.snapshot.quality(id), Quality::Good);
+    assert_eq!(
+        peek(&sim, COUNTER, 2),
+        [0, 0],
+        "the refused SET stayed refused"
+    );
+    c.ask("GET:counter\n", "GET:COUNTER,0\r\n").await;
+}
+
+#[tokio::test]
+async fn pipelined_sets_of_one_variable_each_answer_their_own_value() {
+    let files = tempfile::tempdir().unwrap();
+    std::fs::write(files.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
+    let sim = spawn_sim("127.0.0.1:0".parse().unwrap(), files.path()).await;
+    let plc = sim.local_addr();
+    let (_server, port, _conf) =
+        common::start_on_free_port(|port| format!("[*]\n{}", section("PLC", port, plc, ""))).await;
+    let mut c = Client::connect(SocketAddr::from(([127, 0, 0, 1], port))).await;
+    for _ in 0..10 {
+        c.send(b"SET:counter,1\nSET:counter,2\nSET:setpoint,4\nSET:counter,3\nGET:counter\n")
+            .await;
+        c.expect(
+            b"DIFF:COUNTER,1\r\nDIFF:COUNTER,2\r\nDIFF:SETPOINT,4.000000\r\nDIFF:COUNTER,3\r\nGET:COUNTER,3\r\n",
+        )
+        .await;
+    }
+}
+
+/// Starts the server of `ini` and returns how long `start` took.
+async fn timed_start(
+    ini: impl Fn(u16) -> String,
+) -> (plccoms::startup::Server, u16, tempfile::TempDir, Duration) {
+    let started = Instant::now();
+    let (server, port, conf) = common::start_on_free_port(ini).await;
+    (server, port, conf, started.elapsed())
+}
+
+#[tokio::test]
+async fn a_plc_off_at_start_up_with_its_public_file_on_the_plc() {
+    let plc = silent_addr();
+    let (server, port, _conf, took) =
+        timed_start(|port| format!("[*]\n{}", section("PLC", port, plc, ""))).await;
+    println!(
+        "listening {:.0} ms after start",
+        took.as_secs_f64() * 1000.0
+    );
+    assert!(took < Duration::from_secs(2), "start-up waited {took:?}");
+    let mut c = Client::connect(SocketAddr::from(([127, 0, 0, 1], port))).await;
+    // The first connection attempt fails: the fixed variables only, and
+    // the link error.
+    c.ask("LIST:\n", "LIST:__PLC_RUN,BOOL\r\n").await;
+    c.expect(b"LIST:__PF_CRC,DWORD\r\nLIST:\r\n").await;
+    c.ask("GET:__plc_run\n", "ERROR:10 Unable to connect to PLC.\r\n")
+        .await;
+
+    let files = tempfile::tempdir().unwrap();
+    std::fs::write(files.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
+    let sim = respawn(plc, files.path()).await;
+    let appeared = Instant::now();
+    poke(&sim, COUNTER, &7u16.to_le_bytes());
+    c.wait_for_line(
+        b"WARNING:250 Changed public file: 'demo.pub'\r\n",
+        Duration::from_secs(20),
+    )
+    .await;
+    c.ask("GET:counter\n", "GET:COUNTER,7\r\n").await;
+    let serving = appeared.elapsed();
+    println!(
+        "public file read and values served {:.0} ms after the PLC appeared",
+        serving.as_secs_f64() * 1000.0
+    );
+    assert!(serving < Duration::from_secs(3) + SLACK, "{serving:?}");
+    assert!(server.sections.len() == 1);
+}
+
+#[tokio::test]
+async fn a_plc_off_at_start_up_with_a_local_public_file_and_a_live_neighbour() {
+    let files = tempfile::tempdir().unwrap();
+    std::fs::write(files.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
+    let live = spawn_sim("127.0.0.1:0".parse().unwrap(), files.path()).await;
+    poke(&live, COUNTER, &3u16.to_le_bytes());
+    let dead = silent_addr();
+    let other_port = common::process::free_port();
+    let (server, port, _conf, took) = timed_start(|port| {
+        format!(
+            "[*]\n{}{}",
+            section("Dead", port, dead, ""),
+            section("Live", other_port, live.local_addr(), "")
+        )
+    })
+    .await;
+    assert_eq!(server.sections.len(), 2);
+    println!(
+        "both listening {:.0} ms after start",
+        took.as_secs_f64() * 1000.0
+    );
+    // The live section is not held up by its neighbour's missing PLC.
+    let mut live_client = Client::connect(SocketAddr::from(([127, 0, 0, 1], other_port))).await;
+    let (line, first) = answer(&mut live_client, "GET:counter\n").await;
+    assert_eq!(line, "GET:COUNTER,3\r\n");
+    println!(
+        "live section answered in {:.0} ms",
+        first.as_secs_f64() * 1000.0
+    );
+    assert!(first < Duration::from_secs(1), "{first:?}");
+    drop(server);
+    let _ = port;
+}
+
+#[tokio::test]
+async fn a_plc_off_at_start_up_with_a_local_public_file() {
+    let plc = silent_addr();
+    let conf_dir = tempfile::tempdir().unwrap();
+    std::fs::write(conf_dir.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
+    // The local file sits beside the configuration.
+    let dir = conf_dir.path().to_path_buf();
+    let port = common::process::free_port();
+    let path = dir.join("PLCComS.ini");
+    std::fs::write(&path, format!("[*]\n{}", section("PLC", port, plc, ""))).unwrap();
+    let loaded = plccoms::config::load(&path).unwrap();
+    let started = Instant::now();
+    let _server = plccoms::startup::start(&loaded.config)
+        .await
+        .expect("start");
+    assert!(started.elapsed() < Duration::from_secs(2));
+    let mut c = Client::connect(SocketAddr::from(([127, 0, 0, 1], port))).await;
+    c.ask(
+        "EN:counter\n",
+        "WARNING:252 Changed active variables in public file: '[3/29]'\r\n",
+    )
+    .await;
+    // Wait out the first attempt (at most 2.5 s), then errors at once.
+    let deadline = Instant::now() + LOSS + SLACK;
+    loop {
+        let (line, took) = answer(&mut c, "GET:counter\n").await;
+        if line == "ERROR:10 Unable to connect to PLC.\r\n" && took < Duration::from_millis(500) {
+            break;
+        }
+        assert!(Instant::now() < deadline, "still {line:?} after {took:?}");
+    }
+    let files = tempfile::tempdir().unwrap();
+    let sim = respawn(plc, files.path()).await;
+    let appeared = Instant::now();
+    poke(&sim, COUNTER, &9u16.to_le_bytes());
+    c.wait_for_line(b"DIFF:COUNTER,9\r\n", Duration::from_secs(20))
+        .await;
+    let resumed = appeared.elapsed();
+    println!(
+        "values {:.0} ms after the PLC appeared",
+        resumed.as_secs_f64() * 1000.0
+    );
+    assert!(resumed < Duration::from_secs(2) + SLACK, "{resumed:?}");
+}
