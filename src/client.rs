@@ -209,37 +209,40 @@ impl ClientTable {
         self.pending.retain(|&p| p != id);
     }
 
-    /// Appends the DIFF lines owed from `snapshot` to `out`.
+    /// Appends the DIFF lines owed from `snapshot` to `out`; returns how
+    /// many.
     pub fn collect_diffs(
         &mut self,
         snapshot: &Snapshot,
         format: &FormatOptions,
         eol: &[u8],
         out: &mut Vec<u8>,
-    ) {
+    ) -> usize {
         if !Arc::ptr_eq(&snapshot.table, &self.table) {
             // A new public file; the session rebuilds the table first.
-            return;
+            return 0;
         }
         let consecutive = snapshot.seq == self.seen_seq + 1;
         self.seen_seq = snapshot.seq;
         if !snapshot.online {
-            return;
+            return 0;
         }
+        let mut lines = 0;
         if consecutive && self.takes_block(snapshot, eol) {
             if let Some(block) = &snapshot.diff_block {
                 out.extend_from_slice(&block.bytes);
+                lines += block.lines;
             }
             self.floor = snapshot.seq;
         } else if consecutive {
             for &id in &snapshot.changed {
-                self.offer(snapshot, id, format, eol, out, true);
+                lines += usize::from(self.offer(snapshot, id, format, eol, out, true));
             }
         } else {
             // Missed snapshots: compare everything enabled.
             for id in 0..self.table.len() as VarId {
                 if self.is_enabled(id) {
-                    self.offer(snapshot, id, format, eol, out, true);
+                    lines += usize::from(self.offer(snapshot, id, format, eol, out, true));
                 }
             }
         }
@@ -252,13 +255,14 @@ impl ClientTable {
                 }
                 if snapshot.current(id).is_some() {
                     // Owed its value now, whatever went out before.
-                    self.offer(snapshot, id, format, eol, out, false);
+                    lines += usize::from(self.offer(snapshot, id, format, eol, out, false));
                 } else {
                     waiting.push(id);
                 }
             }
             self.pending.extend(waiting);
         }
+        lines
     }
 
     /// Whether this client is owed exactly the snapshot's shared DIFF block:
@@ -282,24 +286,24 @@ impl ClientTable {
         eol: &[u8],
         out: &mut Vec<u8>,
         use_floor: bool,
-    ) {
+    ) -> bool {
         if !self.is_enabled(id) {
-            return;
+            return false;
         }
         let Some(slot) = snapshot.current(id) else {
-            return;
+            return false;
         };
         let mut sent = self.sent.get(id as usize).copied().unwrap_or(0);
         if sent == BASELINE {
             // A fixed variable's first value is not news to this client.
             self.sent[id as usize] = slot.changed_seq;
-            return;
+            return false;
         }
         if use_floor {
             sent = sent.max(self.floor);
         }
         if slot.changed_seq <= sent {
-            return;
+            return false;
         }
         let var = self.table.var(id);
         // Most clients set no delta: skip the map lookup on the hot path.
@@ -312,7 +316,7 @@ impl ClientTable {
             let value = slot.value(var);
             if let (Some(now), Some(last)) = (&value, &state.last_sent) {
                 if !now.exceeds(last, &state.delta, var.ty, format) {
-                    return;
+                    return false;
                 }
             }
             state.last_sent = value;
@@ -327,6 +331,7 @@ impl ClientTable {
         out.push(b',');
         out.extend_from_slice(text);
         out.extend_from_slice(eol);
+        true
     }
 
     /// This client's settings carried over to the table of `snapshot` (a new

@@ -28,6 +28,7 @@ pub mod config;
 pub mod daemon;
 pub mod link;
 pub mod localfs;
+pub mod metrics;
 pub mod section;
 pub mod server;
 pub mod session;

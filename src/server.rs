@@ -26,6 +26,7 @@ use crate::changes::Publisher;
 use crate::config::{Global, Section as SectionConfig};
 use crate::link::files::FileSettings;
 use crate::link::{self, Link, LinkSetup, Tables};
+use crate::metrics::SectionMetrics;
 use crate::section::Section;
 use crate::session::Session;
 use crate::vars::VarTable;
@@ -104,6 +105,7 @@ pub async fn start_section(
     let local_addr = listener.local_addr()?;
     let format = crate::section::format_options(&global);
     let fresh_for = link::fresh_for(global.comm_loop_delay, config.epstout);
+    let metrics = Arc::new(SectionMetrics::default());
     let (publisher, changes) = Publisher::new(Arc::new(table), format, fresh_for);
     let eol: &'static [u8] = if global.end_line_crlf { b"\r\n" } else { b"\n" };
     let publisher = publisher.with_diff_block(eol);
@@ -119,10 +121,13 @@ pub async fn start_section(
             sync_var_enabled: global.sync_var_enabled,
         },
         tables,
+        metrics: metrics.clone(),
     });
     let link_stop = link.stop_token();
     let link_thread = link::spawn_thread(link, global.comm_sched_pri)?;
-    let section = Arc::new(Section::new(global, handle, changes, state, config_dir));
+    let section = Arc::new(Section::new(
+        global, handle, changes, state, metrics, config_dir,
+    ));
     let sessions = TaskTracker::new();
     let accept = tokio::spawn(accept_loop(listener, section.clone(), sessions.clone()));
     info!(section = %section.name, listen = %local_addr, "listening");
@@ -218,14 +223,14 @@ async fn accept_loop(listener: TcpListener, section: Arc<Section>, sessions: Tas
             warn!(section = %section.name, client = %peer, "cannot set TCP keepalive: {err}");
         }
         match section.admit(peer) {
-            Some(id) => {
+            Some(client) => {
                 let section = section.clone();
                 sessions.spawn(async move {
                     let _registration = Registration {
                         section: section.clone(),
-                        id,
+                        id: client.id,
                     };
-                    Session::serve_client(section, stream, peer).await;
+                    Session::serve_client(section, stream, client).await;
                 });
             }
             None => {

@@ -22,6 +22,8 @@ use plcsim::{SimConfig, SimHandle};
 /// Every section that started, and what keeps them alive.
 pub struct Server {
     pub sections: Vec<RunningSection>,
+    /// Every section's metrics, and whatever else reports (`/metrics`).
+    pub metrics: Arc<crate::metrics::Registry>,
     simulators: Vec<SimHandle>,
     _file_stores: Vec<tempfile::TempDir>,
 }
@@ -65,13 +67,19 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     let dir = config_dir(&config.path);
     let mut server = Server {
         sections: Vec::new(),
+        metrics: Arc::default(),
         simulators: Vec::new(),
         _file_stores: Vec::new(),
     };
     let mut failures = Vec::new();
     for section in &config.sections {
         match start_one(&global, section, &dir, &mut server).await {
-            Ok(running) => server.sections.push(running),
+            Ok(running) => {
+                server
+                    .metrics
+                    .add_section(&running.section.name, running.section.metrics.clone());
+                server.sections.push(running);
+            }
             Err(message) => {
                 error!(section = %section.name, "section not started: {message}");
                 failures.push(format!("[{}] {message}", section.name));

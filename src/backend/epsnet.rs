@@ -23,6 +23,7 @@ use std::collections::HashMap;
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::ops::Range;
 use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::Arc;
 use std::time::Duration;
 
 use async_trait::async_trait;
@@ -33,6 +34,7 @@ use super::{
     Answer, DirEntry, Exception, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteData,
     WriteRequest,
 };
+use crate::metrics::BackendCounters;
 use plccoms_plc::epsnet::frame::{Frame, Packet, MAX_DPLEN, MAX_PACKET};
 use plccoms_plc::epsnet::service::{
     PlcTime, Request, Response, MAX_FILE_BLOCK, MAX_PATH, MAX_READ,
@@ -90,12 +92,15 @@ pub struct EpsnetBackend {
     socket: Option<UdpSocket>,
     next_mesi: u16,
     buf: Box<[u8]>,
+    counters: Arc<BackendCounters>,
 }
 
 /// One datagram of a batch.
 struct Slot {
     range: Range<usize>,
     attempts: u32,
+    /// When it was last sent.
+    sent: Instant,
     deadline: Instant,
     done: bool,
 }
@@ -114,6 +119,7 @@ impl EpsnetBackend {
             // Larger than any valid datagram, so oversize ones are seen whole
             // enough to be rejected rather than silently cut to valid length.
             buf: vec![0; MAX_PACKET + 64].into_boxed_slice(),
+            counters: Arc::default(),
         }
     }
 
@@ -199,7 +205,12 @@ impl EpsnetBackend {
         let bytes = codec::encode_packet(&packet)
             .map_err(|e| PlcError::Protocol(format!("cannot encode request: {e}")))?;
         let wait = self.config.timeout + self.config.timeout_step * slot.attempts;
+        self.counters.requests.inc();
+        if slot.attempts > 0 {
+            self.counters.retries.inc();
+        }
         slot.attempts += 1;
+        slot.sent = Instant::now();
         slot.deadline = Instant::now() + wait;
         mesis.insert(mesi, index);
         let socket = self.socket.as_ref().ok_or(PlcError::NotConfigured)?;
@@ -230,6 +241,7 @@ impl EpsnetBackend {
             .map(|range| Slot {
                 range,
                 attempts: 0,
+                sent: Instant::now(),
                 deadline: Instant::now(),
                 done: false,
             })
@@ -267,6 +279,7 @@ impl EpsnetBackend {
                             if let Some(problem) = &last_problem {
                                 text.push_str(&format!(" (last bad answer: {problem})"));
                             }
+                            self.counters.timeouts.inc();
                             return Err(PlcError::Timeout(text));
                         }
                         self.send(requests, &mut slots[i], &mut mesis, i).await?;
@@ -282,6 +295,7 @@ impl EpsnetBackend {
                         Ok(p) => p,
                         Err(e) => {
                             tracing::debug!(plc = %self.config.plc, "bad datagram: {e}");
+                            self.counters.errors.inc();
                             last_problem = Some(e.to_string());
                             continue;
                         }
@@ -300,10 +314,14 @@ impl EpsnetBackend {
                                 *slot_result = Some(answer);
                             }
                             slots[index].done = true;
+                            self.counters
+                                .round_trip
+                                .observe(slots[index].sent.elapsed());
                             in_flight.retain(|&i| i != index);
                         }
                         Err(problem) => {
                             tracing::debug!(plc = %self.config.plc, "bad answer: {problem}");
+                            self.counters.errors.inc();
                             last_problem = Some(problem);
                         }
                     }
@@ -466,6 +484,10 @@ impl PlcBackend for EpsnetBackend {
 
     fn answer_timeout(&self) -> Duration {
         self.config.timeout
+    }
+
+    fn set_counters(&mut self, counters: Arc<BackendCounters>) {
+        self.counters = counters;
     }
 
     fn max_file_block(&self) -> u32 {

@@ -97,6 +97,10 @@ pub trait PlcBackend: Send {
         std::time::Duration::from_secs(1)
     }
 
+    /// Where to count requests, retries, timeouts, errors and round trips
+    /// (the section's, kept across new links).
+    fn set_counters(&mut self, _counters: std::sync::Arc<crate::metrics::BackendCounters>) {}
+
     /// (Re)initialise the link and return the PLC's identification string.
     async fn connect(&mut self) -> Result<String, PlcError>;
 

@@ -161,6 +161,8 @@ pub struct Snapshot {
 pub struct DiffBlock {
     pub eol: &'static [u8],
     pub bytes: Arc<[u8]>,
+    /// DIFF lines in `bytes`.
+    pub lines: usize,
 }
 
 impl Snapshot {
@@ -399,9 +401,11 @@ impl Publisher {
         let diff_block = match self.block_eol {
             Some(eol) if !self.changed.is_empty() => {
                 let mut bytes = Vec::with_capacity(self.changed.len() * 32);
+                let mut lines = 0;
                 for &id in &self.changed {
                     let slot = self.slot(id);
                     if let Some(text) = slot.text() {
+                        lines += 1;
                         bytes.extend_from_slice(b"DIFF:");
                         bytes.extend_from_slice(&self.table.var(id).name);
                         bytes.push(b',');
@@ -412,6 +416,7 @@ impl Publisher {
                 Some(DiffBlock {
                     eol,
                     bytes: bytes.into(),
+                    lines,
                 })
             }
             _ => None,

@@ -36,6 +36,7 @@ use tracing::{debug, info, warn};
 use crate::backend::{Answer, PlcBackend, PlcError, ReadRequest};
 use crate::changes::{unix_ms, Notice, Publisher};
 use crate::config;
+use crate::metrics::SectionMetrics;
 use crate::section::state::{LinkStatus, SectionState};
 use cycle::Cycle;
 use files::{FileJob, FileReply, Files};
@@ -203,15 +204,16 @@ const TIMER_SLACK: Duration = Duration::from_micros(1500);
 const MAX_BATCH: usize = 1024;
 
 /// The first deadline of the schedule `previous + k * period` after `now`
-/// (cycles that are already late are skipped, not bunched).
-fn next_deadline(previous: Instant, period: Duration, now: Instant) -> Instant {
+/// (cycles that are already late are skipped, not bunched), and how many
+/// were skipped.
+fn next_deadline(previous: Instant, period: Duration, now: Instant) -> (Instant, u32) {
     let next = previous + period;
     if next > now {
-        return next;
+        return (next, 0);
     }
     let period_ns = period.as_nanos().max(1);
-    let missed = (now - next).as_nanos() / period_ns + 1;
-    next + period * u32::try_from(missed).unwrap_or(u32::MAX)
+    let missed = u32::try_from((now - next).as_nanos() / period_ns + 1).unwrap_or(u32::MAX);
+    (next + period * missed, missed)
 }
 
 /// The public-file side of a section: where the files are, what was loaded.
@@ -246,6 +248,7 @@ pub struct LinkSetup {
     /// How to reload public files; `None` for a section built from a fixed
     /// table (tests).
     pub tables: Option<Tables>,
+    pub metrics: Arc<SectionMetrics>,
 }
 
 pub struct Link {
@@ -260,6 +263,7 @@ pub struct Link {
     cycle: Cycle,
     files: Files,
     tables: Option<Tables>,
+    metrics: Arc<SectionMetrics>,
 }
 
 impl Link {
@@ -296,8 +300,10 @@ impl Link {
             loop_delay: setup.loop_delay,
             files: Files::new(setup.files, setup.loop_delay),
             tables: setup.tables,
+            metrics: setup.metrics,
         };
         link.update_freshness();
+        link.count_backend();
         (link, handle, state_rx)
     }
 
@@ -308,6 +314,14 @@ impl Link {
 
     fn config(&self) -> config::Section {
         self.state.borrow().config.clone()
+    }
+
+    /// The backend counts into the section's metrics.
+    fn count_backend(&mut self) {
+        let counters = self.metrics.backend.clone();
+        if let Some(backend) = self.backend.as_mut() {
+            backend.set_counters(counters);
+        }
     }
 
     fn update_freshness(&mut self) {
@@ -323,6 +337,9 @@ impl Link {
     fn publish_status(&self, change: impl FnOnce(&mut LinkStatus)) {
         let state = self.health.state();
         let table_pending = self.tables.as_ref().is_some_and(|t| t.pending_fetch);
+        self.metrics
+            .link_up
+            .set(u64::from(state == LinkState::Online));
         self.state.send_modify(|live| {
             let live = Arc::make_mut(live);
             live.table_pending = table_pending;
@@ -352,7 +369,9 @@ impl Link {
                         std::thread::sleep(deadline - now);
                     }
                     self.tick().await;
-                    deadline = next_deadline(deadline, self.loop_delay, Instant::now());
+                    let missed;
+                    (deadline, missed) = next_deadline(deadline, self.loop_delay, Instant::now());
+                    self.metrics.overruns.add(u64::from(missed));
                 }
                 job = self.jobs.recv() => {
                     let Some(job) = job else { break };
@@ -480,7 +499,10 @@ impl Link {
         let Some(backend) = self.backend.as_deref_mut() else {
             return;
         };
-        if let Err(err) = self.cycle.poll(backend, &mut self.publisher).await {
+        let started = Instant::now();
+        let polled = self.cycle.poll(backend, &mut self.publisher).await;
+        self.metrics.poll_cycle.observe(started.elapsed());
+        if let Err(err) = polled {
             return self.failed(&err);
         }
         let events = self.cycle.take_events();
@@ -565,6 +587,7 @@ impl Link {
             let table = tables.source.build(&self.name, user.as_ref())?;
             info!(section = %self.name, variables = table.len(), "public file {name} loaded: new variable table");
             self.publisher.replace_table(Arc::new(table));
+            self.metrics.pubfile_reloads.inc();
             self.cycle.reset();
             tables.user = user;
             tables.crc_checked = false;
@@ -630,6 +653,7 @@ impl Link {
 
     /// A new backend is in place: connect to it from scratch.
     fn relinked(&mut self) {
+        self.count_backend();
         self.health.reset(self.backend.is_some(), Instant::now());
         self.cycle.reset();
         self.update_freshness();
@@ -825,13 +849,13 @@ mod tests {
         let period = Duration::from_millis(100);
         // On time: the next slot.
         let now = start + Duration::from_millis(30);
-        assert_eq!(next_deadline(start, period, now), start + period);
+        assert_eq!(next_deadline(start, period, now), (start + period, 0));
         // 250 ms late: slots 100 and 200 are gone, 300 is next.
         let now = start + Duration::from_millis(250);
-        assert_eq!(next_deadline(start, period, now), start + period * 3);
+        assert_eq!(next_deadline(start, period, now), (start + period * 3, 2));
         // Exactly on a slot counts as missed: no zero-length cycle.
         let now = start + period * 2;
-        assert_eq!(next_deadline(start, period, now), start + period * 3);
+        assert_eq!(next_deadline(start, period, now), (start + period * 3, 2));
     }
 
     #[test]

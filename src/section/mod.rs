@@ -15,15 +15,28 @@ use tokio_util::sync::CancellationToken;
 use crate::changes::ChangeStream;
 use crate::config::Global;
 use crate::link::LinkHandle;
+use crate::metrics::{Gauge, SectionMetrics};
 use state::SectionState;
 
-/// A connected client, for GETINFO's NETWORK list.
+/// A connected client, for GETINFO's NETWORK list and the web page.
 #[derive(Debug, Clone)]
 pub struct ClientInfo {
     pub id: u64,
     pub peer: SocketAddr,
     /// Local wall-clock time of connection, `yyyy-mm-dd hh:mm:ss`.
     pub connected: String,
+    /// UTC milliseconds of the connection.
+    pub connected_ms: i64,
+    pub stats: Arc<ClientStats>,
+}
+
+/// What a session reports of itself as it runs.
+#[derive(Debug, Default)]
+pub struct ClientStats {
+    /// Variables enabled, the fixed ones included.
+    pub enabled: Gauge,
+    /// Output queued for the client, in bytes.
+    pub queued: Gauge,
 }
 
 pub struct Section {
@@ -33,6 +46,7 @@ pub struct Section {
     pub link: LinkHandle,
     pub changes: ChangeStream,
     state: watch::Receiver<Arc<SectionState>>,
+    pub metrics: Arc<SectionMetrics>,
     /// Cancelled when the server stops: sessions answer what they have and
     /// close.
     pub shutdown: CancellationToken,
@@ -55,6 +69,7 @@ impl Section {
         link: LinkHandle,
         changes: ChangeStream,
         state: watch::Receiver<Arc<SectionState>>,
+        metrics: Arc<SectionMetrics>,
         config_dir: PathBuf,
     ) -> Section {
         let format = format_options(&global);
@@ -71,6 +86,7 @@ impl Section {
             link,
             changes,
             state,
+            metrics,
             shutdown: CancellationToken::new(),
             root,
             clients: Mutex::new(Clients::default()),
@@ -95,25 +111,29 @@ impl Section {
     }
 
     /// Registers a client unless NET_CONNECT_MAX are connected already.
-    pub fn admit(&self, peer: SocketAddr) -> Option<u64> {
+    pub fn admit(&self, peer: SocketAddr) -> Option<ClientInfo> {
         let mut clients = self.clients.lock().unwrap_or_else(|p| p.into_inner());
         if clients.list.len() >= self.global.net_connect_max {
             return None;
         }
         clients.next_id += 1;
-        let id = clients.next_id;
-        let connected = chrono::Local::now().format("%Y-%m-%d %H:%M:%S").to_string();
-        clients.list.push(ClientInfo {
-            id,
+        let now = chrono::Local::now();
+        let client = ClientInfo {
+            id: clients.next_id,
             peer,
-            connected,
-        });
-        Some(id)
+            connected: now.format("%Y-%m-%d %H:%M:%S").to_string(),
+            connected_ms: now.timestamp_millis(),
+            stats: Arc::default(),
+        };
+        clients.list.push(client.clone());
+        self.metrics.clients.set(clients.list.len() as u64);
+        Some(client)
     }
 
     pub fn leave(&self, id: u64) {
         let mut clients = self.clients.lock().unwrap_or_else(|p| p.into_inner());
         clients.list.retain(|c| c.id != id);
+        self.metrics.clients.set(clients.list.len() as u64);
     }
 
     pub fn clients(&self) -> Vec<ClientInfo> {

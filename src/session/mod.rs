@@ -34,7 +34,7 @@ use tracing::{debug, info, warn};
 use crate::changes::{Notice, Snapshot};
 use crate::client::ClientTable;
 use crate::cmd::{self, trim, ClientState, Cx, Effect, Reply};
-use crate::section::Section;
+use crate::section::{ClientInfo, ClientStats, Section};
 use connection::{Connection, OUTPUT_HIGH_WATER};
 use queue::{AnswerQueue, Entry, HeadDone};
 
@@ -71,6 +71,8 @@ pub struct Session {
     over_soft_since: Option<tokio::time::Instant>,
     /// Why the session was cut off (output limits); nothing more is written.
     dropped: Option<String>,
+    /// What the session reports of itself (GETINFO, the web page).
+    stats: Arc<ClientStats>,
 }
 
 impl Session {
@@ -102,17 +104,20 @@ impl Session {
             diffs_deferred: false,
             over_soft_since: None,
             dropped: None,
+            stats: Arc::default(),
             section,
         }
     }
 
     /// Serves a client until it leaves, once the section is ready for it.
-    pub async fn serve_client(section: Arc<Section>, stream: TcpStream, peer: SocketAddr) {
+    pub async fn serve_client(section: Arc<Section>, stream: TcpStream, client: ClientInfo) {
         tokio::select! {
             _ = section.ready() => {}
             _ = section.shutdown.cancelled() => return,
         }
-        Session::new(section, stream, peer).run().await;
+        let mut session = Session::new(section, stream, client.peer);
+        session.stats = client.stats;
+        session.run().await;
     }
 
     /// Serves the client until it leaves.
@@ -141,6 +146,16 @@ impl Session {
     /// answers waiting behind a PLC request.
     fn queued_output(&self) -> usize {
         self.conn.backlog() + self.queue.ready_bytes()
+    }
+
+    /// Publishes the session's figures: a few relaxed stores per wake-up.
+    fn report(&self) {
+        let queued = self.queued_output() as u64;
+        self.stats.queued.set(queued);
+        self.stats
+            .enabled
+            .set(self.client.vars.enabled_total() as u64);
+        self.section.metrics.max_output_queue.raise(queued);
     }
 
     /// Applies OUTPUT_HARD_LIMIT and OUTPUT_SOFT_LIMIT; `Some(why)` when the
@@ -179,6 +194,7 @@ impl Session {
             }
             self.release_ready();
             self.pump_stream();
+            self.report();
             if let Some(why) = self.check_output_limits() {
                 self.dropped = Some(why);
                 return Ok(());
@@ -484,9 +500,17 @@ impl Session {
             snapshot,
             ..
         } = self;
-        client
+        let before = conn.out.len();
+        let lines = client
             .vars
             .collect_diffs(snapshot, &section.format, client.eol, &mut conn.out);
+        if lines > 0 {
+            section.metrics.diff_lines.add(lines as u64);
+            section
+                .metrics
+                .diff_bytes
+                .add((conn.out.len() - before) as u64);
+        }
     }
 
     /// Carries this client's settings over to a new table (a new public

@@ -1,0 +1,335 @@
+//! Counters, gauges and histograms the server keeps as it works, rendered in
+//! the Prometheus text format (`/metrics`). Plain atomics: recording costs
+//! an uncontended atomic add, so the hot paths (the poll cycle, DIFF
+//! fan-out) can afford it; reading happens only when someone scrapes.
+//!
+//! Names follow Prometheus conventions: `plccoms_` prefix, base units
+//! (seconds, bytes), `_total` for counters, one `section` label.
+
+use std::fmt::Write as _;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+/// A monotonically increasing count.
+#[derive(Debug, Default)]
+pub struct Counter(AtomicU64);
+
+impl Counter {
+    pub fn inc(&self) {
+        self.add(1);
+    }
+
+    pub fn add(&self, n: u64) {
+        self.0.fetch_add(n, Ordering::Relaxed);
+    }
+
+    pub fn get(&self) -> u64 {
+        self.0.load(Ordering::Relaxed)
+    }
+}
+
+/// A value that goes up and down.
+#[derive(Debug, Default)]
+pub struct Gauge(AtomicU64);
+
+impl Gauge {
+    pub fn set(&self, value: u64) {
+        self.0.store(value, Ordering::Relaxed);
+    }
+
+    /// Raises the gauge to `value` if that is higher.
+    pub fn raise(&self, value: u64) {
+        self.0.fetch_max(value, Ordering::Relaxed);
+    }
+
+    pub fn get(&self) -> u64 {
+        self.0.load(Ordering::Relaxed)
+    }
+}
+
+/// Upper bounds (seconds) of the duration buckets: from half a millisecond
+/// (a poll on loopback) to ten seconds (a link timing out).
+pub const DURATION_BUCKETS: [f64; 14] = [
+    0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
+];
+
+/// Durations in fixed buckets.
+#[derive(Debug, Default)]
+pub struct Histogram {
+    /// Per bucket of [`DURATION_BUCKETS`] plus one for +Inf (not cumulative).
+    buckets: [AtomicU64; DURATION_BUCKETS.len() + 1],
+    sum_ns: AtomicU64,
+    count: AtomicU64,
+}
+
+impl Histogram {
+    pub fn observe(&self, duration: Duration) {
+        let seconds = duration.as_secs_f64();
+        let index = DURATION_BUCKETS
+            .iter()
+            .position(|&bound| seconds <= bound)
+            .unwrap_or(DURATION_BUCKETS.len());
+        self.buckets[index].fetch_add(1, Ordering::Relaxed);
+        let ns = u64::try_from(duration.as_nanos()).unwrap_or(u64::MAX);
+        self.sum_ns.fetch_add(ns, Ordering::Relaxed);
+        self.count.fetch_add(1, Ordering::Relaxed);
+    }
+
+    pub fn count(&self) -> u64 {
+        self.count.load(Ordering::Relaxed)
+    }
+
+    /// The mean of what was observed, if anything was.
+    pub fn mean(&self) -> Option<Duration> {
+        let count = self.count();
+        (count > 0).then(|| Duration::from_nanos(self.sum_ns.load(Ordering::Relaxed) / count))
+    }
+
+    fn render(&self, out: &mut String, name: &str, labels: &str) {
+        let mut cumulative = 0;
+        for (i, bound) in DURATION_BUCKETS.iter().enumerate() {
+            cumulative += self.buckets[i].load(Ordering::Relaxed);
+            let _ = writeln!(out, "{name}_bucket{{{labels},le=\"{bound}\"}} {cumulative}");
+        }
+        cumulative += self.buckets[DURATION_BUCKETS.len()].load(Ordering::Relaxed);
+        let _ = writeln!(out, "{name}_bucket{{{labels},le=\"+Inf\"}} {cumulative}");
+        let sum = self.sum_ns.load(Ordering::Relaxed) as f64 / 1e9;
+        let _ = writeln!(out, "{name}_sum{{{labels}}} {sum}");
+        let _ = writeln!(out, "{name}_count{{{labels}}} {cumulative}");
+    }
+}
+
+/// What a backend counts: one set per section, kept across new links
+/// (SETCONF), handed to each backend the section opens.
+#[derive(Debug, Default)]
+pub struct BackendCounters {
+    /// Request datagrams or transactions sent, retries included.
+    pub requests: Counter,
+    /// Of those, retransmissions.
+    pub retries: Counter,
+    /// Exchanges that got no answer in time after their retries.
+    pub timeouts: Counter,
+    /// Answers that were malformed, foreign or refused as a whole.
+    pub errors: Counter,
+    /// From sending a request to its answer.
+    pub round_trip: Histogram,
+}
+
+/// One section's metrics.
+#[derive(Debug, Default)]
+pub struct SectionMetrics {
+    /// Wall time of each poll cycle (its reads).
+    pub poll_cycle: Histogram,
+    /// Poll deadlines missed because a cycle (or other work) ran too long.
+    pub overruns: Counter,
+    pub backend: Arc<BackendCounters>,
+    /// 1 while the link is up.
+    pub link_up: Gauge,
+    pub clients: Gauge,
+    pub diff_lines: Counter,
+    pub diff_bytes: Counter,
+    /// The most output any client of the section had queued (bytes) since
+    /// the last scrape.
+    pub max_output_queue: Gauge,
+    pub pubfile_reloads: Counter,
+}
+
+/// One metric family: name, help and type, for its header lines.
+struct Family {
+    name: &'static str,
+    help: &'static str,
+    kind: &'static str,
+}
+
+const fn family(name: &'static str, kind: &'static str, help: &'static str) -> Family {
+    Family { name, help, kind }
+}
+
+const SECTION_FAMILIES: [Family; 13] = [
+    family(
+        "plccoms_poll_cycle_seconds",
+        "histogram",
+        "Duration of each poll cycle's reads.",
+    ),
+    family(
+        "plccoms_poll_overruns_total",
+        "counter",
+        "Poll deadlines missed because a cycle ran too long.",
+    ),
+    family(
+        "plccoms_backend_requests_total",
+        "counter",
+        "Requests sent to the PLC, retries included.",
+    ),
+    family(
+        "plccoms_backend_retries_total",
+        "counter",
+        "Requests sent again for want of an answer.",
+    ),
+    family(
+        "plccoms_backend_timeouts_total",
+        "counter",
+        "Exchanges the PLC did not answer in time after the retries.",
+    ),
+    family(
+        "plccoms_backend_errors_total",
+        "counter",
+        "Malformed, foreign or refused answers from the PLC.",
+    ),
+    family(
+        "plccoms_backend_round_trip_seconds",
+        "histogram",
+        "From sending a request to the PLC to its answer.",
+    ),
+    family(
+        "plccoms_link_up",
+        "gauge",
+        "1 while the link to the PLC is up.",
+    ),
+    family(
+        "plccoms_clients",
+        "gauge",
+        "Clients connected to the section's port.",
+    ),
+    family(
+        "plccoms_diff_lines_total",
+        "counter",
+        "DIFF lines sent to clients.",
+    ),
+    family(
+        "plccoms_diff_bytes_total",
+        "counter",
+        "Bytes of DIFF lines sent to clients.",
+    ),
+    family(
+        "plccoms_client_output_queue_max_bytes",
+        "gauge",
+        "Largest output queued for one client since the last scrape.",
+    ),
+    family(
+        "plccoms_pubfile_reloads_total",
+        "counter",
+        "Public files loaded after start-up (program change, SETCONF).",
+    ),
+];
+
+impl SectionMetrics {
+    /// Appends this section's samples of family `index` of
+    /// [`SECTION_FAMILIES`].
+    fn render_family(&self, index: usize, section: &str, out: &mut String) {
+        let labels = format!("section=\"{}\"", escape_label(section));
+        let name = SECTION_FAMILIES[index].name;
+        let backend = &self.backend;
+        let value = match index {
+            0 => return self.poll_cycle.render(out, name, &labels),
+            1 => self.overruns.get(),
+            2 => backend.requests.get(),
+            3 => backend.retries.get(),
+            4 => backend.timeouts.get(),
+            5 => backend.errors.get(),
+            6 => return backend.round_trip.render(out, name, &labels),
+            7 => self.link_up.get(),
+            8 => self.clients.get(),
+            9 => self.diff_lines.get(),
+            10 => self.diff_bytes.get(),
+            11 => self.max_output_queue.0.swap(0, Ordering::Relaxed),
+            _ => self.pubfile_reloads.get(),
+        };
+        let _ = writeln!(out, "{name}{{{labels}}} {value}");
+    }
+}
+
+/// Something outside the sections that reports metrics (the historian, the
+/// MQTT client): appends whole families, headers included.
+pub trait Source: Send + Sync {
+    fn render(&self, out: &mut String);
+}
+
+/// Every section's metrics and the other sources, rendered together.
+#[derive(Default)]
+pub struct Registry {
+    sections: Mutex<Vec<(String, Arc<SectionMetrics>)>>,
+    sources: Mutex<Vec<Arc<dyn Source>>>,
+}
+
+impl Registry {
+    pub fn add_section(&self, name: &str, metrics: Arc<SectionMetrics>) {
+        lock(&self.sections).push((name.to_string(), metrics));
+    }
+
+    pub fn add_source(&self, source: Arc<dyn Source>) {
+        lock(&self.sources).push(source);
+    }
+
+    /// The Prometheus text exposition of everything.
+    pub fn render(&self) -> String {
+        let mut out = String::new();
+        let sections = lock(&self.sections).clone();
+        for (index, family) in SECTION_FAMILIES.iter().enumerate() {
+            header(&mut out, family.name, family.kind, family.help);
+            for (name, metrics) in &sections {
+                metrics.render_family(index, name, &mut out);
+            }
+        }
+        for source in lock(&self.sources).iter() {
+            source.render(&mut out);
+        }
+        out
+    }
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// `# HELP` and `# TYPE` lines of a family.
+pub fn header(out: &mut String, name: &str, kind: &str, help: &str) {
+    let _ = writeln!(out, "# HELP {name} {help}");
+    let _ = writeln!(out, "# TYPE {name} {kind}");
+}
+
+/// A label value with `\`, `"` and newlines escaped.
+pub fn escape_label(value: &str) -> String {
+    value
+        .replace('\\', "\\\\")
+        .replace('"', "\\\"")
+        .replace('\n', "\\n")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn prometheus_text_of_a_section() {
+        let registry = Registry::default();
+        let metrics = Arc::new(SectionMetrics::default());
+        registry.add_section("Demo \"1\"", metrics.clone());
+        metrics.poll_cycle.observe(Duration::from_micros(700));
+        metrics.poll_cycle.observe(Duration::from_secs(20));
+        metrics.diff_lines.add(3);
+        metrics.max_output_queue.raise(10);
+        metrics.max_output_queue.raise(4);
+        let text = registry.render();
+        assert!(text.contains("# TYPE plccoms_poll_cycle_seconds histogram\n"));
+        assert!(text.contains(
+            "plccoms_poll_cycle_seconds_bucket{section=\"Demo \\\"1\\\"\",le=\"0.0005\"} 0\n"
+        ));
+        assert!(text.contains(
+            "plccoms_poll_cycle_seconds_bucket{section=\"Demo \\\"1\\\"\",le=\"0.001\"} 1\n"
+        ));
+        assert!(text.contains(
+            "plccoms_poll_cycle_seconds_bucket{section=\"Demo \\\"1\\\"\",le=\"+Inf\"} 2\n"
+        ));
+        assert!(text.contains("plccoms_poll_cycle_seconds_count{section=\"Demo \\\"1\\\"\"} 2\n"));
+        assert!(text.contains("plccoms_diff_lines_total{section=\"Demo \\\"1\\\"\"} 3\n"));
+        assert!(
+            text.contains("plccoms_client_output_queue_max_bytes{section=\"Demo \\\"1\\\"\"} 10\n")
+        );
+        // The maximum starts again after each scrape.
+        assert!(registry
+            .render()
+            .contains("plccoms_client_output_queue_max_bytes{section=\"Demo \\\"1\\\"\"} 0\n"));
+    }
+}
