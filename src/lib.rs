@@ -29,6 +29,7 @@ pub mod daemon;
 pub mod link;
 pub mod localfs;
 pub mod metrics;
+pub mod ratelimit;
 pub mod section;
 pub mod server;
 pub mod session;

@@ -1,6 +1,6 @@
 //! Files on the server's machine (names beginning with `.` in GETFILE,
 //! GETFILEINFO, WRITEFILE and WRITEFILEINFO), confined to the section's root
-//! folder.
+//! folder (FILES_ROOT, or the configuration's folder).
 //!
 //! A name is split on `/` and `\`; `..`, drive letters (`:`) and NUL are
 //! refused outright, `.` and empty parts are skipped (so `./a`, `.//a` and
@@ -8,11 +8,20 @@
 //! symbolic links followed and must still lie inside the root: a link that
 //! stays inside is fine, one that leads out is refused. Uploads are written
 //! to a hidden temporary name in the target's folder and renamed into place.
+//!
+//! The server's own files are out of clients' reach ([`Access`]): nothing
+//! under a hidden name (a part beginning with `.`) is read or written, the
+//! root folder itself is never written, and the files the server registers
+//! as its own ([`protect`]: the configuration, the log, state folders, the
+//! public files in use) are never written or have their information
+//! changed; those registered as secret (the configuration, key and
+//! password files) are not read either.
 
 use std::fs::{self, File};
 use std::io;
 use std::path::{Component, Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{OnceLock, RwLock};
 use std::time::{Duration, UNIX_EPOCH};
 
 use crate::backend::{DirEntry, FileInfo, FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_READONLY};
@@ -31,8 +40,95 @@ pub enum LocalError {
     /// The name leads outside the root (traversal, absolute, or a link).
     #[error("outside the root folder")]
     Outside,
+    /// One of the server's own files, a hidden name or the root itself.
+    #[error("one of the server's own files")]
+    Protected,
     #[error(transparent)]
     Io(#[from] io::Error),
+}
+
+/// What a client wants to do with a file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Access {
+    /// GETFILE, GETFILEINFO.
+    Read,
+    /// WRITEFILE, WRITEFILEINFO.
+    Write,
+}
+
+/// A file or folder of the server's own.
+#[derive(Debug, Clone)]
+struct Own {
+    path: PathBuf,
+    /// Not even read by clients (it holds passwords or keys).
+    secret: bool,
+}
+
+fn own_files() -> &'static RwLock<Vec<Own>> {
+    static OWN: OnceLock<RwLock<Vec<Own>>> = OnceLock::new();
+    OWN.get_or_init(RwLock::default)
+}
+
+/// Registers `path` (a file or a folder, existing or not yet) as the
+/// server's own: clients never write it or anything under it; with `secret`
+/// they do not read it either. For the whole process: every section's
+/// clients are kept away from it.
+pub fn protect(path: &Path, secret: bool) {
+    let path = absolute(path);
+    let mut own = own_files().write().unwrap_or_else(|p| p.into_inner());
+    if let Some(known) = own.iter_mut().find(|o| o.path == path) {
+        known.secret |= secret;
+    } else {
+        own.push(Own { path, secret });
+    }
+}
+
+/// `path` made absolute and, as far as it exists, with links resolved.
+fn absolute(path: &Path) -> PathBuf {
+    if let Ok(real) = fs::canonicalize(path) {
+        return real;
+    }
+    let path = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+    match (path.parent(), path.file_name()) {
+        (Some(parent), Some(name)) => absolute(parent).join(name),
+        _ => path,
+    }
+}
+
+/// Whether `real` (resolved) is, or lies under, one of the server's own
+/// files that `access` may not touch (`extra`: more own files, such as a
+/// section's public files in use).
+pub fn is_own(real: &Path, access: Access, extra: &[PathBuf]) -> bool {
+    let own = own_files().read().unwrap_or_else(|p| p.into_inner());
+    let hit = |path: &Path| real == path || real.starts_with(path);
+    match access {
+        Access::Write => {
+            own.iter().any(|o| hit(&o.path)) || extra.iter().any(|p| hit(&absolute(p)))
+        }
+        Access::Read => own.iter().any(|o| o.secret && hit(&o.path)),
+    }
+}
+
+/// The host path of a local file name for `access`, checked to lie inside
+/// `root` and to be none of the server's own files (`extra`: more of them).
+/// The target itself may be missing (for uploads); its folder must exist.
+pub fn resolve_for(
+    root: &Path,
+    name: &[u8],
+    access: Access,
+    extra: &[PathBuf],
+) -> Result<PathBuf, LocalError> {
+    let real = resolve(root, name)?;
+    let root = fs::canonicalize(root)?;
+    let relative = real.strip_prefix(&root).map_err(|_| LocalError::Outside)?;
+    let hidden = relative
+        .components()
+        .any(|c| c.as_os_str().to_string_lossy().starts_with('.'));
+    let root_itself = relative.as_os_str().is_empty();
+    if hidden || (access == Access::Write && root_itself) || is_own(&real, access, extra) {
+        return Err(LocalError::Protected);
+    }
+    Ok(real)
 }
 
 /// The host path of a local file name, checked to lie inside `root`. The

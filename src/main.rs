@@ -63,6 +63,8 @@ fn init_logging(cli: &Cli) -> Result<(), String> {
         .with_target(cli.verbose >= 2);
     match cli.log_path() {
         Some(path) => {
+            // Clients never write it (WRITEFILE:./PLCComS.log).
+            plccoms::localfs::protect(&path, false);
             // Appended, never truncated.
             let file = std::fs::OpenOptions::new()
                 .create(true)

@@ -27,6 +27,7 @@ use crate::config::{Global, Section as SectionConfig};
 use crate::link::files::FileSettings;
 use crate::link::{self, Link, LinkSetup, Tables};
 use crate::metrics::SectionMetrics;
+use crate::ratelimit::{more, RateLimited};
 use crate::section::Section;
 use crate::session::Session;
 use crate::vars::VarTable;
@@ -170,44 +171,34 @@ fn set_keepalive(stream: &TcpStream) -> io::Result<()> {
     SockRef::from(stream).set_tcp_keepalive(&keepalive)
 }
 
-/// Logs refusals by ALLOW at most once a second, with a count of the ones in
-/// between, so a scan cannot flood the log.
-struct RefusalLog {
-    last: Option<tokio::time::Instant>,
-    quiet: u64,
+/// Refusals a client can cause at will are logged at most once a second per
+/// section and kind, with a count of the ones in between.
+struct Refusals {
+    allow: RateLimited,
+    full: RateLimited,
+    accept: RateLimited,
 }
 
-impl RefusalLog {
-    fn refused(&mut self, section: &str, peer: SocketAddr) {
-        let now = tokio::time::Instant::now();
-        if self
-            .last
-            .is_some_and(|last| now.duration_since(last) < Duration::from_secs(1))
-        {
-            self.quiet += 1;
-            return;
+impl Refusals {
+    fn new() -> Refusals {
+        Refusals {
+            allow: RateLimited::new(Duration::from_secs(1)),
+            full: RateLimited::new(Duration::from_secs(1)),
+            accept: RateLimited::new(Duration::from_secs(1)),
         }
-        if self.quiet > 0 {
-            warn!(section = %section, client = %peer, "refused: not in ALLOW ({} more refused since the last message)", self.quiet);
-        } else {
-            warn!(section = %section, client = %peer, "refused: not in ALLOW");
-        }
-        self.last = Some(now);
-        self.quiet = 0;
     }
 }
 
 async fn accept_loop(listener: TcpListener, section: Arc<Section>, sessions: TaskTracker) {
-    let mut refusals = RefusalLog {
-        last: None,
-        quiet: 0,
-    };
+    let refusals = Refusals::new();
     loop {
         let (stream, peer) = match listener.accept().await {
             Ok(accepted) => accepted,
             Err(err) => {
                 // Out of descriptors and the like: wait instead of spinning.
-                warn!(section = %section.name, "accept failed: {err}");
+                if let Some(quiet) = refusals.accept.admit() {
+                    warn!(section = %section.name, "accept failed: {err}{}", more(quiet));
+                }
                 tokio::time::sleep(Duration::from_millis(100)).await;
                 continue;
             }
@@ -215,7 +206,9 @@ async fn accept_loop(listener: TcpListener, section: Arc<Section>, sessions: Tas
         if !crate::config::allowed(section.state().config.allow.as_deref(), peer.ip()) {
             // Closed at once without a word: nothing about the server is
             // told to a client that may not use it.
-            refusals.refused(&section.name, peer);
+            if let Some(quiet) = refusals.allow.admit() {
+                warn!(section = %section.name, client = %peer, "refused: not in ALLOW{}", more(quiet));
+            }
             drop(stream);
             continue;
         }
@@ -234,7 +227,9 @@ async fn accept_loop(listener: TcpListener, section: Arc<Section>, sessions: Tas
                 });
             }
             None => {
-                warn!(section = %section.name, client = %peer, "refused: NET_CONNECT_MAX ({}) reached", section.global.net_connect_max);
+                if let Some(quiet) = refusals.full.admit() {
+                    warn!(section = %section.name, client = %peer, "refused: NET_CONNECT_MAX ({}) reached{}", section.global.net_connect_max, more(quiet));
+                }
                 let crlf = section.global.end_line_crlf;
                 tokio::spawn(refuse(stream, crlf));
             }

@@ -14,7 +14,7 @@ use tracing::{error, info, warn};
 use crate::backend::epsnet::EpsnetBackend;
 use crate::backend::{epsnet_config, PlcBackend};
 use crate::config::{Config, Global, Section};
-use crate::link::tables::{plc_path, LoadError, PubSource};
+use crate::link::tables::{plc_path, LoadError, NamedBy, PubSource};
 use crate::link::Tables;
 use crate::server::{start_section, RunningSection};
 use plcsim::{SimConfig, SimHandle};
@@ -63,6 +63,9 @@ const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
 
 /// Starts every section of `config`; fails only when none could start.
 pub async fn start(config: &Config) -> Result<Server, String> {
+    // The configuration holds passwords and tokens: clients neither read
+    // nor write it, whatever FILES_ROOT says.
+    crate::localfs::protect(&config.path, true);
     let global = Arc::new(config.global.clone());
     let dir = config_dir(&config.path);
     let mut server = Server {
@@ -115,7 +118,7 @@ async fn start_one(
     let backend = backend_for(&mut section, dir, server).await?;
     let section = &section;
     let source = PubSource::new(section, dir)?;
-    let (user, from_plc) = match source.load_local(section) {
+    let (user, from_plc) = match source.load_local(section, NamedBy::Configuration) {
         Ok(user) => (user, false),
         Err(LoadError::FromPlc) => (None, true),
         Err(LoadError::Failed(message)) => return Err(message),

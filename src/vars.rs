@@ -60,6 +60,8 @@ pub struct VarTable {
     fixed_count: usize,
     plc_run: VarId,
     pf_crc: VarId,
+    /// The longest name: no mask with more characters matches anything.
+    max_name_len: usize,
     /// Names of the files the table was built from, for GETINFO and warnings.
     pub fixed_file: String,
     pub user_file: Option<String>,
@@ -141,6 +143,7 @@ impl VarTable {
                 continue;
             }
             let id = self.vars.len() as VarId;
+            self.max_name_len = self.max_name_len.max(name.len());
             self.index.insert(name.clone(), id);
             self.vars.push(Var {
                 name,
@@ -163,6 +166,10 @@ impl VarTable {
 
     pub fn fixed_count(&self) -> usize {
         self.fixed_count
+    }
+
+    pub fn max_name_len(&self) -> usize {
+        self.max_name_len
     }
 
     pub fn var(&self, id: VarId) -> &Var {

@@ -28,6 +28,19 @@ fn every_target_runs_on_ordinary_input() {
     checks::input_decoder(b"\x10\x02\x07GET:x\r\nWRITEFILE:a[3]=abc\r\n\xff\xfb\x18\x04");
     checks::ini(include_bytes!("data/vendor/PLCComS.ini"));
     checks::pubfile(include_bytes!("../conf/demo.pub"));
+    for name in [
+        &b"./a.txt"[..],
+        b"./d/../a.txt",
+        b"./out",
+        b"./.hidden",
+        b"./own.ini",
+        b"./",
+        b"//../x.pub",
+        b"/etc/passwd",
+        b"C:\\x",
+    ] {
+        checks::local_path(name);
+    }
     // READN answer of 2 bytes, then the same datagram as a request.
     let answer = [
         0x00, 0x02, 0x00, 0x07, 0x02, 0x00, 0x00, 0x0D, 0x68, 0x07, 0x07, 0x68, 0x7D, 0x00, 0x08,
@@ -39,4 +52,25 @@ fn every_target_runs_on_ordinary_input() {
         0x00, 0x01, 0x02, 0x00, 0x00, 0x0A, 0x68, 0x04, 0x04, 0x68, 0x00, 0x7D, 0x63, 0x01, 0xE1,
         0x16,
     ]);
+}
+
+proptest::proptest! {
+    /// Names built from the characters that matter to the path rules.
+    #[test]
+    fn local_path_rules_hold_for_generated_names(
+        parts in proptest::collection::vec(
+            proptest::sample::select(vec!["a.txt", "d", "..", ".", "", "out", ".hidden", "own.ini", "x", "C:", "\0"]),
+            0..6,
+        ),
+        seps in proptest::collection::vec(proptest::sample::select(vec!["/", "\\", "//"]), 6),
+        lead in proptest::sample::select(vec!["", ".", "./", "//", "/"]),
+    ) {
+        let mut name = lead.to_string();
+        for (part, sep) in parts.iter().zip(&seps) {
+            name.push_str(part);
+            name.push_str(sep);
+        }
+        checks::local_path(name.as_bytes());
+        checks::local_path(name.trim_end_matches(['/', '\\']).as_bytes());
+    }
 }

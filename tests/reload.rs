@@ -30,7 +30,7 @@ async fn setup() -> Setup {
     let epsport = sim.local_addr().port();
     let (server, port, conf) = common::start_on_free_port(|port| {
         format!(
-            "[*]\nCOMM_LOOP_DELAY = 20\n[PLC]\nIPADDR = 127.0.0.1\nEPSPORT = {epsport}\nEPSTOUT = 50\nEPSTOUT_STEP = 0\nIPADDR_LOCAL = 127.0.0.1\nSERVER_PORT = {port}\nPUBFILE_CRC = Yes\nPUBFILE = //demo.pub\n"
+            "[*]\nCOMM_LOOP_DELAY = 20\n[PLC]\nIPADDR = 127.0.0.1\nEPSPORT = {epsport}\nEPSTOUT = 50\nEPSTOUT_STEP = 0\nIPADDR_LOCAL = 127.0.0.1\nSERVER_PORT = {port}\nPUBFILE_CRC = No\nPUBFILE = //demo.pub\n"
         )
     })
     .await;

@@ -655,3 +655,67 @@ fn one_datagram(datagram: &[u8], device: &mut Device, clock_offset: &mut f64) {
         }
     }
 }
+
+/// A files root for `local_path`: a file, a folder, a hidden file, and a
+/// link that leads out of the root.
+fn files_root() -> &'static Path {
+    static ROOT: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    ROOT.get_or_init(|| {
+        let base = std::env::temp_dir().join(format!("plccoms-fuzz-files-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&base);
+        let root = base.join("root");
+        std::fs::create_dir_all(root.join("d")).expect("create the files root");
+        std::fs::write(root.join("a.txt"), b"a").expect("seed file");
+        std::fs::write(root.join(".hidden"), b"h").expect("seed file");
+        std::fs::write(base.join("outside.txt"), b"o").expect("seed file");
+        let _ = std::os::unix::fs::symlink(base.join("outside.txt"), root.join("out"));
+        std::fs::write(root.join("own.ini"), b"[*]").expect("seed file");
+        plccoms::localfs::protect(&root.join("own.ini"), true);
+        root
+    })
+}
+
+/// The path rules for local files and for SETCONF:pubfile names: a name a
+/// client sends never resolves outside the root, to a hidden name, to the
+/// server's own files, or (for writes) to the root itself; a pubfile name
+/// that passes has no way up and is not absolute.
+pub fn local_path(data: &[u8]) {
+    use plccoms::localfs::{resolve_for, Access};
+    let root = files_root();
+    let canonical = std::fs::canonicalize(root).expect("root");
+    for access in [Access::Read, Access::Write] {
+        if let Ok(path) = resolve_for(root, data, access, &[]) {
+            let relative = path.strip_prefix(&canonical).unwrap_or_else(|_| {
+                panic!(
+                    "{:?} resolved outside the root: {path:?}",
+                    String::from_utf8_lossy(data)
+                )
+            });
+            assert!(
+                !relative
+                    .components()
+                    .any(|c| c.as_os_str().to_string_lossy().starts_with('.')),
+                "hidden name reached: {path:?}"
+            );
+            assert!(
+                path != canonical.join("own.ini"),
+                "own file reached: {path:?}"
+            );
+            if access == Access::Write {
+                assert!(
+                    !relative.as_os_str().is_empty(),
+                    "the root itself for writing"
+                );
+            }
+        }
+    }
+    let text = String::from_utf8_lossy(data);
+    if plccoms::link::tables::check_client_name(&text).is_ok() {
+        let rest = text.strip_prefix("//").unwrap_or(&text);
+        assert!(!rest.starts_with(['/', '\\']), "absolute: {text:?}");
+        assert!(
+            !rest.split(['/', '\\']).any(|part| part == ".."),
+            "a way up: {text:?}"
+        );
+    }
+}

@@ -58,8 +58,25 @@ pub struct PubFile {
     pub vars: Vec<PubVar>,
     /// The value of the `;* Crc="xxxx"` trailer, if the file has one.
     pub crc: Option<u32>,
-    /// Skipped lines and other problems, in file order.
+    /// Skipped lines and other problems, in file order: the first
+    /// [`MAX_WARNINGS`] of them.
     pub warnings: Vec<PubWarning>,
+    /// Problems beyond [`MAX_WARNINGS`], counted only (a file of garbage
+    /// must not become megabytes of messages).
+    pub more_warnings: usize,
+}
+
+/// Warnings a parsed file keeps; the rest are counted.
+pub const MAX_WARNINGS: usize = 100;
+
+impl PubFile {
+    fn warn(&mut self, line: usize, message: String) {
+        if self.warnings.len() < MAX_WARNINGS {
+            self.warnings.push(PubWarning { line, message });
+        } else {
+            self.more_warnings += 1;
+        }
+    }
 }
 
 /// A problem on one line of a public file.
@@ -114,20 +131,17 @@ pub fn parse(bytes: &[u8]) -> PubFile {
                 match crc {
                     Ok(value) => {
                         if let Some(previous) = seen_crc_line {
-                            file.warnings.push(PubWarning {
-                                line: line_no,
-                                message: format!(
+                            file.warn(
+                                line_no,
+                                format!(
                                     "second CRC line (the first is on line {previous}); this one counts"
                                 ),
-                            });
+                            );
                         }
                         seen_crc_line = Some(line_no);
                         file.crc = Some(value);
                     }
-                    Err(message) => file.warnings.push(PubWarning {
-                        line: line_no,
-                        message,
-                    }),
+                    Err(message) => file.warn(line_no, message),
                 }
             }
             continue;
@@ -162,22 +176,19 @@ pub fn parse(bytes: &[u8]) -> PubFile {
             Ok(var) => {
                 let name = &fields[0];
                 if let Some(&first_line) = seen.get(&FoldedName(name)) {
-                    file.warnings.push(PubWarning {
-                        line: line_no,
-                        message: format!(
+                    file.warn(
+                        line_no,
+                        format!(
                             "duplicate name '{}' (first defined on line {first_line}); skipped",
                             show(name)
                         ),
-                    });
+                    );
                 } else {
                     seen.insert(FoldedName(name), line_no);
                     file.vars.push(var);
                 }
             }
-            Err(message) => file.warnings.push(PubWarning {
-                line: line_no,
-                message,
-            }),
+            Err(message) => file.warn(line_no, message),
         }
     }
     file
@@ -687,5 +698,14 @@ mod tests {
         assert_eq!(file.crc, Some(crc));
         assert_eq!(crc_of(crc_content(&text)), crc);
         assert_eq!(file.vars[50_001].line, 50_003);
+    }
+
+    #[test]
+    fn warnings_are_kept_up_to_a_bound_and_counted_beyond() {
+        let text = " bad line\r\n".repeat(MAX_WARNINGS + 900);
+        let file = parse(text.as_bytes());
+        assert_eq!(file.warnings.len(), MAX_WARNINGS);
+        assert_eq!(file.more_warnings, 900);
+        assert!(file.vars.is_empty());
     }
 }

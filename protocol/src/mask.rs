@@ -13,9 +13,16 @@ pub struct Mask {
 
 impl Mask {
     pub fn new(pattern: &[u8]) -> Mask {
-        Mask {
-            pattern: cp1250::to_upper(pattern),
-        }
+        let mut pattern = cp1250::to_upper(pattern);
+        // `**` matches what `*` matches: a run of stars costs one.
+        pattern.dedup_by(|a, b| *a == b'*' && *b == b'*');
+        Mask { pattern }
+    }
+
+    /// The fewest bytes a matching name has (its characters other than
+    /// `*`): a mask longer than every name matches none, without trying.
+    pub fn min_len(&self) -> usize {
+        self.pattern.iter().filter(|&&b| b != b'*').count()
     }
 
     /// The upper-cased pattern.
@@ -124,5 +131,14 @@ mod tests {
         assert!(!Mask::new(b"abc").has_wildcard());
         assert!(Mask::new(b"").matches(b"ANY"));
         assert_eq!(Mask::new(b"ab*").pattern(), b"AB*");
+    }
+
+    #[test]
+    fn star_runs_collapse_and_min_len_counts_the_rest() {
+        let mask = Mask::new(b"**a***b*");
+        assert_eq!(mask.pattern(), b"*A*B*");
+        assert_eq!(mask.min_len(), 2);
+        assert!(mask.matches(b"XAYBZ"));
+        assert_eq!(Mask::new(b"").min_len(), 0);
     }
 }

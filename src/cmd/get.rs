@@ -32,8 +32,20 @@ pub enum ReadThen {
         name: Vec<u8>,
         address: DirectAddress,
     },
-    /// A GETMEM block.
-    Mem { name: Vec<u8> },
+    /// A GETMEM block of `size` bytes.
+    Mem { name: Vec<u8>, size: u32 },
+}
+
+impl ReadThen {
+    /// About how many bytes the answer takes (the session bounds what it
+    /// has waiting by it).
+    pub fn estimate(&self) -> usize {
+        match self {
+            ReadThen::Vars { table, ids, .. } => ids.len() * (table.max_name_len() + 24),
+            ReadThen::Direct { .. } => 64,
+            ReadThen::Mem { size, .. } => *size as usize + 64,
+        }
+    }
 }
 
 pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> Reply {
@@ -128,7 +140,7 @@ fn direct(cx: &mut Cx<'_>, args: &[u8], out: &mut Vec<u8>) -> Reply {
 
 /// Writes the answer once the PLC answered.
 pub fn complete(cx: &mut Cx<'_>, then: ReadThen, reply: ReadReply, out: &mut Vec<u8>) {
-    if let ReadThen::Mem { name } = &then {
+    if let ReadThen::Mem { name, .. } = &then {
         return super::getmem::complete(cx, name, reply, out);
     }
     let eol = cx.client.eol;

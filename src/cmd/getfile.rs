@@ -22,10 +22,10 @@ use std::io::Read;
 use plccoms_protocol::answer::{write_error, ErrorCode};
 use tokio::sync::oneshot;
 
-use super::{error, is_local, trim, write_block, Cx, FileThen, Reply};
+use super::{error, is_local, local_path, trim, write_block, Cx, FileThen, Reply};
 use crate::link::files::{FileJob, FileOutput, FileReply};
 use crate::link::LinkError;
-use crate::localfs;
+use crate::localfs::{self, Access};
 
 /// A GETFILE answer being sent.
 pub struct Stream {
@@ -80,12 +80,8 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
     }
     let listing = name.last() == Some(&b'/');
     if is_local(name) {
-        let path = match localfs::resolve(&cx.section.root, name) {
-            Ok(path) => path,
-            Err(err) => {
-                super::getfileinfo::refused(cx, name, &err);
-                return error(cx, ErrorCode::GetFile, name, out);
-            }
+        let Some(path) = local_path(cx, name, Access::Read) else {
+            return error(cx, ErrorCode::GetFile, name, out);
         };
         if listing {
             return match localfs::list(&path) {

@@ -1,15 +1,15 @@
 //! `GETFILEINFO:<name>`: `GETFILEINFO:<name>[<len>]=<size> <attr> <created>
 //! <modified>`, `len` being the length of the text after `=`. Attribute bits
-//! and the `ttida` times as in `backend::FileInfo`. A missing file, or a local
-//! name leading outside the root folder, is ERROR 40.
+//! and the `ttida` times as in `backend::FileInfo`. A missing file, a local
+//! name leading outside the root folder, or one of the server's secret files,
+//! is ERROR 40.
 
 use plccoms_protocol::answer::ErrorCode;
-use tracing::warn;
 
-use super::{error, is_local, trim, Cx, FileThen, Reply};
+use super::{error, is_local, local_path, trim, Cx, FileThen, Reply};
 use crate::backend::FileInfo;
 use crate::link::files::FileJob;
-use crate::localfs::{self, LocalError};
+use crate::localfs::{self, Access};
 
 pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> Reply {
     let name = trim(args);
@@ -17,13 +17,7 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
         return error(cx, ErrorCode::Incomplete, context, out);
     }
     if is_local(name) {
-        let info = match localfs::resolve(&cx.section.root, name) {
-            Ok(path) => localfs::info(&path).ok(),
-            Err(err) => {
-                refused(cx, name, &err);
-                None
-            }
-        };
+        let info = local_path(cx, name, Access::Read).and_then(|path| localfs::info(&path).ok());
         return match info {
             Some(info) => {
                 write_info(out, name, &info, cx.client.eol);
@@ -47,16 +41,4 @@ pub fn write_info(out: &mut Vec<u8>, name: &[u8], info: &FileInfo, eol: &[u8]) {
         info.size, info.attributes, info.created, info.modified
     );
     super::write_block(out, b"GETFILEINFO", name, text.as_bytes(), eol);
-}
-
-/// Logs a local name refused for leading outside the root folder.
-pub fn refused(cx: &Cx<'_>, name: &[u8], err: &LocalError) {
-    if let LocalError::Outside = err {
-        warn!(
-            section = %cx.section.name,
-            client = %cx.client.peer,
-            name = %String::from_utf8_lossy(name),
-            "refused local file access outside the root folder"
-        );
-    }
 }

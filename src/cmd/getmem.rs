@@ -48,6 +48,7 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
     };
     let then = ReadThen::Mem {
         name: name.to_vec(),
+        size,
     };
     Reply::read(cx.section.link.read(vec![request]), then)
 }

@@ -10,11 +10,13 @@ use super::{Cx, Reply};
 pub fn run(cx: &mut Cx<'_>, args: &[u8], out: &mut Vec<u8>) -> Reply {
     let mask = Mask::new(args);
     let all = mask.is_all();
+    let none = mask.min_len() > cx.client.vars.table().max_name_len();
     let eol = cx.client.eol;
     let vars = &cx.client.vars;
     let table = vars.table();
     out.reserve(if all { table.len() * 32 } else { 256 });
-    for (id, var) in table.vars().iter().enumerate() {
+    let vars_listed = if none { &[][..] } else { table.vars() };
+    for (id, var) in vars_listed.iter().enumerate() {
         if !all && !mask.matches(&var.name) {
             continue;
         }

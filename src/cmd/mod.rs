@@ -27,17 +27,21 @@ pub mod setconf;
 pub mod writefile;
 
 use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::sync::Arc;
 
 use plccoms_protocol::answer::{write_error, write_warning, ErrorCode, WarningCode};
 use plccoms_protocol::mask::Mask;
 use plccoms_protocol::request::Command;
 use tokio::sync::oneshot;
+use tracing::warn;
 
 use crate::changes::{Notice, Snapshot};
 use crate::client::ClientTable;
 use crate::link::files::{FileOutput, FileReply};
 use crate::link::{LinkError, ReadReply, ReconfError, ReconfReply, SetReply};
+use crate::localfs::{self, Access, LocalError};
+use crate::ratelimit::{more, RateLimited};
 use crate::section::Section;
 use crate::vars::{VarId, VarTable};
 
@@ -135,6 +139,18 @@ impl Waiting {
             Job::Set { .. } => WaitKind::Set,
             Job::Conf { .. } => WaitKind::Conf,
             Job::File { .. } => WaitKind::File,
+        }
+    }
+
+    /// About how many bytes the answer will take.
+    pub fn estimate(&self) -> usize {
+        match &self.0 {
+            Job::Read { then, .. } => then.estimate(),
+            Job::File {
+                then: FileThen::List { .. },
+                ..
+            } => 4096,
+            Job::Set { .. } | Job::Conf { .. } | Job::File { .. } => 128,
         }
     }
 
@@ -274,6 +290,11 @@ pub fn select(table: &VarTable, pattern: &[u8], hidden: impl Fn(VarId) -> bool) 
             .lookup(pattern)
             .map_or(Selection::Unknown, Selection::One);
     }
+    if mask.min_len() > table.max_name_len() {
+        // Longer than every name: nothing to try (a client cannot make the
+        // server compare megabytes of stars against every name).
+        return Selection::Matching(Vec::new());
+    }
     Selection::Matching(
         table
             .vars()
@@ -316,6 +337,33 @@ pub fn write_blocks(
 /// Names beginning with `.` are files on the server's machine.
 pub fn is_local(name: &[u8]) -> bool {
     name.first() == Some(&b'.')
+}
+
+/// The host path of a local file name for `access`, or `None` when it is
+/// not to be had: outside the root, one of the server's own files, or a
+/// path that does not resolve. Refusals are logged, at most once a second.
+pub fn local_path(cx: &Cx<'_>, name: &[u8], access: Access) -> Option<PathBuf> {
+    static REFUSED: RateLimited = RateLimited::new(std::time::Duration::from_secs(1));
+    let extra = match access {
+        Access::Write => cx.section.public_files(),
+        Access::Read => Vec::new(),
+    };
+    match localfs::resolve_for(&cx.section.root, name, access, &extra) {
+        Ok(path) => Some(path),
+        Err(err @ (LocalError::Outside | LocalError::Protected)) => {
+            if let Some(quiet) = REFUSED.admit() {
+                warn!(
+                    section = %cx.section.name,
+                    client = %cx.client.peer,
+                    name = %String::from_utf8_lossy(name),
+                    "refused local file access: {err}{}",
+                    more(quiet)
+                );
+            }
+            None
+        }
+        Err(LocalError::Io(_)) => None,
+    }
 }
 
 /// ERROR:10 when there is no link, `code` when the PLC failed the request

@@ -8,7 +8,8 @@
 //! content is the same), and every other client of the section gets the same
 //! warning. ERROR:10 when the PLC does not answer, ERROR:35 for a bad value,
 //! ERROR:50 for an unknown name; a refused SETCONF changes nothing. With
-//! READ_ONLY = Yes the section-wide keys answer ERROR:30 and change nothing.
+//! READ_ONLY = Yes the section-wide keys answer ERROR:30 and change nothing,
+//! and so does every name SETCONF_KEYS does not list.
 
 use plccoms_protocol::answer::{write_error, write_warning, ErrorCode, WarningCode};
 use plccoms_protocol::request::{parse_setconf, ArgError};
@@ -32,11 +33,18 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
         return error(cx, ErrorCode::SetConfUnknown, context, out);
     };
     let text = String::from_utf8_lossy(value);
+    let state = cx.section.state();
+    let name = key.setconf_name().unwrap_or_default();
+    if let Some(allowed) = &state.config.setconf_keys {
+        // SETCONF_KEYS: a site keeps these keys away from its clients.
+        if !allowed.contains(&name) {
+            return super::read_only(cx, context, out);
+        }
+    }
     if key.setconf_scope() == Some(SetConfScope::Client) {
         let Some(on) = config::parse_bool(&text) else {
             return error(cx, ErrorCode::WrongValue, context, out);
         };
-        let name = key.setconf_name().unwrap_or_default();
         if name == "crlf" {
             cx.client.eol = if on { b"\r\n" } else { b"\n" };
         } else {
@@ -49,14 +57,15 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
         out.extend_from_slice(cx.client.eol);
         return Reply::Done;
     }
-    let state = cx.section.state();
     if state.config.read_only {
         return super::read_only(cx, context, out);
     }
     // The value is parsed and range-checked as the ini key is; the link
     // gets the field it sets.
     let mut section = state.config.clone();
-    if key.apply_setconf(&mut section, &text).is_err() {
+    if key.apply_setconf(&mut section, &text).is_err()
+        || (key.name == "PUBFILE" && crate::link::tables::check_client_name(&text).is_err())
+    {
         return error(cx, ErrorCode::WrongValue, context, out);
     }
     let change = match key.name {

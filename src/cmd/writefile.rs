@@ -6,8 +6,9 @@
 //! As the manual says, the content first comes to the server, and the file
 //! is written after the zero block; it appears whole or not at all. A local
 //! file (`./name`) is streamed into a hidden staging file in the target's
-//! folder and renamed into place; a PLC file is held in memory (at most
-//! [`MAX_PLC_FILE`]) and handed to the poller whole, which writes it in the
+//! folder and renamed into place; a PLC file is spooled to an unnamed
+//! temporary file (at most [`MAX_PLC_FILE`], so many uploads at once hold
+//! disk, not memory) and handed to the link whole, which writes it in the
 //! backend's blocks with only the last one committing it. Blocks get no
 //! answer of their own: failures are answered at the zero block (ERROR 42).
 //!
@@ -27,9 +28,9 @@ use plccoms_protocol::answer::ErrorCode;
 use plccoms_protocol::request::{classify, parse_block, Command, Line};
 use tokio::time::Instant;
 
-use super::{error, is_local, ok_line, Cx, FileThen, Reply};
-use crate::link::files::FileJob;
-use crate::localfs::{self, Staging};
+use super::{error, is_local, local_path, ok_line, Cx, FileThen, Reply};
+use crate::link::files::{FileJob, Spool};
+use crate::localfs::{self, Access, Staging};
 
 /// Largest PLC file taken by WRITEFILE.
 pub const MAX_PLC_FILE: usize = 16 * 1024 * 1024;
@@ -46,7 +47,7 @@ pub struct Upload {
 
 enum Target {
     Local(Staging),
-    Plc(Vec<u8>),
+    Plc(Spool),
     /// Writing failed; the zero block answers ERROR 42.
     Failed,
     /// Timed out (ERROR 45 sent): blocks are ignored, the zero block
@@ -111,11 +112,10 @@ fn write_block(cx: &mut Cx<'_>, name: Vec<u8>, data: Vec<u8>, out: &mut Vec<u8>)
                 upload.target = Target::Failed;
             }
         }
-        Target::Plc(buffer) => {
-            if buffer.len() + data.len() > MAX_PLC_FILE {
+        Target::Plc(spool) => {
+            if spool.len() + data.len() as u64 > MAX_PLC_FILE as u64 || spool.append(&data).is_err()
+            {
                 upload.target = Target::Failed;
-            } else {
-                buffer.extend_from_slice(&data);
             }
         }
         Target::Failed | Target::TimedOut => {}
@@ -126,14 +126,11 @@ fn write_block(cx: &mut Cx<'_>, name: Vec<u8>, data: Vec<u8>, out: &mut Vec<u8>)
 
 fn start(cx: &Cx<'_>, name: &[u8]) -> Target {
     if !is_local(name) {
-        return Target::Plc(Vec::new());
+        return Spool::new().map_or(Target::Failed, Target::Plc);
     }
-    match localfs::resolve(&cx.section.root, name) {
-        Ok(path) => Staging::create(path).map_or(Target::Failed, Target::Local),
-        Err(err) => {
-            super::getfileinfo::refused(cx, name, &err);
-            Target::Failed
-        }
+    match local_path(cx, name, Access::Write) {
+        Some(path) => Staging::create(path).map_or(Target::Failed, Target::Local),
+        None => Target::Failed,
     }
 }
 
@@ -190,13 +187,8 @@ fn write_info(cx: &mut Cx<'_>, name: Vec<u8>, data: &[u8], out: &mut Vec<u8>) ->
         _ => return error(cx, ErrorCode::WriteFileInfo, &name, out),
     };
     if is_local(&name) {
-        let done = match localfs::resolve(&cx.section.root, &name) {
-            Ok(path) => localfs::write_info(&path, &info).is_ok(),
-            Err(err) => {
-                super::getfileinfo::refused(cx, &name, &err);
-                false
-            }
-        };
+        let done = local_path(cx, &name, Access::Write)
+            .is_some_and(|path| localfs::write_info(&path, &info).is_ok());
         if !done {
             return error(cx, ErrorCode::WriteFileInfo, &name, out);
         }

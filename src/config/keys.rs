@@ -14,6 +14,18 @@ pub use crate::backend::PROTOCOLS;
 /// The simulator programs `SIMULATOR_PROGRAM` accepts.
 pub const SIMULATOR_PROGRAMS: [&str; 2] = ["demo", "idle"];
 
+/// Every SETCONF name, for `SETCONF_KEYS`.
+pub const SETCONF_NAMES: [&str; 8] = [
+    "crlf",
+    "diff",
+    "ipaddr",
+    "epsaddr",
+    "epsport",
+    "serial_device",
+    "serial_speed",
+    "pubfile",
+];
+
 /// Where a key is written.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Scope {
@@ -54,6 +66,11 @@ pub enum Kind {
         what: &'static str,
         choices: &'static [&'static str],
     },
+    /// A comma-separated list of `choices`, any case.
+    Choices {
+        what: &'static str,
+        choices: &'static [&'static str],
+    },
 }
 
 /// A parsed value, of the key's [`Kind`].
@@ -65,6 +82,7 @@ pub enum Value {
     Text(String),
     Networks(Vec<Network>),
     Choice(&'static str),
+    Choices(Vec<&'static str>),
 }
 
 /// Sets a key's field.
@@ -256,6 +274,7 @@ impl Kind {
             Kind::Text => "any non-empty text".to_string(),
             Kind::Networks => "a.b.c.d, a.b.c.d/n, x:y::z, x:y::/n".to_string(),
             Kind::Choice { choices, .. } => choices.join(", "),
+            Kind::Choices { choices, .. } => format!("a list of {}", choices.join(", ")),
         }
     }
 
@@ -295,6 +314,18 @@ impl Kind {
                 .find(|c| c.eq_ignore_ascii_case(text))
                 .map(|&c| Value::Choice(c))
                 .ok_or_else(|| format!("is not a {what} {allowed}")),
+            Kind::Choices { what, choices } => text
+                .split(',')
+                .map(str::trim)
+                .map(|part| {
+                    choices
+                        .iter()
+                        .find(|c| c.eq_ignore_ascii_case(part))
+                        .copied()
+                        .ok_or_else(|| format!("has '{part}', which is not a {what} {allowed}"))
+                })
+                .collect::<Result<Vec<_>, _>>()
+                .map(Value::Choices),
         }
     }
 }
@@ -336,6 +367,13 @@ impl Value {
         match self {
             Value::Text(text) => text,
             Value::Choice(choice) => choice.to_string(),
+            other => mismatch(&other),
+        }
+    }
+
+    fn choices(self) -> Vec<&'static str> {
+        match self {
+            Value::Choices(list) => list,
             other => mismatch(&other),
         }
     }
@@ -490,6 +528,10 @@ static KEYS: &[Key] = &[
     row("OUTPUT_SOFT_TIMEOUT", Some("30"), number(1, 3600, "s"),
         "time at or over OUTPUT_SOFT_LIMIT before a client that does not read is disconnected",
         Setter::Global(|g, v| g.output_soft_timeout = v.secs())),
+    row("FILES_ROOT", None, Kind::Text,
+        "folder of the PC files clients read and write (names beginning with .); \
+         default: the configuration's folder",
+        Setter::Global(|g, v| g.files_root = Some(v.text().into()))),
 
     // A PLC section.
     row("IPADDR", None, Kind::Ipv4, "IP address of the PLC (0.0.0.0 = none yet)",
@@ -559,6 +601,9 @@ static KEYS: &[Key] = &[
     row("READ_ONLY", Some("No"), Kind::Bool,
         "Yes: requests that would change the PLC or the section answer ERROR:30",
         Setter::Section(|s, v| s.read_only = v.bool())),
+    row("SETCONF_KEYS", None, Kind::Choices { what: "SETCONF name", choices: &SETCONF_NAMES },
+        "the SETCONF names clients may use (default: all); others answer ERROR:30",
+        Setter::Section(|s, v| s.setconf_keys = Some(v.choices()))),
     // Accepted in a PLC section for symmetry with [*]: no effect there.
     row("SERIAL_DEVICE_CFG", None, Kind::Text, "no effect in a PLC section (a [*] key)",
         Setter::Section(|_, _| {})),

@@ -80,6 +80,9 @@ pub struct Global {
     pub output_soft_limit: usize,
     /// OUTPUT_SOFT_TIMEOUT.
     pub output_soft_timeout: Duration,
+    /// FILES_ROOT: the folder of PC files (relative to the configuration's
+    /// folder); `None`: the configuration's folder, as PLCComS.
+    pub files_root: Option<PathBuf>,
 }
 
 impl Default for Global {
@@ -108,6 +111,7 @@ impl Default for Global {
             output_hard_limit: 0,
             output_soft_limit: 0,
             output_soft_timeout: Duration::ZERO,
+            files_root: None,
         })
     }
 }
@@ -149,6 +153,8 @@ pub struct Section {
     /// `READ_ONLY = Yes`: requests that would change the PLC or the section
     /// answer ERROR:30 (this server's own key).
     pub read_only: bool,
+    /// `SETCONF_KEYS`: the SETCONF names clients may use; `None`: all.
+    pub setconf_keys: Option<Vec<&'static str>>,
 }
 
 /// An address or CIDR network of `ALLOW`.
@@ -566,6 +572,7 @@ fn section_defaults(name: &str) -> Section {
         simulator: None,
         allow: None,
         read_only: false,
+        setconf_keys: None,
     })
 }
 

@@ -919,6 +919,7 @@ fn sample(key: &Key) -> Option<String> {
             .iter()
             .find(|c| default != Some(Value::Choice(c)))?
             .to_string(),
+        Kind::Choices { choices, .. } => choices[..2].join(", "),
     })
 }
 

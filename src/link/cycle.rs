@@ -57,6 +57,11 @@ impl Cycle {
         self.last_run = None;
     }
 
+    /// `__PF_CRC` as last read.
+    pub fn pf_crc(&self) -> Option<u64> {
+        self.last_crc
+    }
+
     /// Block reads of the current plan.
     pub fn requests(&self) -> usize {
         self.plan.blocks().len()

@@ -44,7 +44,7 @@ pub enum FileJob {
     /// The whole file; the PLC commits it with the last block.
     Write {
         path: Vec<u8>,
-        data: Vec<u8>,
+        data: Spool,
     },
     WriteInfo {
         path: Vec<u8>,
@@ -73,6 +73,47 @@ pub enum FileOutput {
 }
 
 pub type FileReply = Result<Answer<FileOutput>, super::LinkError>;
+
+/// An upload's bytes on their way to the PLC, in an unnamed temporary file:
+/// many clients uploading at once hold disk, not memory, and a crash leaves
+/// nothing behind (the file has no name).
+#[derive(Debug)]
+pub struct Spool {
+    file: std::fs::File,
+    len: u64,
+}
+
+impl Spool {
+    pub fn new() -> std::io::Result<Spool> {
+        Ok(Spool {
+            file: tempfile::tempfile()?,
+            len: 0,
+        })
+    }
+
+    pub fn len(&self) -> u64 {
+        self.len
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    pub fn append(&mut self, data: &[u8]) -> std::io::Result<()> {
+        use std::io::Write;
+        self.file.write_all(data)?;
+        self.len += data.len() as u64;
+        Ok(())
+    }
+
+    /// The `len` bytes at `offset` (within what was appended).
+    pub fn read(&self, offset: u64, len: usize) -> std::io::Result<Vec<u8>> {
+        use std::os::unix::fs::FileExt;
+        let mut buf = vec![0; len];
+        self.file.read_exact_at(&mut buf, offset)?;
+        Ok(buf)
+    }
+}
 
 /// File transfer settings (FFILE_MAXRECS, FFILE_TIMEOUT, SYNC_VAR_ENABLED).
 #[derive(Debug, Clone, Copy)]
@@ -173,16 +214,17 @@ impl Files {
             }
             FileJob::Write { path, data } => {
                 self.cache.invalidate(&path);
-                let pieces = data.len().div_ceil(block as usize).max(1);
+                let block = u64::from(block);
+                let pieces = data.len().div_ceil(block).max(1);
                 let mut last_poll = Instant::now();
                 for index in 0..pieces {
-                    let start = index * block as usize;
-                    let end = (start + block as usize).min(data.len());
+                    let start = index * block;
+                    let end = (start + block).min(data.len());
                     let last = index + 1 == pieces;
-                    if let Err(e) = backend
-                        .write_file(&path, start as u64, &data[start..end], last)
-                        .await?
-                    {
+                    let piece = data
+                        .read(start, (end - start) as usize)
+                        .map_err(|e| PlcError::Protocol(format!("upload spool: {e}")))?;
+                    if let Err(e) = backend.write_file(&path, start, &piece, last).await? {
                         return Ok(Err(e));
                     }
                     self.transfer_until = Instant::now() + TRANSFER_IDLE;

@@ -44,7 +44,7 @@ pub use health::LinkState;
 use health::{Failure, Health, SharedState};
 pub use jobs::SetItem;
 pub use reconf::ConfChange;
-use tables::{PubSource, UserFile};
+use tables::{LoadError, NamedBy, PubSource, UserFile};
 
 /// Why the link could not serve a request.
 #[derive(Debug, thiserror::Error)]
@@ -264,6 +264,8 @@ pub struct Link {
     files: Files,
     tables: Option<Tables>,
     metrics: Arc<SectionMetrics>,
+    /// The next poll cycle is due then.
+    deadline: Instant,
 }
 
 impl Link {
@@ -301,6 +303,7 @@ impl Link {
             files: Files::new(setup.files, setup.loop_delay),
             tables: setup.tables,
             metrics: setup.metrics,
+            deadline: Instant::now(),
         };
         link.update_freshness();
         link.count_backend();
@@ -354,8 +357,9 @@ impl Link {
     /// Runs until stopped or every handle is dropped.
     pub async fn run(mut self) {
         // Fixed deadlines: a late cycle does not shift the ones after it.
-        let mut deadline = Instant::now();
+        self.deadline = Instant::now();
         loop {
+            let deadline = self.deadline;
             tokio::select! {
                 biased;
                 _ = self.stop.cancelled() => break,
@@ -370,7 +374,7 @@ impl Link {
                     }
                     self.tick().await;
                     let missed;
-                    (deadline, missed) = next_deadline(deadline, self.loop_delay, Instant::now());
+                    (self.deadline, missed) = next_deadline(self.deadline, self.loop_delay, Instant::now());
                     self.metrics.overruns.add(u64::from(missed));
                 }
                 job = self.jobs.recv() => {
@@ -456,7 +460,7 @@ impl Link {
             None => info!(section = %self.name, plc = %describe, ident = %ident, "PLC connected"),
         }
         if self.tables.as_ref().is_some_and(|t| t.pending_fetch) {
-            if let Err(err) = self.reload().await {
+            if let Err(err) = self.reload(NamedBy::Configuration).await {
                 warn!(section = %self.name, "{err}; serving the fixed variables only, tried again at the next connection");
             }
         }
@@ -518,7 +522,7 @@ impl Link {
             if let Some(tables) = self.tables.as_mut() {
                 tables.crc_checked = false;
             }
-            if let Err(err) = self.reload().await {
+            if let Err(err) = self.reload(NamedBy::Configuration).await {
                 warn!(section = %self.name, "public file not reloaded: {err}");
             }
             return;
@@ -563,28 +567,76 @@ impl Link {
     }
 
     /// Loads the public file again; when its content changed, switches every
-    /// client to the new table. Announces the outcome (250 or 251).
-    async fn reload(&mut self) -> Result<Arc<Notice>, String> {
+    /// client to the new table. Announces the outcome (250 or 251). A local
+    /// file is read and parsed off this thread while polling goes on; a file
+    /// a client named with PUBFILE_CRC = Yes must carry the CRC of the
+    /// program in the PLC.
+    async fn reload(&mut self, by: NamedBy) -> Result<Arc<Notice>, String> {
         let config = self.config();
-        let Some(tables) = self.tables.as_mut() else {
+        let Some(tables) = self.tables.as_ref() else {
             return Err("this section has no public-file source".to_string());
         };
-        let online = self.health.state() == LinkState::Online;
-        let backend = if online {
-            self.backend.as_deref_mut()
-        } else {
-            None
+        let source = tables.source.clone();
+        let loaded = {
+            let (source, config, name) = (source.clone(), config.clone(), self.name.clone());
+            self.poll_while(tokio::task::spawn_blocking(move || {
+                let user = source.load_local(&config, by)?;
+                let table = source
+                    .build(&name, user.as_ref())
+                    .map_err(LoadError::Failed)?;
+                Ok((user, table))
+            }))
+            .await
+            .unwrap_or_else(|e| Err(LoadError::Failed(format!("loading failed: {e}"))))
         };
-        let user = tables.source.load_user(&config, backend).await;
+        let online = self.health.state() == LinkState::Online;
+        let loaded = match loaded {
+            Ok(loaded) => Ok(loaded),
+            Err(LoadError::Failed(message)) => Err(message),
+            Err(LoadError::FromPlc) => {
+                let backend = if online {
+                    self.backend.as_deref_mut()
+                } else {
+                    None
+                };
+                match source.load_user(&config, by, backend).await {
+                    Ok(user) => {
+                        let name = self.name.clone();
+                        let source = source.clone();
+                        self.poll_while(tokio::task::spawn_blocking(move || {
+                            let table = source.build(&name, user.as_ref())?;
+                            Ok((user, table))
+                        }))
+                        .await
+                        .unwrap_or_else(|e| Err(format!("loading failed: {e}")))
+                    }
+                    Err(message) => Err(message),
+                }
+            }
+        };
+        let tables = self.tables.as_mut().expect("checked above");
         // A PLC that cannot be asked now is asked at its next connection.
-        tables.pending_fetch = user.is_err();
-        let user = user?;
+        tables.pending_fetch = loaded.is_err();
+        let (user, table) = loaded?;
+        if by == NamedBy::Client && config.pubfile_crc {
+            let file = user.as_ref().map_or("", |u| u.name.as_str());
+            match (user.as_ref().and_then(tables::trailer_crc), self.cycle.pf_crc()) {
+                (None, _) => {
+                    return Err(format!("PUBFILE_CRC = Yes and public file {file} has no CRC line"))
+                }
+                (Some(crc), Some(pf_crc)) if u64::from(crc) != pf_crc => {
+                    return Err(format!(
+                        "PUBFILE_CRC = Yes and public file {file} has CRC {crc:08X}, the PLC's program {pf_crc:08X}"
+                    ))
+                }
+                _ => {}
+            }
+        }
         let name = user
             .as_ref()
             .map_or_else(|| tables.source.fixed_name.clone(), |u| u.name.clone());
         let changed = user != tables.user;
         if changed {
-            let table = tables.source.build(&self.name, user.as_ref())?;
             info!(section = %self.name, variables = table.len(), "public file {name} loaded: new variable table");
             self.publisher.replace_table(Arc::new(table));
             self.metrics.pubfile_reloads.inc();
@@ -597,6 +649,32 @@ impl Link {
         let notice = self.publisher.announce(changed, name);
         self.publisher.publish();
         Ok(notice)
+    }
+
+    /// Waits for `job` (work on another thread), polling on schedule
+    /// meanwhile: a long load never stops the values.
+    async fn poll_while<T>(
+        &mut self,
+        job: tokio::task::JoinHandle<T>,
+    ) -> Result<T, tokio::task::JoinError> {
+        tokio::pin!(job);
+        loop {
+            let online = self.health.state() == LinkState::Online && self.backend.is_some();
+            tokio::select! {
+                biased;
+                done = &mut job => return done,
+                _ = tokio::time::sleep_until(self.deadline), if online => {
+                    let backend = self.backend.as_deref_mut().expect("online");
+                    let started = Instant::now();
+                    let polled = self.cycle.poll(backend, &mut self.publisher).await;
+                    self.metrics.poll_cycle.observe(started.elapsed());
+                    if let Err(err) = polled {
+                        self.failed(&err);
+                    }
+                    (self.deadline, _) = next_deadline(self.deadline, self.loop_delay, Instant::now());
+                }
+            }
+        }
     }
 
     /// SETCONF of a section key: apply it, reconnect when the link changed,
@@ -636,7 +714,11 @@ impl Link {
                 return Err(ReconfError::Unreachable(describe));
             }
         }
-        match self.reload().await {
+        let by = match change {
+            ConfChange::PubFile(_) => NamedBy::Client,
+            _ => NamedBy::Configuration,
+        };
+        match self.reload(by).await {
             Ok(notice) => Ok(ReconfOutcome { notice }),
             Err(err) => {
                 warn!(section = %self.name, "SETCONF {change:?} refused: {err}; the section keeps its settings");

@@ -13,8 +13,8 @@ use crate::vars::VarTable;
 use plccoms_plc::pubfile::{self, PubFile};
 use plccoms_plc::MemoryMap;
 
-/// Largest public file fetched from a PLC.
-const MAX_PUBFILE: u64 = 64 * 1024 * 1024;
+/// Largest public file read, from this machine or fetched from a PLC.
+pub const MAX_PUBFILE: u64 = 64 * 1024 * 1024;
 
 /// The standard fixed public file, used when PUBFILE_FIXED is not set.
 pub const STANDARD_FIXED: &[u8] =
@@ -84,18 +84,39 @@ impl PubSource {
 
     /// The user public file if it is on this machine (`Ok(None)` when the
     /// section names none); [`LoadError::FromPlc`] when it must be fetched.
-    pub fn load_local(&self, section: &Section) -> Result<Option<UserFile>, LoadError> {
+    /// At most [`MAX_PUBFILE`] bytes are read. A client's name must stay in
+    /// the configuration's folder and name none of the server's own files;
+    /// every refusal reads the same, so a client cannot probe for files.
+    pub fn load_local(
+        &self,
+        section: &Section,
+        by: NamedBy,
+    ) -> Result<Option<UserFile>, LoadError> {
         let Some(name) = &section.pubfile else {
             return Ok(None);
         };
         let local = self.local_path(section, name);
+        if by == NamedBy::Client {
+            let refused = || LoadError::Failed(format!("public file {name} refused"));
+            check_client_name(name).map_err(|_| refused())?;
+            if let Ok(real) = std::fs::canonicalize(&local) {
+                let dir = std::fs::canonicalize(&self.dir).map_err(|_| refused())?;
+                if !real.starts_with(&dir)
+                    || crate::localfs::is_own(&real, crate::localfs::Access::Write, &[])
+                {
+                    return Err(refused());
+                }
+            }
+        }
         if local.is_file() {
-            let bytes = std::fs::read(&local)
-                .map_err(|e| LoadError::Failed(format!("public file {}: {e}", local.display())))?;
-            return Ok(Some(UserFile {
-                name: file_name(name),
-                bytes,
-            }));
+            return read_bounded(&local)
+                .map(|bytes| {
+                    Some(UserFile {
+                        name: file_name(name),
+                        bytes,
+                    })
+                })
+                .map_err(|e| LoadError::Failed(format!("public file {}: {e}", local.display())));
         }
         if name.starts_with("../") {
             return Err(LoadError::Failed(format!(
@@ -112,9 +133,10 @@ impl PubSource {
     pub async fn load_user(
         &self,
         section: &Section,
+        by: NamedBy,
         backend: Option<&mut (dyn PlcBackend + 'static)>,
     ) -> Result<Option<UserFile>, String> {
-        match self.load_local(section) {
+        match self.load_local(section, by) {
             Ok(user) => return Ok(user),
             Err(LoadError::Failed(message)) => return Err(message),
             Err(LoadError::FromPlc) => {}
@@ -163,11 +185,68 @@ impl PubSource {
             &mut warnings,
         )
         .map_err(|e| e.to_string())?;
-        for warning in &warnings {
+        // A file of garbage is a few lines of log, not megabytes.
+        for warning in warnings.iter().take(LOGGED_WARNINGS) {
             warn!(section = %section, "public file {warning}");
+        }
+        let more = warnings.len().saturating_sub(LOGGED_WARNINGS)
+            + parsed.as_ref().map_or(0, |(_, file)| file.more_warnings);
+        if more > 0 {
+            warn!(section = %section, "public file: {more} more problems not shown");
         }
         Ok(table)
     }
+}
+
+/// Problems of one public file that are logged one by one.
+const LOGGED_WARNINGS: usize = 5;
+
+/// Who names a public file: the configuration (trusted: `../` allowed, as
+/// the vendor's server allows it), or a client's SETCONF (only inside the
+/// configuration's folder, never one of the server's own files).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NamedBy {
+    Configuration,
+    Client,
+}
+
+/// A SETCONF:pubfile value's form: `//name` or a relative name, no
+/// absolute path, no `..`, no drive letter, no NUL.
+pub fn check_client_name(name: &str) -> Result<(), String> {
+    let rest = name.strip_prefix("//").unwrap_or(name);
+    if rest.is_empty() || rest.starts_with(['/', '\\']) {
+        return Err(format!(
+            "'{name}' is not a root-relative name (//name or name)"
+        ));
+    }
+    for part in rest.split(['/', '\\']) {
+        if part == ".." || part.contains(['\0', ':']) {
+            return Err(format!("'{name}' leads outside the root folder"));
+        }
+    }
+    Ok(())
+}
+
+/// A local file's bytes, refused past [`MAX_PUBFILE`] without reading it all.
+fn read_bounded(path: &Path) -> std::io::Result<Vec<u8>> {
+    use std::io::Read;
+    let file = std::fs::File::open(path)?;
+    let size = file.metadata()?.len();
+    let too_large = || {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            format!("more than the {MAX_PUBFILE} bytes accepted"),
+        )
+    };
+    if size > MAX_PUBFILE {
+        return Err(too_large());
+    }
+    let mut bytes = Vec::with_capacity(size as usize);
+    file.take(MAX_PUBFILE + 1).read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > MAX_PUBFILE {
+        return Err(too_large());
+    }
+    Ok(bytes)
 }
 
 /// The CRC that `__PF_CRC` must match for `user` (PUBFILE_CRC): its trailer.

@@ -50,10 +50,12 @@ pub struct Section {
     /// Cancelled when the server stops: sessions answer what they have and
     /// close.
     pub shutdown: CancellationToken,
-    /// The folder local files (names beginning with `.`) live in: the
-    /// configuration file's folder, or its `<section name>` subfolder with
-    /// PUBFILE_WRITE = Yes.
+    /// The folder local files (names beginning with `.`) live in: FILES_ROOT
+    /// or the configuration file's folder, or its `<section name>` subfolder
+    /// with PUBFILE_WRITE = Yes.
     pub root: PathBuf,
+    /// The configuration file's folder (public files are found from it).
+    pub config_dir: PathBuf,
     clients: Mutex<Clients>,
 }
 
@@ -74,10 +76,14 @@ impl Section {
     ) -> Section {
         let format = format_options(&global);
         let config = state.borrow().config.clone();
+        let files = match &global.files_root {
+            Some(root) => config_dir.join(root),
+            None => config_dir.clone(),
+        };
         let root = if config.pubfile_write {
-            config_dir.join(&config.name)
+            files.join(&config.name)
         } else {
-            config_dir
+            files
         };
         Section {
             name: config.name,
@@ -89,6 +95,7 @@ impl Section {
             metrics,
             shutdown: CancellationToken::new(),
             root,
+            config_dir,
             clients: Mutex::new(Clients::default()),
         }
     }
@@ -103,6 +110,25 @@ impl Section {
     pub async fn ready(&self) {
         let mut state = self.state.clone();
         let _ = state.wait_for(|s| s.ready()).await;
+    }
+
+    /// Where the section's public files in use are on this machine: never
+    /// written by clients.
+    pub fn public_files(&self) -> Vec<PathBuf> {
+        let config = self.state.borrow().config.clone();
+        let pub_root = if config.pubfile_write {
+            self.config_dir.join(&config.name)
+        } else {
+            self.config_dir.clone()
+        };
+        [&config.pubfile, &config.pubfile_fixed]
+            .into_iter()
+            .flatten()
+            .map(|name| match name.strip_prefix("//") {
+                Some(rest) => pub_root.join(rest),
+                None => self.config_dir.join(name),
+            })
+            .collect()
     }
 
     /// READ_ONLY = Yes.

@@ -38,11 +38,29 @@ use crate::section::{ClientInfo, ClientStats, Section};
 use connection::{Connection, OUTPUT_HIGH_WATER};
 use queue::{AnswerQueue, Entry, HeadDone};
 
+/// Asks the allocator to give freed memory back to the system, at most once
+/// a second. glibc keeps what a flood of large answers freed in its
+/// per-thread arenas: without this, a client that pipelined hundreds of
+/// megabytes' worth of requests left that much resident after it left.
+fn trim_memory() {
+    static LAST: crate::ratelimit::RateLimited =
+        crate::ratelimit::RateLimited::new(std::time::Duration::from_secs(1));
+    if LAST.admit().is_some() {
+        #[cfg(all(target_os = "linux", target_env = "gnu"))]
+        // SAFETY: malloc_trim only walks the allocator's own free lists.
+        unsafe {
+            libc::malloc_trim(0);
+        }
+    }
+}
+
 /// Answers waiting for the PLC at most, before the session stops reading.
 const MAX_PENDING: usize = 1024;
 /// Received bytes not yet handed to the decoder (requests waiting behind a
 /// SETCONF): past this, the session stops reading until they are handled.
 const MAX_UNPARSED_INPUT: usize = 64 * 1024;
+/// Requests handled in one go before the session yields to other tasks.
+const REQUESTS_PER_TURN: usize = 256;
 
 pub struct Session {
     section: Arc<Section>,
@@ -73,6 +91,10 @@ pub struct Session {
     dropped: Option<String>,
     /// What the session reports of itself (GETINFO, the web page).
     stats: Arc<ClientStats>,
+    /// The last turn took [`REQUESTS_PER_TURN`] requests: yield first.
+    turn_used: bool,
+    /// The most output it had queued or coming.
+    peak: usize,
 }
 
 impl Session {
@@ -105,6 +127,8 @@ impl Session {
             over_soft_since: None,
             dropped: None,
             stats: Arc::default(),
+            turn_used: false,
+            peak: 0,
             section,
         }
     }
@@ -117,22 +141,26 @@ impl Session {
         }
         let mut session = Session::new(section, stream, client.peer);
         session.stats = client.stats;
-        session.run().await;
+        if session.run().await {
+            trim_memory();
+        }
     }
 
-    /// Serves the client until it leaves.
-    pub async fn run(mut self) {
+    /// Serves the client until it leaves. Returns whether it held a lot of
+    /// memory (freed by now).
+    pub async fn run(mut self) -> bool {
         let section = self.section.name.clone();
         let peer = self.client.peer;
         debug!(section = %section, client = %peer, "client connected");
         if let Err(err) = self.serve().await {
             debug!(section = %section, client = %peer, "connection error: {err}");
         }
+        let held_much = self.peak >= OUTPUT_HIGH_WATER;
         if let Some(why) = &self.dropped {
             // Dropping the socket closes it (with a reset if input is
             // unread): nothing more is owed to this client.
             warn!(section = %section, client = %peer, "client disconnected: {why}");
-            return;
+            return held_much;
         }
         // A client that asked to close but does not read what it is owed
         // gets as long as a soft-limit stall.
@@ -140,6 +168,7 @@ impl Session {
         let _ = tokio::time::timeout(grace, self.conn.flush()).await;
         let _ = self.conn.writer.shutdown().await;
         debug!(section = %section, client = %peer, "client disconnected");
+        held_much
     }
 
     /// Output queued for the client: the unwritten buffer and the finished
@@ -149,7 +178,8 @@ impl Session {
     }
 
     /// Publishes the session's figures: a few relaxed stores per wake-up.
-    fn report(&self) {
+    fn report(&mut self) {
+        self.peak = self.peak.max(self.ahead());
         let queued = self.queued_output() as u64;
         self.stats.queued.set(queued);
         self.stats
@@ -188,6 +218,10 @@ impl Session {
 
     async fn serve(&mut self) -> std::io::Result<()> {
         loop {
+            if std::mem::take(&mut self.turn_used) {
+                // Many requests in: let other clients' tasks run first.
+                tokio::task::yield_now().await;
+            }
             let drained = self.take_requests();
             if self.stopping && drained {
                 self.close = true;
@@ -202,6 +236,10 @@ impl Session {
             if (self.close || self.conn.eof) && self.queue.is_empty() {
                 return Ok(());
             }
+            if self.turn_used {
+                // More requests wait in the input: take them after the yield.
+                continue;
+            }
             let head_waiting = self.queue.head_waiting();
             let streaming = self.queue.streaming();
             let write_deadline = self.write_deadline();
@@ -211,7 +249,7 @@ impl Session {
                 && !self.stopping
                 && self.queue.len() < MAX_PENDING
                 && self.conn.input.len() < MAX_UNPARSED_INPUT
-                && backlog < OUTPUT_HIGH_WATER;
+                && self.ahead() < OUTPUT_HIGH_WATER;
             // Snapshots also carry public-file changes, so every client takes
             // them, DIFF lines on or off; never inside a streamed answer.
             let want_diffs = backlog < self.section.global.output_soft_limit && !streaming;
@@ -275,16 +313,30 @@ impl Session {
         }
     }
 
-    /// Handles every complete request already received, while the queue and
-    /// output have room. Returns whether no complete request is left.
+    /// Output this session holds or will produce for requests it took:
+    /// past [`OUTPUT_HIGH_WATER`] it takes no more until the client reads,
+    /// so a client that pipelines without reading holds bounded memory.
+    fn ahead(&self) -> usize {
+        self.conn.backlog() + self.queue.ahead()
+    }
+
+    /// Handles the complete requests already received, while the queue and
+    /// output have room, at most [`REQUESTS_PER_TURN`] before other clients
+    /// get a turn. Returns whether no complete request is left.
     fn take_requests(&mut self) -> bool {
         // Requests after a SETCONF wait for it: they may name variables of
         // the public file it loads.
+        let mut budget = REQUESTS_PER_TURN;
         while !self.close
             && self.queue.len() < MAX_PENDING
-            && self.conn.backlog() < OUTPUT_HIGH_WATER
+            && self.ahead() < OUTPUT_HIGH_WATER
             && !self.queue.conf_outstanding()
         {
+            if budget == 0 {
+                self.turn_used = true;
+                return false;
+            }
+            budget -= 1;
             let Some(frame) = self.conn.next_frame() else {
                 return true;
             };

@@ -38,6 +38,8 @@ pub struct AnswerQueue {
     ready_bytes: usize,
     /// Unanswered SETs in the queue.
     sets: usize,
+    /// What the waiting answers are expected to take, in bytes.
+    estimated: usize,
 }
 
 impl AnswerQueue {
@@ -53,6 +55,12 @@ impl AnswerQueue {
         self.ready_bytes
     }
 
+    /// Output this queue holds or will produce: complete answers and the
+    /// estimates of those still waiting.
+    pub fn ahead(&self) -> usize {
+        self.ready_bytes + self.estimated
+    }
+
     pub fn push_ready(&mut self, bytes: Vec<u8>) {
         if !bytes.is_empty() {
             self.ready_bytes += bytes.len();
@@ -64,6 +72,7 @@ impl AnswerQueue {
         if waiting.kind() == WaitKind::Set {
             self.sets += 1;
         }
+        self.estimated += waiting.estimate();
         self.entries.push_back(Entry::Wait(waiting));
     }
 
@@ -113,8 +122,13 @@ impl AnswerQueue {
         let head = self.entries.pop_front()?;
         match &head {
             Entry::Ready(bytes) => self.ready_bytes -= bytes.len(),
-            Entry::Wait(w) if w.kind() == WaitKind::Set => self.sets -= 1,
-            _ => {}
+            Entry::Wait(w) => {
+                self.estimated -= w.estimate();
+                if w.kind() == WaitKind::Set {
+                    self.sets -= 1;
+                }
+            }
+            Entry::Stream(_) => {}
         }
         Some(head)
     }

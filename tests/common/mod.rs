@@ -3,6 +3,7 @@
 #![allow(dead_code)]
 
 pub mod epsnet;
+pub mod logs;
 pub mod process;
 
 use std::net::SocketAddr;
@@ -384,4 +385,51 @@ pub async fn start_on_free_port(
         }
     }
     panic!("no free port for the server in 20 tries");
+}
+
+/// A server with the embedded simulated PLC running `pub_bytes` (or the
+/// demo) in a fresh configuration folder, and `extra` keys for `[*]` and
+/// the section.
+pub async fn simulated(
+    global: &str,
+    section: &str,
+    pub_bytes: Option<&[u8]>,
+) -> (
+    plccoms::startup::Server,
+    std::net::SocketAddr,
+    tempfile::TempDir,
+) {
+    let dir = tempfile::tempdir().unwrap();
+    let sim_pub = match pub_bytes {
+        Some(bytes) => {
+            std::fs::write(dir.path().join("project.pub"), bytes).unwrap();
+            "SIMULATOR_PUB = project.pub\n"
+        }
+        None => "",
+    };
+    let path = dir.path().join("PLCComS.ini");
+    for _ in 0..20 {
+        let port = process::free_port();
+        std::fs::write(
+            &path,
+            format!(
+                "[*]\nCOMM_LOOP_DELAY = 20\n{global}\n[PLC]\nSIMULATOR = Yes\nSIMULATOR_PROGRAM = demo\n\
+                 {sim_pub}SERVER_PORT = {port}\nIPADDR_LOCAL = 127.0.0.1\nPUBFILE = //demo.pub\n{section}\n"
+            ),
+        )
+        .unwrap();
+        let loaded = plccoms::config::load(&path).unwrap();
+        match plccoms::startup::start(&loaded.config).await {
+            Ok(server) => {
+                return (
+                    server,
+                    std::net::SocketAddr::from(([127, 0, 0, 1], port)),
+                    dir,
+                )
+            }
+            Err(e) if e.contains("Address already in use") => continue,
+            Err(e) => panic!("{e}"),
+        }
+    }
+    panic!("no free port");
 }
