@@ -728,6 +728,8 @@ fn a_program_change_in_the_plc_reloads_the_public_file() {
     let site = Site::new();
     site.external(plc.udp);
     let _server = site.run(&[]);
+    // The public file comes from the PLC at its first connection.
+    site.wait_log("PLC connected");
     let mut c = site.client();
     c.ask(
         "EN:counter\n",
@@ -803,6 +805,8 @@ fn setconf_every_key() {
     let site = Site::new();
     site.external(plc.udp);
     let _server = site.run(&[]);
+    // The public file comes from the PLC at its first connection.
+    site.wait_log("PLC connected");
     let mut c = site.client();
     let mut other = site.client();
     c.ask("GET:counter\n", "GET:COUNTER,0");
@@ -923,6 +927,8 @@ fn getinfo_with_several_clients() {
     let site = Site::new();
     site.external(plc.udp);
     let _server = site.run(&[]);
+    // The public file comes from the PLC at its first connection.
+    site.wait_log("PLC connected");
     let mut clients: Vec<Client> = (0..3).map(|_| site.client()).collect();
     let c = &mut clients[0];
     // The PLC's identification once the link is up.
@@ -999,6 +1005,7 @@ fn a_lost_plc_is_logged_once_and_comes_back() {
     let site = Site::new();
     site.external(plc.udp);
     let mut server = site.run(&[]);
+    site.wait_log("PLC connected");
     let mut c = site.client();
     c.ask(
         "EN:sinus\n",
@@ -1046,6 +1053,8 @@ fn halt_then_run_reinitialises_the_link() {
     let site = Site::new();
     site.external(plc.udp);
     let _server = site.run(&[]);
+    // The public file comes from the PLC at its first connection.
+    site.wait_log("PLC connected");
     let mut c = site.client();
     c.ask(
         "EN:__PLC_RUN\n",

@@ -43,14 +43,23 @@ use queue::{AnswerQueue, Entry, HeadDone};
 /// per-thread arenas: without this, a client that pipelined hundreds of
 /// megabytes' worth of requests left that much resident after it left.
 fn trim_memory() {
+    use std::sync::atomic::{AtomicBool, Ordering};
     static LAST: crate::ratelimit::RateLimited =
         crate::ratelimit::RateLimited::new(std::time::Duration::from_secs(1));
+    static LATER: AtomicBool = AtomicBool::new(false);
     if LAST.admit().is_some() {
         #[cfg(all(target_os = "linux", target_env = "gnu"))]
         // SAFETY: malloc_trim only walks the allocator's own free lists.
         unsafe {
             libc::malloc_trim(0);
         }
+    } else if !LATER.swap(true, Ordering::Relaxed) {
+        // Sessions that leave together: one more trim after them all.
+        tokio::spawn(async {
+            tokio::time::sleep(std::time::Duration::from_millis(1100)).await;
+            LATER.store(false, Ordering::Relaxed);
+            trim_memory();
+        });
     }
 }
 
@@ -61,6 +70,9 @@ const MAX_PENDING: usize = 1024;
 const MAX_UNPARSED_INPUT: usize = 64 * 1024;
 /// Requests handled in one go before the session yields to other tasks.
 const REQUESTS_PER_TURN: usize = 256;
+/// Beyond the time a silent PLC takes to be declared lost, how long a
+/// burst's answers may wait for each other.
+const HOLD_MARGIN: std::time::Duration = std::time::Duration::from_millis(200);
 
 pub struct Session {
     section: Arc<Section>,
@@ -93,6 +105,8 @@ pub struct Session {
     stats: Arc<ClientStats>,
     /// The last turn took [`REQUESTS_PER_TURN`] requests: yield first.
     turn_used: bool,
+    /// Output waits until then for the rest of a burst's answers.
+    holding: Option<tokio::time::Instant>,
     /// The most output it had queued or coming.
     peak: usize,
 }
@@ -128,6 +142,7 @@ impl Session {
             dropped: None,
             stats: Arc::default(),
             turn_used: false,
+            holding: None,
             peak: 0,
             section,
         }
@@ -241,6 +256,8 @@ impl Session {
                 continue;
             }
             let head_waiting = self.queue.head_waiting();
+            let held = self.held();
+            let hold_deadline = self.holding;
             let streaming = self.queue.streaming();
             let write_deadline = self.write_deadline();
             let backlog = self.conn.backlog();
@@ -277,7 +294,7 @@ impl Session {
                 done = queue.head_done(), if head_waiting => {
                     self.complete_head(done);
                 }
-                result = writer.write(&out[*written..]), if backlog > 0 => {
+                result = writer.write(&out[*written..]), if backlog > 0 && !held => {
                     let n = result?;
                     if n == 0 {
                         return Ok(());
@@ -306,6 +323,8 @@ impl Session {
                 _ = tokio::time::sleep_until(write_deadline.unwrap_or_else(tokio::time::Instant::now)), if write_deadline.is_some() => {
                     self.write_timeout();
                 }
+                // A burst held too long goes out as it is.
+                _ = tokio::time::sleep_until(hold_deadline.unwrap_or_else(tokio::time::Instant::now)), if held => {}
                 // Wakes the limit check when the client stays stalled.
                 _ = tokio::time::sleep_until(soft_deadline.unwrap_or_else(tokio::time::Instant::now)), if soft_deadline.is_some() => {}
                 else => return Ok(()),
@@ -327,6 +346,7 @@ impl Session {
         // Requests after a SETCONF wait for it: they may name variables of
         // the public file it loads.
         let mut budget = REQUESTS_PER_TURN;
+        let mut taken = 0;
         while !self.close
             && self.queue.len() < MAX_PENDING
             && self.ahead() < OUTPUT_HIGH_WATER
@@ -338,8 +358,10 @@ impl Session {
             }
             budget -= 1;
             let Some(frame) = self.conn.next_frame() else {
+                self.hold_burst(taken);
                 return true;
             };
+            taken += 1;
             match frame {
                 Frame::Line(line) => self.handle_line(&line),
                 Frame::Block { header, data } => {
@@ -357,7 +379,35 @@ impl Session {
                 }
             }
         }
+        self.hold_burst(taken);
         false
+    }
+
+    /// Requests that arrived together are answered in one write once all
+    /// their answers are ready: clients that read a burst's answers with a
+    /// single `recv()` find them all (and the server makes one write
+    /// instead of several). Bounded: until the PLC would be declared lost,
+    /// or the output reaches the high-water mark. A request alone is
+    /// answered as soon as it can be.
+    fn hold_burst(&mut self, taken: usize) {
+        if taken >= 2 && self.queue.waiting() && self.holding.is_none() {
+            let config = &self.section.state().config;
+            let bound = config.epstout * 2 + config.epstout_step + HOLD_MARGIN;
+            self.holding = Some(tokio::time::Instant::now() + bound);
+        }
+    }
+
+    /// Whether written output must wait for the rest of a burst's answers.
+    fn held(&mut self) -> bool {
+        if let Some(until) = self.holding {
+            if !self.queue.waiting()
+                || self.conn.backlog() >= OUTPUT_HIGH_WATER
+                || tokio::time::Instant::now() >= until
+            {
+                self.holding = None;
+            }
+        }
+        self.holding.is_some()
     }
 
     fn handle_line(&mut self, line: &[u8]) {

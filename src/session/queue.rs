@@ -40,6 +40,8 @@ pub struct AnswerQueue {
     sets: usize,
     /// What the waiting answers are expected to take, in bytes.
     estimated: usize,
+    /// Entries that are not complete answers.
+    incomplete: usize,
 }
 
 impl AnswerQueue {
@@ -73,11 +75,18 @@ impl AnswerQueue {
             self.sets += 1;
         }
         self.estimated += waiting.estimate();
+        self.incomplete += 1;
         self.entries.push_back(Entry::Wait(waiting));
     }
 
     pub fn push_stream(&mut self, stream: Box<Stream>) {
+        self.incomplete += 1;
         self.entries.push_back(Entry::Stream(stream));
+    }
+
+    /// Some answer is not complete yet (it waits for the link, or streams).
+    pub fn waiting(&self) -> bool {
+        self.incomplete > 0
     }
 
     /// A SET of this client is unanswered.
@@ -123,18 +132,20 @@ impl AnswerQueue {
         match &head {
             Entry::Ready(bytes) => self.ready_bytes -= bytes.len(),
             Entry::Wait(w) => {
+                self.incomplete -= 1;
                 self.estimated -= w.estimate();
                 if w.kind() == WaitKind::Set {
                     self.sets -= 1;
                 }
             }
-            Entry::Stream(_) => {}
+            Entry::Stream(_) => self.incomplete -= 1,
         }
         Some(head)
     }
 
     /// Puts a stream that is not done back at the head.
     pub fn push_front_stream(&mut self, stream: Box<Stream>) {
+        self.incomplete += 1;
         self.entries.push_front(Entry::Stream(stream));
     }
 
