@@ -52,6 +52,10 @@ impl Server {
             section.abort();
         }
         futures::future::join_all(self.sections.iter().map(|s| s.wait_link(SHUTDOWN_GRACE))).await;
+        #[cfg(feature = "fanout-trace")]
+        if let Some(summary) = crate::trace::summary() {
+            info!("{summary}");
+        }
         for simulator in self.simulators {
             simulator.stop().await;
         }

@@ -109,6 +109,9 @@ pub struct Session {
     holding: Option<tokio::time::Instant>,
     /// The most output it had queued or coming.
     peak: usize,
+    /// Snapshots whose DIFF lines are queued and not written yet.
+    #[cfg(feature = "fanout-trace")]
+    traced: Vec<(u64, tokio::time::Instant)>,
 }
 
 impl Session {
@@ -144,6 +147,8 @@ impl Session {
             turn_used: false,
             holding: None,
             peak: 0,
+            #[cfg(feature = "fanout-trace")]
+            traced: Vec::new(),
             section,
         }
     }
@@ -300,6 +305,10 @@ impl Session {
                         return Ok(());
                     }
                     self.conn.advance_written(n);
+                    #[cfg(feature = "fanout-trace")]
+                    if self.conn.backlog() == 0 && !self.traced.is_empty() {
+                        crate::trace::written(&mut self.traced);
+                    }
                 }
                 result = Connection::read_more(reader, input), if can_read => {
                     self.conn.last_input = tokio::time::Instant::now();
@@ -607,6 +616,10 @@ impl Session {
             .vars
             .collect_diffs(snapshot, &section.format, client.eol, &mut conn.out);
         if lines > 0 {
+            #[cfg(feature = "fanout-trace")]
+            if let Some(polled) = snapshot.polled {
+                self.traced.push((snapshot.seq, polled.at));
+            }
             section.metrics.diff_lines.add(lines as u64);
             section
                 .metrics

@@ -120,6 +120,56 @@ pub struct GetArgs {
     /// counts EPSNET datagrams and read requests during the measurement.
     #[arg(long)]
     pub proxy: Option<String>,
+    /// The server is Redis: the same loop sends RESP `GET <key>` (keys
+    /// `VAR_00000`.. set first, to values the size of plccoms' answers) and
+    /// reads bulk replies, so both servers are driven by one generator.
+    #[arg(long)]
+    pub redis: bool,
+    /// Keys set and read in Redis mode.
+    #[arg(long, default_value_t = 10_000)]
+    pub keys: usize,
+}
+
+/// Sets `VAR_00000`.. in Redis, pipelined; returns the names.
+async fn redis_keys(addr: SocketAddr, keys: usize) -> Result<Vec<String>, String> {
+    let mut conn = LineConn::connect(addr).await.map_err(|e| e.to_string())?;
+    let names: Vec<String> = (0..keys.max(1)).map(|i| format!("VAR_{i:05}")).collect();
+    for chunk in names.chunks(1000) {
+        let mut batch = Vec::new();
+        for name in chunk {
+            // A value the length of a plccoms answer's value.
+            resp(&mut batch, &["SET", name, "12345"]);
+        }
+        conn.send(&batch).await.map_err(|e| e.to_string())?;
+        for _ in chunk {
+            let line = conn.expect_line().await.map_err(|e| e.to_string())?;
+            if line != b"+OK" {
+                return Err(format!("SET: {}", String::from_utf8_lossy(line)));
+            }
+        }
+    }
+    Ok(names)
+}
+
+/// A RESP command: an array of bulk strings.
+fn resp(out: &mut Vec<u8>, words: &[&str]) {
+    out.extend_from_slice(format!("*{}\r\n", words.len()).as_bytes());
+    for word in words {
+        out.extend_from_slice(format!("${}\r\n{word}\r\n", word.len()).as_bytes());
+    }
+}
+
+/// Reads one RESP reply to GET: `$<len>` and the value line, or `$-1`.
+async fn redis_reply(conn: &mut LineConn) -> std::io::Result<bool> {
+    let line = conn.expect_line().await?;
+    if !line.starts_with(b"$") {
+        return Ok(false);
+    }
+    if line == b"$-1" {
+        return Ok(false);
+    }
+    conn.expect_line().await?;
+    Ok(true)
 }
 
 pub async fn get(args: GetArgs) -> Result<(), String> {
@@ -130,6 +180,7 @@ pub async fn get(args: GetArgs) -> Result<(), String> {
         None => None,
     };
     let names: Vec<String> = match &args.names {
+        None if args.redis => redis_keys(addr, args.keys).await?,
         Some(path) => std::fs::read_to_string(path)
             .map_err(|e| format!("{}: {e}", path.display()))?
             .lines()
@@ -159,9 +210,13 @@ pub async fn get(args: GetArgs) -> Result<(), String> {
         let enabled = args.enabled;
         let mask = args.mask.clone();
         let by_name = args.names.is_some();
+        let redis = args.redis;
         tasks.push(tokio::spawn(async move {
             let setup = async {
                 let mut conn = LineConn::connect(addr).await?;
+                if redis {
+                    return Ok::<_, std::io::Error>(conn);
+                }
                 conn.command("SETCONF:diff,no", b"SETCONF:").await?;
                 if !enabled {
                     conn.command("DI:*", b"WARNING:").await?;
@@ -185,16 +240,25 @@ pub async fn get(args: GetArgs) -> Result<(), String> {
             while Instant::now() < deadline {
                 batch.clear();
                 for _ in 0..pipeline {
-                    batch.extend_from_slice(b"GET:");
-                    batch.extend_from_slice(names[i].as_bytes());
-                    batch.push(b'\n');
+                    if redis {
+                        resp(&mut batch, &["GET", &names[i]]);
+                    } else {
+                        batch.extend_from_slice(b"GET:");
+                        batch.extend_from_slice(names[i].as_bytes());
+                        batch.push(b'\n');
+                    }
                     i = (i + 1) % names.len();
                 }
                 let sent = Instant::now();
                 conn.send(&batch).await?;
                 let (mut good, mut bad) = (0, 0);
                 for _ in 0..pipeline {
-                    if conn.expect_line().await?.starts_with(b"GET:") {
+                    let answered = if redis {
+                        redis_reply(&mut conn).await?
+                    } else {
+                        conn.expect_line().await?.starts_with(b"GET:")
+                    };
+                    if answered {
                         good += 1;
                     } else {
                         bad += 1;
@@ -213,7 +277,8 @@ pub async fn get(args: GetArgs) -> Result<(), String> {
         }));
     }
     // Settle: enabled variables become current with the next poll.
-    tokio::time::sleep(Duration::from_millis(if args.enabled { 500 } else { 0 })).await;
+    let settle = args.enabled && !args.redis;
+    tokio::time::sleep(Duration::from_millis(if settle { 500 } else { 0 })).await;
     let t0 = Instant::now();
     let measure_from = t0 + secs(args.warmup);
     let deadline = measure_from + secs(args.duration);
