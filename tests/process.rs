@@ -804,6 +804,10 @@ fn setconf_every_key() {
     std::fs::write(plc.files.path().join("other.pub"), &other_pub).unwrap();
     let site = Site::new();
     site.external(plc.udp);
+    // other.pub describes another program than the PLC runs: only without
+    // the CRC check may a client load it.
+    let ini = std::fs::read_to_string(site.ini()).unwrap();
+    site.write_ini(&ini.replace("PUBFILE_CRC = Yes", "PUBFILE_CRC = No"));
     let _server = site.run(&[]);
     // The public file comes from the PLC at its first connection.
     site.wait_log("PLC connected");

@@ -200,6 +200,11 @@ async fn pubfile_crc_is_enforced_and_setconf_keys_limit_clients() {
         .copied()
         .collect();
     std::fs::write(dir.path().join("nocrc.pub"), &no_crc).unwrap();
+    // Another program's file, with its own (right) CRC line.
+    let mut other = common::demo_pub_with_extra();
+    let crc = plccoms_plc::pubfile::crc_of(&other);
+    other.extend_from_slice(format!(";* Crc=\"{crc:08X}\"\r\n").as_bytes());
+    std::fs::write(dir.path().join("other.pub"), &other).unwrap();
     std::fs::write(dir.path().join("same.pub"), plcsim::DEMO_PUB).unwrap();
     let mut c = Client::connect(addr).await;
     c.ask(

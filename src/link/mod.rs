@@ -614,24 +614,32 @@ impl Link {
                 }
             }
         };
-        let tables = self.tables.as_mut().expect("checked above");
         // A PLC that cannot be asked now is asked at its next connection.
-        tables.pending_fetch = loaded.is_err();
+        self.tables.as_mut().expect("checked above").pending_fetch = loaded.is_err();
         let (user, table) = loaded?;
         if by == NamedBy::Client && config.pubfile_crc {
             let file = user.as_ref().map_or("", |u| u.name.as_str());
-            match (user.as_ref().and_then(tables::trailer_crc), self.cycle.pf_crc()) {
-                (None, _) => {
-                    return Err(format!("PUBFILE_CRC = Yes and public file {file} has no CRC line"))
-                }
-                (Some(crc), Some(pf_crc)) if u64::from(crc) != pf_crc => {
+            let Some(crc) = user.as_ref().and_then(tables::trailer_crc) else {
+                return Err(format!(
+                    "PUBFILE_CRC = Yes and public file {file} has no CRC line"
+                ));
+            };
+            // The program in the PLC now, not as of the last poll.
+            match self.read_pf_crc().await {
+                Some(pf_crc) if u64::from(crc) == pf_crc => {}
+                Some(pf_crc) => {
                     return Err(format!(
                         "PUBFILE_CRC = Yes and public file {file} has CRC {crc:08X}, the PLC's program {pf_crc:08X}"
                     ))
                 }
-                _ => {}
+                None => {
+                    return Err(format!(
+                        "PUBFILE_CRC = Yes and the PLC's __PF_CRC cannot be read to check {file}"
+                    ))
+                }
             }
         }
+        let tables = self.tables.as_mut().expect("checked above");
         let name = user
             .as_ref()
             .map_or_else(|| tables.source.fixed_name.clone(), |u| u.name.clone());
@@ -649,6 +657,34 @@ impl Link {
         let notice = self.publisher.announce(changed, name);
         self.publisher.publish();
         Ok(notice)
+    }
+
+    /// `__PF_CRC` read from the PLC now, if it answers.
+    async fn read_pf_crc(&mut self) -> Option<u64> {
+        if self.health.state() != LinkState::Online {
+            return None;
+        }
+        let table = self.publisher.table().clone();
+        let var = table.var(table.pf_crc());
+        let request = ReadRequest {
+            area: var.area,
+            offset: var.offset,
+            len: var.byte_len(),
+        };
+        let backend = self.backend.as_deref_mut()?;
+        match jobs::read_ranges(backend, &[request]).await {
+            Ok(answers) => match answers.into_iter().next()? {
+                Ok(bytes) => match var.decode(&bytes) {
+                    plccoms_protocol::value::Value::Unsigned(crc) => Some(crc),
+                    _ => None,
+                },
+                Err(_) => None,
+            },
+            Err(err) => {
+                self.judge(&err);
+                None
+            }
+        }
     }
 
     /// Waits for `job` (work on another thread), polling on schedule

@@ -38,6 +38,15 @@ use crate::section::{ClientInfo, ClientStats, Section};
 use connection::{Connection, OUTPUT_HIGH_WATER};
 use queue::{AnswerQueue, Entry, HeadDone};
 
+/// Sleeps until `deadline`; built without reading the clock or arming a
+/// timer, so the `select!` branches that are off cost nothing.
+async fn sleep_until(deadline: Option<tokio::time::Instant>) {
+    match deadline {
+        Some(deadline) => tokio::time::sleep_until(deadline).await,
+        None => std::future::pending().await,
+    }
+}
+
 /// Asks the allocator to give freed memory back to the system, at most once
 /// a second. glibc keeps what a flood of large answers freed in its
 /// per-thread arenas: without this, a client that pipelined hundreds of
@@ -103,6 +112,9 @@ pub struct Session {
     dropped: Option<String>,
     /// What the session reports of itself (GETINFO, the web page).
     stats: Arc<ClientStats>,
+    /// Resolves when the server stops. Kept across wake-ups: registered
+    /// once, not on every turn of the loop.
+    stop: std::pin::Pin<Box<tokio_util::sync::WaitForCancellationFutureOwned>>,
     /// The last turn took [`REQUESTS_PER_TURN`] requests: yield first.
     turn_used: bool,
     /// Output waits until then for the rest of a burst's answers.
@@ -144,6 +156,7 @@ impl Session {
             over_soft_since: None,
             dropped: None,
             stats: Arc::default(),
+            stop: Box::pin(section.shutdown.clone().cancelled_owned()),
             turn_used: false,
             holding: None,
             peak: 0,
@@ -283,7 +296,7 @@ impl Session {
                 conn,
                 queue,
                 snapshots,
-                section,
+                stop,
                 ..
             } = self;
             let Connection {
@@ -326,16 +339,16 @@ impl Session {
                         self.take_snapshot();
                     }
                 }
-                _ = section.shutdown.cancelled(), if !closing => {
+                _ = stop.as_mut(), if !closing => {
                     self.stopping = true;
                 }
-                _ = tokio::time::sleep_until(write_deadline.unwrap_or_else(tokio::time::Instant::now)), if write_deadline.is_some() => {
+                _ = sleep_until(write_deadline), if write_deadline.is_some() => {
                     self.write_timeout();
                 }
                 // A burst held too long goes out as it is.
-                _ = tokio::time::sleep_until(hold_deadline.unwrap_or_else(tokio::time::Instant::now)), if held => {}
+                _ = sleep_until(hold_deadline), if held => {}
                 // Wakes the limit check when the client stays stalled.
-                _ = tokio::time::sleep_until(soft_deadline.unwrap_or_else(tokio::time::Instant::now)), if soft_deadline.is_some() => {}
+                _ = sleep_until(soft_deadline), if soft_deadline.is_some() => {}
                 else => return Ok(()),
             }
         }
