@@ -75,9 +75,13 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     for section in &config.sections {
         match start_one(&global, section, &dir, &mut server).await {
             Ok(running) => {
-                server
-                    .metrics
-                    .add_section(&running.section.name, running.section.metrics.clone());
+                let probe: std::sync::Weak<dyn crate::metrics::SectionProbe> =
+                    Arc::downgrade(&running.section) as _;
+                server.metrics.add_section(
+                    &running.section.name,
+                    running.section.metrics.clone(),
+                    probe,
+                );
                 server.sections.push(running);
             }
             Err(message) => {
