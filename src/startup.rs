@@ -24,6 +24,8 @@ pub struct Server {
     pub sections: Vec<RunningSection>,
     /// Every section's metrics, and whatever else reports (`/metrics`).
     pub metrics: Arc<crate::metrics::Registry>,
+    /// The web page, `/metrics` and the API, when HTTP_PORT is set.
+    pub web: Option<crate::web::WebServer>,
     simulators: Vec<SimHandle>,
     _file_stores: Vec<tempfile::TempDir>,
 }
@@ -39,6 +41,9 @@ impl Server {
     /// the simulators. Sections stop together: the whole takes at most two
     /// grace periods, however many there are.
     pub async fn shutdown(self) {
+        if let Some(web) = self.web {
+            web.shutdown().await;
+        }
         for section in &self.sections {
             section.stop_accepting();
         }
@@ -68,6 +73,7 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     let mut server = Server {
         sections: Vec::new(),
         metrics: Arc::default(),
+        web: None,
         simulators: Vec::new(),
         _file_stores: Vec::new(),
     };
@@ -97,6 +103,17 @@ pub async fn start(config: &Config) -> Result<Server, String> {
             "no PLC section could start: {}",
             failures.join("; ")
         ));
+    }
+    if let Some(web) = crate::web::WebConfig::from_global(&global, &dir) {
+        let sections = server.sections.iter().map(|s| s.section.clone()).collect();
+        // No historian yet: /api/history answers "historian not enabled".
+        let history = None;
+        server.web = Some(crate::web::start(
+            &web,
+            sections,
+            server.metrics.clone(),
+            history,
+        )?);
     }
     Ok(server)
 }
