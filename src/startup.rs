@@ -108,12 +108,12 @@ pub async fn start(config: &Config) -> Result<Server, String> {
         let sections = server.sections.iter().map(|s| s.section.clone()).collect();
         // No historian yet: /api/history answers "historian not enabled".
         let history = None;
-        server.web = Some(crate::web::start(
-            &web,
-            sections,
-            server.metrics.clone(),
-            history,
-        )?);
+        // Like a section that cannot listen, a page that cannot is
+        // reported and the PLC sections serve on.
+        match crate::web::start(&web, sections, server.metrics.clone(), history) {
+            Ok(running) => server.web = Some(running),
+            Err(message) => error!("web page not started: {message}"),
+        }
     }
     Ok(server)
 }

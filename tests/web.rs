@@ -378,6 +378,25 @@ fn off_loopback_without_a_token_the_server_does_not_start_and_names_http_token()
 }
 
 #[test]
+fn a_page_that_cannot_listen_is_reported_and_the_sections_serve_on() {
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let http_port = taken.local_addr().unwrap().port();
+    let port = free_port();
+    let server =
+        ServerProcess::with_config(&ini(&format!("HTTP_PORT = {http_port}"), port, ""), port);
+    wait_until("the failure is logged", || {
+        server.log().contains(&format!(
+            "web page not started: web page: cannot listen on 127.0.0.1:{http_port}"
+        ))
+    });
+    let mut client = TcpStream::connect(server.addr).unwrap();
+    client.write_all(b"GET:__PLC_RUN\r\n").unwrap();
+    let mut answer = [0u8; 64];
+    let n = client.read(&mut answer).unwrap();
+    assert!(answer[..n].starts_with(b"GET:__PLC_RUN,"));
+}
+
+#[test]
 fn off_loopback_every_request_needs_the_token_and_writes_always_do() {
     let web = start(&format!("HTTP_BIND = 0.0.0.0\nHTTP_TOKEN = {TOKEN}"), "");
     let http = web.http;
