@@ -151,6 +151,11 @@ for length, f in answers:
     put("epsnet_client", struct.pack(">H", length) + packet(7, [f]))
 put("epsnet_client", struct.pack(">H", 16) + packet(8, [f for _, f in answers[:3]] + [b"\xe5"]))
 
+for query in [b"section=Demo&vars=SIN*,counter&from=0&to=1000&format=csv",
+              b"section=D%20x&vars=%E8&from=2026-11-30T12:00:00Z&format=json",
+              b"section=Demo&from=-5&to=-9", b"vars=a&section=&to=1e9"]:
+    put("web_query", query)
+
 for target in sorted(counts):
     print(f"{target}: {counts[target]} seeds")
 PY

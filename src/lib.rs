@@ -13,7 +13,9 @@
 //! - `link` is the task that owns a section's backend: health, poll cycle,
 //!   client jobs, SETCONF, file transfers, public-file tables;
 //! - `backend` is the one interface to a PLC, chosen by `PROTOCOL`;
-//! - `config` reads the INI file, `vars` is a section's variable table.
+//! - `config` reads the INI file, `vars` is a section's variable table;
+//! - `web` serves the status page, `/metrics` and the JSON API; `logring`
+//!   keeps the last warnings and errors for it.
 //!
 //! The line protocol (`plccoms-protocol`), the PLC model and EPSNET wire
 //! format (`plccoms-plc`) and the simulated PLC (`plcsim`) are crates of
@@ -28,6 +30,7 @@ pub mod config;
 pub mod daemon;
 pub mod link;
 pub mod localfs;
+pub mod logring;
 pub mod metrics;
 pub mod ratelimit;
 pub mod section;
@@ -38,3 +41,4 @@ pub mod startup;
 pub mod trace;
 pub mod vars;
 pub mod watch;
+pub mod web;

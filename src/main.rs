@@ -56,11 +56,15 @@ fn init_logging(cli: &Cli) -> Result<(), String> {
         1 => "debug",
         _ => "trace",
     };
+    use tracing_subscriber::layer::SubscriberExt;
+    use tracing_subscriber::util::SubscriberInitExt;
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level));
-    let builder = tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_target(cli.verbose >= 2);
+    // The log, and the last warnings and errors kept for the web page.
+    let registry = tracing_subscriber::registry()
+        .with(filter)
+        .with(plccoms::logring::layer());
+    let fmt = tracing_subscriber::fmt::layer().with_target(cli.verbose >= 2);
     match cli.log_path() {
         Some(path) => {
             // Clients never write it (WRITEFILE:./PLCComS.log).
@@ -71,12 +75,14 @@ fn init_logging(cli: &Cli) -> Result<(), String> {
                 .append(true)
                 .open(&path)
                 .map_err(|e| format!("cannot open log file {}: {e}", path.display()))?;
-            builder
-                .with_ansi(false)
-                .with_writer(std::sync::Mutex::new(file))
+            registry
+                .with(
+                    fmt.with_ansi(false)
+                        .with_writer(std::sync::Mutex::new(file)),
+                )
                 .init();
         }
-        None => builder.with_writer(std::io::stderr).init(),
+        None => registry.with(fmt.with_writer(std::io::stderr)).init(),
     }
     Ok(())
 }

@@ -8,7 +8,7 @@
 
 use std::fmt::Write as _;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, Weak};
 use std::time::Duration;
 
 /// A monotonically increasing count.
@@ -38,9 +38,12 @@ impl Gauge {
         self.0.store(value, Ordering::Relaxed);
     }
 
-    /// Raises the gauge to `value` if that is higher.
-    pub fn raise(&self, value: u64) {
-        self.0.fetch_max(value, Ordering::Relaxed);
+    pub fn add(&self, n: u64) {
+        self.0.fetch_add(n, Ordering::Relaxed);
+    }
+
+    pub fn sub(&self, n: u64) {
+        self.0.fetch_sub(n, Ordering::Relaxed);
     }
 
     pub fn get(&self) -> u64 {
@@ -78,6 +81,11 @@ impl Histogram {
 
     pub fn count(&self) -> u64 {
         self.count.load(Ordering::Relaxed)
+    }
+
+    /// The total of what was observed.
+    pub fn sum(&self) -> Duration {
+        Duration::from_nanos(self.sum_ns.load(Ordering::Relaxed))
     }
 
     /// The mean of what was observed, if anything was.
@@ -129,9 +137,6 @@ pub struct SectionMetrics {
     pub clients: Gauge,
     pub diff_lines: Counter,
     pub diff_bytes: Counter,
-    /// The most output any client of the section had queued (bytes) since
-    /// the last scrape.
-    pub max_output_queue: Gauge,
     pub pubfile_reloads: Counter,
 }
 
@@ -188,7 +193,7 @@ const SECTION_FAMILIES: [Family; 13] = [
         "1 while the link to the PLC is up.",
     ),
     family(
-        "plccoms_clients",
+        "plccoms_clients_connected",
         "gauge",
         "Clients connected to the section's port.",
     ),
@@ -205,7 +210,7 @@ const SECTION_FAMILIES: [Family; 13] = [
     family(
         "plccoms_client_output_queue_max_bytes",
         "gauge",
-        "Largest output queued for one client since the last scrape.",
+        "Largest output queued for one connected client now.",
     ),
     family(
         "plccoms_pubfile_reloads_total",
@@ -214,10 +219,23 @@ const SECTION_FAMILIES: [Family; 13] = [
     ),
 ];
 
+/// What a section knows only at the scrape: read from its clients, so a
+/// scrape changes nothing (any number of scrapers see the same).
+pub trait SectionProbe: Send + Sync {
+    /// The most output queued for one connected client, in bytes.
+    fn max_output_queue(&self) -> u64;
+}
+
 impl SectionMetrics {
     /// Appends this section's samples of family `index` of
     /// [`SECTION_FAMILIES`].
-    fn render_family(&self, index: usize, section: &str, out: &mut String) {
+    fn render_family(
+        &self,
+        index: usize,
+        section: &str,
+        probe: &Weak<dyn SectionProbe>,
+        out: &mut String,
+    ) {
         let labels = format!("section=\"{}\"", escape_label(section));
         let name = SECTION_FAMILIES[index].name;
         let backend = &self.backend;
@@ -233,7 +251,7 @@ impl SectionMetrics {
             8 => self.clients.get(),
             9 => self.diff_lines.get(),
             10 => self.diff_bytes.get(),
-            11 => self.max_output_queue.0.swap(0, Ordering::Relaxed),
+            11 => probe.upgrade().map_or(0, |p| p.max_output_queue()),
             _ => self.pubfile_reloads.get(),
         };
         let _ = writeln!(out, "{name}{{{labels}}} {value}");
@@ -249,13 +267,20 @@ pub trait Source: Send + Sync {
 /// Every section's metrics and the other sources, rendered together.
 #[derive(Default)]
 pub struct Registry {
-    sections: Mutex<Vec<(String, Arc<SectionMetrics>)>>,
+    sections: Mutex<Vec<RegisteredSection>>,
     sources: Mutex<Vec<Arc<dyn Source>>>,
 }
 
+type RegisteredSection = (String, Arc<SectionMetrics>, Weak<dyn SectionProbe>);
+
 impl Registry {
-    pub fn add_section(&self, name: &str, metrics: Arc<SectionMetrics>) {
-        lock(&self.sections).push((name.to_string(), metrics));
+    pub fn add_section(
+        &self,
+        name: &str,
+        metrics: Arc<SectionMetrics>,
+        probe: Weak<dyn SectionProbe>,
+    ) {
+        lock(&self.sections).push((name.to_string(), metrics, probe));
     }
 
     pub fn add_source(&self, source: Arc<dyn Source>) {
@@ -268,8 +293,8 @@ impl Registry {
         let sections = lock(&self.sections).clone();
         for (index, family) in SECTION_FAMILIES.iter().enumerate() {
             header(&mut out, family.name, family.kind, family.help);
-            for (name, metrics) in &sections {
-                metrics.render_family(index, name, &mut out);
+            for (name, metrics, probe) in &sections {
+                metrics.render_family(index, name, probe, &mut out);
             }
         }
         for source in lock(&self.sources).iter() {
@@ -303,14 +328,19 @@ mod tests {
 
     #[test]
     fn prometheus_text_of_a_section() {
+        struct Queues(u64);
+        impl SectionProbe for Queues {
+            fn max_output_queue(&self) -> u64 {
+                self.0
+            }
+        }
         let registry = Registry::default();
         let metrics = Arc::new(SectionMetrics::default());
-        registry.add_section("Demo \"1\"", metrics.clone());
+        let queues: Arc<dyn SectionProbe> = Arc::new(Queues(10));
+        registry.add_section("Demo \"1\"", metrics.clone(), Arc::downgrade(&queues));
         metrics.poll_cycle.observe(Duration::from_micros(700));
         metrics.poll_cycle.observe(Duration::from_secs(20));
         metrics.diff_lines.add(3);
-        metrics.max_output_queue.raise(10);
-        metrics.max_output_queue.raise(4);
         let text = registry.render();
         assert!(text.contains("# TYPE plccoms_poll_cycle_seconds histogram\n"));
         assert!(text.contains(
@@ -327,7 +357,9 @@ mod tests {
         assert!(
             text.contains("plccoms_client_output_queue_max_bytes{section=\"Demo \\\"1\\\"\"} 10\n")
         );
-        // The maximum starts again after each scrape.
+        // A scrape changes nothing; a section gone reports no queue.
+        assert_eq!(registry.render(), text);
+        drop(queues);
         assert!(registry
             .render()
             .contains("plccoms_client_output_queue_max_bytes{section=\"Demo \\\"1\\\"\"} 0\n"));

@@ -24,6 +24,8 @@ pub struct Server {
     pub sections: Vec<RunningSection>,
     /// Every section's metrics, and whatever else reports (`/metrics`).
     pub metrics: Arc<crate::metrics::Registry>,
+    /// The web page, `/metrics` and the API, when HTTP_PORT is set.
+    pub web: Option<crate::web::WebServer>,
     simulators: Vec<SimHandle>,
     _file_stores: Vec<tempfile::TempDir>,
 }
@@ -39,6 +41,9 @@ impl Server {
     /// the simulators. Sections stop together: the whole takes at most two
     /// grace periods, however many there are.
     pub async fn shutdown(self) {
+        if let Some(web) = self.web {
+            web.shutdown().await;
+        }
         for section in &self.sections {
             section.stop_accepting();
         }
@@ -75,6 +80,7 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     let mut server = Server {
         sections: Vec::new(),
         metrics: Arc::default(),
+        web: None,
         simulators: Vec::new(),
         _file_stores: Vec::new(),
     };
@@ -82,9 +88,13 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     for section in &config.sections {
         match start_one(&global, section, &dir, &mut server).await {
             Ok(running) => {
-                server
-                    .metrics
-                    .add_section(&running.section.name, running.section.metrics.clone());
+                let probe: std::sync::Weak<dyn crate::metrics::SectionProbe> =
+                    Arc::downgrade(&running.section) as _;
+                server.metrics.add_section(
+                    &running.section.name,
+                    running.section.metrics.clone(),
+                    probe,
+                );
                 server.sections.push(running);
             }
             Err(message) => {
@@ -100,6 +110,17 @@ pub async fn start(config: &Config) -> Result<Server, String> {
             "no PLC section could start: {}",
             failures.join("; ")
         ));
+    }
+    if let Some(web) = crate::web::WebConfig::from_global(&global, &dir) {
+        let sections = server.sections.iter().map(|s| s.section.clone()).collect();
+        // No historian yet: /api/history answers "historian not enabled".
+        let history = None;
+        // Like a section that cannot listen, a page that cannot is
+        // reported and the PLC sections serve on.
+        match crate::web::start(&web, sections, server.metrics.clone(), history) {
+            Ok(running) => server.web = Some(running),
+            Err(message) => error!("web page not started: {message}"),
+        }
     }
     Ok(server)
 }

@@ -4,7 +4,7 @@
 use std::collections::HashMap;
 
 use plccoms_protocol::value::Value;
-use plccoms_protocol::{cp1250, Area, IecType};
+use plccoms_protocol::{cp1250, Area, IecType, Mask};
 
 use plccoms_plc::pubfile::PubFile;
 use plccoms_plc::MemoryMap;
@@ -174,6 +174,18 @@ impl VarTable {
 
     pub fn var(&self, id: VarId) -> &Var {
         &self.vars[id as usize]
+    }
+
+    /// The variables whose names match any of `masks` (`*` wildcards, any
+    /// case), in table order.
+    pub fn matching<M: AsRef<[u8]>>(&self, masks: &[M]) -> Vec<VarId> {
+        let masks: Vec<Mask> = masks.iter().map(|m| Mask::new(m.as_ref())).collect();
+        self.vars
+            .iter()
+            .enumerate()
+            .filter(|(_, var)| masks.iter().any(|m| m.matches(&var.name)))
+            .map(|(id, _)| id as VarId)
+            .collect()
     }
 
     pub fn vars(&self) -> &[Var] {

@@ -41,6 +41,11 @@ fn every_target_runs_on_ordinary_input() {
     ] {
         checks::local_path(name);
     }
+    checks::web_query(
+        b"section=Demo&vars=SIN*,%20counter&from=0&to=2026-11-30T12:00:00%2B01:00&format=csv",
+    );
+    checks::web_query(b"section=Demo&from=9&to=8&vars=,,");
+    checks::web_query(b"section=%ZZ&&=&format=\xff");
     // READN answer of 2 bytes, then the same datagram as a request.
     let answer = [
         0x00, 0x02, 0x00, 0x07, 0x02, 0x00, 0x00, 0x0D, 0x68, 0x07, 0x07, 0x68, 0x7D, 0x00, 0x08,

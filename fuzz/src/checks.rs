@@ -719,3 +719,21 @@ pub fn local_path(data: &[u8]) {
         );
     }
 }
+
+// ---------------------------------------------------------------------------
+// web_query
+
+/// The web page's history query string (`/api/history?...`): parsed or
+/// refused with a message, never a panic; a parsed query is usable.
+pub fn web_query(data: &[u8]) {
+    let text = String::from_utf8_lossy(data);
+    match plccoms::web::history::parse_query(&text, 1_800_000_000_000) {
+        Ok((query, _format)) => {
+            assert!(!query.section.is_empty());
+            assert!(query.from_ms <= query.to_ms, "{query:?}");
+            assert!(!query.masks.is_empty());
+            assert!(query.masks.iter().all(|m| !m.is_empty()), "{query:?}");
+        }
+        Err(message) => assert!(!message.is_empty()),
+    }
+}

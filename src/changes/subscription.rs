@@ -13,7 +13,6 @@
 
 use std::sync::Arc;
 
-use plccoms_protocol::mask::Mask;
 use tokio::sync::watch;
 
 use super::{Interest, Snapshot};
@@ -97,15 +96,7 @@ impl Subscription {
         self.release();
         self.table = snapshot.table.clone();
         self.interest = snapshot.interest.clone();
-        let masks: Vec<Mask> = self.masks.iter().map(|m| Mask::new(m)).collect();
-        self.wanted = self
-            .table
-            .vars()
-            .iter()
-            .enumerate()
-            .filter(|(_, var)| masks.iter().any(|m| m.matches(&var.name)))
-            .map(|(id, _)| id as VarId)
-            .collect();
+        self.wanted = self.table.matching(&self.masks);
         for &id in &self.wanted {
             if !self.table.is_fixed(id) {
                 self.interest.add(id);

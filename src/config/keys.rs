@@ -3,7 +3,7 @@
 //! and a line of documentation. Loading, validation, messages, defaults,
 //! SETCONF and the check of `PLCComS.ini.example` all read it.
 
-use std::net::Ipv4Addr;
+use std::net::{IpAddr, Ipv4Addr};
 use std::time::Duration;
 
 use super::{Global, Network, Section, Simulator};
@@ -57,6 +57,8 @@ pub enum Kind {
     Bool,
     /// See [`parse_ipv4`].
     Ipv4,
+    /// An IPv4 or IPv6 address.
+    IpAddr,
     /// Any text.
     Text,
     /// A comma-separated list of [`Network`]s.
@@ -79,6 +81,7 @@ pub enum Value {
     Number(u64),
     Bool(bool),
     Ipv4(Ipv4Addr),
+    IpAddr(IpAddr),
     Text(String),
     Networks(Vec<Network>),
     Choice(&'static str),
@@ -271,6 +274,7 @@ impl Kind {
                 .collect::<Vec<_>>()
                 .join(", "),
             Kind::Ipv4 => "a.b.c.d, each part 0-255".to_string(),
+            Kind::IpAddr => "a.b.c.d or x:y::z".to_string(),
             Kind::Text => "any non-empty text".to_string(),
             Kind::Networks => "a.b.c.d, a.b.c.d/n, x:y::z, x:y::/n".to_string(),
             Kind::Choice { choices, .. } => choices.join(", "),
@@ -297,6 +301,10 @@ impl Kind {
             Kind::Ipv4 => parse_ipv4(text)
                 .map(Value::Ipv4)
                 .ok_or_else(|| format!("is not an IPv4 address {allowed}")),
+            Kind::IpAddr => text
+                .parse()
+                .map(Value::IpAddr)
+                .map_err(|_| format!("is not an IP address {allowed}")),
             Kind::Text if text.is_empty() => Err(format!("is empty {allowed}")),
             Kind::Text => Ok(Value::Text(text.to_string())),
             Kind::Networks => text
@@ -359,6 +367,13 @@ impl Value {
     fn ipv4(self) -> Ipv4Addr {
         match self {
             Value::Ipv4(ip) => ip,
+            other => mismatch(&other),
+        }
+    }
+
+    fn ip_addr(self) -> IpAddr {
+        match self {
+            Value::IpAddr(ip) => ip,
             other => mismatch(&other),
         }
     }
@@ -532,6 +547,18 @@ static KEYS: &[Key] = &[
         "folder of the PC files clients read and write (names beginning with .); \
          default: the configuration's folder",
         Setter::Global(|g, v| g.files_root = Some(v.text().into()))),
+    // The built-in web page, /metrics and the JSON API (src/web).
+    row("HTTP_PORT", None, number(1, 65535, ""), "TCP port of the web page and API (unset = off)",
+        Setter::Global(|g, v| g.http_port = Some(v.number() as u16))),
+    row("HTTP_BIND", Some("127.0.0.1"), Kind::IpAddr, "address the web page listens on",
+        Setter::Global(|g, v| g.http_bind = v.ip_addr())),
+    row("HTTP_TOKEN", None, Kind::Text,
+        "token for writes, and for everything when HTTP_BIND is not a loopback address",
+        Setter::Global(|g, v| g.http_token = Some(v.text()))),
+    row("HTTP_CERT", None, Kind::Text, "TLS certificate chain (PEM) of the web page",
+        Setter::Global(|g, v| g.http_cert = Some(v.text()))),
+    row("HTTP_KEY", None, Kind::Text, "TLS private key (PEM) of the web page",
+        Setter::Global(|g, v| g.http_key = Some(v.text()))),
 
     // A PLC section.
     row("IPADDR", None, Kind::Ipv4, "IP address of the PLC (0.0.0.0 = none yet)",

@@ -83,6 +83,14 @@ pub struct Global {
     /// FILES_ROOT: the folder of PC files (relative to the configuration's
     /// folder); `None`: the configuration's folder, as PLCComS.
     pub files_root: Option<PathBuf>,
+    /// The built-in web page (src/web): HTTP_PORT (`None` = off),
+    /// HTTP_BIND, HTTP_TOKEN, and TLS with HTTP_CERT and HTTP_KEY (paths
+    /// relative to the configuration's folder).
+    pub http_port: Option<u16>,
+    pub http_bind: IpAddr,
+    pub http_token: Option<String>,
+    pub http_cert: Option<String>,
+    pub http_key: Option<String>,
 }
 
 impl Default for Global {
@@ -112,6 +120,11 @@ impl Default for Global {
             output_soft_limit: 0,
             output_soft_timeout: Duration::ZERO,
             files_root: None,
+            http_port: None,
+            http_bind: IpAddr::V4(Ipv4Addr::LOCALHOST),
+            http_token: None,
+            http_cert: None,
+            http_key: None,
         })
     }
 }
@@ -542,7 +555,46 @@ fn read_global(
         }
         global.output_soft_limit = hard;
     }
+    check_http(&global, &map, diags, errors);
     global
+}
+
+/// The web page's keys that depend on each other: a page reachable from
+/// other machines needs HTTP_TOKEN, and TLS needs both files.
+fn check_http(
+    global: &Global,
+    map: &HashMap<&str, &Entry>,
+    diags: &Diags<'_>,
+    errors: &mut Vec<Diagnostic>,
+) {
+    let Some(port_entry) = map.get("HTTP_PORT") else {
+        return;
+    };
+    let line_of = |key: &str| map.get(key).map_or(port_entry.line, |e| e.line);
+    if global.http_port.is_some() && !global.http_bind.is_loopback() && global.http_token.is_none()
+    {
+        errors.push(diags.make(
+            Severity::Error,
+            line_of("HTTP_BIND"),
+            format!(
+                "HTTP_BIND = {} is not a loopback address: HTTP_TOKEN must be set, \
+                 or the page would be open to the network",
+                global.http_bind
+            ),
+        ));
+    }
+    if global.http_cert.is_some() != global.http_key.is_some() {
+        let (given, missing) = if global.http_cert.is_some() {
+            ("HTTP_CERT", "HTTP_KEY")
+        } else {
+            ("HTTP_KEY", "HTTP_CERT")
+        };
+        errors.push(diags.make(
+            Severity::Error,
+            line_of(given),
+            format!("{given} is set without {missing}: TLS needs both"),
+        ));
+    }
 }
 
 /// The defaults of a PLC section (with no SERVER_PORT).

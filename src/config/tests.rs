@@ -913,6 +913,7 @@ fn sample(key: &Key) -> Option<String> {
         Kind::Bool if default == Some(Value::Bool(true)) => "No".into(),
         Kind::Bool => "Yes".into(),
         Kind::Ipv4 => "10.0.0.1".into(),
+        Kind::IpAddr => "::1".into(),
         Kind::Text => "x".into(),
         Kind::Networks => "10.0.0.0/8".into(),
         Kind::Choice { choices, .. } => choices

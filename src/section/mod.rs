@@ -171,6 +171,18 @@ impl Section {
     }
 }
 
+impl crate::metrics::SectionProbe for Section {
+    fn max_output_queue(&self) -> u64 {
+        let clients = self.clients.lock().unwrap_or_else(|p| p.into_inner());
+        clients
+            .list
+            .iter()
+            .map(|c| c.stats.queued.get())
+            .max()
+            .unwrap_or(0)
+    }
+}
+
 /// How values print, from the global settings.
 pub fn format_options(global: &Global) -> FormatOptions {
     FormatOptions {

@@ -218,7 +218,6 @@ impl Session {
         self.stats
             .enabled
             .set(self.client.vars.enabled_total() as u64);
-        self.section.metrics.max_output_queue.raise(queued);
     }
 
     /// Applies OUTPUT_HARD_LIMIT and OUTPUT_SOFT_LIMIT; `Some(why)` when the

@@ -1,7 +1,7 @@
 //! loadgen: a load generator for plccoms (or any PLCComS-compatible server).
 //!
 //! Scenarios: `get`, `set`, `fanout`, `poll`, `list`, `connect`, `memory`,
-//! `startup`; `genpub` writes the generated projects. Every loop is bounded
+//! `startup`, `web`; `genpub` writes the generated projects. Every loop is bounded
 //! in count and time and every address must be on 127.0.0.1. Results are
 //! printed as `label.metric value` lines, and appended to `--out` for the
 //! bench script (bench/run), which turns them into BENCHMARKS.md.
@@ -10,6 +10,7 @@ mod fanout;
 mod proxy;
 mod scenarios;
 mod util;
+mod web;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -68,6 +69,9 @@ enum Scenario {
     Memory(scenarios::MemoryArgs),
     /// Start-up: from spawning the server to its port accepting.
     Startup(scenarios::StartupArgs),
+    /// Live-value streams on the web page (browsers) while telnet clients
+    /// GET at a steady pace: server CPU and GET latency.
+    Web(web::WebArgs),
     /// Writes a generated public file.
     Genpub(GenpubArgs),
 }
@@ -111,6 +115,7 @@ fn main() -> ExitCode {
             Scenario::Connect(a) => scenarios::connect(a).await,
             Scenario::Memory(a) => scenarios::memory(a).await,
             Scenario::Startup(a) => scenarios::startup(a).await,
+            Scenario::Web(a) => web::run(a).await,
             Scenario::Genpub(a) => {
                 let bytes = plcsim::genpub::generate(&plcsim::genpub::Layout {
                     vars: a.vars,

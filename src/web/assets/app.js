@@ -1,0 +1,560 @@
+// The plccoms status page: sections, clients, a variable browser with live
+// values (server-sent events from /api/sections/{s}/live), a trend chart
+// (uPlot) live and from the historian, the log, and writes with the token.
+// Plain browser JavaScript, no build step; everything it loads is served by
+// the binary.
+"use strict";
+
+(() => {
+  const $ = (id) => document.getElementById(id);
+  const NUMERIC = /^(BOOL|SINT|INT|DINT|LINT|USINT|UINT|UDINT|ULINT|BYTE|WORD|DWORD|LWORD|REAL|LREAL|TIME|TIME_OF_DAY|TOD)$/;
+  const MAX_POINTS = 20000;
+  const COLORS = ["#2b6cb0", "#c53030", "#1f8a4c", "#b7791f", "#6b46c1", "#0987a0", "#d53f8c", "#4a5568"];
+
+  const st = {
+    session: null,
+    sections: [],
+    section: null,
+    vars: new Map(), // name -> {type, value, quality, changed, row}
+    charted: [],     // names, in the order chosen
+    source: null,
+    live: { t: [], ys: new Map() },
+    mode: "live",
+    zoomed: false,
+    plot: null,
+    prevCycle: null,
+    events: 0,
+  };
+  // For tests and the curious: window.plccoms.events counts live events.
+  window.plccoms = st;
+
+  async function api(path, options) {
+    const response = await fetch(path, Object.assign({ credentials: "same-origin" }, options));
+    let body = null;
+    const type = response.headers.get("content-type") || "";
+    if (type.includes("json")) body = await response.json();
+    if (!response.ok) {
+      const error = new Error((body && body.error) || response.status + " " + response.statusText);
+      error.status = response.status;
+      throw error;
+    }
+    return body;
+  }
+
+  function notice(text) {
+    $("notice").textContent = text || "";
+    $("notice").hidden = !text;
+  }
+
+  const pad = (n) => String(n).padStart(2, "0");
+  function clock(ms) {
+    if (ms == null) return "";
+    const d = new Date(ms);
+    return `${pad(d.getHours())}:${pad(d.getMinutes())}:${pad(d.getSeconds())}.${String(d.getMilliseconds()).padStart(3, "0")}`;
+  }
+  function dateTime(ms) {
+    const d = new Date(ms);
+    return `${d.getFullYear()}-${pad(d.getMonth() + 1)}-${pad(d.getDate())} ${pad(d.getHours())}:${pad(d.getMinutes())}:${pad(d.getSeconds())}`;
+  }
+  function localInput(ms) {
+    const d = new Date(ms);
+    return `${d.getFullYear()}-${pad(d.getMonth() + 1)}-${pad(d.getDate())}T${pad(d.getHours())}:${pad(d.getMinutes())}:${pad(d.getSeconds())}`;
+  }
+  function ago(ms) {
+    const s = Math.max(0, Math.round((Date.now() - ms) / 1000));
+    if (s < 60) return `${s} s ago`;
+    if (s < 3600) return `${Math.floor(s / 60)} min ago`;
+    return `${Math.floor(s / 3600)} h ago`;
+  }
+  function bytes(n) {
+    if (n < 1024) return `${n} B`;
+    if (n < 1048576) return `${(n / 1024).toFixed(1)} KiB`;
+    return `${(n / 1048576).toFixed(1)} MiB`;
+  }
+  function numeric(type, text) {
+    if (text == null || !NUMERIC.test(type)) return null;
+    const x = Number(text);
+    return Number.isFinite(x) ? x : null;
+  }
+  const canWrite = () =>
+    st.session && st.session.writes_possible && st.session.authenticated && st.section && !st.section.read_only;
+
+  // ---------------------------------------------------------------- session
+  async function start() {
+    st.session = await api("/api/session");
+    $("version").textContent = st.session.version;
+    $("login").hidden = !st.session.writes_possible || st.session.authenticated;
+    $("whoami").hidden = !st.session.authenticated;
+    if (st.session.reads_need_token && !st.session.authenticated) {
+      notice("This page needs the HTTP_TOKEN: log in above.");
+      return;
+    }
+    notice("");
+    $("main").hidden = false;
+    await refreshSections();
+    const wanted = decodeURIComponent(location.hash.slice(1));
+    const first = st.sections.find((s) => s.name === wanted) || st.sections[0];
+    if (first) selectSection(first.name);
+    setInterval(refreshSections, 1000);
+    setInterval(refreshClients, 2000);
+    setInterval(refreshLog, 5000);
+    refreshLog();
+  }
+
+  $("login").addEventListener("submit", async (event) => {
+    event.preventDefault();
+    try {
+      await api("/api/login", {
+        method: "POST",
+        headers: { "content-type": "application/json" },
+        body: JSON.stringify({ token: $("token").value }),
+      });
+      location.reload();
+    } catch (e) {
+      notice(`Login failed: ${e.message}`);
+    }
+  });
+  $("logout").addEventListener("click", async () => {
+    await api("/api/logout", { method: "POST" });
+    location.reload();
+  });
+
+  // ---------------------------------------------------------------- sections
+  async function refreshSections() {
+    try {
+      st.sections = await api("/api/sections");
+    } catch (e) {
+      notice(`The server does not answer: ${e.message}`);
+      return;
+    }
+    notice("");
+    const tabs = $("tabs");
+    if (tabs.childElementCount !== st.sections.length) {
+      tabs.replaceChildren(
+        ...st.sections.map((s) => {
+          const b = document.createElement("button");
+          b.type = "button";
+          b.textContent = s.name;
+          b.dataset.section = s.name;
+          b.addEventListener("click", () => selectSection(s.name));
+          return b;
+        })
+      );
+    }
+    for (const b of tabs.children) b.classList.toggle("active", st.section && b.dataset.section === st.section.name);
+    if (st.section) {
+      const now = st.sections.find((s) => s.name === st.section.name);
+      if (now) {
+        st.section = now;
+        renderOverview(now);
+      }
+    }
+  }
+
+  function renderOverview(s) {
+    const badge = $("link-state");
+    badge.textContent = s.link.state.replace("_", " ");
+    badge.className = `badge ${s.link.state}`;
+    $("link-since").textContent = `since ${dateTime(s.link.since_ms)}`;
+    $("plc-addr").textContent = s.link.plc ? `PLC ${s.link.plc}` : "";
+    $("ident").textContent = s.link.ident || "(not identified yet)";
+    $("pubfiles").textContent = [s.pubfile_fixed, s.pubfile_user].filter(Boolean).join(", ") + ` · ${s.variables} variables`;
+    const p = s.poll;
+    let cycle = "…";
+    if (st.prevCycle && st.prevCycle.section === s.name && p.cycles > st.prevCycle.cycles) {
+      const ms = ((p.cycle_seconds_sum - st.prevCycle.sum) / (p.cycles - st.prevCycle.cycles)) * 1000;
+      cycle = `${ms.toFixed(ms < 10 ? 2 : 1)} ms`;
+    } else if (p.cycles > 0) {
+      cycle = `${((p.cycle_seconds_sum / p.cycles) * 1000).toFixed(2)} ms`;
+    }
+    st.prevCycle = { section: s.name, cycles: p.cycles, sum: p.cycle_seconds_sum };
+    $("cycle-time").textContent = cycle;
+    $("period").textContent = `${p.period_ms} ms`;
+    $("overruns").textContent = String(p.overruns);
+    $("last-poll").textContent = p.last_poll_ms ? clock(p.last_poll_ms) : "never";
+    $("client-count").textContent = String(s.clients);
+    $("port").textContent = String(s.port);
+    $("read-only").hidden = !s.read_only;
+  }
+
+  async function selectSection(name) {
+    const s = st.sections.find((x) => x.name === name);
+    if (!s) return;
+    st.section = s;
+    st.prevCycle = null;
+    history.replaceState(null, "", `#${encodeURIComponent(name)}`);
+    for (const b of $("tabs").children) b.classList.toggle("active", b.dataset.section === name);
+    renderOverview(s);
+    st.charted = [];
+    resetLive();
+    await loadVars();
+    refreshClients();
+  }
+
+  async function refreshClients() {
+    if (!st.section) return;
+    let list;
+    try {
+      list = await api(`/api/sections/${encodeURIComponent(st.section.name)}/clients`);
+    } catch (e) {
+      return;
+    }
+    $("clients").replaceChildren(
+      ...list.map((c) => {
+        const tr = document.createElement("tr");
+        for (const text of [c.address, `${c.connected} (${ago(c.connected_ms)})`, String(c.enabled), bytes(c.queued_bytes)]) {
+          const td = document.createElement("td");
+          td.textContent = text;
+          tr.append(td);
+        }
+        return tr;
+      })
+    );
+    if (list.length === 0) {
+      const tr = document.createElement("tr");
+      const td = document.createElement("td");
+      td.colSpan = 4;
+      td.className = "dim";
+      td.textContent = "no clients connected";
+      tr.append(td);
+      $("clients").append(tr);
+    }
+  }
+
+  async function refreshLog() {
+    let entries;
+    try {
+      entries = await api("/api/log");
+    } catch (e) {
+      return;
+    }
+    const items = entries.slice(-100).reverse().map((e) => {
+      const li = document.createElement("li");
+      li.className = e.level;
+      li.textContent = `${dateTime(e.unix_ms)} ${e.level.padEnd(5)} ${e.message}`;
+      return li;
+    });
+    if (items.length === 0) {
+      const li = document.createElement("li");
+      li.className = "dim";
+      li.textContent = "none since start";
+      items.push(li);
+    }
+    $("log").replaceChildren(...items);
+  }
+
+  // ---------------------------------------------------------------- variables
+  let maskTimer = null;
+  $("mask").addEventListener("input", () => {
+    clearTimeout(maskTimer);
+    maskTimer = setTimeout(loadVars, 300);
+  });
+
+  async function loadVars() {
+    const s = st.section;
+    const mask = $("mask").value.trim() || "*";
+    let list;
+    try {
+      list = await api(`/api/sections/${encodeURIComponent(s.name)}/values?vars=${encodeURIComponent(mask)}&limit=2000`);
+    } catch (e) {
+      $("var-count").textContent = e.message;
+      return;
+    }
+    if (st.section !== s && st.section.name !== s.name) return;
+    st.vars = new Map();
+    const rows = list.values.map((v) => {
+      const entry = { type: v.type, value: v.value, quality: v.quality, changed: v.changed_ms };
+      st.vars.set(v.name, entry);
+      return makeRow(v.name, entry);
+    });
+    $("vars").replaceChildren(...rows);
+    $("var-count").textContent = list.total > list.values.length ? `${list.values.length} of ${list.total} shown: narrow the mask` : `${list.total} variables`;
+    for (const th of document.querySelectorAll(".write-col")) th.hidden = !canWrite();
+    openLive(mask, list.total <= 2000);
+  }
+
+  function makeRow(name, entry) {
+    const tr = document.createElement("tr");
+    tr.dataset.name = name;
+    const cells = {};
+    for (const key of ["chart", "name", "type", "value", "quality", "changed", "write"]) {
+      cells[key] = document.createElement("td");
+      cells[key].className = key;
+      tr.append(cells[key]);
+    }
+    const box = document.createElement("input");
+    box.type = "checkbox";
+    box.setAttribute("aria-label", `chart ${name}`);
+    box.disabled = !NUMERIC.test(entry.type);
+    box.checked = st.charted.includes(name);
+    box.addEventListener("change", () => toggleChart(name, box.checked));
+    cells.chart.append(box);
+    cells.name.textContent = name;
+    cells.type.textContent = entry.type;
+    if (canWrite()) {
+      const input = document.createElement("input");
+      input.className = "write";
+      input.setAttribute("aria-label", `new value of ${name}`);
+      const button = document.createElement("button");
+      button.type = "button";
+      button.textContent = "Set";
+      const result = document.createElement("span");
+      result.className = "write-result";
+      const send = () => write(name, input.value, result);
+      button.addEventListener("click", send);
+      input.addEventListener("keydown", (e) => { if (e.key === "Enter") send(); });
+      cells.write.append(input, button, result);
+    } else {
+      cells.write.hidden = true;
+    }
+    entry.cells = cells;
+    entry.row = tr;
+    paint(entry, false);
+    return tr;
+  }
+
+  function paint(entry, flash) {
+    const c = entry.cells;
+    c.value.textContent = entry.value == null ? "—" : entry.value;
+    c.value.title = entry.value == null ? "" : entry.value;
+    c.quality.textContent = entry.quality.replace("_", " ");
+    c.quality.className = `quality q-${entry.quality}`;
+    c.changed.textContent = entry.changed ? clock(entry.changed) : "";
+    entry.row.className = `q-${entry.quality}`;
+    if (flash) {
+      entry.row.classList.add("flash");
+      setTimeout(() => entry.row.classList.remove("flash"), 150);
+    }
+  }
+
+  async function write(name, value, result) {
+    result.className = "write-result";
+    result.textContent = "…";
+    try {
+      const done = await api(`/api/sections/${encodeURIComponent(st.section.name)}/set`, {
+        method: "POST",
+        headers: { "content-type": "application/json" },
+        body: JSON.stringify({ name, value }),
+      });
+      result.textContent = `✓ ${done.value}`;
+    } catch (e) {
+      result.className = "write-result err";
+      result.textContent = e.message;
+    }
+  }
+
+  // ---------------------------------------------------------------- live
+  function openLive(mask, allowed) {
+    if (st.source) st.source.close();
+    st.source = null;
+    const masks = [mask, ...st.charted].join(",");
+    if (!allowed) {
+      $("live-status").textContent = "too many variables for live values";
+      return;
+    }
+    const url = `/api/sections/${encodeURIComponent(st.section.name)}/live?vars=${encodeURIComponent(masks)}`;
+    const source = new EventSource(url);
+    st.source = source;
+    source.addEventListener("open", () => { $("live-status").textContent = "live"; });
+    source.addEventListener("error", () => { $("live-status").textContent = "reconnecting…"; });
+    source.addEventListener("values", (event) => onValues(JSON.parse(event.data)));
+  }
+
+  function onValues(batch) {
+    st.events += 1;
+    const t = batch.polled_ms || Date.now();
+    for (const [name, value, quality, changed] of batch.values) {
+      const entry = st.vars.get(name);
+      if (entry) {
+        entry.value = value;
+        entry.quality = quality;
+        entry.changed = changed;
+        paint(entry, true);
+      }
+      const series = st.live.ys.get(name);
+      if (series) series.last = numeric(series.type, value);
+    }
+    if (!batch.online) {
+      for (const entry of st.vars.values()) {
+        if (entry.quality !== "link_lost") {
+          entry.quality = "link_lost";
+          paint(entry, false);
+        }
+      }
+    }
+    if (batch.table_changed || batch.link === "restored") resync();
+    pushLive(t, batch.online);
+  }
+
+  async function resync() {
+    const mask = $("mask").value.trim() || "*";
+    try {
+      const list = await api(`/api/sections/${encodeURIComponent(st.section.name)}/values?vars=${encodeURIComponent(mask)}&limit=2000`);
+      for (const v of list.values) {
+        const entry = st.vars.get(v.name);
+        if (!entry) return loadVars();
+        Object.assign(entry, { value: v.value, quality: v.quality, changed: v.changed_ms });
+        paint(entry, false);
+      }
+    } catch (e) {
+      // The next event tries again.
+    }
+  }
+
+  // ---------------------------------------------------------------- chart
+  function resetLive() {
+    st.live = { t: [], ys: new Map() };
+  }
+
+  function toggleChart(name, on) {
+    const entry = st.vars.get(name);
+    if (on && !st.charted.includes(name)) {
+      st.charted.push(name);
+      st.live.ys.set(name, { type: entry.type, last: numeric(entry.type, entry.value), data: st.live.t.map(() => null) });
+    } else if (!on) {
+      st.charted = st.charted.filter((n) => n !== name);
+      st.live.ys.delete(name);
+    }
+    buildPlot();
+    openLive($("mask").value.trim() || "*", true);
+    if (st.mode === "range") loadRange();
+  }
+
+  function pushLive(t, online) {
+    if (st.charted.length === 0) return;
+    const live = st.live;
+    const x = t / 1000;
+    if (live.t.length && x <= live.t[live.t.length - 1]) return;
+    live.t.push(x);
+    for (const series of live.ys.values()) series.data.push(online ? series.last : null);
+    if (live.t.length > MAX_POINTS) {
+      live.t.splice(0, live.t.length - MAX_POINTS);
+      for (const series of live.ys.values()) series.data.splice(0, series.data.length - MAX_POINTS);
+    }
+    if (st.mode === "live") scheduleDraw();
+  }
+
+  let drawPending = false;
+  function scheduleDraw() {
+    if (drawPending) return;
+    drawPending = true;
+    requestAnimationFrame(() => {
+      drawPending = false;
+      drawLive();
+    });
+  }
+
+  function drawLive() {
+    if (!st.plot || st.mode !== "live") return;
+    const data = [st.live.t, ...st.charted.map((n) => st.live.ys.get(n).data)];
+    st.plot.setData(data, !st.zoomed);
+    if (!st.zoomed && st.live.t.length) {
+      // The window, or what there is of it when the chart is younger.
+      const max = st.live.t[st.live.t.length - 1];
+      const min = Math.min(max - 10, Math.max(st.live.t[0], max - Number($("window").value)));
+      st.plot.setScale("x", { min, max });
+    }
+  }
+
+  function plotSize() {
+    return { width: Math.max(300, $("plot").clientWidth || 800), height: 320 };
+  }
+
+  function buildPlot(data) {
+    if (st.plot) st.plot.destroy();
+    st.plot = null;
+    st.zoomed = false;
+    $("plot").replaceChildren();
+    if (st.charted.length === 0) {
+      $("chart-status").textContent = "no variables chosen";
+      return;
+    }
+    $("chart-status").textContent = "";
+    const opts = Object.assign(plotSize(), {
+      cursor: { drag: { x: true, y: false } },
+      scales: { x: { time: true } },
+      series: [{}, ...st.charted.map((name, i) => ({
+        label: name,
+        stroke: COLORS[i % COLORS.length],
+        width: 1.5,
+        spanGaps: false,
+        points: { show: false },
+      }))],
+      axes: [{}, { size: 70 }],
+      hooks: {
+        setSelect: [(u) => { if (u.select.width > 0) st.zoomed = true; }],
+      },
+    });
+    const initial = data || [st.live.t, ...st.charted.map((n) => st.live.ys.get(n).data)];
+    st.plot = new uPlot(opts, initial, $("plot"));
+    st.plot.over.addEventListener("dblclick", unzoom);
+    if (!data) drawLive();
+  }
+
+  function unzoom() {
+    st.zoomed = false;
+    if (st.mode === "live") drawLive();
+    else if (st.plot) st.plot.setData(st.plot.data, true);
+  }
+  $("unzoom").addEventListener("click", unzoom);
+  $("window").addEventListener("change", () => drawLive());
+  window.addEventListener("resize", () => { if (st.plot) st.plot.setSize(plotSize()); });
+
+  for (const radio of document.querySelectorAll('input[name="mode"]')) {
+    radio.addEventListener("change", () => {
+      st.mode = radio.value;
+      if (st.mode === "live") buildPlot();
+      else loadRange();
+    });
+  }
+  $("load").addEventListener("click", () => {
+    document.querySelector('input[name="mode"][value="range"]').checked = true;
+    st.mode = "range";
+    loadRange();
+  });
+  const now = Date.now();
+  $("from").value = localInput(now - 3600 * 1000);
+  $("to").value = localInput(now);
+
+  async function loadRange() {
+    if (st.charted.length === 0) {
+      buildPlot();
+      return;
+    }
+    if (!st.session.historian) {
+      buildPlot([[], ...st.charted.map(() => [])]);
+      $("chart-status").textContent = "historian not enabled: no history is recorded by this server";
+      return;
+    }
+    const from = new Date($("from").value).getTime();
+    const to = new Date($("to").value).getTime();
+    $("chart-status").textContent = "loading…";
+    const q = new URLSearchParams({ section: st.section.name, vars: st.charted.join(","), from: String(from), to: String(to), format: "json" });
+    let body;
+    try {
+      body = await api(`/api/history?${q}`);
+    } catch (e) {
+      buildPlot([[], ...st.charted.map(() => [])]);
+      $("chart-status").textContent = e.message;
+      return;
+    }
+    const tables = st.charted.map((name) => {
+      const xs = [];
+      const ys = [];
+      const type = (st.vars.get(name) || {}).type || "REAL";
+      for (const s of body.samples) {
+        if (s.name !== name) continue;
+        const x = s.t / 1000;
+        if (xs.length && x <= xs[xs.length - 1]) continue;
+        xs.push(x);
+        ys.push(s.quality === "link_lost" ? null : numeric(type, s.value));
+      }
+      return [xs, ys];
+    });
+    const data = uPlot.join(tables);
+    buildPlot(data);
+    $("chart-status").textContent = `${body.samples.length} samples${body.error ? ` · ${body.error}` : ""}`;
+  }
+
+  start().catch((e) => notice(`The page could not start: ${e.message}`));
+})();

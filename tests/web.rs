@@ -1,0 +1,657 @@
+//! The built-in web page, `/metrics` and the JSON API, against the built
+//! `plccoms` binary running a simulated PLC: `/metrics` parsed by Python's
+//! prometheus_client, the page driven in Debian's Chromium (playwright-core,
+//! `tests/web/`), the token rules, writes through SET's validation, the
+//! history API without a historian, and HTTPS.
+//!
+//! Needs `python3` with `prometheus_client`, `node` with `tests/web`'s
+//! packages installed (`npm ci --prefix tests/web`) and `/usr/bin/chromium`;
+//! `.ci/run` installs them.
+
+mod common;
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::process::{free_port, ChildGuard, ServerProcess, PLCCOMS};
+use serde_json::Value;
+
+const TOKEN: &str = "s3cret token";
+
+/// `[*]` with the web keys, and the demo PLC section on `port`.
+fn ini(web: &str, port: u16, section_extra: &str) -> String {
+    format!(
+        "[*]\nCOMM_LOOP_DELAY = 100\n{web}\n\n\
+         [Demo]\nSIMULATOR = Yes\nSIMULATOR_PROGRAM = demo\nSERVER_PORT = {port}\n\
+         IPADDR_LOCAL = 127.0.0.1\nPUBFILE = //demo.pub\n{section_extra}\n"
+    )
+}
+
+struct Web {
+    server: ServerProcess,
+    http: SocketAddr,
+}
+
+fn start(web_keys: &str, section_extra: &str) -> Web {
+    let web = start_server(web_keys, section_extra);
+    let http = web.http;
+    wait_until("the web page answers", || {
+        request(http, "GET", "/api/sections", &[], None).0 == 200
+            || request(http, "GET", "/api/session", &[], None).0 == 200
+    });
+    // The demo's public file comes from the simulated PLC.
+    wait_until("the demo table is loaded", || {
+        let (_, body) = request(
+            http,
+            "GET",
+            "/api/sections/Demo/vars?mask=SINUS",
+            &bearer(),
+            None,
+        );
+        serde_json::from_slice::<Value>(&body).is_ok_and(|v| v["total"] == 1)
+    });
+    web
+}
+
+/// The server, without waiting for its page.
+fn start_server(web_keys: &str, section_extra: &str) -> Web {
+    let http_port = free_port();
+    let port = free_port();
+    let web = format!("HTTP_PORT = {http_port}\n{web_keys}");
+    let server = ServerProcess::with_config(&ini(&web, port, section_extra), port);
+    let http = SocketAddr::from(([127, 0, 0, 1], http_port));
+    Web { server, http }
+}
+
+fn wait_until(what: &str, mut check: impl FnMut() -> bool) {
+    let deadline = Instant::now() + Duration::from_secs(15);
+    while !check() {
+        assert!(Instant::now() < deadline, "timed out waiting until {what}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn bearer() -> Vec<(&'static str, String)> {
+    vec![("Authorization", format!("Bearer {TOKEN}"))]
+}
+
+/// One HTTP/1.1 request (`Connection: close`): status and body (chunked
+/// bodies decoded).
+fn request(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    headers: &[(&str, String)],
+    json: Option<&str>,
+) -> (u16, Vec<u8>) {
+    let (status, _, body) = exchange(addr, method, path, headers, json);
+    (status, body)
+}
+
+fn exchange(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    headers: &[(&str, String)],
+    json: Option<&str>,
+) -> (u16, String, Vec<u8>) {
+    let Ok(mut stream) = TcpStream::connect_timeout(&addr, Duration::from_secs(5)) else {
+        return (0, String::new(), Vec::new());
+    };
+    stream
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
+    let mut head = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n");
+    for (name, value) in headers {
+        head.push_str(&format!("{name}: {value}\r\n"));
+    }
+    let body = json.unwrap_or("");
+    if json.is_some() {
+        head.push_str("Content-Type: application/json\r\n");
+    }
+    head.push_str(&format!("Content-Length: {}\r\n\r\n{body}", body.len()));
+    stream.write_all(head.as_bytes()).unwrap();
+    let mut raw = Vec::new();
+    let _ = stream.read_to_end(&mut raw);
+    let Some(split) = raw.windows(4).position(|w| w == b"\r\n\r\n") else {
+        return (0, String::new(), raw);
+    };
+    let head = String::from_utf8_lossy(&raw[..split]).into_owned();
+    let mut body = raw[split + 4..].to_vec();
+    let status = head
+        .split(' ')
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(0);
+    if head
+        .to_ascii_lowercase()
+        .contains("transfer-encoding: chunked")
+    {
+        body = dechunk(&body);
+    }
+    (status, head, body)
+}
+
+fn dechunk(mut raw: &[u8]) -> Vec<u8> {
+    let mut out = Vec::new();
+    loop {
+        let Some(end) = raw.windows(2).position(|w| w == b"\r\n") else {
+            return out;
+        };
+        let size = usize::from_str_radix(std::str::from_utf8(&raw[..end]).unwrap().trim(), 16)
+            .unwrap_or(0);
+        if size == 0 || raw.len() < end + 2 + size {
+            return out;
+        }
+        out.extend_from_slice(&raw[end + 2..end + 2 + size]);
+        raw = &raw[(end + 4 + size).min(raw.len())..];
+    }
+}
+
+/// GET `path` with no token: its JSON body.
+fn get_json(http: SocketAddr, path: &str) -> Value {
+    json(&request(http, "GET", path, &[], None).1)
+}
+
+fn json(body: &[u8]) -> Value {
+    serde_json::from_slice(body)
+        .unwrap_or_else(|e| panic!("not JSON ({e}): {}", String::from_utf8_lossy(body)))
+}
+
+/// A telnet-like client of the section with `EN:*`: a client to list, and
+/// DIFF lines to count.
+fn client_with_everything_enabled(port: u16) -> TcpStream {
+    let mut client = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    client.write_all(b"EN:*\r\n").unwrap();
+    client
+}
+
+#[test]
+fn metrics_parse_with_prometheus_client_and_name_every_family() {
+    let web = start("", "");
+    let _client = client_with_everything_enabled(web.server.port());
+    // Let DIFF lines flow and the poll cycle be observed.
+    std::thread::sleep(Duration::from_millis(500));
+    let url = format!("http://{}/metrics", web.http);
+    let output = Command::new("python3")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/web/check_metrics.py"))
+        .arg(&url)
+        .output()
+        .expect("python3 runs (tests/web/check_metrics.py)");
+    assert!(
+        output.status.success(),
+        "prometheus_client could not parse /metrics: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let parsed = json(&output.stdout);
+    assert_eq!(
+        parsed["content_type"],
+        "text/plain; version=0.0.4; charset=utf-8"
+    );
+    let families = parsed["families"].as_object().unwrap();
+    // prometheus_client names counter families without `_total`.
+    let expected = [
+        ("plccoms_poll_cycle_seconds", "histogram"),
+        ("plccoms_poll_overruns", "counter"),
+        ("plccoms_backend_requests", "counter"),
+        ("plccoms_backend_retries", "counter"),
+        ("plccoms_backend_timeouts", "counter"),
+        ("plccoms_backend_errors", "counter"),
+        ("plccoms_backend_round_trip_seconds", "histogram"),
+        ("plccoms_link_up", "gauge"),
+        ("plccoms_clients_connected", "gauge"),
+        ("plccoms_diff_lines", "counter"),
+        ("plccoms_diff_bytes", "counter"),
+        ("plccoms_client_output_queue_max_bytes", "gauge"),
+        ("plccoms_pubfile_reloads", "counter"),
+        ("plccoms_web_live_streams", "gauge"),
+        ("plccoms_web_live_events", "counter"),
+        ("plccoms_web_live_event_bytes", "counter"),
+    ];
+    for (name, kind) in expected {
+        let family = families
+            .get(name)
+            .unwrap_or_else(|| panic!("no family {name} in {:?}", families.keys()));
+        assert_eq!(family["type"], kind, "{name}");
+        assert!(!family["help"].as_str().unwrap().is_empty(), "{name}: HELP");
+    }
+    let sample = |family: &str, sample: &str| -> f64 {
+        families[family]["samples"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| {
+                s[0] == sample && (s[1]["section"] == "Demo" || s[1] == serde_json::json!({}))
+            })
+            .unwrap_or_else(|| panic!("no sample {sample}"))[2]
+            .as_f64()
+            .unwrap()
+    };
+    assert_eq!(sample("plccoms_link_up", "plccoms_link_up"), 1.0);
+    assert_eq!(
+        sample("plccoms_clients_connected", "plccoms_clients_connected"),
+        1.0
+    );
+    assert!(
+        sample(
+            "plccoms_poll_cycle_seconds",
+            "plccoms_poll_cycle_seconds_count"
+        ) > 0.0
+    );
+    assert!(sample("plccoms_backend_requests", "plccoms_backend_requests_total") > 0.0);
+    assert!(sample("plccoms_diff_lines", "plccoms_diff_lines_total") > 0.0);
+    assert!(sample("plccoms_diff_bytes", "plccoms_diff_bytes_total") > 0.0);
+}
+
+#[test]
+fn page_in_chromium_shows_live_values_and_a_chart_and_writes_with_the_token() {
+    let web = start(&format!("HTTP_TOKEN = {TOKEN}"), "");
+    let mut client = client_with_everything_enabled(web.server.port());
+    // A second client that has a little queued, for the clients table.
+    let _other = TcpStream::connect(("127.0.0.1", web.server.port())).unwrap();
+    let artifacts = artifacts();
+    let screenshot = artifacts.join("web-page.png");
+    let _ = std::fs::remove_file(&screenshot);
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/web/page.mjs");
+    let mut node = ChildGuard::spawn(
+        "node tests/web/page.mjs",
+        Command::new("node")
+            .arg(&script)
+            .arg(format!("http://{}", web.http))
+            .arg(&screenshot)
+            .arg(TOKEN)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped()),
+    );
+    let stdout = node.child().stdout.take().unwrap();
+    let stderr = node.child().stderr.take().unwrap();
+    let out = common::process::Capture::start(stdout);
+    let err = common::process::Capture::start(stderr);
+    let status = node
+        .wait_timeout(Duration::from_secs(120))
+        .expect("the browser run ends within 2 minutes");
+    let (out, err) = (out.finish(), err.finish());
+    assert!(
+        status.success(),
+        "node tests/web/page.mjs failed (is `npm ci --prefix tests/web` done and /usr/bin/chromium installed?): {}{}",
+        String::from_utf8_lossy(&out),
+        String::from_utf8_lossy(&err)
+    );
+    let line = String::from_utf8_lossy(&out);
+    let seen = json(line.lines().last().unwrap_or("").as_bytes());
+    assert_eq!(seen["failure"], Value::Null, "{seen:#}");
+    assert_eq!(seen["page_errors"], serde_json::json!([]), "{seen:#}");
+    let console: Vec<&str> = seen["console_errors"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(Value::as_str)
+        .collect();
+    // The only console error: the browser's note of the refused write's 400.
+    assert!(
+        console
+            .iter()
+            .all(|e| e.starts_with("refused write: ") && e.contains("400")),
+        "console errors: {console:?}"
+    );
+    assert_eq!(seen["link_state"], "online");
+    assert_eq!(seen["ident"], "CP1000    SIM 1.0 1.0");
+    assert_eq!(seen["quality"], "good");
+    let changed = seen["value_changed_ms"].as_f64().unwrap();
+    assert!(changed <= 1000.0, "SINUS changed after {changed} ms");
+    assert!(seen["chart_points"].as_u64().unwrap() >= 5, "{seen:#}");
+    assert_eq!(seen["chart_series"], 2);
+    assert!(
+        seen["chart_pixels"].as_u64().unwrap() > 20,
+        "the chart drew no line: {seen:#}"
+    );
+    assert_eq!(seen["write_result"], "✓ 21.500000");
+    let refused = seen["bad_write_result"].as_str().unwrap();
+    assert!(refused.starts_with("ERROR:35 "), "{refused}");
+    assert_eq!(
+        seen["range_status"],
+        "historian not enabled: no history is recorded by this server"
+    );
+    let png = std::fs::read(&screenshot).expect("the screenshot");
+    assert!(png.starts_with(b"\x89PNG") && png.len() > 10_000);
+    // The write reached the PLC: the telnet client got its DIFF.
+    client
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    let mut seen_diff = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(5);
+    let mut chunk = [0u8; 65536];
+    while !String::from_utf8_lossy(&seen_diff).contains("DIFF:SETPOINT,21.500000")
+        && Instant::now() < deadline
+    {
+        match client.read(&mut chunk) {
+            Ok(n) if n > 0 => seen_diff.extend_from_slice(&chunk[..n]),
+            _ => break,
+        }
+    }
+    assert!(String::from_utf8_lossy(&seen_diff).contains("DIFF:SETPOINT,21.500000"));
+    eprintln!("screenshot: {}", screenshot.display());
+}
+
+/// `target/test-artifacts/`: what a test run leaves to look at.
+fn artifacts() -> PathBuf {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR"))
+        .parent()
+        .unwrap()
+        .join("test-artifacts");
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+#[test]
+fn off_loopback_without_a_token_the_server_does_not_start_and_names_http_token() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let http = free_port();
+    std::fs::write(
+        dir.path().join("plccoms.ini"),
+        ini(
+            &format!("HTTP_PORT = {http}\nHTTP_BIND = 0.0.0.0"),
+            port,
+            "",
+        ),
+    )
+    .unwrap();
+    let output = Command::new(PLCCOMS)
+        .args(["-c", "plccoms.ini"])
+        .current_dir(dir.path())
+        .env_remove("RUST_LOG")
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{log}");
+    assert!(
+        log.contains(
+            "plccoms.ini:4: HTTP_BIND = 0.0.0.0 is not a loopback address: HTTP_TOKEN must be set"
+        ),
+        "{log}"
+    );
+}
+
+#[test]
+fn a_page_that_cannot_listen_is_reported_and_the_sections_serve_on() {
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let http_port = taken.local_addr().unwrap().port();
+    let port = free_port();
+    let server =
+        ServerProcess::with_config(&ini(&format!("HTTP_PORT = {http_port}"), port, ""), port);
+    wait_until("the failure is logged", || {
+        server.log().contains(&format!(
+            "web page not started: web page: cannot listen on 127.0.0.1:{http_port}"
+        ))
+    });
+    let mut client = TcpStream::connect(server.addr).unwrap();
+    client.write_all(b"GET:__PLC_RUN\r\n").unwrap();
+    let mut answer = [0u8; 64];
+    let n = client.read(&mut answer).unwrap();
+    assert!(answer[..n].starts_with(b"GET:__PLC_RUN,"));
+}
+
+#[test]
+fn off_loopback_every_request_needs_the_token_and_writes_always_do() {
+    let web = start(&format!("HTTP_BIND = 0.0.0.0\nHTTP_TOKEN = {TOKEN}"), "");
+    let http = web.http;
+    for path in [
+        "/api/sections",
+        "/api/sections/Demo/values",
+        "/metrics",
+        "/api/log",
+    ] {
+        let (status, head, _) = exchange(http, "GET", path, &[], None);
+        assert_eq!(status, 401, "{path}");
+        assert!(head.contains("www-authenticate: Bearer"), "{head}");
+        let wrong = [("Authorization", "Bearer nope".to_string())];
+        assert_eq!(request(http, "GET", path, &wrong, None).0, 401, "{path}");
+        assert_eq!(request(http, "GET", path, &bearer(), None).0, 200, "{path}");
+    }
+    // The page and what it asks first load without the token.
+    assert_eq!(request(http, "GET", "/", &[], None).0, 200);
+    let session = get_json(http, "/api/session");
+    assert_eq!(session["reads_need_token"], true);
+    assert_eq!(session["authenticated"], false);
+    // Logging in sets a cookie that then serves as the token.
+    let (status, _, _) = exchange(
+        http,
+        "POST",
+        "/api/login",
+        &[],
+        Some(r#"{"token":"guess"}"#),
+    );
+    assert_eq!(status, 401);
+    let login = serde_json::json!({ "token": TOKEN }).to_string();
+    let (status, head, _) = exchange(http, "POST", "/api/login", &[], Some(&login));
+    assert_eq!(status, 204);
+    let cookie_line = head
+        .lines()
+        .find(|l| l.to_ascii_lowercase().starts_with("set-cookie:"))
+        .expect("a cookie");
+    assert!(cookie_line.contains("HttpOnly") && cookie_line.contains("SameSite=Strict"));
+    let cookie = cookie_line
+        .split_once(':')
+        .unwrap()
+        .1
+        .split(';')
+        .next()
+        .unwrap()
+        .trim();
+    let with_cookie = [("Cookie", cookie.to_string())];
+    assert_eq!(
+        request(http, "GET", "/api/sections", &with_cookie, None).0,
+        200
+    );
+    let set = |headers: &[(&str, String)], body: &str| {
+        let (status, body) = request(http, "POST", "/api/sections/Demo/set", headers, Some(body));
+        (status, json(&body))
+    };
+    let (status, _) = set(&[], r#"{"name":"setpoint","value":"1"}"#);
+    assert_eq!(status, 401);
+    let (status, body) = set(&with_cookie, r#"{"name":"setpoint","value":"20.25"}"#);
+    assert_eq!(
+        (status, &body),
+        (
+            200,
+            &serde_json::json!({"name": "SETPOINT", "value": "20.250000"})
+        )
+    );
+    // SET's own validation and errors.
+    let (status, body) = set(&bearer(), r#"{"name":"setpoint","value":"warm"}"#);
+    assert_eq!(status, 400);
+    assert_eq!(
+        body["error"],
+        "ERROR:35 Wrong parameter value in request: 'SET:setpoint,warm'"
+    );
+    assert_eq!(body["code"], 35);
+    let (status, body) = set(&bearer(), r#"{"name":"nothing","value":"1"}"#);
+    assert_eq!(status, 400);
+    assert!(
+        body["error"].as_str().unwrap().starts_with("ERROR:33 "),
+        "{body}"
+    );
+    // The value is there for everyone.
+    let values = json(
+        &request(
+            http,
+            "GET",
+            "/api/sections/Demo/values?vars=SETPOINT",
+            &bearer(),
+            None,
+        )
+        .1,
+    );
+    assert_eq!(values["values"][0]["value"], "20.250000");
+}
+
+#[test]
+fn on_loopback_reading_is_open_and_writing_needs_a_configured_token() {
+    let web = start("", "");
+    let http = web.http;
+    assert_eq!(request(http, "GET", "/api/sections", &[], None).0, 200);
+    let (status, body) = request(
+        http,
+        "POST",
+        "/api/sections/Demo/set",
+        &bearer(),
+        Some(r#"{"name":"SETPOINT","value":"1"}"#),
+    );
+    assert_eq!(status, 403);
+    assert!(json(&body)["error"]
+        .as_str()
+        .unwrap()
+        .contains("HTTP_TOKEN"));
+    let session = get_json(http, "/api/session");
+    assert_eq!(session["writes_possible"], false);
+    assert_eq!(session["historian"], false);
+}
+
+#[test]
+fn a_read_only_section_refuses_writes_from_the_page_as_set_does() {
+    let web = start(&format!("HTTP_TOKEN = {TOKEN}"), "READ_ONLY = Yes");
+    let (status, body) = request(
+        web.http,
+        "POST",
+        "/api/sections/Demo/set",
+        &bearer(),
+        Some(r#"{"name":"SETPOINT","value":"1"}"#),
+    );
+    assert_eq!(status, 403);
+    assert_eq!(
+        json(&body)["error"],
+        "ERROR:30 Bad client request: 'SET:SETPOINT,1'"
+    );
+    let sections = json(&request(web.http, "GET", "/api/sections", &[], None).1);
+    assert_eq!(sections[0]["read_only"], true);
+}
+
+#[test]
+fn the_api_lists_sections_clients_variables_and_values_and_streams_live_values() {
+    let web = start("", "");
+    let http = web.http;
+    let _client = client_with_everything_enabled(web.server.port());
+    let sections = get_json(http, "/api/sections");
+    let demo = &sections[0];
+    assert_eq!(demo["name"], "Demo");
+    assert_eq!(demo["port"], web.server.port());
+    assert_eq!(demo["link"]["state"], "online");
+    assert_eq!(demo["link"]["ident"], "CP1000    SIM 1.0 1.0");
+    assert_eq!(demo["poll"]["period_ms"], 100);
+    assert_eq!(demo["variables"], 29);
+    wait_until("the client is listed", || {
+        let clients = get_json(http, "/api/sections/Demo/clients");
+        clients[0]["enabled"].as_u64().unwrap_or(0) > 2
+    });
+    let vars = get_json(http, "/api/sections/Demo/vars?mask=s*,counter");
+    assert_eq!(
+        vars,
+        serde_json::json!({"total": 4, "vars": [
+            {"name": "SINUS", "type": "LREAL"}, {"name": "SETPOINT", "type": "REAL"},
+            {"name": "SWITCH", "type": "BOOL"}, {"name": "COUNTER", "type": "INT"}]})
+    );
+    wait_until("TEXT is polled for the client", || {
+        let values = get_json(http, "/api/sections/Demo/values?vars=TEXT");
+        values["values"][0]["quality"] == "good"
+    });
+    let values = get_json(http, "/api/sections/Demo/values?vars=TEXT");
+    assert_eq!(values["values"][0]["value"], "\"Have a nice day\"");
+    // Live: SINUS changes every poll.
+    let mut stream = TcpStream::connect(http).unwrap();
+    stream
+        .write_all(b"GET /api/sections/Demo/live?vars=sinus HTTP/1.1\r\nHost: x\r\n\r\n")
+        .unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    let mut got = Vec::new();
+    let mut chunk = [0u8; 4096];
+    while got.windows(13).filter(|w| w == b"event: values").count() < 3 {
+        let n = stream.read(&mut chunk).expect("live events");
+        assert!(n > 0, "the stream ended: {}", String::from_utf8_lossy(&got));
+        got.extend_from_slice(&chunk[..n]);
+    }
+    let text = String::from_utf8_lossy(&got);
+    assert!(text.contains("content-type: text/event-stream"), "{text}");
+    let event = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("data: "))
+        .nth(1)
+        .unwrap();
+    let event = json(event.as_bytes());
+    assert_eq!(event["values"][0][0], "SINUS");
+    assert_eq!(event["values"][0][2], "good");
+    assert_eq!(event["online"], true);
+    // A mask too wide for one browser is refused, saying why.
+    let (status, body) = request(http, "GET", "/api/sections/Nope/values", &[], None);
+    assert_eq!(
+        (status, json(&body)["error"].clone()),
+        (404, Value::from("no section named 'Nope'"))
+    );
+}
+
+#[test]
+fn the_history_api_says_when_no_historian_is_enabled() {
+    let web = start("", "");
+    let (status, body) = request(
+        web.http,
+        "GET",
+        "/api/history?section=Demo&vars=SINUS&from=0&format=csv",
+        &[],
+        None,
+    );
+    assert_eq!(status, 503);
+    assert_eq!(
+        json(&body)["error"],
+        "historian not enabled: no history is recorded by this server"
+    );
+}
+
+#[test]
+fn https_with_the_configured_certificate() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = rcgen::generate_simple_self_signed(vec!["127.0.0.1".to_string()]).unwrap();
+    let cert_path = dir.path().join("cert.pem");
+    std::fs::write(&cert_path, key.cert.pem()).unwrap();
+    std::fs::write(dir.path().join("key.pem"), key.signing_key.serialize_pem()).unwrap();
+    let web = start_server(
+        &format!(
+            "HTTP_CERT = {}\nHTTP_KEY = {}",
+            cert_path.display(),
+            dir.path().join("key.pem").display()
+        ),
+        "",
+    );
+    // Python's TLS client, trusting only that certificate; the page starts
+    // right after the section's port.
+    let script = format!(
+        "import ssl, time, urllib.request\n\
+         ctx = ssl.create_default_context(cafile={cert:?})\n\
+         for attempt in range(100):\n\
+         \x20   try:\n\
+         \x20       body = urllib.request.urlopen('https://{addr}/api/sections', context=ctx, timeout=10).read()\n\
+         \x20       break\n\
+         \x20   except ConnectionRefusedError:\n\
+         \x20       time.sleep(0.1)\n\
+         print(body.decode())\n",
+        cert = cert_path.display().to_string(),
+        addr = web.http
+    );
+    let output = Command::new("python3")
+        .args(["-c", &script])
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert_eq!(json(&output.stdout)[0]["name"], "Demo");
+    // Plain HTTP on the TLS port gets no page.
+    assert_ne!(request(web.http, "GET", "/api/sections", &[], None).0, 200);
+}
