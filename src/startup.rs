@@ -24,6 +24,8 @@ pub struct Server {
     pub sections: Vec<RunningSection>,
     /// Every section's metrics, and whatever else reports (`/metrics`).
     pub metrics: Arc<crate::metrics::Registry>,
+    /// The historian, when a section records (HISTORY).
+    pub historian: Option<crate::historian::Historian>,
     simulators: Vec<SimHandle>,
     _file_stores: Vec<tempfile::TempDir>,
 }
@@ -38,7 +40,7 @@ impl Server {
     /// stops polling (waiting, bounded, for each link's thread to end) and
     /// the simulators. Sections stop together: the whole takes at most two
     /// grace periods, however many there are.
-    pub async fn shutdown(self) {
+    pub async fn shutdown(mut self) {
         for section in &self.sections {
             section.stop_accepting();
         }
@@ -52,6 +54,10 @@ impl Server {
             section.abort();
         }
         futures::future::join_all(self.sections.iter().map(|s| s.wait_link(SHUTDOWN_GRACE))).await;
+        // After the links: what they published last is recorded.
+        if let Some(historian) = self.historian.take() {
+            historian.stop().await;
+        }
         for simulator in self.simulators {
             simulator.stop().await;
         }
@@ -68,6 +74,7 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     let mut server = Server {
         sections: Vec::new(),
         metrics: Arc::default(),
+        historian: None,
         simulators: Vec::new(),
         _file_stores: Vec::new(),
     };
@@ -93,6 +100,11 @@ pub async fn start(config: &Config) -> Result<Server, String> {
             "no PLC section could start: {}",
             failures.join("; ")
         ));
+    }
+    let sections: Vec<_> = server.sections.iter().map(|r| r.section.clone()).collect();
+    server.historian = crate::historian::Historian::start(config, &sections);
+    if let Some(historian) = &server.historian {
+        server.metrics.add_source(historian.metrics());
     }
     Ok(server)
 }

@@ -19,6 +19,7 @@
 //! server instead of a real one.
 
 mod diag;
+pub mod history;
 mod ini;
 mod keys;
 #[cfg(test)]
@@ -31,6 +32,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 pub use diag::{Diagnostic, Severity};
+pub use history::{History, Retention, StampPair};
 pub use keys::{
     global_keys, key, keys, parse_bool, parse_ipv4, section_keys, setconf_key, Key, Kind, Scope,
     SetConfScope, Value, PROTOCOLS, SIMULATOR_PROGRAMS,
@@ -80,6 +82,11 @@ pub struct Global {
     pub output_soft_limit: usize,
     /// OUTPUT_SOFT_TIMEOUT.
     pub output_soft_timeout: Duration,
+    /// HISTORY_DIR as written; `None`: `history` beside the configuration.
+    pub history_dir: Option<String>,
+    pub history_retention: Retention,
+    /// HISTORY_SYNC: time between durable commits of the history.
+    pub history_sync: Duration,
 }
 
 impl Default for Global {
@@ -108,6 +115,9 @@ impl Default for Global {
             output_hard_limit: 0,
             output_soft_limit: 0,
             output_soft_timeout: Duration::ZERO,
+            history_dir: None,
+            history_retention: Retention::default(),
+            history_sync: Duration::ZERO,
         })
     }
 }
@@ -149,6 +159,8 @@ pub struct Section {
     /// `READ_ONLY = Yes`: requests that would change the PLC or the section
     /// answer ERROR:30 (this server's own key).
     pub read_only: bool,
+    /// `HISTORY*`: what the historian records (this server's own keys).
+    pub history: History,
 }
 
 /// An address or CIDR network of `ALLOW`.
@@ -566,6 +578,7 @@ fn section_defaults(name: &str) -> Section {
         simulator: None,
         allow: None,
         read_only: false,
+        history: History::default(),
     })
 }
 
@@ -589,6 +602,7 @@ fn read_section(
             }
         }
     }
+    history::warn_unused(&section.history, &map, diags);
     if !map.contains_key("SERVER_PORT") {
         errors.push(diags.make(
             Severity::Error,

@@ -6,7 +6,7 @@ pub mod state;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 
 use plccoms_protocol::value::FormatOptions;
 use tokio::sync::watch;
@@ -55,6 +55,8 @@ pub struct Section {
     /// PUBFILE_WRITE = Yes.
     pub root: PathBuf,
     clients: Mutex<Clients>,
+    /// The historian's figures, when it records this section (GETINFO).
+    pub history: OnceLock<Arc<crate::historian::Stats>>,
 }
 
 #[derive(Default)]
@@ -90,6 +92,7 @@ impl Section {
             shutdown: CancellationToken::new(),
             root,
             clients: Mutex::new(Clients::default()),
+            history: OnceLock::new(),
         }
     }
 
