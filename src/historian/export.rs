@@ -51,8 +51,8 @@ pub fn export<W: Write + Send>(
     wide: bool,
     out: W,
 ) -> Result<u64, ExportError> {
-    let columns = query::variables(query)?;
     let rows = query::rows(query)?;
+    let columns = rows.variables().to_vec();
     match format {
         Format::Csv => write_csv(rows, &columns, wide, out),
         Format::Json => write_json(rows, &columns, wide, out),

@@ -211,6 +211,7 @@ pub fn rows(query: &Query) -> Result<Rows, QueryError> {
             .iter()
             .map(|v| (v.name.clone(), v.clone()))
             .collect(),
+        variables,
         files,
         current: None,
         buffer: VecDeque::new(),
@@ -222,6 +223,7 @@ pub struct Rows {
     query: Query,
     masks: Vec<Mask>,
     by_name: HashMap<String, Arc<Variable>>,
+    variables: Vec<Arc<Variable>>,
     /// Files still to read, the next one last.
     files: Vec<(i64, PathBuf)>,
     current: Option<FileCursor>,
@@ -242,6 +244,12 @@ struct FileCursor {
 }
 
 impl Rows {
+    /// The variables the rows are of (each row's `var` is one of these), in
+    /// the order they were first recorded: the columns of a wide export.
+    pub fn variables(&self) -> &[Arc<Variable>] {
+        &self.variables
+    }
+
     fn open_next(&mut self) -> Result<bool, QueryError> {
         let Some((day, path)) = self.files.pop() else {
             return Ok(false);

@@ -315,3 +315,42 @@ fn remove_day(path: &std::path::Path) -> std::io::Result<()> {
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::historian::store::day_path;
+
+    #[test]
+    fn retention_by_days_and_by_size() {
+        let dir = tempfile::tempdir().unwrap();
+        let today = day_of(unix_ms(std::time::SystemTime::now()));
+        let make = |section: &str, day: i64, bytes: usize| {
+            let path = day_path(dir.path(), section, day);
+            std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+            std::fs::write(&path, vec![0u8; bytes]).unwrap();
+            path
+        };
+        let old = make("A", today - 40, 10);
+        let wal = PathBuf::from(format!("{}-wal", old.display()));
+        std::fs::write(&wal, b"x").unwrap();
+        let a_week = make("A", today - 7, 1000);
+        let b_yesterday = make("B", today - 1, 1000);
+        let b_today = make("B", today, 1000);
+        let settings = |days, bytes| Settings {
+            dir: dir.path().to_path_buf(),
+            sync: Duration::from_secs(1),
+            retention: Retention { days, bytes },
+        };
+        // 30 days: the 40-day-old file (and its WAL) goes.
+        assert!(!retention(&settings(Some(30), None), &[]));
+        assert!(!old.exists() && !wal.exists());
+        assert!(a_week.exists() && b_yesterday.exists());
+        // 2500 bytes for 3000: the oldest goes, whatever its section.
+        assert!(!retention(&settings(None, Some(2500)), &[]));
+        assert!(!a_week.exists() && b_yesterday.exists() && b_today.exists());
+        // Today's file is never deleted: over the limit, recording stops.
+        assert!(retention(&settings(None, Some(500)), &[]));
+        assert!(!b_yesterday.exists() && b_today.exists());
+    }
+}
