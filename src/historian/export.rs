@@ -23,7 +23,7 @@ use parquet::schema::types::Type;
 use plccoms_protocol::IecType;
 
 use super::query::{self, Query, QueryError, Row, Variable};
-use super::sample::Stored;
+use super::sample::{quality_code, Stored};
 use super::time::iso;
 use crate::changes::Quality;
 
@@ -500,12 +500,17 @@ impl Filling {
     }
 
     fn push_bytes(&mut self, v: &[u8]) {
+        self.push_shared(bytes::Bytes::copy_from_slice(v));
+    }
+
+    /// Bytes shared with other rows (a name, a quality): no copy.
+    fn push_shared(&mut self, v: bytes::Bytes) {
         if !matches!(self.values, Column::Bytes(_)) {
             return self.null();
         }
         self.defined();
         if let Column::Bytes(values) = &mut self.values {
-            values.push(ByteArray::from(v.to_vec()));
+            values.push(ByteArray::from(v));
         }
     }
 
@@ -618,9 +623,9 @@ fn typed_column(name: &str, ty: Option<IecType>) -> Result<(Arc<Type>, Column), 
     })
 }
 
-/// Rows per row group: about 4 million cells, at least 1024 rows.
+/// Rows per row group: about a million cells, at least 1024 rows.
 fn group_rows(columns: usize) -> usize {
-    (4_000_000 / columns.max(1)).clamp(1024, 1 << 20)
+    (1_000_000 / columns.max(1)).clamp(1024, 1 << 17)
 }
 
 fn write_parquet<W: Write + Send>(
@@ -713,10 +718,22 @@ fn write_parquet<W: Write + Send>(
             }
         }
     } else {
+        let mut names: Vec<(*const Variable, bytes::Bytes)> = Vec::new();
+        let qualities = [Quality::Good, Quality::Stale, Quality::LinkLost]
+            .map(|q| bytes::Bytes::from_static(q.as_str().as_bytes()));
         for row in rows {
             let row = row?;
             fill[0].push_i64(row.time());
-            fill[1].push_bytes(row.var.name.as_bytes());
+            let key = Arc::as_ptr(&row.var);
+            let name = match names.iter().find(|(p, _)| *p == key) {
+                Some((_, name)) => name.clone(),
+                None => {
+                    let name = bytes::Bytes::from(row.var.name.clone());
+                    names.push((key, name.clone()));
+                    name
+                }
+            };
+            fill[1].push_shared(name);
             match &row.value {
                 Stored::Text(s) => {
                     fill[2].null();
@@ -727,7 +744,7 @@ fn write_parquet<W: Write + Send>(
                     fill[3].null();
                 }
             }
-            fill[4].push_bytes(row.quality.as_str().as_bytes());
+            fill[4].push_shared(qualities[quality_code(row.quality) as usize].clone());
             count += 1;
             in_group += 1;
             if in_group == per_group {

@@ -293,13 +293,22 @@ impl Rows {
 }
 
 impl FileCursor {
+    /// `key -> column` of a side table for the keys of the chunk being
+    /// read (from `next_key` to `last`).
+    fn side(&self, table: &str, column: &str, last: i64) -> rusqlite::Result<HashMap<i64, i64>> {
+        let sql = format!("SELECT key, {column} FROM {table} WHERE key >= ?1 AND key <= ?2");
+        let mut stmt = self.conn.prepare_cached(&sql)?;
+        let rows = stmt.query_map([self.next_key, last], |r| Ok((r.get(0)?, r.get(1)?)))?;
+        rows.collect()
+    }
+
     /// Reads the next chunk into `buffer`; `false` when the file is done.
     fn fill(&mut self, buffer: &mut VecDeque<Row>) -> rusqlite::Result<bool> {
         if self.done {
             return Ok(false);
         }
         let sql = format!(
-            "SELECT key, value, quality FROM samples WHERE key >= ?1 AND key < ?2{} ORDER BY key LIMIT {CHUNK}",
+            "SELECT key, value FROM samples WHERE key >= ?1 AND key < ?2{} ORDER BY key LIMIT {CHUNK}",
             self.filter
         );
         let mut stmt = self.conn.prepare_cached(&sql)?;
@@ -320,7 +329,7 @@ impl FileCursor {
                 plc_time: None,
                 var: var.clone(),
                 value: Stored::from_sql(row.get_ref(1)?),
-                quality: quality_from_code(row.get(2)?),
+                quality: Quality::Good,
             });
         }
         let n = keys.len();
@@ -328,19 +337,20 @@ impl FileCursor {
             self.done = true;
             return Ok(false);
         };
-        if self.has_stamps {
-            let first_key = self.next_key;
-            let mut stmt = self
-                .conn
-                .prepare_cached("SELECT key, plc_time FROM stamps WHERE key >= ?1 AND key <= ?2")?;
-            let stamps: HashMap<i64, i64> = stmt
-                .query_map([first_key, last], |r| Ok((r.get(0)?, r.get(1)?)))?
-                .collect::<Result<_, _>>()?;
-            if !stamps.is_empty() {
-                let start = buffer.len() - n;
-                for (row, key) in buffer.iter_mut().skip(start).zip(&keys) {
-                    row.plc_time = stamps.get(key).copied();
+        // Qualities other than good and PLC stamps: side tables, few rows.
+        let start = buffer.len() - n;
+        let qualities = self.side("qualities", "quality", last)?;
+        if !qualities.is_empty() {
+            for (row, key) in buffer.iter_mut().skip(start).zip(&keys) {
+                if let Some(&code) = qualities.get(key) {
+                    row.quality = quality_from_code(code);
                 }
+            }
+        }
+        if self.has_stamps {
+            let stamps = self.side("stamps", "plc_time", last)?;
+            for (row, key) in buffer.iter_mut().skip(start).zip(&keys) {
+                row.plc_time = stamps.get(key).copied();
             }
         }
         self.next_key = last + 1;

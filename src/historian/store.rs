@@ -12,10 +12,11 @@
 //! ```sql
 //! meta    (key TEXT PRIMARY KEY, value)            -- format, version, section, day, day_start_ms, var_bits
 //! vars    (id INTEGER PRIMARY KEY, name TEXT UNIQUE, type TEXT)
-//! samples (key INTEGER PRIMARY KEY, value, quality INTEGER)
+//! samples (key INTEGER PRIMARY KEY, value)
 //!         -- key = (time_ms - day_start_ms) << 15 | vars.id
 //!         -- value: INTEGER, REAL, TEXT (NULL: a REAL that was NaN)
-//!         -- quality: 0 good, 1 stale, 2 link_lost
+//! qualities (key INTEGER PRIMARY KEY, quality INTEGER) -- 1 stale, 2 link_lost;
+//!         -- a sample without a row here is good (almost all are: a byte saved)
 //! stamps  (key INTEGER PRIMARY KEY, plc_time INTEGER)  -- samples.key -> PLC ms
 //! events  (id INTEGER PRIMARY KEY, time INTEGER, kind TEXT, detail TEXT)
 //! history -- a view: time (ISO 8601), time_ms, name, value, quality, plc_time_ms
@@ -179,7 +180,8 @@ pub struct DayFile {
 const SCHEMA: &str = "
 CREATE TABLE meta (key TEXT PRIMARY KEY, value) WITHOUT ROWID;
 CREATE TABLE vars (id INTEGER PRIMARY KEY, name TEXT NOT NULL UNIQUE, type TEXT NOT NULL);
-CREATE TABLE samples (key INTEGER PRIMARY KEY, value, quality INTEGER NOT NULL);
+CREATE TABLE samples (key INTEGER PRIMARY KEY, value);
+CREATE TABLE qualities (key INTEGER PRIMARY KEY, quality INTEGER NOT NULL);
 CREATE TABLE stamps (key INTEGER PRIMARY KEY, plc_time INTEGER NOT NULL);
 CREATE TABLE events (id INTEGER PRIMARY KEY, time INTEGER NOT NULL, kind TEXT NOT NULL, detail TEXT NOT NULL);
 ";
@@ -348,14 +350,15 @@ impl DayFile {
         let quality = quality_code(sample.quality);
         let mut insert = self
             .conn
-            .prepare_cached("INSERT INTO samples (key, value, quality) VALUES (?1, ?2, ?3)")?;
+            .prepare_cached("INSERT INTO samples (key, value) VALUES (?1, ?2)")?;
         let mut shifted = false;
         loop {
-            match insert.execute(params![key, sample.value, quality]) {
+            match insert.execute(params![key, sample.value]) {
                 Ok(_) => break,
                 Err(e) if is_constraint(&e) => {
                     let existing: (SqlValue, i64) = self.conn.query_row(
-                        "SELECT value, quality FROM samples WHERE key = ?1",
+                        "SELECT value, coalesce((SELECT quality FROM qualities q WHERE q.key = s.key), 0) \
+                         FROM samples s WHERE key = ?1",
                         [key],
                         |r| Ok((r.get(0)?, r.get(1)?)),
                     )?;
@@ -376,6 +379,11 @@ impl DayFile {
         }
         counts.written += 1;
         counts.shifted += u64::from(shifted);
+        if quality != 0 {
+            self.conn
+                .prepare_cached("INSERT OR REPLACE INTO qualities (key, quality) VALUES (?1, ?2)")?
+                .execute(params![key, quality])?;
+        }
         if let Some(plc_time) = sample.plc_time {
             self.conn
                 .prepare_cached("INSERT OR REPLACE INTO stamps (key, plc_time) VALUES (?1, ?2)")?
@@ -414,10 +422,11 @@ fn view_sql(start_ms: i64) -> String {
             {start_ms} + (s.key >> {VAR_BITS}) AS time_ms,
             v.name AS name,
             s.value AS value,
-            CASE s.quality WHEN 0 THEN 'good' WHEN 1 THEN 'stale' ELSE 'link_lost' END AS quality,
+            CASE q.quality WHEN 1 THEN 'stale' WHEN 2 THEN 'link_lost' ELSE 'good' END AS quality,
             st.plc_time AS plc_time_ms
          FROM samples s
          JOIN vars v ON v.id = (s.key & {VAR_MASK})
+         LEFT JOIN qualities q ON q.key = s.key
          LEFT JOIN stamps st ON st.key = s.key;"
     )
 }

@@ -46,14 +46,43 @@ pub fn parse(text: &str, now_ms: i64) -> Result<i64, String> {
 /// ISO 8601 UTC with milliseconds: `2026-05-01T12:00:00.123Z`.
 pub fn iso(t_ms: i64, out: &mut Vec<u8>) {
     use std::io::Write;
-    match chrono::DateTime::from_timestamp_millis(t_ms) {
-        Some(t) => {
-            let _ = write!(out, "{}", t.format("%Y-%m-%dT%H:%M:%S%.3fZ"));
-        }
-        None => {
-            let _ = write!(out, "{t_ms}");
-        }
+    // The date part is formatted once per day (exports write millions of
+    // times, mostly of one day).
+    thread_local! {
+        static DAY: std::cell::RefCell<(i64, Vec<u8>)> = const { std::cell::RefCell::new((i64::MIN, Vec::new())) };
     }
+    const DAY_MS: i64 = 86_400_000;
+    let (day, ms) = (t_ms.div_euclid(DAY_MS), t_ms.rem_euclid(DAY_MS));
+    let known = DAY.with_borrow_mut(|(cached, text)| {
+        if *cached != day {
+            let Some(date) = chrono::DateTime::from_timestamp_millis(day * DAY_MS) else {
+                return false;
+            };
+            text.clear();
+            let _ = write!(text, "{}", date.format("%Y-%m-%dT"));
+            *cached = day;
+        }
+        out.extend_from_slice(text);
+        true
+    });
+    if !known {
+        let _ = write!(out, "{t_ms}");
+        return;
+    }
+    let (h, m, s, milli) = (ms / 3_600_000, ms / 60_000 % 60, ms / 1000 % 60, ms % 1000);
+    let digits = |n: i64, width: usize, out: &mut Vec<u8>| {
+        for i in (0..width).rev() {
+            out.push(b'0' + (n / 10i64.pow(i as u32) % 10) as u8);
+        }
+    };
+    digits(h, 2, out);
+    out.push(b':');
+    digits(m, 2, out);
+    out.push(b':');
+    digits(s, 2, out);
+    out.push(b'.');
+    digits(milli, 3, out);
+    out.push(b'Z');
 }
 
 #[cfg(test)]
@@ -85,5 +114,11 @@ mod tests {
         let mut out = Vec::new();
         iso(NOW + 7, &mut out);
         assert_eq!(out, b"2023-11-14T22:13:20.007Z");
+        out.clear();
+        iso(-1, &mut out);
+        assert_eq!(out, b"1969-12-31T23:59:59.999Z");
+        out.clear();
+        iso(i64::MAX, &mut out);
+        assert_eq!(out, i64::MAX.to_string().as_bytes());
     }
 }
