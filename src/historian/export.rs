@@ -791,3 +791,101 @@ mod tests {
         assert_eq!(out, b"\"a,\"\"b\"\"\"\"\"");
     }
 }
+
+#[cfg(test)]
+mod stream_tests {
+    use super::*;
+    use crate::historian::sample::Sample;
+    use crate::historian::store::{day_of, DayFile};
+    use crate::vars::tests::table_of;
+
+    /// A day file with A (INT) and B (LREAL, stamped), an outage sample
+    /// and a sample of C that the masks leave out.
+    fn history() -> (tempfile::TempDir, Query) {
+        let dir = tempfile::tempdir().unwrap();
+        let table = Arc::new(table_of(&[("A", "INT"), ("B", "LREAL"), ("C", "INT")]));
+        let id = |n: &str| table.lookup(n.as_bytes()).unwrap();
+        let t = 1_700_000_000_000;
+        let sample = |var, dt: i64, value, quality, plc_time| Sample {
+            t: t + dt,
+            var,
+            value,
+            quality,
+            plc_time,
+        };
+        let samples = [
+            sample(id("A"), 0, Stored::Int(1), Quality::Good, None),
+            sample(id("B"), 0, Stored::Real(0.5), Quality::Good, Some(t - 7)),
+            sample(id("C"), 0, Stored::Int(9), Quality::Good, None),
+            sample(id("A"), 100, Stored::Int(1), Quality::LinkLost, None),
+            sample(id("B"), 100, Stored::Null, Quality::Good, None),
+        ];
+        let mut file = DayFile::open(dir.path(), "S", day_of(t)).unwrap();
+        file.write(&[(&table, &samples)], &[]).unwrap();
+        file.close();
+        let query = Query {
+            dir: dir.path().to_path_buf(),
+            section: "S".into(),
+            masks: vec!["a".into(), "B".into()],
+            from_ms: t,
+            to_ms: t + 1000,
+        };
+        (dir, query)
+    }
+
+    fn csv(query: &Query, wide: bool) -> String {
+        let mut out = Vec::new();
+        export(query, Format::Csv, wide, &mut out).unwrap();
+        String::from_utf8(out).unwrap()
+    }
+
+    #[test]
+    fn long_and_wide_with_quality_stamps_and_nan() {
+        let (_dir, query) = history();
+        assert_eq!(
+            csv(&query, false),
+            "time,name,value,quality\n\
+             2023-11-14T22:13:20.000Z,A,1,good\n\
+             2023-11-14T22:13:19.993Z,B,0.5,good\n\
+             2023-11-14T22:13:20.100Z,A,1,link_lost\n\
+             2023-11-14T22:13:20.100Z,B,NaN,good\n"
+        );
+        assert_eq!(
+            csv(&query, true),
+            "time,A,B,B.plc_time\n\
+             2023-11-14T22:13:20.000Z,1,0.5,2023-11-14T22:13:19.993Z\n\
+             2023-11-14T22:13:20.100Z,,NaN,\n"
+        );
+        let mut json = Vec::new();
+        export(&query, Format::Json, false, &mut json).unwrap();
+        let rows: serde_json::Value = serde_json::from_slice(&json).unwrap();
+        assert_eq!(rows[3]["value"], "NaN");
+        assert_eq!(rows[2]["quality"], "link_lost");
+        // Nothing of the range: none; an unknown section: an error naming it.
+        let empty = Query {
+            from_ms: query.to_ms,
+            to_ms: query.to_ms + 1,
+            ..query.clone()
+        };
+        assert_eq!(csv(&empty, false), "time,name,value,quality\n");
+        let other = Query {
+            section: "T".into(),
+            ..query
+        };
+        assert!(export(&other, Format::Csv, false, Vec::new())
+            .unwrap_err()
+            .to_string()
+            .contains("no history of section [T]"));
+    }
+
+    #[tokio::test]
+    async fn a_stream_of_chunks_is_the_export() {
+        let (_dir, query) = history();
+        let mut rx = stream(query.clone(), Format::Csv, false);
+        let mut got = Vec::new();
+        while let Some(chunk) = rx.recv().await {
+            got.extend_from_slice(&chunk.unwrap());
+        }
+        assert_eq!(String::from_utf8(got).unwrap(), csv(&query, false));
+    }
+}

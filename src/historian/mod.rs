@@ -405,3 +405,41 @@ impl metrics::Source for Metrics {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::metrics::Source;
+
+    #[test]
+    fn metrics_and_getinfo() {
+        let stats = Arc::new(Stats::default());
+        stats.written.add(5);
+        stats.flush_us.set(2500);
+        stats.sync_ms.set(1000);
+        stats.queue_max.raise(7);
+        let mut out = String::new();
+        Metrics(vec![("Boiler".into(), stats.clone())]).render(&mut out);
+        assert!(out.contains("# TYPE plccoms_historian_samples_written_total counter\n"));
+        assert!(out.contains("plccoms_historian_samples_written_total{section=\"Boiler\"} 5\n"));
+        assert!(out.contains("plccoms_historian_flush_seconds{section=\"Boiler\"} 0.0025\n"));
+        assert!(out.contains("plccoms_historian_recording{section=\"Boiler\"} 1\n"));
+        let info = stats.getinfo();
+        assert_eq!(info[0], ("HISTORY", "recording".to_string()));
+        assert_eq!(
+            info[3],
+            (
+                "HISTORY_FLUSH",
+                "2.5 ms of 1000 ms (max 0.0 ms), 0 overruns".to_string()
+            )
+        );
+    }
+
+    #[test]
+    fn rate_limited_logging() {
+        let mut log = RateLimited::new();
+        assert_eq!(log.add(3), Some(3));
+        assert_eq!(log.add(2), None);
+        assert_eq!(log.add(0), None);
+    }
+}
