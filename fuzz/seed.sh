@@ -80,6 +80,11 @@ for path in ["tests/data/vendor/PLCComS.ini", "PLCComS.ini.example"]:
     put("ini", data.replace(b"\n", b"\r\n"))
     put("ini", b"\xef\xbb\xbf" + data[: len(data) // 2])
 
+# --- history times (plccoms history --from/--to) --------------------------
+for t in [b"now", b"-30s", b"-15m", b"-1h", b"-7d", b"-2w", b"2026-05-01",
+          b"2026-05-01T12:00:00Z", b"2026-05-01T12:00:00.123+02:00"]:
+    put("history_time", t)
+
 # --- public files ----------------------------------------------------------
 for path in ["conf/demo.pub", "conf/FIXED.pub", "tests/data/vendor/FIXED_Foxtrot.pub"]:
     put("pubfile", read(path))

@@ -28,6 +28,7 @@ pub mod client;
 pub mod cmd;
 pub mod config;
 pub mod daemon;
+pub mod historian;
 pub mod link;
 pub mod localfs;
 pub mod logring;

@@ -4,7 +4,7 @@ use std::path::Path;
 use std::process::ExitCode;
 
 use clap::Parser;
-use plccoms::cli::Cli;
+use plccoms::cli::{Cli, Command};
 use plccoms::config::{self, Diagnostic, Severity};
 use plccoms::daemon::{self, Notifier};
 use plccoms::watch;
@@ -17,6 +17,9 @@ const DEFAULT_CONFIG: &str = "PLCComS.ini";
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if let Some(Command::History(args)) = &cli.command {
+        return plccoms::historian::command::run(&cli.config, args);
+    }
     // Detach before any thread exists; the parent exits with the outcome of
     // the child's start-up.
     let mut notifier = if cli.daemon {

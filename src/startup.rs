@@ -26,6 +26,8 @@ pub struct Server {
     pub metrics: Arc<crate::metrics::Registry>,
     /// The web page, `/metrics` and the API, when HTTP_PORT is set.
     pub web: Option<crate::web::WebServer>,
+    /// The historian, when a section records (HISTORY).
+    pub historian: Option<crate::historian::Historian>,
     simulators: Vec<SimHandle>,
     _file_stores: Vec<tempfile::TempDir>,
 }
@@ -40,8 +42,8 @@ impl Server {
     /// stops polling (waiting, bounded, for each link's thread to end) and
     /// the simulators. Sections stop together: the whole takes at most two
     /// grace periods, however many there are.
-    pub async fn shutdown(self) {
-        if let Some(web) = self.web {
+    pub async fn shutdown(mut self) {
+        if let Some(web) = self.web.take() {
             web.shutdown().await;
         }
         for section in &self.sections {
@@ -60,6 +62,10 @@ impl Server {
         #[cfg(feature = "fanout-trace")]
         if let Some(summary) = crate::trace::summary() {
             info!("{summary}");
+        }
+        // After the links: what they published last is recorded.
+        if let Some(historian) = self.historian.take() {
+            historian.stop().await;
         }
         for simulator in self.simulators {
             simulator.stop().await;
@@ -81,6 +87,7 @@ pub async fn start(config: &Config) -> Result<Server, String> {
         sections: Vec::new(),
         metrics: Arc::default(),
         web: None,
+        historian: None,
         simulators: Vec::new(),
         _file_stores: Vec::new(),
     };
@@ -111,10 +118,21 @@ pub async fn start(config: &Config) -> Result<Server, String> {
             failures.join("; ")
         ));
     }
+    let sections: Vec<_> = server.sections.iter().map(|r| r.section.clone()).collect();
+    server.historian = crate::historian::Historian::start(config, &sections);
+    if let Some(historian) = &server.historian {
+        server.metrics.add_source(historian.metrics());
+        // The recorded history is the server's own: clients never write it.
+        crate::localfs::protect(&crate::historian::history_dir(&config.path, &global), false);
+    }
     if let Some(web) = crate::web::WebConfig::from_global(&global, &dir) {
-        let sections = server.sections.iter().map(|s| s.section.clone()).collect();
-        // No historian yet: /api/history answers "historian not enabled".
-        let history = None;
+        // /api/history and the chart's range mode read the historian's
+        // files; without one they answer "historian not enabled".
+        let history = server.historian.as_ref().map(|_| {
+            Arc::new(crate::historian::web::Source::new(
+                crate::historian::history_dir(&config.path, &global),
+            )) as Arc<dyn crate::web::history::HistorySource>
+        });
         // Like a section that cannot listen, a page that cannot is
         // reported and the PLC sections serve on.
         match crate::web::start(&web, sections, server.metrics.clone(), history) {

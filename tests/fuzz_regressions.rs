@@ -46,6 +46,16 @@ fn every_target_runs_on_ordinary_input() {
     );
     checks::web_query(b"section=Demo&from=9&to=8&vars=,,");
     checks::web_query(b"section=%ZZ&&=&format=\xff");
+    for time in [
+        "-7d",
+        "2026-05-01T12:00:00.123Z",
+        "2026-05-01",
+        "now",
+        "-9999999999999999w",
+        "x",
+    ] {
+        checks::history_time(time.as_bytes());
+    }
     // READN answer of 2 bytes, then the same datagram as a request.
     let answer = [
         0x00, 0x02, 0x00, 0x07, 0x02, 0x00, 0x00, 0x0D, 0x68, 0x07, 0x07, 0x68, 0x7D, 0x00, 0x08,

@@ -405,6 +405,27 @@ pub fn ini(data: &[u8]) {
 }
 
 // ---------------------------------------------------------------------------
+// history_time
+
+/// A time of `plccoms history --from/--to`: parsed against two "now"s, and
+/// an accepted time written out; relative times are never after now.
+pub fn history_time(data: &[u8]) {
+    let text = String::from_utf8_lossy(data);
+    for now in [0, 1_700_000_000_000, i64::MAX] {
+        match plccoms::historian::time::parse(&text, now) {
+            Ok(t) => {
+                if text.trim_start().starts_with('-') {
+                    assert!(t <= now, "{text:?} -> {t} after now {now}");
+                }
+                let mut out = Vec::new();
+                plccoms::historian::time::iso(t, &mut out);
+            }
+            Err(message) => assert!(!message.is_empty()),
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------
 // pubfile
 
 /// The fixed public file the server ships.

@@ -24,9 +24,14 @@ const KEYS: &[&str] = &[
 pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> Reply {
     let eol = cx.client.eol;
     let mut text = String::new();
+    let history = cx.section.history.get().map(|stats| stats.getinfo());
     if args.is_empty() {
         for key in KEYS {
             lines(cx, key, &mut text, true);
+        }
+        // This server's own keys, after the vendor's, only where they apply.
+        for (key, value) in history.iter().flatten() {
+            line(&mut text, key, value);
         }
         text.push_str("GETINFO:\n");
     } else {
@@ -37,10 +42,13 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
         } else {
             key
         };
-        if !KEYS.contains(&key.as_str()) {
+        if let Some((key, value)) = history.iter().flatten().find(|(k, _)| *k == key) {
+            line(&mut text, key, value);
+        } else if !KEYS.contains(&key.as_str()) {
             return error(cx, ErrorCode::GetInfoUnknown, context, out);
+        } else {
+            lines(cx, &key, &mut text, false);
         }
-        lines(cx, &key, &mut text, false);
     }
     out.reserve(text.len() + 16);
     for line in text.lines() {

@@ -6,6 +6,7 @@
 use std::net::{IpAddr, Ipv4Addr};
 use std::time::Duration;
 
+use super::history::{self, Form};
 use super::{Global, Network, Section, Simulator};
 
 /// The backends a section's `PROTOCOL` names (the backend module's list).
@@ -73,6 +74,8 @@ pub enum Kind {
         what: &'static str,
         choices: &'static [&'static str],
     },
+    /// Text of a form of the historian's (`history.rs`), checked on load.
+    Form(Form),
 }
 
 /// A parsed value, of the key's [`Kind`].
@@ -279,6 +282,7 @@ impl Kind {
             Kind::Networks => "a.b.c.d, a.b.c.d/n, x:y::z, x:y::/n".to_string(),
             Kind::Choice { choices, .. } => choices.join(", "),
             Kind::Choices { choices, .. } => format!("a list of {}", choices.join(", ")),
+            Kind::Form(form) => form.allowed().to_string(),
         }
     }
 
@@ -334,6 +338,10 @@ impl Kind {
                 })
                 .collect::<Result<Vec<_>, _>>()
                 .map(Value::Choices),
+            Kind::Form(form) => form
+                .check(text)
+                .map(|()| Value::Text(text.to_string()))
+                .map_err(|problem| format!("{problem} {allowed}")),
         }
     }
 }
@@ -559,6 +567,16 @@ static KEYS: &[Key] = &[
         Setter::Global(|g, v| g.http_cert = Some(v.text()))),
     row("HTTP_KEY", None, Kind::Text, "TLS private key (PEM) of the web page",
         Setter::Global(|g, v| g.http_key = Some(v.text()))),
+    // The historian (issue 13).
+    row("HISTORY_DIR", None, Kind::Text,
+        "folder of the history files (default: history beside the configuration file)",
+        Setter::Global(|g, v| g.history_dir = Some(v.text()))),
+    row("HISTORY_RETENTION", None, Kind::Form(Form::Retention),
+        "history kept: days and/or a size; older day files are deleted (default: all)",
+        Setter::Global(|g, v| g.history_retention = history::parse_retention(&v.text()).unwrap_or_default())),
+    row("HISTORY_SYNC", Some("1"), number(1, 3600, "s"),
+        "seconds between durable commits of the history (at most this much is lost on a crash)",
+        Setter::Global(|g, v| g.history_sync = v.secs())),
 
     // A PLC section.
     row("IPADDR", None, Kind::Ipv4, "IP address of the PLC (0.0.0.0 = none yet)",
@@ -631,6 +649,25 @@ static KEYS: &[Key] = &[
     row("SETCONF_KEYS", None, Kind::Choices { what: "SETCONF name", choices: &SETCONF_NAMES },
         "the SETCONF names clients may use (default: all); others answer ERROR:30",
         Setter::Section(|s, v| s.setconf_keys = Some(v.choices()))),
+    // The historian (issue 13).
+    row("HISTORY", None, Kind::Form(Form::Masks), "variables recorded in the history (masks)",
+        Setter::Section(|s, v| s.history.masks = history::parse_masks(&v.text()).unwrap_or_default())),
+    row("HISTORY_DELTA", Some("0"), Kind::Form(Form::Deadband),
+        "deadband: a change must exceed it to be recorded (0 = every change)",
+        Setter::Section(|s, v| s.history.delta = history::parse_deadband(&v.text()).unwrap_or_default())),
+    row("HISTORY_HEARTBEAT", Some("0"), number(0, 86400, "s"),
+        "an unchanged value is recorded again this often (0 = off)",
+        Setter::Section(|s, v| s.history.heartbeat = v.secs())),
+    row("HISTORY_TRIGGER", None, Kind::Text,
+        "BOOL variable whose rising edge records every cycle from HISTORY_PRE before to HISTORY_POST after",
+        Setter::Section(|s, v| s.history.trigger = Some(v.text()))),
+    row("HISTORY_PRE", Some("10"), number(0, 10000, "cycles"), "cycles recorded before a trigger",
+        Setter::Section(|s, v| s.history.pre = v.number() as u32)),
+    row("HISTORY_POST", Some("10"), number(0, 10000, "cycles"), "cycles recorded after a trigger",
+        Setter::Section(|s, v| s.history.post = v.number() as u32)),
+    row("HISTORY_STAMP", None, Kind::Form(Form::Stamps),
+        "VALUE_VAR:STAMP_VAR pairs: samples carry the PLC's time from a DT or LINT/ULINT/LWORD (ms) variable",
+        Setter::Section(|s, v| s.history.stamps = history::parse_stamps(&v.text()).unwrap_or_default())),
     // Accepted in a PLC section for symmetry with [*]: no effect there.
     row("SERIAL_DEVICE_CFG", None, Kind::Text, "no effect in a PLC section (a [*] key)",
         Setter::Section(|_, _| {})),

@@ -19,6 +19,7 @@
 //! server instead of a real one.
 
 mod diag;
+pub mod history;
 mod ini;
 mod keys;
 #[cfg(test)]
@@ -31,6 +32,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 pub use diag::{Diagnostic, Severity};
+pub use history::{History, Retention, StampPair};
 pub use keys::{
     global_keys, key, keys, parse_bool, parse_ipv4, section_keys, setconf_key, Key, Kind, Scope,
     SetConfScope, Value, PROTOCOLS, SIMULATOR_PROGRAMS,
@@ -91,6 +93,11 @@ pub struct Global {
     pub http_token: Option<String>,
     pub http_cert: Option<String>,
     pub http_key: Option<String>,
+    /// HISTORY_DIR as written; `None`: `history` beside the configuration.
+    pub history_dir: Option<String>,
+    pub history_retention: Retention,
+    /// HISTORY_SYNC: time between durable commits of the history.
+    pub history_sync: Duration,
 }
 
 impl Default for Global {
@@ -125,6 +132,9 @@ impl Default for Global {
             http_token: None,
             http_cert: None,
             http_key: None,
+            history_dir: None,
+            history_retention: Retention::default(),
+            history_sync: Duration::ZERO,
         })
     }
 }
@@ -168,6 +178,8 @@ pub struct Section {
     pub read_only: bool,
     /// `SETCONF_KEYS`: the SETCONF names clients may use; `None`: all.
     pub setconf_keys: Option<Vec<&'static str>>,
+    /// `HISTORY*`: what the historian records (this server's own keys).
+    pub history: History,
 }
 
 /// An address or CIDR network of `ALLOW`.
@@ -625,6 +637,7 @@ fn section_defaults(name: &str) -> Section {
         allow: None,
         read_only: false,
         setconf_keys: None,
+        history: History::default(),
     })
 }
 
@@ -648,6 +661,7 @@ fn read_section(
             }
         }
     }
+    history::warn_unused(&section.history, &map, diags);
     if !map.contains_key("SERVER_PORT") {
         errors.push(diags.make(
             Severity::Error,

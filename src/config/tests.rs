@@ -899,6 +899,8 @@ fn defaults_come_from_the_table() {
 fn base(key: &str) -> &'static str {
     if key.starts_with("SIMULATOR_") {
         "SERVER_PORT = 5010\nSIMULATOR = Yes"
+    } else if key.starts_with("HISTORY_") {
+        "SERVER_PORT = 5010\nHISTORY = *"
     } else {
         "SERVER_PORT = 5010"
     }
@@ -921,6 +923,7 @@ fn sample(key: &Key) -> Option<String> {
             .find(|c| default != Some(Value::Choice(c)))?
             .to_string(),
         Kind::Choices { choices, .. } => choices[..2].join(", "),
+        Kind::Form(form) => form.example().into(),
     })
 }
 
