@@ -13,7 +13,9 @@
 //! - `link` is the task that owns a section's backend: health, poll cycle,
 //!   client jobs, SETCONF, file transfers, public-file tables;
 //! - `backend` is the one interface to a PLC, chosen by `PROTOCOL`;
-//! - `config` reads the INI file, `vars` is a section's variable table.
+//! - `config` reads the INI file, `vars` is a section's variable table;
+//! - `mqtt` publishes each section's changes to an MQTT broker and takes
+//!   writes back.
 //!
 //! The line protocol (`plccoms-protocol`), the PLC model and EPSNET wire
 //! format (`plccoms-plc`) and the simulated PLC (`plcsim`) are crates of
@@ -29,6 +31,7 @@ pub mod daemon;
 pub mod link;
 pub mod localfs;
 pub mod metrics;
+pub mod mqtt;
 pub mod section;
 pub mod server;
 pub mod session;

@@ -26,6 +26,8 @@ pub struct Server {
     pub metrics: Arc<crate::metrics::Registry>,
     simulators: Vec<SimHandle>,
     _file_stores: Vec<tempfile::TempDir>,
+    /// The MQTT north side, when MQTT_URL is set.
+    mqtt: Option<crate::mqtt::Mqtt>,
 }
 
 impl Server {
@@ -41,6 +43,11 @@ impl Server {
     pub async fn shutdown(self) {
         for section in &self.sections {
             section.stop_accepting();
+        }
+        // MQTT first, while the links still answer: `offline`, DISCONNECT,
+        // the queue saved.
+        if let Some(mqtt) = self.mqtt {
+            mqtt.shutdown(SHUTDOWN_GRACE).await;
         }
         futures::future::join_all(
             self.sections
@@ -70,6 +77,7 @@ pub async fn start(config: &Config) -> Result<Server, String> {
         metrics: Arc::default(),
         simulators: Vec::new(),
         _file_stores: Vec::new(),
+        mqtt: None,
     };
     let mut failures = Vec::new();
     for section in &config.sections {
@@ -93,6 +101,30 @@ pub async fn start(config: &Config) -> Result<Server, String> {
             "no PLC section could start: {}",
             failures.join("; ")
         ));
+    }
+    // A gateway that should publish but cannot is not started half-way.
+    let mqtt = crate::mqtt::settings::Settings::load(&config.global.mqtt, &dir, &config.path)
+        .and_then(|settings| {
+            settings
+                .map(|settings| crate::mqtt::start(settings, &server.sections))
+                .transpose()
+        });
+    match mqtt {
+        Ok(Some(mqtt)) => {
+            server.metrics.add_source(mqtt.source.clone());
+            server.mqtt = Some(mqtt);
+        }
+        Ok(None) => {}
+        Err(message) => {
+            let message = format!("MQTT: {message}");
+            Server {
+                mqtt: None,
+                ..server
+            }
+            .shutdown()
+            .await;
+            return Err(message);
+        }
     }
     Ok(server)
 }

@@ -21,6 +21,7 @@
 mod diag;
 mod ini;
 mod keys;
+mod mqtt;
 #[cfg(test)]
 mod tests;
 
@@ -39,6 +40,7 @@ pub use keys::{
 use diag::Diags;
 use ini::{Entry, RawSection};
 use keys::Settings;
+pub use mqtt::{check_prefix, split_masks, MqttFormat, MqttGlobal, MqttSection, MQTT_FORMATS};
 
 /// A loaded ini file.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -80,6 +82,8 @@ pub struct Global {
     pub output_soft_limit: usize,
     /// OUTPUT_SOFT_TIMEOUT.
     pub output_soft_timeout: Duration,
+    /// The MQTT_* keys (this server's own).
+    pub mqtt: MqttGlobal,
 }
 
 impl Default for Global {
@@ -108,6 +112,7 @@ impl Default for Global {
             output_hard_limit: 0,
             output_soft_limit: 0,
             output_soft_timeout: Duration::ZERO,
+            mqtt: MqttGlobal::default(),
         })
     }
 }
@@ -149,6 +154,8 @@ pub struct Section {
     /// `READ_ONLY = Yes`: requests that would change the PLC or the section
     /// answer ERROR:30 (this server's own key).
     pub read_only: bool,
+    /// The MQTT_* keys (this server's own).
+    pub mqtt: MqttSection,
 }
 
 /// An address or CIDR network of `ALLOW`.
@@ -536,6 +543,7 @@ fn read_global(
         }
         global.output_soft_limit = hard;
     }
+    mqtt::check_global(&global.mqtt, &map, diags, errors);
     global
 }
 
@@ -566,6 +574,7 @@ fn section_defaults(name: &str) -> Section {
         simulator: None,
         allow: None,
         read_only: false,
+        mqtt: MqttSection::default(),
     })
 }
 
@@ -578,6 +587,7 @@ fn read_section(
     let map = collect(raw, Scope::Section, diags);
     let mut section = section_defaults(&raw.name);
     fill(&mut section, &map, diags, errors);
+    mqtt::check_section(&section.mqtt, &map, diags, errors);
     if section.simulator.is_none() {
         for key in ["SIMULATOR_PROGRAM", "SIMULATOR_PUB"] {
             if let Some(entry) = map.get(key) {
