@@ -373,6 +373,60 @@ fn home_assistant_discovery_stable_ids_and_removed_configs_cleared() {
     assert_eq!(retained.len(), 4, "{retained:?}");
 }
 
+/// A new public file (SETCONF:pubfile) re-sends the configs of the
+/// variables that stay, under the same ids, and clears the others.
+#[test]
+fn discovery_follows_a_new_public_file() {
+    let broker = Broker::anonymous();
+    let files = tempfile::tempdir().unwrap();
+    let udp = free_udp_port();
+    let _plcsim = plcsim(files.path(), udp);
+    std::fs::write(
+        files.path().join("small.pub"),
+        " switch R B 128 .0 BOOL PUB_INOUT\r\n counter R B 130 INT PUB_INOUT\r\n",
+    )
+    .unwrap();
+    let port = free_port();
+    let section = format!(
+        "[Plc]\nIPADDR = 127.0.0.1\nEPSPORT = {udp}\nSERVER_PORT = {port}\nPUBFILE = //demo.pub\nMQTT_PUBLISH = counter, sinus, switch\nMQTT_WRITE = switch\nMQTT_HA_DISCOVERY = Yes\n"
+    );
+    let sub = broker.subscribe(&["homeassistant/#"]);
+    let _server = ServerProcess::with_config(&config(&broker, "", &section), port);
+    let config_of = |name: &str, from: usize| {
+        sub.wait_for(&format!("the config of {name}"), || {
+            sub.messages()[from..]
+                .iter()
+                .find(|m| m.payload.contains(&format!("\"name\":\"{name}\"")))
+                .cloned()
+        })
+    };
+    let (counter, sinus, switch) = (
+        config_of("COUNTER", 0),
+        config_of("SINUS", 0),
+        config_of("SWITCH", 0),
+    );
+    assert!(switch.topic.starts_with("homeassistant/switch/"));
+    let before = sub.messages().len();
+    let mut line = Line::connect(port);
+    assert_eq!(
+        line.ask("SETCONF:pubfile,//small.pub"),
+        "WARNING:250 Changed public file: 'small.pub'"
+    );
+    sub.wait_for("SINUS cleared", || {
+        sub.messages()[before..]
+            .iter()
+            .find(|m| m.topic == sinus.topic && m.payload.is_empty())
+            .cloned()
+    });
+    for kept in [&counter, &switch] {
+        let again = config_of(kept.json()["name"].as_str().unwrap(), before);
+        assert_eq!(
+            (&again.topic, again.json()["unique_id"].clone()),
+            (&kept.topic, kept.json()["unique_id"].clone())
+        );
+    }
+}
+
 // ---------------------------------------------------------------- the will
 
 #[test]

@@ -112,6 +112,8 @@ pub(super) struct State {
     /// Messages dropped over MQTT_BUFFER since the queue was last empty.
     dropping: u64,
     spool_failing: bool,
+    /// When falling behind the change stream was last logged.
+    missed_logged: Option<Instant>,
 }
 
 impl Task {
@@ -388,6 +390,14 @@ impl Task {
     fn on_batch(&mut self, batch: &ChangeBatch) {
         if batch.missed > 0 {
             self.metrics.missed.add(batch.missed);
+            let quiet = self
+                .state
+                .missed_logged
+                .is_some_and(|at| at.elapsed() < Duration::from_secs(60));
+            if !quiet {
+                warn!(section = %self.section.name, "MQTT: fell behind the polls ({} publishes not seen); the latest values are published, intermediate ones are not (plccoms_mqtt_missed_total)", batch.missed);
+                self.state.missed_logged = Some(Instant::now());
+            }
         }
         let online = batch.snapshot.online;
         let link_changed = self.state.plc_online.replace(online) != Some(online);
