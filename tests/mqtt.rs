@@ -251,6 +251,37 @@ fn line_after_reconnect(port: u16) -> String {
     }
 }
 
+/// MQTT_DELTA: a change is published once it moved more than the deadband
+/// from the value last published.
+#[test]
+fn deadband() {
+    let broker = Broker::anonymous();
+    let port = free_port();
+    let ini = config(
+        &broker,
+        "",
+        &sim_section("Demo", port, "MQTT_PUBLISH = counter\nMQTT_DELTA = 5"),
+    );
+    let _server = ServerProcess::with_config(&ini, port);
+    let sub = broker.subscribe(&["plccoms/Demo/COUNTER"]);
+    sub.wait_payload("plccoms/Demo/COUNTER", "0");
+    let mut line = Line::connect(port);
+    for value in [3, 5, 6, 8, 11, 12, -1] {
+        assert_eq!(
+            line.ask(&format!("SET:counter,{value}")),
+            format!("DIFF:COUNTER,{value}")
+        );
+        thread::sleep(Duration::from_millis(150));
+    }
+    sub.wait_payload("plccoms/Demo/COUNTER", "-1");
+    let seen: Vec<String> = sub
+        .on("plccoms/Demo/COUNTER")
+        .into_iter()
+        .map(|m| m.payload)
+        .collect();
+    assert_eq!(seen, ["0", "6", "12", "-1"]);
+}
+
 // --------------------------------------------------------------- discovery
 
 #[test]

@@ -256,3 +256,25 @@ pub fn start(settings: Settings, sections: &[RunningSection]) -> Result<Mqtt, St
         source: Arc::new(source),
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::metrics::Source as _;
+
+    #[test]
+    fn counters_in_prometheus_text() {
+        let metrics = Arc::new(Metrics::default());
+        metrics.connected.set(1);
+        metrics.dropped.add(3);
+        let source = Source {
+            sections: vec![("Hala \"1\"".into(), metrics)],
+        };
+        let mut out = String::new();
+        source.render(&mut out);
+        assert!(out.contains("# TYPE plccoms_mqtt_connected gauge\n"));
+        assert!(out.contains("plccoms_mqtt_connected{section=\"Hala \\\"1\\\"\"} 1\n"));
+        assert!(out.contains("plccoms_mqtt_dropped_total{section=\"Hala \\\"1\\\"\"} 3\n"));
+        assert_eq!(out.matches("# HELP").count(), FAMILIES.len());
+    }
+}
