@@ -61,8 +61,16 @@ impl Broker {
 
     fn run(&mut self) -> bool {
         let conf = self.dir.path().join("mosquitto.conf");
+        // As root, mosquitto drops to its own user, which cannot write the
+        // test's folder (its log, its persistence file): it stays root.
+        // SAFETY: plain syscall without arguments.
+        let user = if unsafe { libc::geteuid() } == 0 {
+            "user root\n"
+        } else {
+            ""
+        };
         let text = format!(
-            "listener {port} 127.0.0.1\n{extra}\npersistence true\npersistence_location {dir}/\nlog_dest file {dir}/mosquitto.log\nlog_type all\n",
+            "{user}listener {port} 127.0.0.1\n{extra}\npersistence true\npersistence_location {dir}/\nlog_dest file {dir}/mosquitto.log\nlog_type all\n",
             port = self.port,
             extra = self.extra,
             dir = self.dir.path().display()
