@@ -162,6 +162,30 @@ fn values_plain_and_json_retained_with_escaped_and_cp1250_names() {
     drop(server);
 }
 
+/// A section that publishes no variable still says how it and its PLC are,
+/// also when the PLC answered before the broker did.
+#[test]
+fn a_section_publishing_nothing_reports_its_plc() {
+    let mut broker = Broker::anonymous();
+    broker.stop();
+    let port = free_port();
+    // A local public file: no new table, so no batch of changes, after start.
+    let dir = tempfile::tempdir().unwrap();
+    let pubfile = dir.path().join("demo.pub");
+    std::fs::write(&pubfile, include_bytes!("../conf/demo.pub")).unwrap();
+    let section = format!(
+        "[Bare]\nSIMULATOR = Yes\nSIMULATOR_PROGRAM = idle\nSIMULATOR_PUB = {p}\nSERVER_PORT = {port}\nPUBFILE = {p}\n",
+        p = pubfile.display()
+    );
+    let server = ServerProcess::with_config(&config(&broker, "", &section), port);
+    wait_until("the PLC", || server.log().contains("PLC connected"));
+    thread::sleep(Duration::from_millis(500));
+    broker.restart();
+    let sub = broker.subscribe(&["plccoms/#"]);
+    sub.wait_payload("plccoms/Bare/status", "online");
+    sub.wait_payload("plccoms/Bare/plc", "online");
+}
+
 // ------------------------------------------------------------------ writes
 
 #[test]

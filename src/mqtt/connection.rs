@@ -272,7 +272,12 @@ impl Task {
         self.state
             .direct
             .push_back(state_message(self.topics.status(), "online"));
-        let plc = self.state.plc_online.unwrap_or(false);
+        // Before its first batch (a section publishing nothing has batches
+        // only when the link changes), the link as the stream has it now.
+        let plc = self
+            .state
+            .plc_online
+            .unwrap_or_else(|| self.section.changes.latest().online);
         self.state.direct.push_back(plc_message(&self.topics, plc));
         self.announce();
         self.spool.rewind();
