@@ -31,6 +31,13 @@ use crate::section::Section;
 /// Writes waiting for the PLC, per section; more are refused at once.
 pub const QUEUE: usize = 64;
 
+/// The longest value a write may carry (a STRING holds at most 255
+/// characters): longer ones are refused before anything else.
+pub const MAX_VALUE: usize = 1024;
+
+/// How much of the name and value a refusal line quotes.
+const QUOTED: usize = 64;
+
 /// A write accepted for the PLC.
 #[derive(Debug)]
 pub struct Request {
@@ -66,8 +73,8 @@ impl From<WriteError> for Refused {
 /// `ERROR:<code> <text> 'SET:<name>,<value>'` with this server's reason
 /// after it.
 fn refusal(code: ErrorCode, level: &str, value: &[u8], why: &str) -> Refused {
-    let mut context = format!("SET:{level},").into_bytes();
-    context.extend_from_slice(&cp1250::encode(&String::from_utf8_lossy(value)));
+    let mut context = format!("SET:{},", shorten(level)).into_bytes();
+    context.extend_from_slice(&cp1250::encode(&shorten(&String::from_utf8_lossy(value))));
     let mut line = Vec::new();
     write_error(&mut line, code, &context);
     let mut line = cp1250::decode(&line).into_owned();
@@ -79,6 +86,15 @@ fn refusal(code: ErrorCode, level: &str, value: &[u8], why: &str) -> Refused {
     Refused {
         code: code.code(),
         line,
+    }
+}
+
+/// `text` cut to [`QUOTED`] characters, `...` marking the cut: a refusal
+/// quotes what came, but never makes a huge line of a huge message.
+fn shorten(text: &str) -> String {
+    match text.char_indices().nth(QUOTED) {
+        Some((at, _)) => format!("{}...", &text[..at]),
+        None => text.to_string(),
     }
 }
 
@@ -95,6 +111,14 @@ pub fn check(
             level,
             payload,
             "a retained /set message is never written",
+        ));
+    }
+    if payload.len() > MAX_VALUE {
+        return Err(refusal(
+            ErrorCode::WrongValue,
+            level,
+            payload,
+            &format!("a value of {} bytes; at most {MAX_VALUE}", payload.len()),
         ));
     }
     let name = unlevel(level)
@@ -202,6 +226,14 @@ mod tests {
                 .unwrap_err()
                 .code,
             30
+        );
+        let huge = check(&r, "SETPOINT", &[b'7'; 100_000], false).unwrap_err();
+        assert_eq!(huge.code, 35);
+        assert!(huge.line.len() < 300, "{}", huge.line);
+        assert!(
+            huge.line.contains("7777...' (a value of 100000 bytes"),
+            "{}",
+            huge.line
         );
     }
 }
