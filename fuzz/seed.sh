@@ -161,6 +161,26 @@ for query in [b"section=Demo&vars=SIN*,counter&from=0&to=1000&format=csv",
               b"section=Demo&from=-5&to=-9", b"vars=a&section=&to=1e9"]:
     put("web_query", query)
 
+# --- MQTT --------------------------------------------------------------------
+# Queue records as src/mqtt/spool.rs writes them (crc32c = CRC-32/ISCSI).
+def crc32c(data):
+    crc = 0xFFFFFFFF
+    for b in data:
+        crc ^= b
+        for _ in range(8):
+            crc = (crc >> 1) ^ (0x82F63B78 if crc & 1 else 0)
+    return crc ^ 0xFFFFFFFF
+
+def record(seq, topic, payload, qos=1, retain=True):
+    body = struct.pack("<QBH", seq, qos | (4 if retain else 0), len(topic)) + topic + payload
+    return struct.pack("<II", len(body), crc32c(body)) + body
+
+put("mqtt_spool", record(1, b"plccoms/Demo/COUNTER", b"42"))
+put("mqtt_spool", record(7, b"plccoms/Demo/A%2FB", b'{"value":1}', 0, False) + record(8, b"t", b""))
+for text in [b"mqtt://broker.lan:1883", b"mqtts://[::1]:8883/", b"tcp://10.0.0.1",
+             b"COUNTER", b"A%2FB%2BC%23D%25E", "TEPLOTA_KUCHYNĚ".encode(), b"%zz"]:
+    put("mqtt_text", text)
+
 for target in sorted(counts):
     print(f"{target}: {counts[target]} seeds")
 PY

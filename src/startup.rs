@@ -30,6 +30,8 @@ pub struct Server {
     pub historian: Option<crate::historian::Historian>,
     simulators: Vec<SimHandle>,
     _file_stores: Vec<tempfile::TempDir>,
+    /// The MQTT north side, when MQTT_URL is set.
+    mqtt: Option<crate::mqtt::Mqtt>,
 }
 
 impl Server {
@@ -48,6 +50,11 @@ impl Server {
         }
         for section in &self.sections {
             section.stop_accepting();
+        }
+        // MQTT first, while the links still answer: `offline`, DISCONNECT,
+        // the queue saved.
+        if let Some(mqtt) = self.mqtt {
+            mqtt.shutdown(SHUTDOWN_GRACE).await;
         }
         futures::future::join_all(
             self.sections
@@ -90,6 +97,7 @@ pub async fn start(config: &Config) -> Result<Server, String> {
         historian: None,
         simulators: Vec::new(),
         _file_stores: Vec::new(),
+        mqtt: None,
     };
     let mut failures = Vec::new();
     for section in &config.sections {
@@ -124,6 +132,23 @@ pub async fn start(config: &Config) -> Result<Server, String> {
         server.metrics.add_source(historian.metrics());
         // The recorded history is the server's own: clients never write it.
         crate::localfs::protect(&crate::historian::history_dir(&config.path, &global), false);
+    }
+    // Like the web page, an MQTT north side that cannot start (a queue
+    // folder locked by another process, an unreadable password or CA file)
+    // is reported and the PLC sections serve on.
+    let mqtt = crate::mqtt::settings::Settings::load(&config.global.mqtt, &dir, &config.path)
+        .and_then(|settings| {
+            settings
+                .map(|settings| crate::mqtt::start(settings, &server.sections))
+                .transpose()
+        });
+    match mqtt {
+        Ok(Some(mqtt)) => {
+            server.metrics.add_source(mqtt.source.clone());
+            server.mqtt = Some(mqtt);
+        }
+        Ok(None) => {}
+        Err(message) => error!("MQTT not started: {message}"),
     }
     if let Some(web) = crate::web::WebConfig::from_global(&global, &dir) {
         // /api/history and the chart's range mode read the historian's

@@ -62,6 +62,27 @@ fn every_target_runs_on_ordinary_input() {
         0x10, 0x00, 0xAA, 0xBB, 0xFA, 0x16, 0x00,
     ];
     checks::epsnet_client(&answer);
+    let mut record = Vec::new();
+    plccoms::mqtt::spool::encode_record(
+        7,
+        &plccoms::mqtt::spool::Message {
+            topic: "plccoms/Demo/A%2FB".into(),
+            payload: b"42".to_vec(),
+            qos: 1,
+            retain: true,
+        },
+        &mut record,
+    );
+    checks::mqtt_spool(&record);
+    for text in [
+        "mqtt://broker.lan:1883",
+        "mqtts://[::1]",
+        "A%2FB",
+        "TEPLOTA_KUCHYNĚ",
+        "%zz",
+    ] {
+        checks::mqtt_text(text.as_bytes());
+    }
     // IDENT request from 0x7D.
     checks::epsnet_device(&[
         0x00, 0x01, 0x02, 0x00, 0x00, 0x0A, 0x68, 0x04, 0x04, 0x68, 0x00, 0x7D, 0x63, 0x01, 0xE1,

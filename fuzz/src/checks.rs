@@ -12,6 +12,9 @@ use std::path::{Path, PathBuf};
 
 use bytes::BytesMut;
 use plccoms::backend::FileInfo;
+use plccoms::mqtt::settings::BrokerUrl;
+use plccoms::mqtt::spool::{decode_record, encode_record};
+use plccoms::mqtt::topics::{level, unlevel};
 use plccoms::vars::VarTable;
 use plccoms_plc::epsnet::codec::{decode_packet, encode_packet, EpsnetCodec};
 use plccoms_plc::epsnet::frame::{Frame as EpsFrame, MAX_PACKET};
@@ -756,5 +759,42 @@ pub fn web_query(data: &[u8]) {
             assert!(query.masks.iter().all(|m| !m.is_empty()), "{query:?}");
         }
         Err(message) => assert!(!message.is_empty()),
+    }
+}
+
+// ---------------------------------------------------------------------------
+// MQTT.
+
+/// Records of the MQTT on-disk queue (`src/mqtt/spool.rs`), one after
+/// another: never a panic; every record decoded encodes back to its bytes.
+pub fn mqtt_spool(data: &[u8]) {
+    let mut at = 0;
+    while at < data.len() {
+        match decode_record(&data[at..]) {
+            Ok(Some((seq, message, used))) => {
+                let mut again = Vec::new();
+                encode_record(seq, &message, &mut again);
+                assert_eq!(again, &data[at..at + used], "record {seq} re-encoded");
+                at += used;
+            }
+            Ok(None) | Err(_) => break,
+        }
+    }
+}
+
+/// MQTT text: a broker URL (MQTT_URL) and a topic level (a `/set` topic's
+/// variable name). Never a panic; a level naming a variable is written back
+/// to a level naming the same one.
+pub fn mqtt_text(data: &[u8]) {
+    let Ok(text) = std::str::from_utf8(data) else {
+        return;
+    };
+    if let Ok(url) = BrokerUrl::parse(text) {
+        assert!(!url.host.is_empty() && url.port > 0, "{text}: {url:?}");
+    }
+    if let Ok(name) = unlevel(text) {
+        let again = level(&name);
+        assert!(!again.contains(['/', '+', '#']), "{again}");
+        assert_eq!(unlevel(&again).as_deref(), Ok(&name[..]), "{text}");
     }
 }

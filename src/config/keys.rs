@@ -7,7 +7,7 @@ use std::net::{IpAddr, Ipv4Addr};
 use std::time::Duration;
 
 use super::history::{self, Form};
-use super::{Global, Network, Section, Simulator};
+use super::{split_masks, Global, MqttFormat, Network, Section, Simulator, MQTT_FORMATS};
 
 /// The backends a section's `PROTOCOL` names (the backend module's list).
 pub use crate::backend::PROTOCOLS;
@@ -577,6 +577,33 @@ static KEYS: &[Key] = &[
     row("HISTORY_SYNC", Some("1"), number(1, 3600, "s"),
         "seconds between durable commits of the history (at most this much is lost on a crash)",
         Setter::Global(|g, v| g.history_sync = v.secs())),
+    // MQTT (src/mqtt/): the broker, the client, the spool.
+    row("MQTT_URL", None, Kind::Text,
+        "broker: mqtt://host[:port] (1883) or mqtts://host[:port] (8883, TLS); unset = MQTT off",
+        Setter::Global(|g, v| g.mqtt.url = Some(v.text()))),
+    row("MQTT_USER", None, Kind::Text, "user name at the broker",
+        Setter::Global(|g, v| g.mqtt.user = Some(v.text()))),
+    row("MQTT_PASSWORD", None, Kind::Text, "password at the broker",
+        Setter::Global(|g, v| g.mqtt.password = Some(v.text()))),
+    row("MQTT_PASSWORD_FILE", None, Kind::Text, "file holding the password (instead of MQTT_PASSWORD)",
+        Setter::Global(|g, v| g.mqtt.password_file = Some(v.text()))),
+    row("MQTT_CLIENT_ID", None, Kind::Text,
+        "client id base (default plccoms-<host name>-<hash of the configuration path>)",
+        Setter::Global(|g, v| g.mqtt.client_id = Some(v.text()))),
+    row("MQTT_PREFIX", Some("plccoms"), Kind::Text, "first topic level(s)",
+        Setter::Global(|g, v| g.mqtt.prefix = v.text())),
+    row("MQTT_CA", None, Kind::Text, "PEM file of the CA(s) the broker's certificate is checked against",
+        Setter::Global(|g, v| g.mqtt.ca = Some(v.text()))),
+    row("MQTT_CERT", None, Kind::Text, "PEM file of a client certificate (with MQTT_KEY)",
+        Setter::Global(|g, v| g.mqtt.cert = Some(v.text()))),
+    row("MQTT_KEY", None, Kind::Text, "PEM file of the client certificate's private key",
+        Setter::Global(|g, v| g.mqtt.key = Some(v.text()))),
+    row("MQTT_BUFFER", Some("67108864"), number(65536, 1 << 40, "bytes"),
+        "unsent messages kept on disk per section; over it the oldest are dropped",
+        Setter::Global(|g, v| g.mqtt.buffer = v.number())),
+    row("MQTT_SPOOL", Some("mqtt-spool"), Kind::Text,
+        "folder of the on-disk queues (relative to the configuration file)",
+        Setter::Global(|g, v| g.mqtt.spool = v.text())),
 
     // A PLC section.
     row("IPADDR", None, Kind::Ipv4, "IP address of the PLC (0.0.0.0 = none yet)",
@@ -668,6 +695,24 @@ static KEYS: &[Key] = &[
     row("HISTORY_STAMP", None, Kind::Form(Form::Stamps),
         "VALUE_VAR:STAMP_VAR pairs: samples carry the PLC's time from a DT or LINT/ULINT/LWORD (ms) variable",
         Setter::Section(|s, v| s.history.stamps = history::parse_stamps(&v.text()).unwrap_or_default())),
+    // MQTT (src/mqtt/): what the section publishes and what may be written.
+    row("MQTT_PUBLISH", None, Kind::Text, "masks of the variables published (default none)",
+        Setter::Section(|s, v| s.mqtt.publish = split_masks(&v.text()))),
+    row("MQTT_WRITE", None, Kind::Text, "masks of the variables <var>/set may write (default none)",
+        Setter::Section(|s, v| s.mqtt.write = split_masks(&v.text()))),
+    row("MQTT_QOS", Some("1"), number(0, 1, ""), "QoS of value messages; 1 = kept on disk while the broker is away",
+        Setter::Section(|s, v| s.mqtt.qos = v.number() as u8)),
+    row("MQTT_RETAIN", Some("Yes"), Kind::Bool, "value messages are retained",
+        Setter::Section(|s, v| s.mqtt.retain = v.bool())),
+    row("MQTT_FORMAT", Some("plain"), choice("MQTT format", &MQTT_FORMATS),
+        "plain (the value as GET prints it) or json (value, time of the poll, quality)",
+        Setter::Section(|s, v| {
+            s.mqtt.format = if v.text() == "json" { MqttFormat::Json } else { MqttFormat::Plain };
+        })),
+    row("MQTT_DELTA", None, Kind::Text, "deadband: a value is published when it moved more than this",
+        Setter::Section(|s, v| s.mqtt.delta = Some(v.text()))),
+    row("MQTT_HA_DISCOVERY", Some("No"), Kind::Bool, "Home Assistant MQTT discovery",
+        Setter::Section(|s, v| s.mqtt.ha_discovery = v.bool())),
     // Accepted in a PLC section for symmetry with [*]: no effect there.
     row("SERIAL_DEVICE_CFG", None, Kind::Text, "no effect in a PLC section (a [*] key)",
         Setter::Section(|_, _| {})),

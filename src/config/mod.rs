@@ -22,6 +22,7 @@ mod diag;
 pub mod history;
 mod ini;
 mod keys;
+mod mqtt;
 #[cfg(test)]
 mod tests;
 
@@ -41,6 +42,7 @@ pub use keys::{
 use diag::Diags;
 use ini::{Entry, RawSection};
 use keys::Settings;
+pub use mqtt::{check_prefix, split_masks, MqttFormat, MqttGlobal, MqttSection, MQTT_FORMATS};
 
 /// A loaded ini file.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -98,6 +100,8 @@ pub struct Global {
     pub history_retention: Retention,
     /// HISTORY_SYNC: time between durable commits of the history.
     pub history_sync: Duration,
+    /// The MQTT_* keys (this server's own).
+    pub mqtt: MqttGlobal,
 }
 
 impl Default for Global {
@@ -135,6 +139,7 @@ impl Default for Global {
             history_dir: None,
             history_retention: Retention::default(),
             history_sync: Duration::ZERO,
+            mqtt: MqttGlobal::default(),
         })
     }
 }
@@ -180,6 +185,8 @@ pub struct Section {
     pub setconf_keys: Option<Vec<&'static str>>,
     /// `HISTORY*`: what the historian records (this server's own keys).
     pub history: History,
+    /// The MQTT_* keys (this server's own).
+    pub mqtt: MqttSection,
 }
 
 /// An address or CIDR network of `ALLOW`.
@@ -568,6 +575,7 @@ fn read_global(
         global.output_soft_limit = hard;
     }
     check_http(&global, &map, diags, errors);
+    mqtt::check_global(&global.mqtt, &map, diags, errors);
     global
 }
 
@@ -638,6 +646,7 @@ fn section_defaults(name: &str) -> Section {
         read_only: false,
         setconf_keys: None,
         history: History::default(),
+        mqtt: MqttSection::default(),
     })
 }
 
@@ -650,6 +659,7 @@ fn read_section(
     let map = collect(raw, Scope::Section, diags);
     let mut section = section_defaults(&raw.name);
     fill(&mut section, &map, diags, errors);
+    mqtt::check_section(&section.mqtt, &map, diags, errors);
     if section.simulator.is_none() {
         for key in ["SIMULATOR_PROGRAM", "SIMULATOR_PUB"] {
             if let Some(entry) = map.get(key) {

@@ -909,6 +909,12 @@ fn base(key: &str) -> &'static str {
 /// A good value of the key's kind other than its default.
 fn sample(key: &Key) -> Option<String> {
     let default = key.default_value();
+    // Text keys whose values are checked beyond their kind.
+    match key.name {
+        "MQTT_URL" => return Some("mqtt://broker.lan".into()),
+        "MQTT_DELTA" => return Some("0.5".into()),
+        _ => {}
+    }
     Some(match key.kind {
         Kind::Number { min, max, .. } if default == Some(Value::Number(min)) => max.to_string(),
         Kind::Number { min, .. } => min.to_string(),

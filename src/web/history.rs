@@ -441,7 +441,8 @@ mod tests {
     fn parameters_are_checked_and_named() {
         let err = |q: &str| parse_params(&params(q), 10_000).unwrap_err();
         assert_eq!(err("vars=a"), "section= is required");
-        assert!(err("section=D&from=yesterday").starts_with("from=yesterday: 'yesterday' is not a time"));
+        assert!(err("section=D&from=yesterday")
+            .starts_with("from=yesterday: 'yesterday' is not a time"));
         let (query, _) = parse_params(&params("section=D&from=-1h&to=now"), 10_000_000).unwrap();
         assert_eq!((query.from_ms, query.to_ms), (6_400_000, 10_000_000));
         assert_eq!(err("section=D&from=5&to=4"), "from (5) is after to (4)");

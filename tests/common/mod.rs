@@ -4,6 +4,7 @@
 
 pub mod epsnet;
 pub mod logs;
+pub mod mqtt;
 pub mod process;
 
 use std::net::SocketAddr;
