@@ -939,15 +939,27 @@ fn getinfo_with_several_clients() {
     });
     c.send("GETINFO:\n");
     let lines = c.until("GETINFO:");
-    let version = env!("CARGO_PKG_VERSION");
-    let head = [
-        format!("GETINFO:VERSION,Ver {version} (plccoms)"),
-        format!("GETINFO:VERSION_EPSNET,Ver {version} (plccoms EPSNET)"),
-        "GETINFO:VERSION_INI,Ver 0.21 (rust-ini)".to_string(),
-        version_plc.clone(),
-        "GETINFO:IPADDR,127.0.0.1".to_string(),
-    ];
-    assert_eq!(lines[..5], head, "{lines:#?}");
+    // The vendor's shape: `Ver 5.5 Sep  9 2020 16:10:19`.
+    let version = |line: &str, key: &str, number: &str| {
+        let date = line
+            .strip_prefix(&format!("GETINFO:{key},Ver {number} "))
+            .unwrap_or_else(|| panic!("{line:?}"));
+        let b = date.as_bytes();
+        assert!(
+            b.len() == 20 && b[3] == b' ' && b[6] == b' ' && b[11] == b' ' && b[14] == b':',
+            "{line:?}"
+        );
+    };
+    let number = concat!(
+        env!("CARGO_PKG_VERSION_MAJOR"),
+        ".",
+        env!("CARGO_PKG_VERSION_MINOR")
+    );
+    version(&lines[0], "VERSION", number);
+    version(&lines[1], "VERSION_EPSNET", number);
+    version(&lines[2], "VERSION_INI", "0.21");
+    let head = [version_plc.clone(), "GETINFO:IPADDR,127.0.0.1".to_string()];
+    assert_eq!(lines[3..5], head, "{lines:#?}");
     assert!(lines[5].starts_with("GETINFO:EPSADDR,"), "{lines:#?}");
     assert_eq!(lines[6], format!("GETINFO:EPSPORT,{}", plc.udp));
     assert_eq!(lines[7], "GETINFO:PUBFILE,2/29 [FIXED.pub,demo.pub]");
