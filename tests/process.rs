@@ -1073,3 +1073,89 @@ fn halt_then_run_reinitialises_the_link() {
     assert_eq!(count(&log, "PLC is in HALT"), 1, "{log}");
     assert_eq!(count(&log, "PLC is in RUN"), 1, "{log}");
 }
+
+// ------------------------------------------ a year unattended (issue 17) --
+
+/// The vendor's shipped PLCComS.ini with only its PLC's address and ports
+/// changed, against `plcsim --files DIR --pub VARLIST.PUB` (the pairing the
+/// README gives): the public file is fetched from the simulated PLC's file
+/// system, where plcsim serves it under its own name, and its CRC checked.
+#[test]
+fn the_vendors_ini_runs_against_plcsim_serving_its_public_file() {
+    let vendor = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/vendor");
+    let site = Site::new();
+    let plc_files = tempfile::tempdir().unwrap();
+    let program = tempfile::tempdir().unwrap();
+    let pubfile = program.path().join("VARLIST.PUB");
+    std::fs::write(&pubfile, DEMO_PUB).unwrap();
+    let udp = free_udp_port();
+    let log = std::fs::File::create(program.path().join("plcsim.log")).unwrap();
+    let _plc = Proc::spawn(
+        Command::new(common::process::plcsim_bin())
+            .arg("--bind")
+            .arg(format!("127.0.0.1:{udp}"))
+            .arg("--files")
+            .arg(plc_files.path())
+            .arg("--pub")
+            .arg(&pubfile)
+            .stdout(Stdio::null())
+            .stderr(log),
+    );
+    std::fs::copy(
+        vendor.join("FIXED_Foxtrot.pub"),
+        site.dir.path().join("FIXED_Foxtrot.pub"),
+    )
+    .unwrap();
+    let ini = read(&vendor.join("PLCComS.ini"))
+        .replace(
+            "IPADDR        = 192.168.89.1",
+            &format!("IPADDR        = 127.0.0.1\nEPSPORT       = {udp}"),
+        )
+        .replace(
+            "SERVER_PORT   = 5011",
+            &format!("SERVER_PORT   = {}", site.port),
+        );
+    assert!(ini.contains("PUBFILE       = //VARLIST.PUB"), "{ini}");
+    site.write_ini(&ini);
+    let _server = site.run(&[]);
+    let mut c = site.client();
+    wait_for("the public file from the PLC", || {
+        c.send("GETINFO:pubfile\n");
+        c.line() != "GETINFO:PUBFILE,2/2 [FIXED_Foxtrot.pub]"
+    });
+    c.ask(
+        "GETINFO:pubfile\n",
+        "GETINFO:PUBFILE,2/29 [FIXED_Foxtrot.pub,VARLIST.PUB]",
+    );
+    c.ask("GET:text\n", "GET:TEXT,\"Have a nice day\"");
+    let log = site.log_text();
+    assert!(log.contains("//VARLIST.PUB fetched from the PLC"), "{log}");
+    // Nothing was written into the PLC's folder to make it so.
+    assert_eq!(std::fs::read_dir(plc_files.path()).unwrap().count(), 0);
+}
+
+/// A public file that is neither on this machine nor on the PLC: the log
+/// says "file not found on the PLC" and names the local path it tried.
+#[test]
+fn a_public_file_missing_on_the_plc_is_reported_with_where_it_was_looked_for() {
+    let plc = Plcsim::start("demo");
+    let site = Site::new();
+    site.external(plc.udp);
+    site.write_ini(&read(&site.ini()).replace("//demo.pub", "//MISSING.PUB"));
+    let _server = site.run(&[]);
+    site.wait_log("file not found on the PLC");
+    let log = site.log_text();
+    let line = log
+        .lines()
+        .find(|l| l.contains("file not found on the PLC"))
+        .unwrap();
+    let local = site.dir.path().join("MISSING.PUB");
+    assert!(
+        line.contains("//MISSING.PUB") && line.contains(&format!("not at {}", local.display())),
+        "{line}"
+    );
+    assert!(
+        !line.contains("wrong service parameters (0x0C)\""),
+        "{line}"
+    );
+}

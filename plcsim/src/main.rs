@@ -24,6 +24,8 @@ struct Args {
 
     /// User public file (variables, their addresses and types; its CRC
     /// becomes __PF_CRC). Default: the built-in demo file (conf/demo.pub).
+    /// With --files, the PLC's file system serves it, read-only, at its
+    /// root under its own name (as a PLC keeps it with its program).
     #[arg(long = "pub", value_name = "FILE")]
     pubfile: Option<PathBuf>,
 
@@ -73,7 +75,8 @@ Control port commands (one a line, answered OK or ERR <why>):
   loss <fraction>     drop this fraction of incoming packets
   latency <ms>        delay answers
   halt | run          switch the PLC to HALT or RUN (__PLC_RUN)
-  pub <file>          load another public file (new program, new __PF_CRC)
+  pub <file>          load another public file (new program, new __PF_CRC),
+                      served under its own name
   program demo|idle   switch the PLC program
   animate <mask>...   animate these variables (none: stop)
   status              show state";
@@ -96,6 +99,8 @@ async fn main() -> std::process::ExitCode {
             tracing_subscriber::EnvFilter::try_from_default_env()
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
+        // Colour only for a person at a terminal.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_writer(std::io::stderr)
         .init();
     let args = Args::parse();
