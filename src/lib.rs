@@ -28,6 +28,7 @@ pub mod config;
 pub mod daemon;
 pub mod link;
 pub mod localfs;
+pub mod logfile;
 pub mod metrics;
 pub mod ratelimit;
 pub mod section;

@@ -1159,3 +1159,107 @@ fn a_public_file_missing_on_the_plc_is_reported_with_where_it_was_looked_for() {
         "{line}"
     );
 }
+
+/// logrotate's way: move the log away, then SIGHUP. The server logs that
+/// it reopened, writes on in a new file at the old path, and keeps serving.
+#[test]
+fn sighup_reopens_the_log_file() {
+    let site = Site::new();
+    site.simulated();
+    let mut server = site.run(&[]);
+    let mut c = site.client();
+    c.ask("GET:counter\n", "GET:COUNTER,0");
+    let rotated = site.dir.path().join("plccoms.log.1");
+    std::fs::rename(site.log(), &rotated).unwrap();
+    signal(server.pid(), libc::SIGHUP);
+    site.wait_log("reopened");
+    assert!(server.running());
+    let old = read(&rotated);
+    assert!(old.contains("SIGHUP: reopening the log file"), "{old}");
+    assert!(!old.contains("reopened"), "{old}");
+    // The same clients and new ones are served; the new log gets the rest.
+    c.ask("GET:counter\n", "GET:COUNTER,0");
+    site.client().ask("GET:counter\n", "GET:COUNTER,0");
+    signal(server.pid(), libc::SIGTERM);
+    assert_eq!(server.exit().code(), Some(0));
+    let new = site.log_text();
+    assert!(new.lines().all(timestamped), "{new}");
+    assert!(new.trim_end().ends_with("stopped"), "{new}");
+}
+
+/// Reports on a pipe (journald, docker, redirection) carry no colour
+/// escapes; SIGHUP without a log file is logged and changes nothing.
+#[test]
+fn stderr_on_a_pipe_is_plain_text_and_sighup_is_harmless() {
+    let site = Site::new();
+    site.simulated();
+    let mut server = Proc::spawn(
+        Command::new(PLCCOMS)
+            .arg("-c")
+            .arg(site.ini())
+            .current_dir(site.dir.path())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped()),
+    );
+    let stderr = common::process::Capture::start(server.child.stderr.take().unwrap());
+    wait_for("the server to listen", || {
+        assert!(server.running(), "exited: {}", stderr.text());
+        TcpStream::connect(("127.0.0.1", site.port)).is_ok()
+    });
+    signal(server.pid(), libc::SIGHUP);
+    wait_for("SIGHUP logged", || stderr.text().contains("SIGHUP"));
+    site.client().ask("GET:counter\n", "GET:COUNTER,0");
+    signal(server.pid(), libc::SIGTERM);
+    assert_eq!(server.exit().code(), Some(0));
+    let text = stderr.finish();
+    assert!(!text.contains(&0x1b), "{}", String::from_utf8_lossy(&text));
+    let text = String::from_utf8_lossy(&text);
+    assert!(text.contains(" INFO "), "{text}");
+    assert!(text.contains("SIGHUP: no log file to reopen"), "{text}");
+}
+
+/// The real logrotate with the shipped snippet (`conf/plccoms.logrotate`,
+/// its path, user and signal command pointed at this test's server): the
+/// old lines end up in `.1`, the new ones in a new log.
+#[test]
+fn logrotate_with_the_shipped_snippet_rotates_a_running_servers_log() {
+    let logrotate = ["/usr/sbin/logrotate", "/sbin/logrotate"]
+        .into_iter()
+        .find(|p| Path::new(p).exists())
+        .expect("logrotate is not installed (Debian: apt-get install logrotate; .ci/run does)");
+    let site = Site::new();
+    site.simulated();
+    let mut server = site.run(&[]);
+    site.client().ask("GET:counter\n", "GET:COUNTER,0");
+    let snippet = read(&Path::new(env!("CARGO_MANIFEST_DIR")).join("conf/plccoms.logrotate"));
+    let signal_line = snippet
+        .lines()
+        .find(|l| l.contains("systemctl kill --signal=HUP"))
+        .expect("the snippet signals the service");
+    let config = snippet
+        .replace(
+            "/var/log/plccoms/*.log",
+            &format!("{}/*.log", site.dir.path().display()),
+        )
+        .replace("    su plccoms plccoms\n", "")
+        .replace(signal_line, &format!("        kill -HUP {}", server.pid()));
+    let conf = site.dir.path().join("logrotate.conf");
+    std::fs::write(&conf, config).unwrap();
+    let status = Command::new(logrotate)
+        .arg("--force")
+        .arg("--state")
+        .arg(site.dir.path().join("logrotate.state"))
+        .arg(&conf)
+        .status()
+        .unwrap();
+    assert!(status.success(), "logrotate: {status}");
+    site.wait_log("reopened");
+    let old = read(&site.dir.path().join("plccoms.log.1"));
+    assert!(old.contains("running, 1 section(s)"), "{old}");
+    site.client().ask("GET:counter\n", "GET:COUNTER,0");
+    signal(server.pid(), libc::SIGTERM);
+    assert_eq!(server.exit().code(), Some(0));
+    let new = site.log_text();
+    assert!(!new.contains("running, 1 section(s)"), "{new}");
+    assert!(new.trim_end().ends_with("stopped"), "{new}");
+}
