@@ -1218,6 +1218,64 @@ fn stderr_on_a_pipe_is_plain_text_and_sighup_is_harmless() {
     assert!(text.contains("SIGHUP: no log file to reopen"), "{text}");
 }
 
+/// SIGTERM with three busy sections: on each, a client that pipelines
+/// requests and never reads its answers (its session cannot finish) and
+/// one taking every DIFF. All sections stop together, within 5 s.
+#[test]
+fn sigterm_under_load_stops_every_section_within_5_s() {
+    let site = Site::new();
+    let ports = [site.port, free_port(), free_port()];
+    let mut ini = String::from("[*]\nCOMM_LOOP_DELAY = 10\n");
+    for (i, port) in ports.iter().enumerate() {
+        ini.push_str(&format!(
+            "[S{i}]\nSIMULATOR = Yes\nSIMULATOR_PROGRAM = demo\nIPADDR_LOCAL = 127.0.0.1\n\
+             SERVER_PORT = {port}\nPUBFILE = //demo.pub\n"
+        ));
+    }
+    site.write_ini(&ini);
+    let mut server = site.run(&[]);
+    let mut clients = Vec::new();
+    for port in ports {
+        let mut watcher = Client::connect(port);
+        watcher.ask(
+            "EN:*\n",
+            "WARNING:252 Changed active variables in public file: '[29/29]'",
+        );
+        watcher.until_match("a DIFF", |l| l.starts_with("DIFF:"));
+        let mut stuck = Client::connect(port);
+        let burst = "LIST:\nGETINFO:\nGET:*\n".repeat(200);
+        stuck.stream.set_nonblocking(true).unwrap();
+        // Until the server stops taking requests for a whole second: its
+        // answers fill every buffer between it and this client.
+        let mut blocked_since = None;
+        wait_for("the server to stop reading", || {
+            loop {
+                match stuck.stream.write(burst.as_bytes()) {
+                    Ok(_) => blocked_since = None,
+                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
+                    Err(e) => panic!("write: {e}"),
+                }
+            }
+            blocked_since.get_or_insert_with(Instant::now).elapsed() > Duration::from_secs(1)
+        });
+        clients.push((watcher, stuck));
+    }
+    let start = Instant::now();
+    signal(server.pid(), libc::SIGTERM);
+    let status = server.exit();
+    let took = start.elapsed();
+    assert_eq!(status.code(), Some(0), "{}", site.log_text());
+    assert!(
+        took < Duration::from_secs(5),
+        "took {took:?}:\n{}",
+        site.log_text()
+    );
+    let log = site.log_text();
+    assert!(log.trim_end().ends_with("stopped"), "{log}");
+    assert!(log.contains("session(s) still busy at shutdown"), "{log}");
+    eprintln!("SIGTERM under load, 3 sections: exited in {took:?}");
+}
+
 /// The real logrotate with the shipped snippet (`conf/plccoms.logrotate`,
 /// its path, user and signal command pointed at this test's server): the
 /// old lines end up in `.1`, the new ones in a new log.
