@@ -26,6 +26,7 @@ pub mod client;
 pub mod cmd;
 pub mod config;
 pub mod daemon;
+pub mod demo;
 pub mod link;
 pub mod localfs;
 pub mod logfile;

@@ -13,9 +13,6 @@ use plccoms::logfile::{self, LogFile};
 use plccoms::watch;
 use tracing::{error, info, warn};
 
-/// The configuration used when no file is named and `PLCComS.ini` is absent:
-/// one section with a simulated PLC, so the server is useful at once.
-const EMBEDDED_CONFIG: &str = include_str!("../PLCComS.ini.example");
 const DEFAULT_CONFIG: &str = "PLCComS.ini";
 
 fn main() -> ExitCode {
@@ -106,8 +103,9 @@ async fn run(cli: Cli, mut notifier: Notifier, log: Option<Arc<LogFile>>) -> Exi
     }
     let embedded = cli.config == Path::new(DEFAULT_CONFIG) && !cli.config.exists();
     let loaded = if embedded {
-        info!("no {DEFAULT_CONFIG} here: using the built-in configuration (a simulated PLC on port 5010)");
-        config::parse(Path::new("PLCComS.ini.example (built in)"), EMBEDDED_CONFIG)
+        // The built-in demo (plccoms::demo): a simulated PLC, said loudly.
+        config::parse(Path::new(plccoms::demo::NAME), plccoms::demo::CONFIG)
+            .inspect(|loaded| warn!("{}", plccoms::demo::banner(&loaded.config)))
     } else {
         config::load(&cli.config)
     };

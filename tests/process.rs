@@ -1276,6 +1276,44 @@ fn sigterm_under_load_stops_every_section_within_5_s() {
     eprintln!("SIGTERM under load, 3 sections: exited in {took:?}");
 }
 
+/// The built-in demo (no -c, no PLCComS.ini) says loudly that its PLC is
+/// simulated and listens on loopback only.
+#[test]
+fn the_built_in_demo_says_so_and_listens_on_loopback_only() {
+    let deadline = Instant::now() + DEADLINE;
+    while !common::process::port_is_free(5010) {
+        assert!(
+            Instant::now() < deadline,
+            "port 5010 is in use by another program; the demo listens there"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let server = common::process::ServerProcess::built_in(5010);
+    let log = server.log();
+    assert!(log.contains("WARN DEMO:"), "{log}");
+    assert!(log.contains("SIMULATED demo PLC"), "{log}");
+    assert!(log.contains("clients on 127.0.0.1:5010 only"), "{log}");
+    assert!(log.contains("plccoms -c /path/to/PLCComS.ini"), "{log}");
+    assert!(!log.contains('\x1b'), "{log}");
+    // The kernel's listening sockets on port 5010 (0x1392): loopback only.
+    let listening: Vec<String> = ["/proc/net/tcp", "/proc/net/tcp6"]
+        .iter()
+        .flat_map(|table| {
+            read(Path::new(table))
+                .lines()
+                .skip(1)
+                .map(str::to_string)
+                .collect::<Vec<_>>()
+        })
+        .filter_map(|line| {
+            let fields: Vec<&str> = line.split_whitespace().collect();
+            let listen = fields.get(3) == Some(&"0A");
+            (listen && fields[1].ends_with(":1392")).then(|| fields[1].to_string())
+        })
+        .collect();
+    assert_eq!(listening, ["0100007F:1392"]);
+}
+
 /// The real logrotate with the shipped snippet (`conf/plccoms.logrotate`,
 /// its path, user and signal command pointed at this test's server): the
 /// old lines end up in `.1`, the new ones in a new log.
