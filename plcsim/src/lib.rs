@@ -7,6 +7,7 @@
 //! handle stops the simulator. The `plcsim` binary wraps the same API and
 //! adds a loopback TCP control port ([`control`]).
 
+pub mod cli;
 pub mod control;
 pub mod device;
 pub mod genpub;
