@@ -53,3 +53,23 @@ fn the_unit_is_hardened_under_3_and_keeps_what_the_server_needs() {
     assert!(has("WorkingDirectory=/var/lib/plccoms") && has("LogsDirectory=plccoms"));
     assert!(Path::new(UNIT).with_file_name("plccoms.logrotate").exists());
 }
+
+/// The Dockerfile turns the example's loopback-only demo into one that
+/// listens on the container's interfaces by rewriting one line: that line
+/// must stay as the Dockerfile expects it (the image is not built in CI).
+#[test]
+fn the_dockerfile_finds_the_line_it_rewrites() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let example = std::fs::read_to_string(root.join("PLCComS.ini.example")).unwrap();
+    let dockerfile = std::fs::read_to_string(root.join("Dockerfile")).unwrap();
+    assert!(dockerfile.contains(r"s/^IPADDR_LOCAL  = 127\.0\.0\.1 .*/"));
+    assert_eq!(
+        example
+            .lines()
+            .filter(|l| l.starts_with("IPADDR_LOCAL  = 127.0.0.1 "))
+            .count(),
+        1,
+        "{example}"
+    );
+    assert!(dockerfile.contains("USER nonroot"));
+}
