@@ -18,6 +18,7 @@ pub const DEFAULT_LOG: &str = "PLCComS.log";
     name = "plccoms",
     version,
     about,
+    after_help = crate::demo::HELP,
     override_usage = "plccoms [-dtvh] [-c <configuration_file>] [-l <log_file>]"
 )]
 pub struct Cli {
@@ -235,6 +236,7 @@ mod tests {
             "-V, --version",
             "PLCComS.ini",
             "plccoms [-dtvh] [-c <configuration_file>] [-l <log_file>]",
+            "SIMULATED DEMO PLC",
         ] {
             assert!(help.contains(option), "{option} missing from:\n{help}");
         }

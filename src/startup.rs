@@ -42,8 +42,9 @@ impl Server {
     /// Stops accepting, lets every session answer what it has received
     /// (bounded by a grace period; the links still serve their reads), then
     /// stops polling (waiting, bounded, for each link's thread to end) and
-    /// the simulators. Sections stop together: the whole takes at most two
-    /// grace periods, however many there are.
+    /// the simulators. Sections stop together: the whole takes at most
+    /// [`SESSIONS_GRACE`] + [`LINK_GRACE`] (plus half a second for MQTT),
+    /// however many there are.
     pub async fn shutdown(mut self) {
         if let Some(web) = self.web.take() {
             web.shutdown().await;
@@ -54,18 +55,18 @@ impl Server {
         // MQTT first, while the links still answer: `offline`, DISCONNECT,
         // the queue saved.
         if let Some(mqtt) = self.mqtt {
-            mqtt.shutdown(SHUTDOWN_GRACE).await;
+            mqtt.shutdown(MQTT_GRACE).await;
         }
         futures::future::join_all(
             self.sections
                 .iter()
-                .map(|s| s.wait_sessions(SHUTDOWN_GRACE)),
+                .map(|s| s.wait_sessions(SESSIONS_GRACE)),
         )
         .await;
         for section in &self.sections {
             section.abort();
         }
-        futures::future::join_all(self.sections.iter().map(|s| s.wait_link(SHUTDOWN_GRACE))).await;
+        futures::future::join_all(self.sections.iter().map(|s| s.wait_link(LINK_GRACE))).await;
         #[cfg(feature = "fanout-trace")]
         if let Some(summary) = crate::trace::summary() {
             info!("{summary}");
@@ -80,8 +81,14 @@ impl Server {
     }
 }
 
-/// Longest wait for sessions to finish at shutdown.
-const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
+/// Longest wait at shutdown for sessions to answer what they received, and
+/// then for the links' threads (a request to a PLC in flight): together
+/// at most 4 s, so SIGTERM ends the server within 5 s (the unit and the
+/// README promise it).
+pub const SESSIONS_GRACE: std::time::Duration = std::time::Duration::from_secs(3);
+pub const LINK_GRACE: std::time::Duration = std::time::Duration::from_secs(1);
+/// Longest wait at shutdown for MQTT to say `offline` and save its queue.
+pub const MQTT_GRACE: std::time::Duration = std::time::Duration::from_millis(500);
 
 /// Starts every section of `config`; fails only when none could start.
 pub async fn start(config: &Config) -> Result<Server, String> {

@@ -7,6 +7,7 @@
 //! handle stops the simulator. The `plcsim` binary wraps the same API and
 //! adds a loopback TCP control port ([`control`]).
 
+pub mod cli;
 pub mod control;
 pub mod device;
 pub mod genpub;
@@ -175,9 +176,18 @@ impl Shared {
     }
 
     /// Loads another public file: the program now works on its variables,
-    /// and `__PF_CRC` changes to its CRC.
-    fn load_pub(&self, bytes: &[u8]) -> u32 {
+    /// and `__PF_CRC` changes to its CRC. The file system serves it under
+    /// `name`, or, without one, under the name of the file it replaces.
+    fn load_pub(&self, bytes: &[u8], name: Option<&str>) -> u32 {
         let (vars, crc) = load_pub_bytes(bytes);
+        if let Some(files) = lock(&self.device).files.as_mut() {
+            let name = name.or(files.program_file_name()).map(str::to_string);
+            if let Some(name) = name {
+                if let Err(e) = files.set_program_file(&name, bytes.to_vec()) {
+                    tracing::warn!("public file not served by the file system: {e}");
+                }
+            }
+        }
         let mut state = lock(&self.state);
         let program = Program::new(
             state.program.kind(),
@@ -245,7 +255,22 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     let mut device = Device::new(config.map);
     device.ident = config.ident.clone();
     if let Some(dir) = &config.files {
-        device.files = Some(FileStore::open(dir).map_err(|e| with_path(e, dir))?);
+        let mut files = FileStore::open(dir).map_err(|e| with_path(e, dir))?;
+        if let PubSource::Path(path) = &config.pubfile {
+            let name = path
+                .file_name()
+                .and_then(|n| n.to_str())
+                .unwrap_or_default();
+            files
+                .set_program_file(name, pub_bytes.clone())
+                .map_err(|e| {
+                    io::Error::new(
+                        io::ErrorKind::InvalidInput,
+                        format!("{}: {e}", path.display()),
+                    )
+                })?;
+        }
+        device.files = Some(files);
     }
     let cycle_ms = config.cycle.as_millis().clamp(1, 60_000) as u64;
     let (vars, crc) = load_pub_bytes(&pub_bytes);
@@ -399,14 +424,17 @@ impl SimHandle {
     }
 
     /// Loads another public file (another PLC program); returns the new
-    /// `__PF_CRC`.
+    /// `__PF_CRC`. The file system serves it in place of the previous one.
     pub fn load_pub(&self, bytes: &[u8]) -> u32 {
-        self.shared.load_pub(bytes)
+        self.shared.load_pub(bytes, None)
     }
 
+    /// As [`SimHandle::load_pub`], the file system serving it under the
+    /// file's own name.
     pub fn load_pub_file(&self, path: &Path) -> io::Result<u32> {
         let bytes = std::fs::read(path).map_err(|e| with_path(e, path))?;
-        Ok(self.load_pub(&bytes))
+        let name = path.file_name().and_then(|n| n.to_str());
+        Ok(self.shared.load_pub(&bytes, name))
     }
 
     pub fn pf_crc(&self) -> u32 {

@@ -1,0 +1,13 @@
+complete -c plcsim -l bind -d 'UDP address to listen on' -r
+complete -c plcsim -l pub -d 'User public file (variables, their addresses and types; its CRC becomes __PF_CRC). Default: the built-in demo file (conf/demo.pub). With --files, the PLC\'s file system serves it, read-only, at its root under its own name (as a PLC keeps it with its program)' -r -F
+complete -c plcsim -l fixed -d 'Fixed public file; checked to place __PLC_RUN at S2.2 and __PF_CRC at S70' -r -F
+complete -c plcsim -l files -d 'Directory served as the PLC\'s file system (paths confined to it). Without it, file services answer "service not activated"' -r -F
+complete -c plcsim -l program -d 'PLC program: `demo` (manual chapter 6.1: dat, tim, c, sinus, cosinus, positive, text) or `idle` (none)' -r
+complete -c plcsim -l animate -d 'Make every variable matching MASK change every cycle (`*` wildcard, case-insensitive; repeatable): integers ramp, reals follow a sine, BOOLs toggle, STRINGs count, times advance' -r
+complete -c plcsim -l loss -d 'Fraction of incoming packets to drop (0.0 - 1.0)' -r
+complete -c plcsim -l latency -d 'Delay every answer by this many milliseconds' -r
+complete -c plcsim -l control -d 'Loopback TCP address for run-time control (see below)' -r
+complete -c plcsim -l cycle -d 'PLC cycle in milliseconds' -r
+complete -c plcsim -l ident -d 'Identification string the PLC reports' -r
+complete -c plcsim -s h -l help -d 'Print help (see more with \'--help\')'
+complete -c plcsim -s V -l version -d 'Print version'
