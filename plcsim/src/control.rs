@@ -5,7 +5,8 @@
 //! loss 0.2          drop 20 % of incoming datagrams
 //! latency 500       delay answers by 500 ms
 //! halt | run        PLC state (__PLC_RUN; the program runs only in RUN)
-//! pub <file>        load another public file (new program, new __PF_CRC)
+//! pub <file>        load another public file (new program, new __PF_CRC;
+//!                   a tag file on a Modbus device)
 //! program demo|idle
 //! animate <mask>... animate these variables (none: stop animating)
 //! status            OK run|halt crc=XXXXXXXX loss=.. latency=..

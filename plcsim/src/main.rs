@@ -1,4 +1,5 @@
-//! plcsim: a simulated Tecomat PLC speaking EPSNET over UDP.
+//! plcsim: a simulated Tecomat PLC speaking EPSNET over UDP, or a Modbus TCP
+//! device.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -14,7 +15,8 @@ use plcsim::{program::ProgramKind, PubSource, SimConfig};
 /// it every cycle (the user manual's demo program by default), serves a
 /// directory as the PLC's file system, and can drop or delay packets and go
 /// HALT on request. Service codes other than SETTID are this project's own,
-/// unverified against a real PLC.
+/// unverified against a real PLC. With --modbus it is a Modbus TCP device
+/// instead, its registers named by a tag file (--tags).
 #[derive(Debug, Parser)]
 #[command(name = "plcsim", version, after_help = CONTROL_HELP)]
 struct Args {
@@ -66,6 +68,21 @@ struct Args {
     /// Identification string the PLC reports.
     #[arg(long, value_name = "TEXT")]
     ident: Option<String>,
+
+    /// Serve Modbus TCP on this address instead of EPSNET (coils, discrete
+    /// inputs, holding and input registers; any unit id).
+    #[arg(long, value_name = "ADDR:PORT")]
+    modbus: Option<SocketAddr>,
+
+    /// Modbus tag file (CSV) naming the variables the program and
+    /// --animate drive. Default: the built-in conf/demo-modbus.csv.
+    #[arg(
+        long,
+        value_name = "FILE.csv",
+        requires = "modbus",
+        conflicts_with = "pubfile"
+    )]
+    tags: Option<PathBuf>,
 }
 
 const CONTROL_HELP: &str = "\
@@ -73,7 +90,7 @@ Control port commands (one a line, answered OK or ERR <why>):
   loss <fraction>     drop this fraction of incoming packets
   latency <ms>        delay answers
   halt | run          switch the PLC to HALT or RUN (__PLC_RUN)
-  pub <file>          load another public file (new program, new __PF_CRC)
+  pub <file>          load another public file (with --modbus: tag file)
   program demo|idle   switch the PLC program
   animate <mask>...   animate these variables (none: stop)
   status              show state";
@@ -120,6 +137,13 @@ async fn main() -> std::process::ExitCode {
     if let Some(path) = args.pubfile {
         config.pubfile = PubSource::Path(path);
     }
+    if let Some(addr) = args.modbus {
+        config.modbus = Some(addr);
+        config.pubfile = match args.tags {
+            Some(path) => PubSource::Path(path),
+            None => PubSource::Bytes(plcsim::DEMO_TAGS.to_vec()),
+        };
+    }
     if let Some(ident) = args.ident {
         config.ident = ident;
     }
@@ -131,8 +155,12 @@ async fn main() -> std::process::ExitCode {
         }
     };
     tracing::info!(
-        "plcsim: EPSNET on udp://{} (__PF_CRC {:08X}){}",
-        handle.local_addr(),
+        "plcsim: {} (__PF_CRC {:08X}){}",
+        if args.modbus.is_some() {
+            format!("Modbus TCP on tcp://{}", handle.local_addr())
+        } else {
+            format!("EPSNET on udp://{}", handle.local_addr())
+        },
         handle.pf_crc(),
         handle
             .control_addr()

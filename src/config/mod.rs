@@ -149,6 +149,8 @@ pub struct Section {
     /// `READ_ONLY = Yes`: requests that would change the PLC or the section
     /// answer ERROR:30 (this server's own key).
     pub read_only: bool,
+    /// The `MODBUS_*` keys (`PROTOCOL = MODBUS_TCP`).
+    pub modbus: Modbus,
 }
 
 /// An address or CIDR network of `ALLOW`.
@@ -232,6 +234,27 @@ pub struct Simulator {
     pub program: String,
     /// `SIMULATOR_PUB`: the public file the simulated PLC serves.
     pub pubfile: Option<String>,
+}
+
+/// The settings of a Modbus TCP section (`MODBUS_*`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Modbus {
+    /// `MODBUS_PORT`: the device's TCP port.
+    pub port: u16,
+    /// `MODBUS_UNIT`: the unit id in every request.
+    pub unit: u8,
+    /// `MODBUS_TAGS`: the tag file (path rules as PUBFILE).
+    pub tags: Option<String>,
+    /// `MODBUS_TIMEOUT`: how long a transaction may take.
+    pub timeout: Duration,
+    /// `MODBUS_MAX_REGS`: registers one read may ask for.
+    pub max_regs: u16,
+    /// `MODBUS_MAX_BITS`: coils or inputs one read may ask for.
+    pub max_bits: u16,
+    /// `MODBUS_GAP`: unwanted registers a read may span to join two blocks.
+    pub gap: u16,
+    /// `MODBUS_INFLIGHT`: transactions in flight at once.
+    pub inflight: u8,
 }
 
 /// A loaded file with the warnings and skipped-section errors found on the way.
@@ -566,6 +589,16 @@ fn section_defaults(name: &str) -> Section {
         simulator: None,
         allow: None,
         read_only: false,
+        modbus: Modbus {
+            port: 0,
+            unit: 0,
+            tags: None,
+            timeout: Duration::ZERO,
+            max_regs: 0,
+            max_bits: 0,
+            gap: 0,
+            inflight: 0,
+        },
     })
 }
 

@@ -962,8 +962,12 @@ fn protocol() {
         "EPSNET"
     );
     assert_eq!(
+        section("SERVER_PORT = 1\nPROTOCOL = modbus_tcp").protocol,
+        "MODBUS_TCP"
+    );
+    assert_eq!(
         section_error("SERVER_PORT = 1\nPROTOCOL = modbus"),
-        "PLCComS.ini:4: PROTOCOL = modbus is not a protocol (allowed EPSNET)"
+        "PLCComS.ini:4: PROTOCOL = modbus is not a protocol (allowed EPSNET, MODBUS_TCP)"
     );
 }
 

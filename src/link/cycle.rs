@@ -1,12 +1,15 @@
 //! One poll cycle: the plan (what to read: every variable some client or
 //! subscriber enabled, plus the fixed ones, in as few block reads as
 //! possible), the read, the publish with the poll's time, and what the
-//! system variables say (`__PLC_RUN` HALT -> RUN, `__PF_CRC` changed).
+//! system variables say (`__PLC_RUN` HALT -> RUN, `__PF_CRC` changed). A
+//! block the PLC refuses is split until only the variables at fault are
+//! left out ([`super::refusals`]).
 
 use plccoms_protocol::value::Value;
-use tracing::{debug, info, warn};
+use tracing::{debug, info};
 
-use super::plan::{Range, ReadPlan};
+use super::plan::{Limits, Range, ReadPlan};
+use super::refusals::Refusals;
 use crate::backend::{PlcBackend, PlcError};
 use crate::changes::{PollStamp, Publisher};
 use crate::vars::VarId;
@@ -29,8 +32,10 @@ pub struct Cycle {
     plan: ReadPlan,
     last_run: Option<bool>,
     last_crc: Option<u64>,
-    /// Blocks the PLC refused, logged once per plan.
-    refused_logged: bool,
+    /// What the PLC refuses to read.
+    refusals: Refusals,
+    /// The plan must be made anew (refusals learned).
+    replan: bool,
     /// What polls found that the link has not handled yet.
     events: SystemEvents,
 }
@@ -49,6 +54,7 @@ impl Cycle {
         self.plan = ReadPlan::default();
         self.last_run = None;
         self.last_crc = None;
+        self.refusals.clear();
         self.events = SystemEvents::default();
     }
 
@@ -62,14 +68,8 @@ impl Cycle {
         self.plan.blocks().len()
     }
 
-    fn rebuild_plan(&mut self, publisher: &Publisher, max_block: u32) {
-        let table = publisher.table().clone();
-        let interest = publisher.interest().clone();
-        self.poll_vars = (0..table.len() as VarId)
-            .filter(|&id| table.is_fixed(id) || interest.is_wanted(id))
-            .collect();
-        let ranges: Vec<Range> = self
-            .poll_vars
+    fn ranges(&self, table: &crate::vars::VarTable) -> Vec<Range> {
+        self.poll_vars
             .iter()
             .map(|&id| {
                 let var = table.var(id);
@@ -79,14 +79,29 @@ impl Cycle {
                     len: var.byte_len(),
                 }
             })
+            .collect()
+    }
+
+    fn rebuild_plan(&mut self, publisher: &Publisher, limits: &Limits) {
+        let table = publisher.table().clone();
+        let interest = publisher.interest().clone();
+        self.poll_vars = (0..table.len() as VarId)
+            .filter(|&id| table.is_fixed(id) || interest.is_wanted(id))
             .collect();
-        self.plan = ReadPlan::new(&ranges, max_block);
-        self.refused_logged = false;
+        let ranges = self.ranges(&table);
+        let alone: Vec<bool> = self
+            .poll_vars
+            .iter()
+            .map(|id| self.refusals.alone.contains(id))
+            .collect();
+        self.plan = ReadPlan::with_holes(&ranges, &alone, limits, &self.refusals.holes);
+        self.replan = false;
         debug!(
             section = %self.section,
             variables = self.poll_vars.len(),
             requests = self.plan.blocks().len(),
             bytes = self.plan.bytes(),
+            alone = self.refusals.alone.len(),
             "poll plan rebuilt"
         );
     }
@@ -105,20 +120,49 @@ impl Cycle {
         backend: &mut dyn PlcBackend,
         publisher: &mut Publisher,
     ) -> Result<(), PlcError> {
-        if publisher.interest().take_dirty() || self.poll_vars.is_empty() {
-            self.rebuild_plan(publisher, backend.max_read_block());
+        let limits = Limits::of(backend);
+        if publisher.interest().take_dirty() || self.poll_vars.is_empty() || self.replan {
+            self.rebuild_plan(publisher, &limits);
         }
         let answers = backend.read(self.plan.blocks()).await?;
         let stamp = PollStamp::now();
         let (data, refused) = self.plan.assemble_answers(answers);
-        if !refused.is_empty() && !self.refused_logged {
-            warn!(section = %self.section, blocks = ?refused, "PLC refused some poll reads; those variables are not updated");
-            self.refused_logged = true;
-        }
+        let table = publisher.table().clone();
+        let mut suspects = Vec::new();
         for (index, &id) in self.poll_vars.iter().enumerate() {
-            if let Ok(bytes) = self.plan.range_answer(&data, index) {
-                publisher.update(id, bytes, stamp.unix_ms);
+            let alone = self.refusals.alone.contains(&id);
+            match self.plan.range_answer(&data, index) {
+                Ok(bytes) => {
+                    publisher.update(id, bytes, stamp.unix_ms);
+                    if alone {
+                        let range = self.ranges(&table)[index];
+                        self.refusals
+                            .readable_again(&self.section, &table, id, range);
+                        self.replan = true;
+                    }
+                }
+                Err(_) if alone => {}
+                Err(_) => suspects.push(id),
             }
+        }
+        if !refused.is_empty() && !suspects.is_empty() {
+            let ranges = self.ranges(&table);
+            let mut group: Vec<_> = self
+                .poll_vars
+                .iter()
+                .zip(ranges)
+                .filter(|(id, _)| suspects.contains(id))
+                .map(|(&id, range)| (id, range))
+                .collect();
+            group.sort_unstable_by_key(|(_, r)| (r.area, r.offset));
+            let mut found = Vec::new();
+            self.refusals
+                .split(&self.section, &table, backend, &limits, group, &mut found)
+                .await?;
+            for (id, bytes) in found {
+                publisher.update(id, &bytes, stamp.unix_ms);
+            }
+            self.replan = true;
         }
         publisher.publish_poll(stamp);
         self.system_events(publisher);

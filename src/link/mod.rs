@@ -5,7 +5,9 @@
 //! state ([`crate::section::state`]).
 //!
 //! Its parts, each with one job: [`health`] (connected, lost, when to probe,
-//! what to log), [`cycle`] (plan, read, system variables), [`jobs`] (batching
+//! what to log), [`cycle`] (plan, read, system variables), [`refusals`]
+//! (what the PLC refuses to read, so one bad variable does not stop its
+//! neighbours), [`jobs`] (batching
 //! client reads and SETs), [`reconf`] (SETCONF), [`files`] (file transfers
 //! and their cache), [`tables`] (public files and the variable table).
 //!
@@ -23,6 +25,7 @@ pub mod health;
 pub mod jobs;
 pub mod plan;
 pub mod reconf;
+pub mod refusals;
 pub mod tables;
 
 use std::sync::Arc;
@@ -270,7 +273,10 @@ impl Link {
     /// Creates the link, the handle sessions use and the live state.
     pub fn new(setup: LinkSetup) -> (Link, LinkHandle, watch::Receiver<Arc<SectionState>>) {
         let (jobs_tx, jobs) = mpsc::unbounded_channel();
-        let health = Health::new(setup.backend.is_some(), Instant::now());
+        let mut health = Health::new(setup.backend.is_some(), Instant::now());
+        if let Some(backend) = &setup.backend {
+            health.set_backoff(backend.probe_backoff());
+        }
         let link_status = LinkStatus {
             state: health.state(),
             describe: describe(setup.backend.as_deref()),
@@ -545,7 +551,7 @@ impl Link {
         if !check {
             return;
         }
-        match tables::trailer_crc(user) {
+        match tables::expected_crc(tables.source.kind, user) {
             Some(crc) if u64::from(crc) == pf_crc => {
                 debug!(section = %self.name, "public file {} matches __PF_CRC {crc:08X}", user.name)
             }
@@ -615,7 +621,10 @@ impl Link {
         // A link this server cannot make is refused before anything
         // changes, so the section keeps its working link.
         let backend = if relink {
-            Some(crate::backend::open(&config).map_err(ReconfError::Unreachable)?)
+            Some(
+                crate::backend::open(&config, &tables.source.dir)
+                    .map_err(ReconfError::Unreachable)?,
+            )
         } else {
             None
         };
@@ -654,6 +663,9 @@ impl Link {
     /// A new backend is in place: connect to it from scratch.
     fn relinked(&mut self) {
         self.count_backend();
+        if let Some(backend) = &self.backend {
+            self.health.set_backoff(backend.probe_backoff());
+        }
         self.health.reset(self.backend.is_some(), Instant::now());
         self.cycle.reset();
         self.update_freshness();

@@ -318,8 +318,8 @@ impl PlcBackend for Counting {
     fn source_address(&self) -> Option<u8> {
         self.inner.source_address()
     }
-    fn max_read_block(&self) -> u32 {
-        self.inner.max_read_block()
+    fn max_read_block(&self, area: plccoms_protocol::Area) -> u32 {
+        self.inner.max_read_block(area)
     }
     fn max_file_block(&self) -> u32 {
         self.inner.max_file_block()
