@@ -3,6 +3,7 @@
 #![allow(dead_code)]
 
 pub mod epsnet;
+pub mod modbus;
 pub mod process;
 
 use std::net::SocketAddr;
