@@ -9,7 +9,7 @@ mod common;
 
 use std::time::Duration;
 
-use common::modbus::{modbus_server, words, Image, Pymodbus};
+use common::modbus::{modbus_server, until, words, Image, Pymodbus};
 use common::process::free_port;
 use common::Client;
 
@@ -276,21 +276,4 @@ async fn the_device_killed_and_restarted() {
     let log = server.log();
     assert_eq!(log.matches("PLC lost").count(), 1, "{log}");
     assert_eq!(log.matches("PLC connected again").count(), 1, "{log}");
-}
-
-/// Asks `request` until it is answered `answer`, within `secs` seconds.
-async fn until(c: &mut Client, request: &str, answer: &str, secs: u64) {
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(secs);
-    loop {
-        c.send(format!("{request}\r\n").as_bytes()).await;
-        let line = String::from_utf8(c.line().await).unwrap();
-        if line.trim_end() == answer {
-            return;
-        }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "{request}: still {line:?} after {secs} s"
-        );
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    }
 }

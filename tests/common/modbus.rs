@@ -136,3 +136,20 @@ pub fn words(bytes: &[u8]) -> Vec<u16> {
         .map(|w| u16::from_be_bytes([w[0], *w.get(1).unwrap_or(&0)]))
         .collect()
 }
+
+/// Asks `request` until it is answered `answer`, within `secs` seconds.
+pub async fn until(c: &mut super::Client, request: &str, answer: &str, secs: u64) {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(secs);
+    loop {
+        c.send(format!("{request}\r\n").as_bytes()).await;
+        let line = String::from_utf8(c.line().await).unwrap();
+        if line.trim_end() == answer {
+            return;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{request}: still {line:?} after {secs} s"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
