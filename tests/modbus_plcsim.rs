@@ -22,14 +22,23 @@ use plccoms_protocol::Area;
 use plcsim::{PubSource, SimConfig, SimHandle, DEMO_TAGS};
 use tokio::io::AsyncWriteExt;
 
+/// `plcsim --modbus` with the demo program on its demo tags.
 async fn device(loss: f64, latency: Duration) -> SimHandle {
-    plcsim::spawn(SimConfig {
-        modbus: Some(SocketAddr::from(([127, 0, 0, 1], 0))),
+    spawn(SimConfig {
         pubfile: PubSource::Bytes(DEMO_TAGS.to_vec()),
         loss,
         latency,
         seed: Some(7),
         ..SimConfig::default()
+    })
+    .await
+}
+
+/// `plcsim --modbus` on 127.0.0.1 as `config` asks.
+async fn spawn(config: SimConfig) -> SimHandle {
+    plcsim::spawn(SimConfig {
+        modbus: Some(SocketAddr::from(([127, 0, 0, 1], 0))),
+        ..config
     })
     .await
     .expect("plcsim")
@@ -232,4 +241,54 @@ async fn late_and_foreign_answers_are_dropped() {
     // was taken, and every foreign or duplicate answer dropped.
     assert!(counters.retries.get() >= 4, "{}", counters.retries.get());
     assert!(counters.errors.get() >= 4, "{}", counters.errors.get());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sets_between_poll_slices_are_never_undone_by_the_poll() {
+    // 400 registers read 2 at a time under 2 ms latency: a poll takes
+    // hundreds of milliseconds, and SETs go between its slices.
+    let mut tags = String::from("name,type,table,address\nvalue,UINT,holding,0\n");
+    for i in 1..400 {
+        tags.push_str(&format!("r{i},UINT,holding,{i}\n"));
+    }
+    let sim = spawn(SimConfig {
+        pubfile: PubSource::Bytes(tags.clone().into_bytes()),
+        program: plcsim::program::ProgramKind::Idle,
+        latency: Duration::from_millis(2),
+        ..SimConfig::default()
+    })
+    .await;
+    let dir = tempfile::tempdir().unwrap();
+    let server = modbus_server(
+        dir.path(),
+        sim.local_addr().port(),
+        &tags,
+        "MODBUS_MAX_REGS = 2\nMODBUS_TIMEOUT = 2000",
+    );
+    let mut watcher = Client::connect(server.addr).await;
+    watcher.send(b"EN:*\r\n").await;
+    let mut writer = Client::connect(server.addr).await;
+    for value in 1..=30u32 {
+        writer
+            .ask(
+                &format!("SET:value,{value}\r\n"),
+                &format!("DIFF:VALUE,{value}\r\n"),
+            )
+            .await;
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    // The watcher's VALUE only ever goes up: no poll slice read before a
+    // SET is published after it.
+    let mut last = 0;
+    loop {
+        let line = String::from_utf8(watcher.line().await).unwrap();
+        if let Some(value) = line.strip_prefix("DIFF:VALUE,") {
+            let value: u32 = value.trim_end().parse().unwrap();
+            assert!(value > last, "VALUE went from {last} back to {value}");
+            last = value;
+            if value == 30 {
+                break;
+            }
+        }
+    }
 }

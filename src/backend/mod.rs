@@ -134,35 +134,48 @@ pub trait PlcBackend: Send {
 
     async fn status(&mut self) -> Result<PlcStatus, PlcError>;
 
+    // File services. A backend without a file system (a Modbus device)
+    // keeps the defaults: "service not activated", as from a PLC without one.
+
     /// Information about a file or directory in the PLC.
-    async fn file_info(&mut self, path: &[u8]) -> Result<Answer<FileInfo>, PlcError>;
+    async fn file_info(&mut self, _path: &[u8]) -> Result<Answer<FileInfo>, PlcError> {
+        Ok(Err(Exception::NotActivated))
+    }
 
     /// Up to `len` (at most `max_file_block`) bytes of a file from `offset`;
     /// fewer at its end.
     async fn read_file(
         &mut self,
-        path: &[u8],
-        offset: u64,
-        len: u32,
-    ) -> Result<Answer<Vec<u8>>, PlcError>;
+        _path: &[u8],
+        _offset: u64,
+        _len: u32,
+    ) -> Result<Answer<Vec<u8>>, PlcError> {
+        Ok(Err(Exception::NotActivated))
+    }
 
     /// Write a block of a file. The PLC commits the file only when `last` is
     /// set; a write at offset 0 starts the file anew.
     async fn write_file(
         &mut self,
-        path: &[u8],
-        offset: u64,
-        data: &[u8],
-        last: bool,
-    ) -> Result<Answer<()>, PlcError>;
+        _path: &[u8],
+        _offset: u64,
+        _data: &[u8],
+        _last: bool,
+    ) -> Result<Answer<()>, PlcError> {
+        Ok(Err(Exception::NotActivated))
+    }
 
     async fn write_file_info(
         &mut self,
-        path: &[u8],
-        info: &FileInfo,
-    ) -> Result<Answer<()>, PlcError>;
+        _path: &[u8],
+        _info: &FileInfo,
+    ) -> Result<Answer<()>, PlcError> {
+        Ok(Err(Exception::NotActivated))
+    }
 
-    async fn list_dir(&mut self, path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError>;
+    async fn list_dir(&mut self, _path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError> {
+        Ok(Err(Exception::NotActivated))
+    }
 }
 
 /// A section's backend, `None` when it has no PLC yet; or why it cannot be

@@ -14,6 +14,19 @@ use crate::backend::{PlcBackend, PlcError};
 use crate::changes::{PollStamp, Publisher};
 use crate::vars::VarId;
 
+/// Blocks read at a time in a poll; SETs that came in meanwhile go before
+/// the next slice, so a write waits for at most one slice, not a whole poll.
+pub const POLL_SLICE: usize = 8;
+
+/// A poll under way: what is read so far.
+pub struct Round {
+    limits: Limits,
+    answers: Vec<crate::backend::Answer<Vec<u8>>>,
+    /// Publisher sequence when it began: a value read after that (a SET's
+    /// read-back) is newer than the poll's.
+    first_seq: u64,
+}
+
 /// What the system variables of a completed poll say.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct SystemEvents {
@@ -111,29 +124,72 @@ impl Cycle {
         std::mem::take(&mut self.events)
     }
 
-    /// Reads every planned block once and publishes what changed, stamped
-    /// with the time the answers were complete; system-variable events wait
-    /// in [`Cycle::take_events`]. A failed read is the link's to judge:
-    /// nothing is published.
+    /// Starts a poll: plans anew when something changed. The blocks are
+    /// then read a slice at a time ([`Cycle::read_slice`]), so SETs can go
+    /// between slices, and [`Cycle::finish`] publishes.
+    pub fn begin(&mut self, backend: &dyn PlcBackend, publisher: &Publisher) -> Round {
+        let limits = Limits::of(backend);
+        if publisher.interest().take_dirty() || self.poll_vars.is_empty() || self.replan {
+            self.rebuild_plan(publisher, &limits);
+        }
+        Round {
+            limits,
+            answers: Vec::with_capacity(self.plan.blocks().len()),
+            first_seq: publisher.next_seq(),
+        }
+    }
+
+    /// A whole poll at once (between the blocks of a file transfer).
     pub async fn poll(
         &mut self,
         backend: &mut dyn PlcBackend,
         publisher: &mut Publisher,
     ) -> Result<(), PlcError> {
-        let limits = Limits::of(backend);
-        if publisher.interest().take_dirty() || self.poll_vars.is_empty() || self.replan {
-            self.rebuild_plan(publisher, &limits);
+        let mut round = self.begin(backend, publisher);
+        while self.read_slice(backend, &mut round).await? {}
+        self.finish(backend, publisher, round).await
+    }
+
+    /// Reads the next slice of the plan; `false` once every block is read.
+    /// A failed read is the link's to judge: nothing is published.
+    pub async fn read_slice(
+        &mut self,
+        backend: &mut dyn PlcBackend,
+        round: &mut Round,
+    ) -> Result<bool, PlcError> {
+        let blocks = self.plan.blocks();
+        let from = round.answers.len();
+        let to = (from + POLL_SLICE).min(blocks.len());
+        if from < to {
+            let answers = backend.read(&blocks[from..to]).await?;
+            round.answers.extend(answers);
         }
-        let answers = backend.read(self.plan.blocks()).await?;
+        Ok(to < blocks.len())
+    }
+
+    /// Publishes what the poll read, stamped with the time the answers were
+    /// complete (a variable a SET read back meanwhile keeps that value);
+    /// splits refused blocks; system-variable events wait in
+    /// [`Cycle::take_events`].
+    pub async fn finish(
+        &mut self,
+        backend: &mut dyn PlcBackend,
+        publisher: &mut Publisher,
+        round: Round,
+    ) -> Result<(), PlcError> {
         let stamp = PollStamp::now();
-        let (data, refused) = self.plan.assemble_answers(answers);
+        let (data, refused) = self.plan.assemble_answers(round.answers);
         let table = publisher.table().clone();
+        let newer =
+            |publisher: &Publisher, id: VarId| publisher.slot(id).read_seq >= round.first_seq;
         let mut suspects = Vec::new();
         for (index, &id) in self.poll_vars.iter().enumerate() {
             let alone = self.refusals.alone.contains(&id);
             match self.plan.range_answer(&data, index) {
                 Ok(bytes) => {
-                    publisher.update(id, bytes, stamp.unix_ms);
+                    if !newer(publisher, id) {
+                        publisher.update(id, bytes, stamp.unix_ms);
+                    }
                     if alone {
                         let range = self.ranges(&table)[index];
                         self.refusals
@@ -157,10 +213,19 @@ impl Cycle {
             group.sort_unstable_by_key(|(_, r)| (r.area, r.offset));
             let mut found = Vec::new();
             self.refusals
-                .split(&self.section, &table, backend, &limits, group, &mut found)
+                .split(
+                    &self.section,
+                    &table,
+                    backend,
+                    &round.limits,
+                    group,
+                    &mut found,
+                )
                 .await?;
             for (id, bytes) in found {
-                publisher.update(id, &bytes, stamp.unix_ms);
+                if !newer(publisher, id) {
+                    publisher.update(id, &bytes, stamp.unix_ms);
+                }
             }
             self.replan = true;
         }

@@ -5,7 +5,8 @@
 //! state ([`crate::section::state`]).
 //!
 //! Its parts, each with one job: [`health`] (connected, lost, when to probe,
-//! what to log), [`cycle`] (plan, read, system variables), [`refusals`]
+//! what to log), [`cycle`] (plan, read in slices with SETs served between
+//! them, system variables), [`refusals`]
 //! (what the PLC refuses to read, so one bad variable does not stop its
 //! neighbours), [`jobs`] (batching
 //! client reads and SETs), [`reconf`] (SETCONF), [`files`] (file transfers
@@ -267,6 +268,9 @@ pub struct Link {
     files: Files,
     tables: Option<Tables>,
     metrics: Arc<SectionMetrics>,
+    /// Jobs that came in during a poll behind one that is not a SET: served
+    /// when the poll ends, before newer ones.
+    held: std::collections::VecDeque<Job>,
 }
 
 impl Link {
@@ -307,6 +311,7 @@ impl Link {
             files: Files::new(setup.files, setup.loop_delay),
             tables: setup.tables,
             metrics: setup.metrics,
+            held: std::collections::VecDeque::new(),
         };
         link.update_freshness();
         link.count_backend();
@@ -375,13 +380,18 @@ impl Link {
                         std::thread::sleep(deadline - now);
                     }
                     self.tick().await;
+                    if !self.held.is_empty() {
+                        let held: Vec<Job> = self.held.drain(..).collect();
+                        self.serve(held).await;
+                    }
                     let missed;
                     (deadline, missed) = next_deadline(deadline, self.loop_delay, Instant::now());
                     self.metrics.overruns.add(u64::from(missed));
                 }
                 job = self.jobs.recv() => {
                     let Some(job) = job else { break };
-                    let mut batch = vec![job];
+                    let mut batch: Vec<Job> = self.held.drain(..).collect();
+                    batch.push(job);
                     while batch.len() < MAX_BATCH {
                         match self.jobs.try_recv() {
                             Ok(job) => batch.push(job),
@@ -506,7 +516,21 @@ impl Link {
             return;
         };
         let started = Instant::now();
-        let polled = self.cycle.poll(backend, &mut self.publisher).await;
+        let mut round = self.cycle.begin(backend, &self.publisher);
+        loop {
+            let backend = self.backend.as_deref_mut().expect("polling it");
+            match self.cycle.read_slice(backend, &mut round).await {
+                Ok(true) => {}
+                Ok(false) => break,
+                Err(err) => return self.failed(&err),
+            }
+            self.sets_meanwhile().await;
+            if self.health.state() != LinkState::Online {
+                return;
+            }
+        }
+        let backend = self.backend.as_deref_mut().expect("polling it");
+        let polled = self.cycle.finish(backend, &mut self.publisher, round).await;
         self.metrics.poll_cycle.observe(started.elapsed());
         if let Err(err) = polled {
             return self.failed(&err);
@@ -531,6 +555,22 @@ impl Link {
         }
         if let Some(crc) = events.pf_crc {
             self.check_crc(crc);
+        }
+    }
+
+    /// Serves the SETs that came in during a poll, between its slices; the
+    /// jobs queued after the first that is not a SET wait for the poll's
+    /// end, in order.
+    async fn sets_meanwhile(&mut self) {
+        while let Ok(job) = self.jobs.try_recv() {
+            self.held.push_back(job);
+        }
+        let mut sets = Vec::new();
+        while matches!(self.held.front(), Some(Job::Set { .. })) {
+            sets.extend(self.held.pop_front());
+        }
+        if !sets.is_empty() {
+            self.serve(sets).await;
         }
     }
 

@@ -32,7 +32,8 @@
 //! request, answered to the client with the code and its meaning; 10 and 11
 //! (a gateway cannot reach the device) are the link's failure: the device
 //! is lost, as when it does not answer. Reconnection backs off from 1 s,
-//! doubling to 30 s.
+//! doubling to 30 s. A device has no file system: GETFILE and the other
+//! file services answer as a PLC without one ("service not activated").
 
 pub mod client;
 pub mod layout;
@@ -47,8 +48,7 @@ use plccoms_protocol::Area;
 use tracing::{info, warn};
 
 use super::{
-    Answer, DirEntry, Exception, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteData,
-    WriteRequest,
+    Answer, Exception, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteData, WriteRequest,
 };
 use crate::metrics::BackendCounters;
 use client::{Connection, Outcome};
@@ -509,42 +509,5 @@ impl PlcBackend for ModbusBackend {
             Some(_) => Ok(PlcStatus { run: true }),
             None => Err(not_connected()),
         }
-    }
-
-    // A Modbus device has no file system: its file services are "not
-    // activated", as on a PLC without one.
-    async fn file_info(&mut self, _path: &[u8]) -> Result<Answer<FileInfo>, PlcError> {
-        Ok(Err(Exception::NotActivated))
-    }
-
-    async fn read_file(
-        &mut self,
-        _path: &[u8],
-        _offset: u64,
-        _len: u32,
-    ) -> Result<Answer<Vec<u8>>, PlcError> {
-        Ok(Err(Exception::NotActivated))
-    }
-
-    async fn write_file(
-        &mut self,
-        _path: &[u8],
-        _offset: u64,
-        _data: &[u8],
-        _last: bool,
-    ) -> Result<Answer<()>, PlcError> {
-        Ok(Err(Exception::NotActivated))
-    }
-
-    async fn write_file_info(
-        &mut self,
-        _path: &[u8],
-        _info: &FileInfo,
-    ) -> Result<Answer<()>, PlcError> {
-        Ok(Err(Exception::NotActivated))
-    }
-
-    async fn list_dir(&mut self, _path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError> {
-        Ok(Err(Exception::NotActivated))
     }
 }

@@ -29,8 +29,7 @@ use tokio::net::TcpStream;
 
 use plccoms::backend::modbus::ModbusBackend;
 use plccoms::backend::{
-    modbus_config, Answer, DirEntry, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest,
-    WriteRequest,
+    modbus_config, Answer, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteRequest,
 };
 use plccoms::link::tables::PubSource;
 use plccoms::link::Tables;
@@ -117,7 +116,15 @@ fn generate(total: usize, seed: u64) -> Project {
                 0..=4 => ("INT", 1, String::new()),
                 5..=6 => ("UINT", 1, String::new()),
                 7..=8 => ("DINT", 2, String::new()),
-                9..=12 => ("REAL", 2, if rng.below(2) == 0 { ",,CDAB".into() } else { String::new() }),
+                9..=12 => (
+                    "REAL",
+                    2,
+                    if rng.below(2) == 0 {
+                        ",,CDAB".into()
+                    } else {
+                        String::new()
+                    },
+                ),
                 13 => ("LREAL", 4, String::new()),
                 14 => ("STRING[8]", 4, String::new()),
                 15 => ("TS48", 3, String::new()),
@@ -133,7 +140,11 @@ fn generate(total: usize, seed: u64) -> Project {
         let address = next[t] + if t < 2 { gap * 8 } else { gap };
         next[t] = address + span;
         spans[t].push((address, span));
-        let extra = if ty == "BOOL" && t >= 2 && extra.is_empty() { ",0".into() } else { extra };
+        let extra = if ty == "BOOL" && t >= 2 && extra.is_empty() {
+            ",0".into()
+        } else {
+            extra
+        };
         let _ = writeln!(csv, "t{i},{ty},{},{address}{extra}", tables[t]);
     }
     Project { csv, spans }
@@ -168,11 +179,52 @@ fn minimum_requests(project: &Project, max_regs: u32, max_bits: u32) -> usize {
         .sum()
 }
 
+/// One `read` call of the link.
+#[derive(Clone, Copy)]
+struct Read {
+    start: Instant,
+    end: Instant,
+    /// Its first block.
+    first: ReadRequest,
+    transactions: u64,
+    /// A SET's read-back (the read right after a write), not a poll slice.
+    readback: bool,
+}
+
 /// The Modbus backend, each `read` timed and its transactions counted.
 struct Timed {
     inner: ModbusBackend,
     counters: Arc<BackendCounters>,
-    reads: Arc<Mutex<Vec<(Duration, u64)>>>,
+    reads: Arc<Mutex<Vec<Read>>>,
+    after_write: bool,
+}
+
+/// Poll cycles in `reads` (the link reads a poll in slices, SETs between
+/// them): each begins with the plan's first block. The partial cycles at
+/// either end are left out. Per cycle: duration and transactions.
+fn cycles(reads: &[Read]) -> Vec<(Duration, u64)> {
+    let polls: Vec<&Read> = reads.iter().filter(|r| !r.readback).collect();
+    let Some(first) = polls
+        .iter()
+        .map(|r| r.first)
+        .min_by_key(|r| (r.area, r.offset))
+    else {
+        return Vec::new();
+    };
+    let starts: Vec<usize> = (0..polls.len())
+        .filter(|&i| polls[i].first == first)
+        .collect();
+    starts
+        .windows(2)
+        .map(|w| {
+            let slices = &polls[w[0]..w[1]];
+            let end = slices.last().map_or(slices[0].end, |r| r.end);
+            (
+                end - slices[0].start,
+                slices.iter().map(|r| r.transactions).sum(),
+            )
+        })
+        .collect()
 }
 
 #[async_trait]
@@ -207,33 +259,25 @@ impl PlcBackend for Timed {
     }
     async fn read(&mut self, requests: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
         let before = self.counters.requests.get();
-        let started = Instant::now();
+        let start = Instant::now();
         let answers = self.inner.read(requests).await;
-        let took = started.elapsed();
-        let sent = self.counters.requests.get() - before;
-        self.reads.lock().unwrap().push((took, sent));
+        if let Some(&first) = requests.first() {
+            self.reads.lock().unwrap().push(Read {
+                start,
+                end: Instant::now(),
+                first,
+                transactions: self.counters.requests.get() - before,
+                readback: std::mem::take(&mut self.after_write),
+            });
+        }
         answers
     }
     async fn write(&mut self, requests: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {
+        self.after_write = true;
         self.inner.write(requests).await
     }
     async fn status(&mut self) -> Result<PlcStatus, PlcError> {
         self.inner.status().await
-    }
-    async fn file_info(&mut self, path: &[u8]) -> Result<Answer<FileInfo>, PlcError> {
-        self.inner.file_info(path).await
-    }
-    async fn read_file(&mut self, path: &[u8], offset: u64, len: u32) -> Result<Answer<Vec<u8>>, PlcError> {
-        self.inner.read_file(path, offset, len).await
-    }
-    async fn write_file(&mut self, path: &[u8], offset: u64, data: &[u8], last: bool) -> Result<Answer<()>, PlcError> {
-        self.inner.write_file(path, offset, data, last).await
-    }
-    async fn write_file_info(&mut self, path: &[u8], info: &FileInfo) -> Result<Answer<()>, PlcError> {
-        self.inner.write_file_info(path, info).await
-    }
-    async fn list_dir(&mut self, path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError> {
-        self.inner.list_dir(path).await
     }
 }
 
@@ -285,6 +329,7 @@ async fn run(args: &Args, project: &Project, inflight: u8, latency: u64) -> Run 
         inner: ModbusBackend::new(modbus_config(&section, device.local_addr(), dir.path())),
         counters: Arc::default(),
         reads: reads.clone(),
+        after_write: false,
     };
     let running = start_section(
         Arc::new(loaded.config.global),
@@ -299,7 +344,9 @@ async fn run(args: &Args, project: &Project, inflight: u8, latency: u64) -> Run 
     .expect("section");
 
     // The watcher: every tag enabled; DIFF arrival times by line.
-    let watcher = TcpStream::connect(running.local_addr).await.expect("watcher");
+    let watcher = TcpStream::connect(running.local_addr)
+        .await
+        .expect("watcher");
     let (read, mut write) = watcher.into_split();
     write.write_all(b"EN:*\r\n").await.unwrap();
     let arrivals: Arc<Mutex<HashMap<String, Instant>>> = Arc::default();
@@ -316,10 +363,12 @@ async fn run(args: &Args, project: &Project, inflight: u8, latency: u64) -> Run 
 
     reads.lock().unwrap().clear();
     tokio::time::sleep(Duration::from_millis(args.cycles as u64 * args.delay)).await;
-    let polls: Vec<(Duration, u64)> = std::mem::take(&mut *reads.lock().unwrap());
+    let polls = cycles(&std::mem::take(&mut *reads.lock().unwrap()));
 
     // SET -> confirmed -> DIFF, with the polls going on.
-    let writer = TcpStream::connect(running.local_addr).await.expect("writer");
+    let writer = TcpStream::connect(running.local_addr)
+        .await
+        .expect("writer");
     let (read, mut write) = writer.into_split();
     let mut answers = BufReader::new(read).lines();
     let mut sent = Vec::new();
@@ -387,7 +436,11 @@ async fn main() {
                 v.sort_by(f64::total_cmp);
                 v
             };
-            let (cycle, confirm, diff) = (sorted(&r.cycle_ms), sorted(&r.confirm_ms), sorted(&r.diff_ms));
+            let (cycle, confirm, diff) = (
+                sorted(&r.cycle_ms),
+                sorted(&r.confirm_ms),
+                sorted(&r.diff_ms),
+            );
             let mut requests = r.requests.clone();
             requests.sort_unstable();
             let median = requests.get(requests.len() / 2).copied().unwrap_or(0);
