@@ -628,6 +628,25 @@ good2,LREAL,input,4\n";
         assert_eq!(parse(b"").warnings.len(), 1);
     }
 
+    /// The README's example tag files load without a warning.
+    #[test]
+    fn the_readme_examples_load() {
+        let readme = include_str!("../../../README.md");
+        let blocks: Vec<&str> = readme
+            .split("```csv\n")
+            .skip(1)
+            .map(|rest| rest.split("```").next().unwrap_or_default())
+            .collect();
+        assert_eq!(blocks.len(), 2);
+        for block in blocks {
+            let file = parse(block.as_bytes());
+            assert!(file.warnings.is_empty(), "{:?}", file.warnings);
+            assert!(file.tags.len() >= 6);
+        }
+        let demo = parse(include_bytes!("../../../conf/demo-modbus.csv"));
+        assert!(demo.warnings.is_empty(), "{:?}", demo.warnings);
+    }
+
     #[test]
     fn cp1250_and_utf8_names() {
         let utf8 = parse("name,type,table,address\nteplota_kuchyně,INT,holding,0\n".as_bytes());
