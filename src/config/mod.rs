@@ -622,6 +622,31 @@ fn read_section(
             }
         }
     }
+    // Modbus keys: only with PROTOCOL = MODBUS_TCP; such a section reads a
+    // tag file, not public files.
+    let modbus = section.protocol == "MODBUS_TCP";
+    for (key, entry) in &map {
+        let misplaced = if modbus {
+            matches!(*key, "PUBFILE" | "PUBFILE_FIXED")
+                .then(|| format!("{key} has no effect with PROTOCOL = MODBUS_TCP (its variables come from MODBUS_TAGS)"))
+        } else {
+            key.starts_with("MODBUS_")
+                .then(|| format!("{key} has no effect without PROTOCOL = MODBUS_TCP"))
+        };
+        if let Some(message) = misplaced {
+            diags.push(Severity::Warning, entry.line, message);
+        }
+    }
+    if modbus && section.modbus.tags.is_none() && section.simulator.is_none() {
+        diags.push(
+            Severity::Warning,
+            raw.line,
+            format!(
+                "section [{}] has no MODBUS_TAGS: it serves __PLC_RUN and __PF_CRC only",
+                raw.name
+            ),
+        );
+    }
     if !map.contains_key("SERVER_PORT") {
         errors.push(diags.make(
             Severity::Error,
