@@ -292,3 +292,30 @@ async fn sets_between_poll_slices_are_never_undone_by_the_poll() {
         }
     }
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn setconf_pubfile_names_another_tag_file() {
+    let sim = device(0.0, Duration::ZERO).await;
+    let dir = tempfile::tempdir().unwrap();
+    let server = modbus_server(dir.path(), sim.local_addr().port(), &tags(), "");
+    let other = dir.path().join("other.csv");
+    std::fs::write(
+        &other,
+        "name,type,table,address,bit,order\nonly,REAL,holding,26,,CDAB\n",
+    )
+    .unwrap();
+    let mut c = Client::connect(server.addr).await;
+    c.ask("SET:setpoint,4.5\r\n", "DIFF:SETPOINT,4.500000\r\n")
+        .await;
+    c.ask(
+        &format!("SETCONF:pubfile,{}\r\n", other.display()),
+        "WARNING:250 Changed public file: 'other.csv'\r\n",
+    )
+    .await;
+    c.ask("GET:only\r\n", "GET:ONLY,4.500000\r\n").await;
+    c.ask(
+        "GET:setpoint\r\n",
+        "ERROR:33 Unknown variable name in request: 'GET:setpoint'\r\n",
+    )
+    .await;
+}

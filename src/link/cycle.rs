@@ -5,7 +5,10 @@
 //! block the PLC refuses is split until only the variables at fault are
 //! left out ([`super::refusals`]).
 
+use std::time::Duration;
+
 use plccoms_protocol::value::Value;
+use tokio::time::Instant;
 use tracing::{debug, info};
 
 use super::plan::{Limits, Range, ReadPlan};
@@ -14,9 +17,14 @@ use crate::backend::{PlcBackend, PlcError};
 use crate::changes::{PollStamp, Publisher};
 use crate::vars::VarId;
 
-/// Blocks read at a time in a poll; SETs that came in meanwhile go before
-/// the next slice, so a write waits for at most one slice, not a whole poll.
-pub const POLL_SLICE: usize = 8;
+/// A poll is read in slices; SETs that came in meanwhile go before the next
+/// slice, so a write waits for one slice, not a whole poll. A slice is as
+/// many blocks as the last ones show fit in this time, at least
+/// [`SLICE_MIN`] (so pipelined transactions keep flowing): on a fast link the
+/// rest of a poll after its first slice is one read.
+pub const SLICE_TIME: Duration = Duration::from_millis(2);
+/// Fewest blocks a slice reads.
+pub const SLICE_MIN: usize = 8;
 
 /// A poll under way: what is read so far.
 pub struct Round {
@@ -47,6 +55,8 @@ pub struct Cycle {
     last_crc: Option<u64>,
     /// What the PLC refuses to read.
     refusals: Refusals,
+    /// How long one block took in the last slice read.
+    per_block: Option<Duration>,
     /// The plan must be made anew (refusals learned).
     replan: bool,
     /// What polls found that the link has not handled yet.
@@ -68,6 +78,7 @@ impl Cycle {
         self.last_run = None;
         self.last_crc = None;
         self.refusals.clear();
+        self.per_block = None;
         self.events = SystemEvents::default();
     }
 
@@ -159,10 +170,17 @@ impl Cycle {
     ) -> Result<bool, PlcError> {
         let blocks = self.plan.blocks();
         let from = round.answers.len();
-        let to = (from + POLL_SLICE).min(blocks.len());
+        let fit = match self.per_block {
+            Some(each) if !each.is_zero() => (SLICE_TIME.as_nanos() / each.as_nanos()) as usize,
+            Some(_) => usize::MAX,
+            None => SLICE_MIN,
+        };
+        let to = from.saturating_add(fit.max(SLICE_MIN)).min(blocks.len());
         if from < to {
+            let started = Instant::now();
             let answers = backend.read(&blocks[from..to]).await?;
             round.answers.extend(answers);
+            self.per_block = Some(started.elapsed() / (to - from) as u32);
         }
         Ok(to < blocks.len())
     }

@@ -25,7 +25,9 @@
 //!   for the others (which cannot be written).
 //! - `unit`, `description`: kept, shown nowhere yet.
 //!
-//! Lines starting with `#` are comments; fields may be quoted. A file that
+//! Lines starting with `#` are comments; fields may be quoted; a value past
+//! the header's last column makes its line bad (empty trailing fields are
+//! fine). A file that
 //! is valid UTF-8 is read as UTF-8 (names are stored in cp1250, as public
 //! files'), any other as cp1250. A line that does not fit is skipped with a
 //! [`TagWarning`] naming its line and column; the rest loads. Pure: bytes
@@ -155,6 +157,7 @@ pub fn parse(bytes: &[u8]) -> TagFile {
     let mut columns: Option<HashMap<Column, usize>> = None;
     let mut seen: HashMap<Vec<u8>, usize> = HashMap::new();
     let mut lines = LineCounter::default();
+    let mut header_len = 0;
     for record in reader.byte_records() {
         let record = match record {
             Ok(record) => record,
@@ -179,9 +182,24 @@ pub fn parse(bytes: &[u8]) -> TagFile {
                 Some(found) => columns = Some(found),
                 None => return file,
             }
+            header_len = fields.len();
             continue;
         };
         if fields.iter().all(String::is_empty) {
+            continue;
+        }
+        // A value under no column is a mistake (a column left out of the
+        // header), not something to drop quietly; empty trailing fields
+        // (spreadsheets write them) are fine.
+        if let Some(extra) = (header_len..fields.len()).find(|&i| !fields[i].is_empty()) {
+            file.warnings.push(TagWarning {
+                line,
+                column: Some(extra + 1),
+                message: format!(
+                    "'{}' is under no column (the header names {header_len}); line skipped",
+                    fields[extra]
+                ),
+            });
             continue;
         }
         let field = |c: Column| -> (&str, usize) {
@@ -582,10 +600,12 @@ bad3,DINT,holding,65535\n\
 bad4,BOOL,holding,7\n\
 GOOD,INT,holding,2\n\
 bad5 x,INT,holding,3\n\
-good2,LREAL,input,4\n";
+good2,LREAL,input,4\n\
+bad6,REAL,holding,5,,CDAB\n\
+good3,INT,holding,6,,,\n";
         let file = parse(text.as_bytes());
         let names: Vec<&[u8]> = file.tags.iter().map(|t| &t.name[..]).collect();
-        assert_eq!(names, [&b"good"[..], b"good2"]);
+        assert_eq!(names, [&b"good"[..], b"good2", b"good3"]);
         let shown: Vec<String> = file.warnings.iter().map(|w| w.to_string()).collect();
         assert_eq!(
             shown[0],
@@ -614,6 +634,10 @@ good2,LREAL,input,4\n";
             shown[5].starts_with("line 10, column 1: invalid character"),
             "{}",
             shown[5]
+        );
+        assert_eq!(
+            shown[6],
+            "line 12, column 6: 'CDAB' is under no column (the header names 5); line skipped"
         );
     }
 
