@@ -416,6 +416,45 @@ mod tests {
     }
 
     #[test]
+    fn modbus_tags_are_written_through_their_codec() {
+        use plccoms_plc::modbus::{tags, MAP};
+        let file = tags::parse(
+            b"name,type,table,address,bit,order\n\
+              sinus,REAL,holding,0,,CDAB\ntext,STRING[16],holding,10\n\
+              positive,BOOL,coil,3\ncount,DINT,input,4,,DCBA\n",
+        );
+        let vars: Vec<ProgVar> = file
+            .tags
+            .into_iter()
+            .map(|t| {
+                let (area, offset, bit) = t.place();
+                ProgVar {
+                    name: t.name,
+                    area,
+                    offset,
+                    bit,
+                    ty: t.ty,
+                    codec: t.codec,
+                }
+            })
+            .collect();
+        let mut image = MemoryImage::new(MAP);
+        let mut program = Program::new(ProgramKind::Demo, vars.clone(), &["count".into()], 10);
+        program.step(&mut image, 0.0);
+        let r = image.area(Area::R);
+        let sinus = f32::from_be_bytes([r[2], r[3], r[0], r[1]]);
+        assert_eq!(sinus, (0.001f64).sin() as f32);
+        assert_eq!(&r[20..36], b"Have a nice day\0");
+        assert_eq!(image.area(Area::Y)[3], 1, "sinus > 0");
+        let input = plccoms_plc::modbus::INPUT_BASE as usize + 8;
+        assert_eq!(
+            i32::from_le_bytes(r[input..input + 4].try_into().unwrap()),
+            1
+        );
+        assert_eq!(read_f64(&mut image, &vars[0]), Some(f64::from(sinus)));
+    }
+
+    #[test]
     fn animation_changes_every_cycle_and_stays_in_bounds() {
         let vars = vec![
             var("a_int", 0, None, IecType::Int),
