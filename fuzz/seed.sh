@@ -180,6 +180,30 @@ put("mqtt_spool", record(7, b"plccoms/Demo/A%2FB", b'{"value":1}', 0, False) + r
 for text in [b"mqtt://broker.lan:1883", b"mqtts://[::1]:8883/", b"tcp://10.0.0.1",
              b"COUNTER", b"A%2FB%2BC%23D%25E", "TEPLOTA_KUCHYNĚ".encode(), b"%zz"]:
     put("mqtt_text", text)
+# --- Modbus ------------------------------------------------------------------
+put("modbus_tags", read("conf/demo-modbus.csv"))
+put("modbus_tags", "name,type,table,address,bit,order,scale,offset,access,unit,description\n"
+    "a,INT,holding,0\nb,REAL,input,65534,,CDAB\nc,BOOL,holding,3,15\nd,TS48,holding,9\n"
+    "e,STRING[7],holding,20,,BADC\nf,UINT,input,1,,,0.1,-40,ro,°C,\"x, y\"\n"
+    "g,BOOL,coil,65535\nh,LREAL,holding,65533\n# comment\n\nbad,INT,holdng,1\n".encode())
+put("modbus_tags", b"Name;Type\nx;INT\n")
+
+def adu(tid, pdu, unit=1):
+    return struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu
+answers = [
+    (8, adu(1, b"\x01\x01\xa5")),
+    (8, adu(2, b"\x02\x01\x0f")),
+    (2, adu(3, b"\x03\x04\xbe\xef\x00\x01")),
+    (2, adu(4, b"\x04\x04\x12\x34\x56\x78")),
+    (0, adu(5, b"\x05\x00\x04\xff\x00")),
+    (2, adu(6, b"\x10\x00\x07\x00\x02")),
+    (0, adu(7, b"\x16\x00\x08\x00\x00\xff\xff")),
+    (0, adu(8, b"\x83\x02")),
+    (0, adu(9, b"\x84\x0b")),
+]
+for count, a in answers:
+    put("modbus_answer", struct.pack(">H", count) + a)
+put("modbus_answer", struct.pack(">H", 2) + b"".join(a for _, a in answers) + b"\x00\x01\x00")
 
 for target in sorted(counts):
     print(f"{target}: {counts[target]} seeds")

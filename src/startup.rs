@@ -12,9 +12,10 @@ use std::sync::Arc;
 use tracing::{error, info, warn};
 
 use crate::backend::epsnet::EpsnetBackend;
-use crate::backend::{epsnet_config, PlcBackend};
+use crate::backend::modbus::ModbusBackend;
+use crate::backend::{epsnet_config, modbus_config, PlcBackend};
 use crate::config::{Config, Global, Section};
-use crate::link::tables::{plc_path, LoadError, NamedBy, PubSource};
+use crate::link::tables::{local_path, plc_path, LoadError, NamedBy, PubSource};
 use crate::link::Tables;
 use crate::server::{start_section, RunningSection};
 use plcsim::{SimConfig, SimHandle};
@@ -208,7 +209,7 @@ async fn start_one(
         if from_plc {
             format!(
                 "; {} is read from the PLC when it answers",
-                section.pubfile.as_deref().unwrap_or_default()
+                source.kind.name(section).map_or("", String::as_str)
             )
         } else {
             String::new()
@@ -238,6 +239,16 @@ async fn backend_for(
     server: &mut Server,
 ) -> Result<Option<Box<dyn PlcBackend>>, String> {
     if let Some(simulator) = section.simulator.clone() {
+        if section.protocol == "MODBUS_TCP" {
+            let device = spawn_modbus_simulator(section, &simulator, dir, server).await?;
+            if let std::net::IpAddr::V4(ip) = device.ip() {
+                section.ipaddr = Some(ip);
+            }
+            section.modbus.port = device.port();
+            return Ok(Some(Box::new(ModbusBackend::new(modbus_config(
+                section, device, dir,
+            )))));
+        }
         let plc = spawn_simulator(section, &simulator, dir, server).await?;
         if let std::net::IpAddr::V4(ip) = plc.ip() {
             section.ipaddr = Some(ip);
@@ -247,11 +258,76 @@ async fn backend_for(
             section, plc,
         )))));
     }
-    let backend = crate::backend::open(section)?;
+    let backend = crate::backend::open(section, dir)?;
     if backend.is_none() {
         warn!(section = %section.name, "no PLC address (IPADDR) yet: serving clients without a PLC until SETCONF:ipaddr");
     }
     Ok(backend)
+}
+
+/// Runs the simulated Modbus device of a `SIMULATOR = Yes` section with
+/// `PROTOCOL = MODBUS_TCP` on a loopback port. It serves SIMULATOR_PUB (a tag
+/// file) if set, else the section's MODBUS_TAGS; a section with neither gets
+/// the built-in demo tag file, written to a folder of its own.
+async fn spawn_modbus_simulator(
+    section: &mut Section,
+    simulator: &crate::config::Simulator,
+    dir: &Path,
+    server: &mut Server,
+) -> Result<SocketAddr, String> {
+    let read = |path: PathBuf, key: &str| {
+        std::fs::read(&path).map_err(|e| format!("{key} {}: {e}", path.display()))
+    };
+    let bytes = match (&simulator.pubfile, &section.modbus.tags) {
+        (Some(path), _) => read(dir.join(path), "SIMULATOR_PUB")?,
+        (None, Some(name)) => read(local_path(dir, section, name), "MODBUS_TAGS")?,
+        (None, None) => {
+            let store = tempfile::Builder::new()
+                .prefix("plccoms-sim-")
+                .tempdir()
+                .map_err(|e| format!("cannot create the simulator's folder: {e}"))?;
+            let path = store.path().join("demo-modbus.csv");
+            std::fs::write(&path, plcsim::DEMO_TAGS).map_err(|e| e.to_string())?;
+            section.modbus.tags = Some(path.to_string_lossy().into_owned());
+            server._file_stores.push(store);
+            plcsim::DEMO_TAGS.to_vec()
+        }
+    };
+    let config = SimConfig {
+        modbus: Some(SocketAddr::from((Ipv4Addr::LOCALHOST, 0))),
+        pubfile: plcsim::PubSource::Bytes(bytes),
+        ..SimConfig::default()
+    };
+    run_simulator(
+        section,
+        simulator,
+        config,
+        "simulated Modbus device",
+        server,
+    )
+    .await
+}
+
+/// Starts `config` with the section's SIMULATOR_PROGRAM; keeps it running
+/// with the server.
+async fn run_simulator(
+    section: &Section,
+    simulator: &crate::config::Simulator,
+    config: SimConfig,
+    what: &str,
+    server: &mut Server,
+) -> Result<SocketAddr, String> {
+    let program = simulator
+        .program
+        .parse()
+        .map_err(|e| format!("SIMULATOR_PROGRAM: {e}"))?;
+    let handle = plcsim::spawn(SimConfig { program, ..config })
+        .await
+        .map_err(|e| format!("cannot start the {what}: {e}"))?;
+    let addr = handle.local_addr();
+    info!(section = %section.name, plc = %addr, "{what} running");
+    server.simulators.push(handle);
+    Ok(addr)
 }
 
 /// Runs the simulated PLC of a `SIMULATOR = Yes` section on a loopback port.
@@ -281,23 +357,13 @@ async fn spawn_simulator(
         }
         std::fs::write(&target, &bytes).map_err(|e| e.to_string())?;
     }
-    let program = simulator
-        .program
-        .parse()
-        .map_err(|e| format!("SIMULATOR_PROGRAM: {e}"))?;
     let config = SimConfig {
         bind: SocketAddr::from((Ipv4Addr::LOCALHOST, 0)),
         pubfile: plcsim::PubSource::Bytes(bytes),
         files: Some(store.path().to_path_buf()),
-        program,
         ..SimConfig::default()
     };
-    let handle = plcsim::spawn(config)
-        .await
-        .map_err(|e| format!("cannot start the simulated PLC: {e}"))?;
-    let addr = handle.local_addr();
-    info!(section = %section.name, plc = %addr, "simulated PLC running");
-    server.simulators.push(handle);
+    let addr = run_simulator(section, simulator, config, "simulated PLC", server).await?;
     server._file_stores.push(store);
     Ok(addr)
 }

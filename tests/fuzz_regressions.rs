@@ -84,6 +84,14 @@ fn every_target_runs_on_ordinary_input() {
         checks::mqtt_text(text.as_bytes());
     }
     // IDENT request from 0x7D.
+    checks::modbus_tags(include_bytes!("../conf/demo-modbus.csv"));
+    checks::modbus_tags(
+        b"name,type,table,address,bit,order,scale,offset\nx,INT,holding,65535,,,0.5,1\n",
+    );
+    // FC 3 answer of two registers, then an exception, then half an ADU.
+    checks::modbus_answer(&[
+        0, 2, 0, 1, 0, 0, 0, 7, 1, 3, 4, 0xBE, 0xEF, 0, 1, 0, 2, 0, 0, 0, 3, 1, 0x83, 2, 0, 3, 0,
+    ]);
     checks::epsnet_device(&[
         0x00, 0x01, 0x02, 0x00, 0x00, 0x0A, 0x68, 0x04, 0x04, 0x68, 0x00, 0x7D, 0x63, 0x01, 0xE1,
         0x16,

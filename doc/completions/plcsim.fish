@@ -9,5 +9,7 @@ complete -c plcsim -l latency -d 'Delay every answer by this many milliseconds' 
 complete -c plcsim -l control -d 'Loopback TCP address for run-time control (see below)' -r
 complete -c plcsim -l cycle -d 'PLC cycle in milliseconds' -r
 complete -c plcsim -l ident -d 'Identification string the PLC reports' -r
+complete -c plcsim -l modbus -d 'Serve Modbus TCP on this address instead of EPSNET (coils, discrete inputs, holding and input registers; any unit id)' -r
+complete -c plcsim -l tags -d 'Modbus tag file (CSV) naming the variables the program and --animate drive. Default: the built-in conf/demo-modbus.csv' -r -F
 complete -c plcsim -s h -l help -d 'Print help (see more with \'--help\')'
 complete -c plcsim -s V -l version -d 'Print version'

@@ -16,7 +16,8 @@ use crate::program::ProgramKind;
 /// it every cycle (the user manual's demo program by default), serves a
 /// directory as the PLC's file system, and can drop or delay packets and go
 /// HALT on request. Service codes other than SETTID are this project's own,
-/// unverified against a real PLC.
+/// unverified against a real PLC. With --modbus it is a Modbus TCP device
+/// instead, its registers named by a tag file (--tags).
 #[derive(Debug, Parser)]
 #[command(name = "plcsim", version, after_help = CONTROL_HELP)]
 pub struct Args {
@@ -70,6 +71,21 @@ pub struct Args {
     /// Identification string the PLC reports.
     #[arg(long, value_name = "TEXT")]
     pub ident: Option<String>,
+
+    /// Serve Modbus TCP on this address instead of EPSNET (coils, discrete
+    /// inputs, holding and input registers; any unit id).
+    #[arg(long, value_name = "ADDR:PORT")]
+    pub modbus: Option<SocketAddr>,
+
+    /// Modbus tag file (CSV) naming the variables the program and
+    /// --animate drive. Default: the built-in conf/demo-modbus.csv.
+    #[arg(
+        long,
+        value_name = "FILE.csv",
+        requires = "modbus",
+        conflicts_with = "pubfile"
+    )]
+    pub tags: Option<PathBuf>,
 }
 
 pub const CONTROL_HELP: &str = "\
@@ -78,7 +94,7 @@ Control port commands (one a line, answered OK or ERR <why>):
   latency <ms>        delay answers
   halt | run          switch the PLC to HALT or RUN (__PLC_RUN)
   pub <file>          load another public file (new program, new __PF_CRC),
-                      served under its own name
+                      served under its own name (with --modbus: a tag file)
   program demo|idle   switch the PLC program
   animate <mask>...   animate these variables (none: stop)
   status              show state";

@@ -6,7 +6,8 @@
 //! latency 500       delay answers by 500 ms
 //! halt | run        PLC state (__PLC_RUN; the program runs only in RUN)
 //! pub <file>        load another public file (new program, new __PF_CRC),
-//!                   served by the file system under its own name
+//!                   served by the file system under its own name (on a
+//!                   Modbus device: a tag file)
 //! program demo|idle
 //! animate <mask>... animate these variables (none: stop animating)
 //! status            OK run|halt crc=XXXXXXXX loss=.. latency=..

@@ -1,5 +1,6 @@
-//! The simulated EPSNET PLC: a UDP server over a [`Device`], a PLC program
-//! engine, a directory-backed file store and fault injection.
+//! The simulated PLC: a UDP server speaking EPSNET (or a TCP server speaking
+//! Modbus TCP, [`modbus`]) over a [`Device`], a PLC program engine, a
+//! directory-backed file store and fault injection.
 //!
 //! [`spawn`] starts it inside the current tokio runtime and returns a
 //! [`SimHandle`]: its address, the device, and the fault controls (packet
@@ -11,6 +12,7 @@ pub mod cli;
 pub mod control;
 pub mod device;
 pub mod genpub;
+pub mod modbus;
 pub mod program;
 pub mod server;
 pub mod store;
@@ -39,6 +41,8 @@ use crate::device::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
 pub const DEMO_PUB: &[u8] = include_bytes!("../../conf/demo.pub");
 /// The fixed public file (same bytes as `conf/FIXED.pub`).
 pub const FIXED_PUB: &[u8] = include_bytes!("../../conf/FIXED.pub");
+/// The demo program's variables as a Modbus tag file (`conf/demo-modbus.csv`).
+pub const DEMO_TAGS: &[u8] = include_bytes!("../../conf/demo-modbus.csv");
 
 /// Answers delayed by injected latency and not yet sent; beyond this the
 /// simulator drops datagrams (memory stays bounded).
@@ -77,6 +81,9 @@ pub struct SimConfig {
     pub map: MemoryMap,
     /// Seed of the packet-loss generator (default: from the clock).
     pub seed: Option<u64>,
+    /// Serve Modbus TCP on this address instead of EPSNET; `pubfile` is then
+    /// a Modbus tag file, and the memory is laid out as Modbus tables.
+    pub modbus: Option<SocketAddr>,
 }
 
 impl Default for SimConfig {
@@ -95,6 +102,7 @@ impl Default for SimConfig {
             ident: crate::device::DEFAULT_IDENT.to_string(),
             map: MemoryMap::FOXTROT,
             seed: None,
+            modbus: None,
         }
     }
 }
@@ -104,6 +112,8 @@ impl Default for SimConfig {
 pub(crate) struct Shared {
     device: Arc<Mutex<Device>>,
     state: Mutex<SimState>,
+    /// The variables come from Modbus tag files.
+    modbus: bool,
 }
 
 struct SimState {
@@ -119,6 +129,16 @@ struct SimState {
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
     // Plain data: still valid after a panic elsewhere.
     mutex.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// The variables of a Modbus tag file, and its CRC.
+pub fn load_tags_bytes(bytes: &[u8]) -> (Vec<ProgVar>, u32) {
+    let parsed = plccoms_plc::modbus::tags::parse(bytes);
+    for warning in &parsed.warnings {
+        tracing::warn!("plcsim: tag file {warning}");
+    }
+    let vars = parsed.tags.into_iter().map(ProgVar::from).collect();
+    (vars, pubfile::crc_of(bytes))
 }
 
 /// The variables and `__PF_CRC` of a public file.
@@ -148,6 +168,7 @@ pub fn load_pub_bytes(bytes: &[u8]) -> (Vec<ProgVar>, u32) {
             offset: v.offset,
             bit: v.bit,
             ty: v.ty,
+            codec: plccoms_plc::value_codec::Codec::Native,
         })
         .collect();
     (vars, crc)
@@ -179,7 +200,11 @@ impl Shared {
     /// and `__PF_CRC` changes to its CRC. The file system serves it under
     /// `name`, or, without one, under the name of the file it replaces.
     fn load_pub(&self, bytes: &[u8], name: Option<&str>) -> u32 {
-        let (vars, crc) = load_pub_bytes(bytes);
+        let (vars, crc) = if self.modbus {
+            load_tags_bytes(bytes)
+        } else {
+            load_pub_bytes(bytes)
+        };
         if let Some(files) = lock(&self.device).files.as_mut() {
             let name = name.or(files.program_file_name()).map(str::to_string);
             if let Some(name) = name {
@@ -233,6 +258,16 @@ impl Shared {
         state.clock_offset = offset;
         Some((answer, latency))
     }
+
+    /// The answer to one Modbus request, and its delay; `None` to drop it.
+    fn handle_modbus(&self, adu: &plccoms_plc::modbus::codec::Adu) -> Option<(Vec<u8>, Duration)> {
+        let mut state = lock(&self.state);
+        if state.loss > 0.0 && state.rng.next_f64() < state.loss {
+            return None;
+        }
+        let answer = modbus::answer(&mut lock(&self.device).image, adu);
+        Some((answer, state.latency))
+    }
 }
 
 /// A running simulator. Dropping it stops every task of it.
@@ -252,7 +287,12 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     if let Some(path) = &config.fixed {
         check_fixed(&std::fs::read(path).map_err(|e| with_path(e, path))?);
     }
-    let mut device = Device::new(config.map);
+    let map = if config.modbus.is_some() {
+        plccoms_plc::modbus::MAP
+    } else {
+        config.map
+    };
+    let mut device = Device::new(map);
     device.ident = config.ident.clone();
     if let Some(dir) = &config.files {
         let mut files = FileStore::open(dir).map_err(|e| with_path(e, dir))?;
@@ -273,7 +313,11 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
         device.files = Some(files);
     }
     let cycle_ms = config.cycle.as_millis().clamp(1, 60_000) as u64;
-    let (vars, crc) = load_pub_bytes(&pub_bytes);
+    let (vars, crc) = if config.modbus.is_some() {
+        load_tags_bytes(&pub_bytes)
+    } else {
+        load_pub_bytes(&pub_bytes)
+    };
     device.set_pf_crc(crc);
     let shared = Arc::new(Shared {
         device: Arc::new(Mutex::new(device)),
@@ -285,6 +329,7 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
             rng: config.seed.map(Rng::new).unwrap_or_else(Rng::from_time),
             cycle_ms,
         }),
+        modbus: config.modbus.is_some(),
     });
     shared.set_loss(config.loss);
     shared.set_latency(config.latency);
@@ -292,12 +337,24 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     // first datagram may be answered before the first timer tick.
     shared.cycle();
 
-    let socket = Arc::new(UdpSocket::bind(config.bind).await?);
-    let local_addr = socket.local_addr()?;
-    let mut tasks = vec![
-        tokio::spawn(serve(socket, shared.clone())),
-        tokio::spawn(run_program(shared.clone(), Duration::from_millis(cycle_ms))),
-    ];
+    let mut tasks = vec![tokio::spawn(run_program(
+        shared.clone(),
+        Duration::from_millis(cycle_ms),
+    ))];
+    let local_addr = match config.modbus {
+        Some(addr) => {
+            let listener = tokio::net::TcpListener::bind(addr).await?;
+            let local = listener.local_addr()?;
+            tasks.push(tokio::spawn(modbus::serve(listener, shared.clone())));
+            local
+        }
+        None => {
+            let socket = Arc::new(UdpSocket::bind(config.bind).await?);
+            let local = socket.local_addr()?;
+            tasks.push(tokio::spawn(serve(socket, shared.clone())));
+            local
+        }
+    };
     let mut control_addr = None;
     if let Some(addr) = config.control {
         let listener = tokio::net::TcpListener::bind(addr).await?;
@@ -378,7 +435,8 @@ async fn run_program(shared: Arc<Shared>, cycle: Duration) {
 }
 
 impl SimHandle {
-    /// The bound UDP address (the PLC's address for a backend).
+    /// The bound UDP address (the PLC's address for a backend), or the
+    /// Modbus TCP address.
     pub fn local_addr(&self) -> SocketAddr {
         self.local_addr
     }

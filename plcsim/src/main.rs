@@ -1,4 +1,5 @@
-//! plcsim: a simulated Tecomat PLC speaking EPSNET over UDP.
+//! plcsim: a simulated Tecomat PLC speaking EPSNET over UDP, or a Modbus TCP
+//! device.
 
 use std::time::Duration;
 
@@ -39,6 +40,13 @@ async fn main() -> std::process::ExitCode {
     if let Some(path) = args.pubfile {
         config.pubfile = PubSource::Path(path);
     }
+    if let Some(addr) = args.modbus {
+        config.modbus = Some(addr);
+        config.pubfile = match args.tags {
+            Some(path) => PubSource::Path(path),
+            None => PubSource::Bytes(plcsim::DEMO_TAGS.to_vec()),
+        };
+    }
     if let Some(ident) = args.ident {
         config.ident = ident;
     }
@@ -50,8 +58,12 @@ async fn main() -> std::process::ExitCode {
         }
     };
     tracing::info!(
-        "plcsim: EPSNET on udp://{} (__PF_CRC {:08X}){}",
-        handle.local_addr(),
+        "plcsim: {} (__PF_CRC {:08X}){}",
+        if args.modbus.is_some() {
+            format!("Modbus TCP on tcp://{}", handle.local_addr())
+        } else {
+            format!("EPSNET on udp://{}", handle.local_addr())
+        },
         handle.pf_crc(),
         handle
             .control_addr()

@@ -478,7 +478,7 @@ impl PlcBackend for EpsnetBackend {
         Some(self.sa)
     }
 
-    fn max_read_block(&self) -> u32 {
+    fn max_read_block(&self, _area: plccoms_protocol::Area) -> u32 {
         MAX_READ
     }
 

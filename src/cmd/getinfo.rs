@@ -1,6 +1,9 @@
 //! `GETINFO:[key]`: information about the server, its PLC and its clients.
 //! The bare form lists every key in the vendor's order and ends with
 //! `GETINFO:`; a named key answers one line (NETWORK its list, terminated).
+//! A Modbus section lists PROTOCOL, MODBUS_PORT and MODBUS_UNIT in place of
+//! EPSADDR and EPSPORT; an EPSNET section's list is the vendor's (its
+//! PROTOCOL answers when asked by name).
 
 use std::fmt::Write;
 
@@ -13,9 +16,12 @@ const KEYS: &[&str] = &[
     "VERSION_EPSNET",
     "VERSION_INI",
     "VERSION_PLC",
+    "PROTOCOL",
     "IPADDR",
     "EPSADDR",
     "EPSPORT",
+    "MODBUS_PORT",
+    "MODBUS_UNIT",
     "SERIAL_DEVICE",
     "PUBFILE",
     "NETWORK",
@@ -79,7 +85,20 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
     // The settings as SETCONF left them, and the link as it is.
     let state = cx.section.state();
     let (config, link) = (&state.config, &state.link);
+    let modbus = config.protocol == "MODBUS_TCP";
+    // The full list shows what the section's protocol has.
+    let shown = match key {
+        "PROTOCOL" | "MODBUS_PORT" | "MODBUS_UNIT" => modbus,
+        "EPSADDR" | "EPSPORT" => !modbus,
+        _ => true,
+    };
+    if listing_all && !shown {
+        return;
+    }
     match key {
+        "PROTOCOL" => line(text, key, &config.protocol),
+        "MODBUS_PORT" => line(text, key, &config.modbus.port.to_string()),
+        "MODBUS_UNIT" => line(text, key, &config.modbus.unit.to_string()),
         // The EPSNET code and the ini parser are built with the server.
         "VERSION" | "VERSION_EPSNET" => line(text, key, &version(SERVER_VERSION)),
         "VERSION_INI" => line(text, key, &version(INI_VERSION)),

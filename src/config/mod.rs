@@ -187,6 +187,8 @@ pub struct Section {
     pub history: History,
     /// The MQTT_* keys (this server's own).
     pub mqtt: MqttSection,
+    /// The `MODBUS_*` keys (`PROTOCOL = MODBUS_TCP`).
+    pub modbus: Modbus,
 }
 
 /// An address or CIDR network of `ALLOW`.
@@ -270,6 +272,27 @@ pub struct Simulator {
     pub program: String,
     /// `SIMULATOR_PUB`: the public file the simulated PLC serves.
     pub pubfile: Option<String>,
+}
+
+/// The settings of a Modbus TCP section (`MODBUS_*`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Modbus {
+    /// `MODBUS_PORT`: the device's TCP port.
+    pub port: u16,
+    /// `MODBUS_UNIT`: the unit id in every request.
+    pub unit: u8,
+    /// `MODBUS_TAGS`: the tag file (path rules as PUBFILE).
+    pub tags: Option<String>,
+    /// `MODBUS_TIMEOUT`: how long a transaction may take.
+    pub timeout: Duration,
+    /// `MODBUS_MAX_REGS`: registers one read may ask for.
+    pub max_regs: u16,
+    /// `MODBUS_MAX_BITS`: coils or inputs one read may ask for.
+    pub max_bits: u16,
+    /// `MODBUS_GAP`: unwanted registers a read may span to join two blocks.
+    pub gap: u16,
+    /// `MODBUS_INFLIGHT`: transactions in flight at once.
+    pub inflight: u8,
 }
 
 /// A loaded file with the warnings and skipped-section errors found on the way.
@@ -647,6 +670,16 @@ fn section_defaults(name: &str) -> Section {
         setconf_keys: None,
         history: History::default(),
         mqtt: MqttSection::default(),
+        modbus: Modbus {
+            port: 0,
+            unit: 0,
+            tags: None,
+            timeout: Duration::ZERO,
+            max_regs: 0,
+            max_bits: 0,
+            gap: 0,
+            inflight: 0,
+        },
     })
 }
 
@@ -672,6 +705,31 @@ fn read_section(
         }
     }
     history::warn_unused(&section.history, &map, diags);
+    // Modbus keys: only with PROTOCOL = MODBUS_TCP; such a section reads a
+    // tag file, not public files.
+    let modbus = section.protocol == "MODBUS_TCP";
+    for (key, entry) in &map {
+        let misplaced = if modbus {
+            matches!(*key, "PUBFILE" | "PUBFILE_FIXED")
+                .then(|| format!("{key} has no effect with PROTOCOL = MODBUS_TCP (its variables come from MODBUS_TAGS)"))
+        } else {
+            key.starts_with("MODBUS_")
+                .then(|| format!("{key} has no effect without PROTOCOL = MODBUS_TCP"))
+        };
+        if let Some(message) = misplaced {
+            diags.push(Severity::Warning, entry.line, message);
+        }
+    }
+    if modbus && section.modbus.tags.is_none() && section.simulator.is_none() {
+        diags.push(
+            Severity::Warning,
+            raw.line,
+            format!(
+                "section [{}] has no MODBUS_TAGS: it serves __PLC_RUN and __PF_CRC only",
+                raw.name
+            ),
+        );
+    }
     if !map.contains_key("SERVER_PORT") {
         errors.push(diags.make(
             Severity::Error,

@@ -4,6 +4,7 @@
 
 pub mod epsnet;
 pub mod logs;
+pub mod modbus;
 pub mod mqtt;
 pub mod process;
 
