@@ -56,7 +56,7 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
     }
     let vars = &cx.client.vars;
     let selection = select(vars.table(), args, |id| vars.is_hidden(id));
-    let now = Instant::now();
+    let now = cx.now;
     if let Selection::One(id) = selection {
         if answer_from_poll(cx, id, now, out) {
             return Reply::Done;

@@ -66,6 +66,9 @@ pub struct Cx<'a> {
     /// A SET of this client is unanswered: a GET must read through the PLC,
     /// behind it, to see its effect.
     pub behind_set: bool,
+    /// The time the requests of this turn are handled at (read once per
+    /// turn: a burst of GETs does not ask the clock for each).
+    pub now: tokio::time::Instant,
 }
 
 /// A command's answer.
@@ -277,6 +280,12 @@ impl Selection {
 /// Resolves `pattern` against `table`; `hidden` tells which variables the
 /// all-form skips.
 pub fn select(table: &VarTable, pattern: &[u8], hidden: impl Fn(VarId) -> bool) -> Selection {
+    // One name (most requests): no mask to build.
+    if !pattern.is_empty() && !pattern.contains(&b'*') {
+        return table
+            .lookup(pattern)
+            .map_or(Selection::Unknown, Selection::One);
+    }
     let mask = Mask::new(pattern);
     if mask.is_all() {
         return Selection::All(
@@ -284,11 +293,6 @@ pub fn select(table: &VarTable, pattern: &[u8], hidden: impl Fn(VarId) -> bool) 
                 .filter(|&id| !hidden(id))
                 .collect(),
         );
-    }
-    if !mask.has_wildcard() {
-        return table
-            .lookup(pattern)
-            .map_or(Selection::Unknown, Selection::One);
     }
     if mask.min_len() > table.max_name_len() {
         // Longer than every name: nothing to try (a client cannot make the

@@ -119,6 +119,8 @@ pub struct Session {
     turn_used: bool,
     /// Output waits until then for the rest of a burst's answers.
     holding: Option<tokio::time::Instant>,
+    /// While requests are taken: the time they are handled at.
+    turn_now: Option<tokio::time::Instant>,
     /// The most output it had queued or coming.
     peak: usize,
     /// Snapshots whose DIFF lines are queued and not written yet.
@@ -159,6 +161,7 @@ impl Session {
             stop: Box::pin(section.shutdown.clone().cancelled_owned()),
             turn_used: false,
             holding: None,
+            turn_now: None,
             peak: 0,
             #[cfg(feature = "fanout-trace")]
             traced: Vec::new(),
@@ -364,6 +367,13 @@ impl Session {
     /// output have room, at most [`REQUESTS_PER_TURN`] before other clients
     /// get a turn. Returns whether no complete request is left.
     fn take_requests(&mut self) -> bool {
+        self.turn_now = Some(tokio::time::Instant::now());
+        let drained = self.take_requests_now();
+        self.turn_now = None;
+        drained
+    }
+
+    fn take_requests_now(&mut self) -> bool {
         // Requests after a SETCONF wait for it: they may name variables of
         // the public file it loads.
         let mut budget = REQUESTS_PER_TURN;
@@ -470,6 +480,7 @@ impl Session {
             client: &mut self.client,
             newest: &self.newest,
             behind_set: self.queue.set_outstanding(),
+            now: self.turn_now.unwrap_or_else(tokio::time::Instant::now),
         };
         let reply = command(&mut cx, out);
         self.queue.push_ready(behind);
@@ -500,6 +511,7 @@ impl Session {
                 client: &mut self.client,
                 newest: &self.newest,
                 behind_set: false,
+                now: tokio::time::Instant::now(),
             };
             if !stream.advance(&cx, &mut self.conn.out, OUTPUT_HIGH_WATER - backlog) {
                 return;
@@ -563,6 +575,7 @@ impl Session {
             client: &mut self.client,
             newest: &self.newest,
             behind_set: false,
+            now: tokio::time::Instant::now(),
         };
         match (self.queue.pop_head(), done) {
             (Some(Entry::Stream(mut stream)), HeadDone::Stream(reply)) => {
