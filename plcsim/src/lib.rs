@@ -1,5 +1,6 @@
-//! The simulated EPSNET PLC: a UDP server over a [`Device`], a PLC program
-//! engine, a directory-backed file store and fault injection.
+//! The simulated EPSNET PLC: a UDP server (or a serial line, [`serial`])
+//! over a [`Device`], a PLC program engine, a directory-backed file store
+//! and fault injection.
 //!
 //! [`spawn`] starts it inside the current tokio runtime and returns a
 //! [`SimHandle`]: its address, the device, and the fault controls (packet
@@ -11,6 +12,7 @@ pub mod control;
 pub mod device;
 pub mod genpub;
 pub mod program;
+pub mod serial;
 pub mod server;
 pub mod store;
 
@@ -76,6 +78,8 @@ pub struct SimConfig {
     pub map: MemoryMap,
     /// Seed of the packet-loss generator (default: from the clock).
     pub seed: Option<u64>,
+    /// Serve this serial line instead of UDP (`bind` is then unused).
+    pub serial: Option<serial::SerialLine>,
 }
 
 impl Default for SimConfig {
@@ -94,6 +98,7 @@ impl Default for SimConfig {
             ident: crate::device::DEFAULT_IDENT.to_string(),
             map: MemoryMap::FOXTROT,
             seed: None,
+            serial: None,
         }
     }
 }
@@ -103,6 +108,8 @@ impl Default for SimConfig {
 pub(crate) struct Shared {
     device: Arc<Mutex<Device>>,
     state: Mutex<SimState>,
+    /// Bytes and frames on a serial line.
+    line: serial::LineStats,
 }
 
 struct SimState {
@@ -223,6 +230,29 @@ impl Shared {
         state.clock_offset = offset;
         Some((answer, latency))
     }
+
+    /// Decides the fate of one frame from a serial line: `None` to stay
+    /// silent, else the answer, its delay and the damage the line does to it.
+    fn handle_frame(
+        &self,
+        frame: &plccoms_plc::epsnet::frame::Frame,
+    ) -> Option<(
+        plccoms_plc::epsnet::frame::Frame,
+        Duration,
+        Option<serial::Damage>,
+    )> {
+        let mut state = lock(&self.state);
+        let mut offset = state.clock_offset;
+        let answer = server::handle_frame(frame, &mut lock(&self.device), &mut offset)?;
+        state.clock_offset = offset;
+        let damage = (state.loss > 0.0 && state.rng.next_f64() < state.loss)
+            .then(|| serial::Damage::draw(&mut state.rng, answer.encoded_len()));
+        Some((answer, state.latency, damage))
+    }
+
+    fn damage(&self, damage: serial::Damage, bytes: Vec<u8>) -> Vec<u8> {
+        damage.apply(bytes, &mut lock(&self.state).rng)
+    }
 }
 
 /// A running simulator. Dropping it stops every task of it.
@@ -260,6 +290,7 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
             rng: config.seed.map(Rng::new).unwrap_or_else(Rng::from_time),
             cycle_ms,
         }),
+        line: serial::LineStats::default(),
     });
     shared.set_loss(config.loss);
     shared.set_latency(config.latency);
@@ -267,12 +298,27 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     // first datagram may be answered before the first timer tick.
     shared.cycle();
 
-    let socket = Arc::new(UdpSocket::bind(config.bind).await?);
-    let local_addr = socket.local_addr()?;
-    let mut tasks = vec![
-        tokio::spawn(serve(socket, shared.clone())),
-        tokio::spawn(run_program(shared.clone(), Duration::from_millis(cycle_ms))),
-    ];
+    let mut tasks = vec![tokio::spawn(run_program(
+        shared.clone(),
+        Duration::from_millis(cycle_ms),
+    ))];
+    let local_addr = match &config.serial {
+        Some(line) => {
+            let port = serial::open(line)?;
+            tasks.push(tokio::spawn(serial::serve(
+                port,
+                line.clone(),
+                shared.clone(),
+            )));
+            SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0))
+        }
+        None => {
+            let socket = Arc::new(UdpSocket::bind(config.bind).await?);
+            let local_addr = socket.local_addr()?;
+            tasks.push(tokio::spawn(serve(socket, shared.clone())));
+            local_addr
+        }
+    };
     let mut control_addr = None;
     if let Some(addr) = config.control {
         let listener = tokio::net::TcpListener::bind(addr).await?;
@@ -353,9 +399,15 @@ async fn run_program(shared: Arc<Shared>, cycle: Duration) {
 }
 
 impl SimHandle {
-    /// The bound UDP address (the PLC's address for a backend).
+    /// The bound UDP address (the PLC's address for a backend); 0.0.0.0:0
+    /// on a serial line.
     pub fn local_addr(&self) -> SocketAddr {
         self.local_addr
+    }
+
+    /// Bytes and frames on the serial line (zero over UDP).
+    pub fn line_stats(&self) -> &serial::LineStats {
+        &self.shared.line
     }
 
     /// The bound control port, when one was asked for.

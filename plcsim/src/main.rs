@@ -1,4 +1,4 @@
-//! plcsim: a simulated Tecomat PLC speaking EPSNET over UDP.
+//! plcsim: a simulated Tecomat PLC speaking EPSNET over UDP or a serial line.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -7,8 +7,8 @@ use std::time::Duration;
 use clap::Parser;
 use plcsim::{program::ProgramKind, PubSource, SimConfig};
 
-/// A simulated Tecomat PLC that speaks EPSNET over UDP, for testing plccoms
-/// (or the vendor's server) without hardware.
+/// A simulated Tecomat PLC that speaks EPSNET over UDP or a serial line, for
+/// testing plccoms (or the vendor's server) without hardware.
 ///
 /// It serves a memory image laid out by a public file, runs a PLC program on
 /// it every cycle (the user manual's demo program by default), serves a
@@ -66,6 +66,27 @@ struct Args {
     /// Identification string the PLC reports.
     #[arg(long, value_name = "TEXT")]
     ident: Option<String>,
+
+    /// Serve EPSNET on this serial device (a port, or one end of a pty pair:
+    /// `socat -d -d pty,raw,echo=0,link=/tmp/plc pty,raw,echo=0,link=/tmp/srv`)
+    /// instead of UDP. `--loss` then damages that fraction of the exchanges
+    /// (answer lost, cut short, corrupted, or after noise).
+    #[arg(long, value_name = "DEVICE")]
+    serial: Option<String>,
+
+    /// Serial line speed, baud (8N1, no flow control).
+    #[arg(
+        long,
+        default_value_t = 115_200,
+        value_name = "BAUD",
+        requires = "serial"
+    )]
+    speed: u32,
+
+    /// Hold each answer back for the time the request and the answer take on
+    /// a real line at --speed (a pty passes bytes at memory speed).
+    #[arg(long, requires = "serial")]
+    emulate_line: bool,
 }
 
 const CONTROL_HELP: &str = "\
@@ -115,7 +136,16 @@ async fn main() -> std::process::ExitCode {
         latency: Duration::from_millis(args.latency),
         cycle: Duration::from_millis(args.cycle),
         control: args.control,
+        serial: args.serial.map(|device| plcsim::serial::SerialLine {
+            device,
+            speed: args.speed,
+            emulate: args.emulate_line,
+        }),
         ..SimConfig::default()
+    };
+    let on = match &config.serial {
+        Some(line) => format!("serial {} {} 8N1", line.device, line.speed),
+        None => format!("udp://{}", config.bind),
     };
     if let Some(path) = args.pubfile {
         config.pubfile = PubSource::Path(path);
@@ -130,9 +160,13 @@ async fn main() -> std::process::ExitCode {
             return std::process::ExitCode::FAILURE;
         }
     };
+    let on = if on.starts_with("udp") {
+        format!("udp://{}", handle.local_addr())
+    } else {
+        on
+    };
     tracing::info!(
-        "plcsim: EPSNET on udp://{} (__PF_CRC {:08X}){}",
-        handle.local_addr(),
+        "plcsim: EPSNET on {on} (__PF_CRC {:08X}){}",
         handle.pf_crc(),
         handle
             .control_addr()
