@@ -75,6 +75,8 @@ fn init_logging(cli: &Cli) -> Result<(), String> {
                 .append(true)
                 .open(&path)
                 .map_err(|e| format!("cannot open log file {}: {e}", path.display()))?;
+            // A plugin that crashes the process says so in the log too.
+            plccoms::backend::plugin::crash::set_log_fd(std::os::fd::AsRawFd::as_raw_fd(&file));
             registry
                 .with(
                     fmt.with_ansi(false)

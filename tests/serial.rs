@@ -13,7 +13,7 @@ mod common;
 
 use std::time::{Duration, Instant};
 
-use common::health::{answer, is_link_error, outage, LOSS, SLACK};
+use common::health::{answer, is_link_error, outage, until, LOSS, SLACK};
 use common::line::PtyLine;
 use common::process::{plcsim_bin, ChildGuard};
 use common::Client;
@@ -62,19 +62,6 @@ fn poke(sim: &SimHandle, offset: u32, bytes: &[u8]) {
 
 fn peek(sim: &SimHandle, offset: u32, len: u32) -> Vec<u8> {
     common::epsnet::peek(sim, Area::R, offset, len)
-}
-
-/// Asks until the answer is `want`, within `within`.
-async fn until(c: &mut Client, request: &str, want: &str, within: Duration) {
-    let start = Instant::now();
-    loop {
-        let (line, _) = answer(c, request).await;
-        if line == want {
-            return;
-        }
-        assert!(start.elapsed() < within, "{request} still answers {line:?}");
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
 }
 
 #[tokio::test]

@@ -7,6 +7,7 @@
 
 pub mod epsnet;
 pub mod memory;
+pub mod plugin;
 
 use async_trait::async_trait;
 use plccoms_protocol::Area;
@@ -144,6 +145,24 @@ pub trait PlcBackend: Send {
     async fn list_dir(&mut self, path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError>;
 }
 
+/// Adds a page of a directory listing to `all`; `Ok(true)` when the
+/// listing is complete. A page announcing more but bringing nothing would
+/// page for ever: an error.
+pub(crate) fn add_dir_page(
+    all: &mut Vec<DirEntry>,
+    entries: Vec<DirEntry>,
+    more: bool,
+) -> Result<bool, PlcError> {
+    let empty = entries.is_empty();
+    all.extend(entries);
+    if more && empty {
+        return Err(PlcError::Protocol(
+            "empty directory page announcing more".into(),
+        ));
+    }
+    Ok(!more)
+}
+
 /// A section's backend, `None` when it has no PLC yet; or why it cannot be
 /// made.
 pub type Opened = Result<Option<Box<dyn PlcBackend>>, String>;
@@ -162,14 +181,16 @@ pub fn open(section: &crate::config::Section) -> Opened {
     }
 }
 
-/// A section's EPSNET link: on the serial line `SERIAL_DEVICE` when set,
+/// A section's link: the backend plugin `SHM_NAME` when set (the vendor's
+/// shared module), else EPSNET on the serial line `SERIAL_DEVICE` when set,
 /// else over UDP to `IPADDR:EPSPORT`; `None` when the section has no PLC yet
 /// (`IPADDR` unset or `0.0.0.0`). Nothing is opened here: the link opens
 /// its socket or device when it connects, and again after each loss.
 fn open_epsnet(section: &crate::config::Section) -> Opened {
     use std::net::{IpAddr, SocketAddr};
-    if section.shm_name.is_some() {
-        return Err("shared modules (SHM_NAME) are not supported by this server".to_string());
+    if let Some(library) = &section.shm_name {
+        let config = plugin::PluginConfig::from_section(section, library);
+        return Ok(Some(Box::new(plugin::PluginBackend::new(config))));
     }
     if let Some(device) = &section.serial_device {
         let config = serial_config(section, device)?;

@@ -36,6 +36,19 @@ pub async fn answer(c: &mut Client, request: &str) -> (String, Duration) {
     }
 }
 
+/// Asks until the answer is `want`, within `within`.
+pub async fn until(c: &mut Client, request: &str, want: &str, within: Duration) {
+    let start = Instant::now();
+    loop {
+        let (line, _) = answer(c, request).await;
+        if line == want {
+            return;
+        }
+        assert!(start.elapsed() < within, "{request} still answers {line:?}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
 /// The errors of a lost link (ERROR:21: a SET that waited past EPSTOUT to
 /// be sent).
 pub fn is_link_error(line: &str) -> bool {

@@ -530,15 +530,8 @@ impl<T: Transport> PlcBackend for EpsnetClient<T> {
                 .await?;
             match answer {
                 Ok(Response::DirPage { entries, more }) => {
-                    let empty = entries.is_empty();
-                    all.extend(entries);
-                    if !more {
+                    if super::add_dir_page(&mut all, entries, more)? {
                         return Ok(Ok(all));
-                    }
-                    if empty {
-                        return Err(PlcError::Protocol(
-                            "empty directory page announcing more".into(),
-                        ));
                     }
                 }
                 Ok(other) => return Err(unexpected(other)),
