@@ -116,6 +116,47 @@ async fn wrong_lengths_and_bad_codes_get_clear_errors() {
 }
 
 #[tokio::test]
+async fn the_plcs_refusals_are_errors_of_their_request_only() {
+    // Writes refused (7): a byte write with a status the ABI does not
+    // define, a bit write with the EPSNET byte 0x0C and a message longer
+    // than its buffer; a read out of the plugin's range refused with 0x0C.
+    let files = tempfile::tempdir().unwrap();
+    let project = files.path().join("bad.pub");
+    std::fs::write(
+        &project,
+        " v R B 100 BYTE PUB_INOUT\r\n far R B 70000 BYTE PUB_INOUT\r\n",
+    )
+    .unwrap();
+    let (server, mut c, _conf) = bad(7, &format!("PUBFILE = {}", project.display())).await;
+    until(&mut c, "GET:v\n", "GET:V,0\r\n", BACK).await;
+    let metrics = &server.sections[0].section.metrics;
+    let served = |line: &str| line == "GET:V,0\r\n";
+
+    // A refused write is the vendor's answer to a write that failed; the
+    // PLC stays: the next request is served at once.
+    let (bits, _) = answer(&mut c, "SET:__plc_run,1\n").await;
+    assert_eq!(bits, "ERROR:21 Unable to send data to PLC.\r\n");
+    let (next, _) = answer(&mut c, "GET:v\n").await;
+    assert!(served(&next), "after the refused bit: {next:?}");
+    let (far, _) = answer(&mut c, "GET:far\n").await;
+    assert_eq!(far, "ERROR:20 Unable to get data from PLC.\r\n");
+    let (next, _) = answer(&mut c, "GET:v\n").await;
+    assert!(served(&next), "after the refused read: {next:?}");
+    // A status the ABI does not define: a bad answer, counted.
+    let errors = metrics.backend.errors.get();
+    let (bytes, _) = answer(&mut c, "SET:v,5\n").await;
+    assert_eq!(bytes, "ERROR:21 Unable to send data to PLC.\r\n");
+    assert!(
+        metrics.backend.errors.get() > errors,
+        "an undefined status not counted"
+    );
+    let (next, _) = answer(&mut c, "GET:v\n").await;
+    assert!(served(&next), "after the undefined status: {next:?}");
+    assert_eq!(metrics.link_up.get(), 1, "the PLC was lost");
+    assert_eq!(metrics.backend.timeouts.get(), 0);
+}
+
+#[tokio::test]
 async fn slow_calls_are_bounded_by_the_timeout_and_counted() {
     // Reads take 3 s; a call may take EPSTOUT + EPSTOUT + STEP = 500 ms.
     let (server, mut c, _conf) = bad(3, "SHM_PORT = 3000\nEPSTOUT = 200\nEPSTOUT_STEP = 100").await;

@@ -13,7 +13,7 @@ mod common;
 
 use std::time::{Duration, Instant};
 
-use common::health::{answer, is_link_error, outage, until, LOSS, SLACK};
+use common::health::{answer, is_link_error, outage, until};
 use common::line::PtyLine;
 use common::process::{plcsim_bin, ChildGuard};
 use common::Client;
@@ -249,16 +249,22 @@ async fn line_noise_never_yields_a_wrong_value() {
     assert!(metrics.errors.get() > 0, "no bad answer counted");
     assert!(metrics.retries.get() > 0, "no retry counted");
 
-    // Every exchange damaged (only those after mere noise get through): the
-    // link fails, and still no wrong value; the noise stops: back. (The last
-    // SET may have been written but not read back: the PLC's value is the
-    // truth.)
+    // Every exchange damaged (only answers after mere noise get through,
+    // and an attempt in four is such): the link fails soon, and still no
+    // wrong value; the noise stops: back. (The last SET may have been
+    // written but not read back: the PLC's value is the truth.) How soon it
+    // fails is chance (an exchange survives both attempts 7 times in 16),
+    // so the bound is generous.
     let value = f32::from_le_bytes(peek(&sim, SETPOINT, 4).try_into().unwrap());
     let right = format!("GET:SETPOINT,{value:.6}\r\n");
     sim.set_loss(1.0);
     let start = Instant::now();
     let mut failed = 0;
-    while start.elapsed() < LOSS + SLACK {
+    while failed < 3 {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "every exchange damaged for 60 s, and {failed} errors"
+        );
         let (get, _) = answer(&mut c, "GET:v_dint\n").await;
         if is_link_error(&get) {
             failed += 1;
@@ -268,7 +274,6 @@ async fn line_noise_never_yields_a_wrong_value() {
         let (get, _) = answer(&mut c, "GET:setpoint\n").await;
         assert!(get == right || is_link_error(&get), "{get:?}");
     }
-    assert!(failed > 0, "every exchange damaged, and no error");
     sim.set_loss(0.0);
     until(&mut c, "GET:setpoint\n", &right, BACK).await;
 }

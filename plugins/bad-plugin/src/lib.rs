@@ -11,6 +11,7 @@
 //! | 4 | crash: reads dereference NULL |
 //! | 5 | open fails with an I/O error and a message |
 //! | 6 | the identification is longer than its buffer |
+//! | 7 | refusing writes: reads good, writes and SETs of bits as in 2 |
 //!
 //! and `BAD_PLUGIN_ENTRY` in the environment: `null` (no table), `version`
 //! (ABI version 99), `short` (a struct_size too small), `nofn` (no read).
@@ -76,7 +77,7 @@ impl Plugin for Bad {
     }
 
     fn write(&mut self, area: u8, offset: u32, data: &[u8]) -> Result<(), Failure> {
-        if self.mode == 2 {
+        if matches!(self.mode, 2 | 7) {
             return Err(Failure::new(-77, "a status no one defined"));
         }
         let at = slot(area, offset, data.len())?;
@@ -85,7 +86,7 @@ impl Plugin for Bad {
     }
 
     fn write_bits(&mut self, area: u8, offset: u32, mask: u8, value: u8) -> Result<(), Failure> {
-        if self.mode == 2 {
+        if matches!(self.mode, 2 | 7) {
             // Longer than the message buffer: the adapter cuts it and ends it.
             return Err(Failure::new(0x0C, "x".repeat(1000)));
         }
