@@ -80,6 +80,11 @@ for path in ["tests/data/vendor/PLCComS.ini", "PLCComS.ini.example"]:
     put("ini", data.replace(b"\n", b"\r\n"))
     put("ini", b"\xef\xbb\xbf" + data[: len(data) // 2])
 
+# --- history times (plccoms history --from/--to) --------------------------
+for t in [b"now", b"-30s", b"-15m", b"-1h", b"-7d", b"-2w", b"2026-05-01",
+          b"2026-05-01T12:00:00Z", b"2026-05-01T12:00:00.123+02:00"]:
+    put("history_time", t)
+
 # --- public files ----------------------------------------------------------
 for path in ["conf/demo.pub", "conf/FIXED.pub", "tests/data/vendor/FIXED_Foxtrot.pub"]:
     put("pubfile", read(path))
@@ -162,6 +167,50 @@ for query in [b"section=Demo&vars=SIN*,counter&from=0&to=1000&format=csv",
               b"section=D%20x&vars=%E8&from=2026-11-30T12:00:00Z&format=json",
               b"section=Demo&from=-5&to=-9", b"vars=a&section=&to=1e9"]:
     put("web_query", query)
+
+# --- MQTT --------------------------------------------------------------------
+# Queue records as src/mqtt/spool.rs writes them (crc32c = CRC-32/ISCSI).
+def crc32c(data):
+    crc = 0xFFFFFFFF
+    for b in data:
+        crc ^= b
+        for _ in range(8):
+            crc = (crc >> 1) ^ (0x82F63B78 if crc & 1 else 0)
+    return crc ^ 0xFFFFFFFF
+
+def record(seq, topic, payload, qos=1, retain=True):
+    body = struct.pack("<QBH", seq, qos | (4 if retain else 0), len(topic)) + topic + payload
+    return struct.pack("<II", len(body), crc32c(body)) + body
+
+put("mqtt_spool", record(1, b"plccoms/Demo/COUNTER", b"42"))
+put("mqtt_spool", record(7, b"plccoms/Demo/A%2FB", b'{"value":1}', 0, False) + record(8, b"t", b""))
+for text in [b"mqtt://broker.lan:1883", b"mqtts://[::1]:8883/", b"tcp://10.0.0.1",
+             b"COUNTER", b"A%2FB%2BC%23D%25E", "TEPLOTA_KUCHYNĚ".encode(), b"%zz"]:
+    put("mqtt_text", text)
+# --- Modbus ------------------------------------------------------------------
+put("modbus_tags", read("conf/demo-modbus.csv"))
+put("modbus_tags", "name,type,table,address,bit,order,scale,offset,access,unit,description\n"
+    "a,INT,holding,0\nb,REAL,input,65534,,CDAB\nc,BOOL,holding,3,15\nd,TS48,holding,9\n"
+    "e,STRING[7],holding,20,,BADC\nf,UINT,input,1,,,0.1,-40,ro,°C,\"x, y\"\n"
+    "g,BOOL,coil,65535\nh,LREAL,holding,65533\n# comment\n\nbad,INT,holdng,1\n".encode())
+put("modbus_tags", b"Name;Type\nx;INT\n")
+
+def adu(tid, pdu, unit=1):
+    return struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu
+answers = [
+    (8, adu(1, b"\x01\x01\xa5")),
+    (8, adu(2, b"\x02\x01\x0f")),
+    (2, adu(3, b"\x03\x04\xbe\xef\x00\x01")),
+    (2, adu(4, b"\x04\x04\x12\x34\x56\x78")),
+    (0, adu(5, b"\x05\x00\x04\xff\x00")),
+    (2, adu(6, b"\x10\x00\x07\x00\x02")),
+    (0, adu(7, b"\x16\x00\x08\x00\x00\xff\xff")),
+    (0, adu(8, b"\x83\x02")),
+    (0, adu(9, b"\x84\x0b")),
+]
+for count, a in answers:
+    put("modbus_answer", struct.pack(">H", count) + a)
+put("modbus_answer", struct.pack(">H", 2) + b"".join(a for _, a in answers) + b"\x00\x01\x00")
 
 for target in sorted(counts):
     print(f"{target}: {counts[target]} seeds")

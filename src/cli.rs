@@ -1,9 +1,12 @@
 //! The command line, as the manual gives it:
-//! `plccoms [-dtvh] [-c <config>] [-l <log>]`, plus `-V`/`--version`.
+//! `plccoms [-dtvh] [-c <config>] [-l <log>]`, plus `-V`/`--version`, and
+//! this server's subcommand `plccoms history ...` (the historian's export).
 
 use std::path::PathBuf;
 
-use clap::{ArgAction, Parser};
+use clap::{ArgAction, Args, Parser, Subcommand};
+
+use crate::historian::export::Format;
 
 /// Log file used with `-d` when `-l` is not given.
 pub const DEFAULT_LOG: &str = "PLCComS.log";
@@ -15,6 +18,7 @@ pub const DEFAULT_LOG: &str = "PLCComS.log";
     name = "plccoms",
     version,
     about,
+    after_help = crate::demo::HELP,
     override_usage = "plccoms [-dtvh] [-c <configuration_file>] [-l <log_file>]"
 )]
 pub struct Cli {
@@ -35,13 +39,50 @@ pub struct Cli {
         short,
         long,
         value_name = "configuration_file",
-        default_value = "PLCComS.ini"
+        default_value = "PLCComS.ini",
+        global = true
     )]
     pub config: PathBuf,
 
     /// Log file (without it, reports go to the terminal unless -d is given)
     #[arg(short, long, value_name = "log_file")]
     pub log: Option<PathBuf>,
+
+    #[command(subcommand)]
+    pub command: Option<Command>,
+}
+
+#[derive(Debug, Clone, PartialEq, Eq, Subcommand)]
+pub enum Command {
+    /// Write out what the historian recorded (CSV, JSON or Parquet)
+    History(HistoryArgs),
+}
+
+/// `plccoms history -c <ini> --section S --vars <masks> --from T --to T
+/// [--format csv|json|parquet] [--out FILE] [--wide]`
+#[derive(Debug, Clone, PartialEq, Eq, Args)]
+pub struct HistoryArgs {
+    /// Section whose history is read
+    #[arg(long)]
+    pub section: String,
+    /// Variables: names or masks with *, comma-separated
+    #[arg(long, default_value = "*")]
+    pub vars: String,
+    /// Start (included): ISO 8601 UTC (2026-05-01T12:00:00Z, 2026-05-01) or relative (-1h, -7d)
+    #[arg(long, allow_hyphen_values = true)]
+    pub from: String,
+    /// End (excluded), as --from; default now
+    #[arg(long, default_value = "now", allow_hyphen_values = true)]
+    pub to: String,
+    /// Output format
+    #[arg(long, value_enum, default_value = "csv")]
+    pub format: Format,
+    /// Output file (default: standard output)
+    #[arg(long, value_name = "FILE")]
+    pub out: Option<PathBuf>,
+    /// One row per time and one column per variable, instead of one row per sample
+    #[arg(long)]
+    pub wide: bool,
 }
 
 impl Cli {
@@ -77,6 +118,7 @@ mod tests {
                 verbose: 0,
                 config: PathBuf::from("PLCComS.ini"),
                 log: None,
+                command: None,
             }
         );
         assert_eq!(c.log_path(), None);
@@ -112,10 +154,59 @@ mod tests {
                 verbose: 1,
                 config: PathBuf::from("/etc/plccoms/PLCComS.ini"),
                 log: Some(PathBuf::from("/var/log/plccoms.log")),
+                command: None,
             }
         );
         let c = cli(&["-c", "a.ini", "-l", "a.log"]);
         assert_eq!((c.config, c.log), ("a.ini".into(), Some("a.log".into())));
+    }
+
+    #[test]
+    fn history_subcommand() {
+        let c = cli(&[
+            "history",
+            "-c",
+            "a.ini",
+            "--section",
+            "Demo",
+            "--vars",
+            "SIN*,X",
+            "--from",
+            "-1h",
+            "--format",
+            "parquet",
+            "--out",
+            "x.parquet",
+            "--wide",
+        ]);
+        assert_eq!(c.config, PathBuf::from("a.ini"));
+        assert_eq!(
+            c.command,
+            Some(Command::History(HistoryArgs {
+                section: "Demo".into(),
+                vars: "SIN*,X".into(),
+                from: "-1h".into(),
+                to: "now".into(),
+                format: Format::Parquet,
+                out: Some("x.parquet".into()),
+                wide: true,
+            }))
+        );
+        // -c before the subcommand works too; --from is required.
+        assert_eq!(
+            cli(&[
+                "-c",
+                "b.ini",
+                "history",
+                "--section",
+                "S",
+                "--from",
+                "2026-01-01"
+            ])
+            .config,
+            PathBuf::from("b.ini")
+        );
+        assert!(Cli::try_parse_from(["plccoms", "history", "--section", "S"]).is_err());
     }
 
     #[test]
@@ -145,6 +236,7 @@ mod tests {
             "-V, --version",
             "PLCComS.ini",
             "plccoms [-dtvh] [-c <configuration_file>] [-l <log_file>]",
+            "SIMULATED DEMO PLC",
         ] {
             assert!(help.contains(option), "{option} missing from:\n{help}");
         }

@@ -16,6 +16,8 @@
 //! - `config` reads the INI file, `vars` is a section's variable table;
 //! - `web` serves the status page, `/metrics` and the JSON API; `logring`
 //!   keeps the last warnings and errors for it.
+//! - `mqtt` publishes each section's changes to an MQTT broker and takes
+//!   writes back.
 //!
 //! The line protocol (`plccoms-protocol`), the PLC model and EPSNET wire
 //! format (`plccoms-plc`) and the simulated PLC (`plcsim`) are crates of
@@ -28,10 +30,14 @@ pub mod client;
 pub mod cmd;
 pub mod config;
 pub mod daemon;
+pub mod demo;
+pub mod historian;
 pub mod link;
 pub mod localfs;
+pub mod logfile;
 pub mod logring;
 pub mod metrics;
+pub mod mqtt;
 pub mod ratelimit;
 pub mod section;
 pub mod server;

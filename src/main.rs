@@ -1,22 +1,25 @@
 //! `plccoms [-dtvh] [-c <config>] [-l <log>]`
 
+use std::io::IsTerminal;
 use std::path::Path;
 use std::process::ExitCode;
+use std::sync::Arc;
 
 use clap::Parser;
-use plccoms::cli::Cli;
+use plccoms::cli::{Cli, Command};
 use plccoms::config::{self, Diagnostic, Severity};
 use plccoms::daemon::{self, Notifier};
+use plccoms::logfile::{self, LogFile};
 use plccoms::watch;
 use tracing::{error, info, warn};
 
-/// The configuration used when no file is named and `PLCComS.ini` is absent:
-/// one section with a simulated PLC, so the server is useful at once.
-const EMBEDDED_CONFIG: &str = include_str!("../PLCComS.ini.example");
 const DEFAULT_CONFIG: &str = "PLCComS.ini";
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if let Some(Command::History(args)) = &cli.command {
+        return plccoms::historian::command::run(&cli.config, args);
+    }
     // Detach before any thread exists; the parent exits with the outcome of
     // the child's start-up.
     let mut notifier = if cli.daemon {
@@ -30,11 +33,14 @@ fn main() -> ExitCode {
     } else {
         Notifier::none()
     };
-    if let Err(message) = init_logging(&cli) {
-        eprintln!("plccoms: {message}");
-        notifier.fail(&message);
-        return ExitCode::FAILURE;
-    }
+    let log = match init_logging(&cli) {
+        Ok(log) => log,
+        Err(message) => {
+            eprintln!("plccoms: {message}");
+            notifier.fail(&message);
+            return ExitCode::FAILURE;
+        }
+    };
     let runtime = match tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -47,10 +53,11 @@ fn main() -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    runtime.block_on(run(cli, notifier))
+    runtime.block_on(run(cli, notifier, log))
 }
 
-fn init_logging(cli: &Cli) -> Result<(), String> {
+/// The log file, if reports go to one (reopened on SIGHUP).
+fn init_logging(cli: &Cli) -> Result<Option<Arc<LogFile>>, String> {
     let level = match cli.verbose {
         0 => "info",
         1 => "debug",
@@ -69,24 +76,27 @@ fn init_logging(cli: &Cli) -> Result<(), String> {
         Some(path) => {
             // Clients never write it (WRITEFILE:./PLCComS.log).
             plccoms::localfs::protect(&path, false);
-            // Appended, never truncated.
-            let file = std::fs::OpenOptions::new()
-                .create(true)
-                .append(true)
-                .open(&path)
+            let file = LogFile::open(&path)
                 .map_err(|e| format!("cannot open log file {}: {e}", path.display()))?;
             // A plugin that crashes the process says so in the log too.
-            plccoms::backend::plugin::crash::set_log_fd(std::os::fd::AsRawFd::as_raw_fd(&file));
+            plccoms::backend::plugin::crash::set_log_fd(std::os::fd::AsRawFd::as_raw_fd(&*file));
+            registry
+                .with(fmt.with_ansi(false).with_writer(file.clone()))
+                .init();
+            Ok(Some(file))
+        }
+        None => {
+            // Colour for a person at a terminal; journald, docker and
+            // redirection get plain text.
             registry
                 .with(
-                    fmt.with_ansi(false)
-                        .with_writer(std::sync::Mutex::new(file)),
+                    fmt.with_ansi(std::io::stderr().is_terminal())
+                        .with_writer(std::io::stderr),
                 )
                 .init();
+            Ok(None)
         }
-        None => registry.with(fmt.with_writer(std::io::stderr)).init(),
     }
-    Ok(())
 }
 
 fn log_diagnostic(diagnostic: &Diagnostic) {
@@ -96,11 +106,19 @@ fn log_diagnostic(diagnostic: &Diagnostic) {
     }
 }
 
-async fn run(cli: Cli, mut notifier: Notifier) -> ExitCode {
+async fn run(cli: Cli, mut notifier: Notifier, log: Option<Arc<LogFile>>) -> ExitCode {
+    // SIGHUP reopens the log (logrotate) instead of ending the server.
+    if let Err(err) = logfile::reopen_on_hangup(log) {
+        let message = format!("cannot handle SIGHUP: {err}");
+        error!("{message}");
+        notifier.fail(&message);
+        return ExitCode::FAILURE;
+    }
     let embedded = cli.config == Path::new(DEFAULT_CONFIG) && !cli.config.exists();
     let loaded = if embedded {
-        info!("no {DEFAULT_CONFIG} here: using the built-in configuration (a simulated PLC on port 5010)");
-        config::parse(Path::new("PLCComS.ini.example (built in)"), EMBEDDED_CONFIG)
+        // The built-in demo (plccoms::demo): a simulated PLC, said loudly.
+        config::parse(Path::new(plccoms::demo::NAME), plccoms::demo::CONFIG)
+            .inspect(|loaded| warn!("{}", plccoms::demo::banner(&loaded.config)))
     } else {
         config::load(&cli.config)
     };

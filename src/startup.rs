@@ -12,9 +12,10 @@ use std::sync::Arc;
 use tracing::{error, info, warn};
 
 use crate::backend::epsnet::EpsnetBackend;
-use crate::backend::{epsnet_config, PlcBackend};
+use crate::backend::modbus::ModbusBackend;
+use crate::backend::{epsnet_config, modbus_config, PlcBackend};
 use crate::config::{Config, Global, Section};
-use crate::link::tables::{plc_path, LoadError, NamedBy, PubSource};
+use crate::link::tables::{local_path, plc_path, LoadError, NamedBy, PubSource};
 use crate::link::Tables;
 use crate::server::{start_section, RunningSection};
 use plcsim::{SimConfig, SimHandle};
@@ -26,8 +27,12 @@ pub struct Server {
     pub metrics: Arc<crate::metrics::Registry>,
     /// The web page, `/metrics` and the API, when HTTP_PORT is set.
     pub web: Option<crate::web::WebServer>,
+    /// The historian, when a section records (HISTORY).
+    pub historian: Option<crate::historian::Historian>,
     simulators: Vec<SimHandle>,
     _file_stores: Vec<tempfile::TempDir>,
+    /// The MQTT north side, when MQTT_URL is set.
+    mqtt: Option<crate::mqtt::Mqtt>,
 }
 
 impl Server {
@@ -38,28 +43,38 @@ impl Server {
     /// Stops accepting, lets every session answer what it has received
     /// (bounded by a grace period; the links still serve their reads), then
     /// stops polling (waiting, bounded, for each link's thread to end) and
-    /// the simulators. Sections stop together: the whole takes at most two
-    /// grace periods, however many there are.
-    pub async fn shutdown(self) {
-        if let Some(web) = self.web {
+    /// the simulators. Sections stop together: the whole takes at most
+    /// [`SESSIONS_GRACE`] + [`LINK_GRACE`] (plus half a second for MQTT),
+    /// however many there are.
+    pub async fn shutdown(mut self) {
+        if let Some(web) = self.web.take() {
             web.shutdown().await;
         }
         for section in &self.sections {
             section.stop_accepting();
         }
+        // MQTT first, while the links still answer: `offline`, DISCONNECT,
+        // the queue saved.
+        if let Some(mqtt) = self.mqtt {
+            mqtt.shutdown(MQTT_GRACE).await;
+        }
         futures::future::join_all(
             self.sections
                 .iter()
-                .map(|s| s.wait_sessions(SHUTDOWN_GRACE)),
+                .map(|s| s.wait_sessions(SESSIONS_GRACE)),
         )
         .await;
         for section in &self.sections {
             section.abort();
         }
-        futures::future::join_all(self.sections.iter().map(|s| s.wait_link(SHUTDOWN_GRACE))).await;
+        futures::future::join_all(self.sections.iter().map(|s| s.wait_link(LINK_GRACE))).await;
         #[cfg(feature = "fanout-trace")]
         if let Some(summary) = crate::trace::summary() {
             info!("{summary}");
+        }
+        // After the links: what they published last is recorded.
+        if let Some(historian) = self.historian.take() {
+            historian.stop().await;
         }
         for simulator in self.simulators {
             simulator.stop().await;
@@ -67,8 +82,14 @@ impl Server {
     }
 }
 
-/// Longest wait for sessions to finish at shutdown.
-const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
+/// Longest wait at shutdown for sessions to answer what they received, and
+/// then for the links' threads (a request to a PLC in flight): together
+/// at most 4 s, so SIGTERM ends the server within 5 s (the unit and the
+/// README promise it).
+pub const SESSIONS_GRACE: std::time::Duration = std::time::Duration::from_secs(3);
+pub const LINK_GRACE: std::time::Duration = std::time::Duration::from_secs(1);
+/// Longest wait at shutdown for MQTT to say `offline` and save its queue.
+pub const MQTT_GRACE: std::time::Duration = std::time::Duration::from_millis(500);
 
 /// Starts every section of `config`; fails only when none could start.
 pub async fn start(config: &Config) -> Result<Server, String> {
@@ -81,8 +102,10 @@ pub async fn start(config: &Config) -> Result<Server, String> {
         sections: Vec::new(),
         metrics: Arc::default(),
         web: None,
+        historian: None,
         simulators: Vec::new(),
         _file_stores: Vec::new(),
+        mqtt: None,
     };
     let mut failures = Vec::new();
     for section in &config.sections {
@@ -111,10 +134,38 @@ pub async fn start(config: &Config) -> Result<Server, String> {
             failures.join("; ")
         ));
     }
+    let sections: Vec<_> = server.sections.iter().map(|r| r.section.clone()).collect();
+    server.historian = crate::historian::Historian::start(config, &sections);
+    if let Some(historian) = &server.historian {
+        server.metrics.add_source(historian.metrics());
+        // The recorded history is the server's own: clients never write it.
+        crate::localfs::protect(&crate::historian::history_dir(&config.path, &global), false);
+    }
+    // Like the web page, an MQTT north side that cannot start (a queue
+    // folder locked by another process, an unreadable password or CA file)
+    // is reported and the PLC sections serve on.
+    let mqtt = crate::mqtt::settings::Settings::load(&config.global.mqtt, &dir, &config.path)
+        .and_then(|settings| {
+            settings
+                .map(|settings| crate::mqtt::start(settings, &server.sections))
+                .transpose()
+        });
+    match mqtt {
+        Ok(Some(mqtt)) => {
+            server.metrics.add_source(mqtt.source.clone());
+            server.mqtt = Some(mqtt);
+        }
+        Ok(None) => {}
+        Err(message) => error!("MQTT not started: {message}"),
+    }
     if let Some(web) = crate::web::WebConfig::from_global(&global, &dir) {
-        let sections = server.sections.iter().map(|s| s.section.clone()).collect();
-        // No historian yet: /api/history answers "historian not enabled".
-        let history = None;
+        // /api/history and the chart's range mode read the historian's
+        // files; without one they answer "historian not enabled".
+        let history = server.historian.as_ref().map(|_| {
+            Arc::new(crate::historian::web::Source::new(
+                crate::historian::history_dir(&config.path, &global),
+            )) as Arc<dyn crate::web::history::HistorySource>
+        });
         // Like a section that cannot listen, a page that cannot is
         // reported and the PLC sections serve on.
         match crate::web::start(&web, sections, server.metrics.clone(), history) {
@@ -158,7 +209,7 @@ async fn start_one(
         if from_plc {
             format!(
                 "; {} is read from the PLC when it answers",
-                section.pubfile.as_deref().unwrap_or_default()
+                source.kind.name(section).map_or("", String::as_str)
             )
         } else {
             String::new()
@@ -188,6 +239,16 @@ async fn backend_for(
     server: &mut Server,
 ) -> Result<Option<Box<dyn PlcBackend>>, String> {
     if let Some(simulator) = section.simulator.clone() {
+        if section.protocol == "MODBUS_TCP" {
+            let device = spawn_modbus_simulator(section, &simulator, dir, server).await?;
+            if let std::net::IpAddr::V4(ip) = device.ip() {
+                section.ipaddr = Some(ip);
+            }
+            section.modbus.port = device.port();
+            return Ok(Some(Box::new(ModbusBackend::new(modbus_config(
+                section, device, dir,
+            )))));
+        }
         let plc = spawn_simulator(section, &simulator, dir, server).await?;
         if let std::net::IpAddr::V4(ip) = plc.ip() {
             section.ipaddr = Some(ip);
@@ -197,11 +258,76 @@ async fn backend_for(
             section, plc,
         )))));
     }
-    let backend = crate::backend::open(section)?;
+    let backend = crate::backend::open(section, dir)?;
     if backend.is_none() {
         warn!(section = %section.name, "no PLC address (IPADDR) yet: serving clients without a PLC until SETCONF:ipaddr");
     }
     Ok(backend)
+}
+
+/// Runs the simulated Modbus device of a `SIMULATOR = Yes` section with
+/// `PROTOCOL = MODBUS_TCP` on a loopback port. It serves SIMULATOR_PUB (a tag
+/// file) if set, else the section's MODBUS_TAGS; a section with neither gets
+/// the built-in demo tag file, written to a folder of its own.
+async fn spawn_modbus_simulator(
+    section: &mut Section,
+    simulator: &crate::config::Simulator,
+    dir: &Path,
+    server: &mut Server,
+) -> Result<SocketAddr, String> {
+    let read = |path: PathBuf, key: &str| {
+        std::fs::read(&path).map_err(|e| format!("{key} {}: {e}", path.display()))
+    };
+    let bytes = match (&simulator.pubfile, &section.modbus.tags) {
+        (Some(path), _) => read(dir.join(path), "SIMULATOR_PUB")?,
+        (None, Some(name)) => read(local_path(dir, section, name), "MODBUS_TAGS")?,
+        (None, None) => {
+            let store = tempfile::Builder::new()
+                .prefix("plccoms-sim-")
+                .tempdir()
+                .map_err(|e| format!("cannot create the simulator's folder: {e}"))?;
+            let path = store.path().join("demo-modbus.csv");
+            std::fs::write(&path, plcsim::DEMO_TAGS).map_err(|e| e.to_string())?;
+            section.modbus.tags = Some(path.to_string_lossy().into_owned());
+            server._file_stores.push(store);
+            plcsim::DEMO_TAGS.to_vec()
+        }
+    };
+    let config = SimConfig {
+        modbus: Some(SocketAddr::from((Ipv4Addr::LOCALHOST, 0))),
+        pubfile: plcsim::PubSource::Bytes(bytes),
+        ..SimConfig::default()
+    };
+    run_simulator(
+        section,
+        simulator,
+        config,
+        "simulated Modbus device",
+        server,
+    )
+    .await
+}
+
+/// Starts `config` with the section's SIMULATOR_PROGRAM; keeps it running
+/// with the server.
+async fn run_simulator(
+    section: &Section,
+    simulator: &crate::config::Simulator,
+    config: SimConfig,
+    what: &str,
+    server: &mut Server,
+) -> Result<SocketAddr, String> {
+    let program = simulator
+        .program
+        .parse()
+        .map_err(|e| format!("SIMULATOR_PROGRAM: {e}"))?;
+    let handle = plcsim::spawn(SimConfig { program, ..config })
+        .await
+        .map_err(|e| format!("cannot start the {what}: {e}"))?;
+    let addr = handle.local_addr();
+    info!(section = %section.name, plc = %addr, "{what} running");
+    server.simulators.push(handle);
+    Ok(addr)
 }
 
 /// Runs the simulated PLC of a `SIMULATOR = Yes` section on a loopback port.
@@ -231,23 +357,13 @@ async fn spawn_simulator(
         }
         std::fs::write(&target, &bytes).map_err(|e| e.to_string())?;
     }
-    let program = simulator
-        .program
-        .parse()
-        .map_err(|e| format!("SIMULATOR_PROGRAM: {e}"))?;
     let config = SimConfig {
         bind: SocketAddr::from((Ipv4Addr::LOCALHOST, 0)),
         pubfile: plcsim::PubSource::Bytes(bytes),
         files: Some(store.path().to_path_buf()),
-        program,
         ..SimConfig::default()
     };
-    let handle = plcsim::spawn(config)
-        .await
-        .map_err(|e| format!("cannot start the simulated PLC: {e}"))?;
-    let addr = handle.local_addr();
-    info!(section = %section.name, plc = %addr, "simulated PLC running");
-    server.simulators.push(handle);
+    let addr = run_simulator(section, simulator, config, "simulated PLC", server).await?;
     server._file_stores.push(store);
     Ok(addr)
 }

@@ -1,12 +1,18 @@
 //! The variable table of one PLC section: the fixed public file's variables
-//! followed by the user public file's, looked up by upper-case cp1250 name.
+//! followed by the user's (a public file, or a Modbus tag file), looked up by
+//! upper-case cp1250 name. Each variable carries its [`Codec`]: how its bytes
+//! become the client's value and back ([`Var::decode`], [`Var::encode`], the
+//! one place for both).
 
 use std::collections::HashMap;
 
 use plccoms_protocol::value::Value;
 use plccoms_protocol::{cp1250, Area, IecType, Mask};
 
+use plccoms_plc::memory::WriteData;
+use plccoms_plc::modbus::tags::TagFile;
 use plccoms_plc::pubfile::PubFile;
+pub use plccoms_plc::value_codec::{Codec, EncodeError};
 use plccoms_plc::MemoryMap;
 
 /// Index of a variable in its table.
@@ -15,7 +21,7 @@ pub type VarId = u32;
 pub const PLC_RUN: &[u8] = b"__PLC_RUN";
 pub const PF_CRC: &[u8] = b"__PF_CRC";
 
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Var {
     /// Upper-case cp1250, as the server prints it.
     pub name: Box<[u8]>,
@@ -25,6 +31,10 @@ pub struct Var {
     pub ty: IecType,
     /// From the fixed public file: always polled, ignored by DI.
     pub fixed: bool,
+    /// How its bytes become the client's value (`ty`) and back.
+    pub codec: Codec,
+    /// Whether a SET may write it (a Modbus tag may be read-only).
+    pub writable: bool,
 }
 
 impl Var {
@@ -33,13 +43,95 @@ impl Var {
     pub fn decode(&self, bytes: &[u8]) -> Value {
         match self.bit {
             Some(bit) => Value::Bool(bytes.first().is_some_and(|b| b & (1 << bit) != 0)),
-            None => Value::decode(self.ty, bytes),
+            None => self.codec.decode(self.ty, bytes),
+        }
+    }
+
+    /// What to write so the variable holds `value` (a BOOL as its bit only),
+    /// or why it cannot hold it (the raw value of a scaled tag out of range).
+    pub fn encode(&self, value: &Value) -> Result<WriteData, EncodeError> {
+        match (self.bit, value) {
+            (Some(bit), Value::Bool(on)) => Ok(WriteData::Bit { bit, value: *on }),
+            _ => self.codec.encode(self.ty, value).map(WriteData::Bytes),
         }
     }
 
     /// Bytes read from PLC memory for this variable.
     pub fn byte_len(&self) -> u32 {
-        self.ty.size() as u32
+        self.codec.byte_len(self.ty)
+    }
+}
+
+/// A variable as a file defines it, before it joins a table.
+#[derive(Debug, Clone)]
+pub struct VarDef {
+    /// cp1250, case as written.
+    pub name: Box<[u8]>,
+    pub area: Area,
+    pub offset: u32,
+    pub bit: Option<u8>,
+    pub ty: IecType,
+    pub codec: Codec,
+    pub writable: bool,
+    /// 1-based line in its file, for messages.
+    pub line: usize,
+}
+
+/// The variables of a file and its warnings, ready for [`VarTable::build`].
+#[derive(Debug, Clone, Default)]
+pub struct VarFile {
+    pub vars: Vec<VarDef>,
+    pub warnings: Vec<String>,
+    /// Problems beyond `warnings`, counted only.
+    pub more_warnings: usize,
+}
+
+impl From<&PubFile> for VarFile {
+    fn from(file: &PubFile) -> VarFile {
+        VarFile {
+            vars: file
+                .vars
+                .iter()
+                .map(|v| VarDef {
+                    name: v.name.clone(),
+                    area: v.area,
+                    offset: v.offset,
+                    bit: v.bit,
+                    ty: v.ty,
+                    codec: Codec::Native,
+                    writable: true,
+                    line: v.line,
+                })
+                .collect(),
+            warnings: file.warnings.iter().map(|w| w.to_string()).collect(),
+            more_warnings: file.more_warnings,
+        }
+    }
+}
+
+impl From<&TagFile> for VarFile {
+    fn from(file: &TagFile) -> VarFile {
+        VarFile {
+            vars: file
+                .tags
+                .iter()
+                .map(|t| {
+                    let (area, offset, bit) = t.place();
+                    VarDef {
+                        name: t.name.clone(),
+                        area,
+                        offset,
+                        bit,
+                        ty: t.ty,
+                        codec: t.codec,
+                        writable: t.writable,
+                        line: t.line,
+                    }
+                })
+                .collect(),
+            warnings: file.warnings.iter().map(|w| w.to_string()).collect(),
+            more_warnings: file.more_warnings,
+        }
     }
 }
 
@@ -68,13 +160,32 @@ pub struct VarTable {
 }
 
 impl VarTable {
-    /// Builds the table: fixed variables first, then the user's; on a name
-    /// clash the fixed file wins. Variables whose address lies outside `map`
-    /// are skipped with a warning, like any other bad public-file line.
+    /// Builds the table from public files: fixed variables first, then the
+    /// user's; on a name clash the fixed file wins. Variables whose address
+    /// lies outside `map` are skipped with a warning, like any other bad
+    /// public-file line.
     pub fn build(
         fixed_file: &str,
         fixed: &PubFile,
         user: Option<(&str, &PubFile)>,
+        map: &MemoryMap,
+        warnings: &mut Vec<String>,
+    ) -> Result<VarTable, TableError> {
+        let user = user.map(|(name, file)| (name, VarFile::from(file)));
+        VarTable::build_from(
+            fixed_file,
+            &VarFile::from(fixed),
+            user.as_ref().map(|(name, file)| (*name, file)),
+            map,
+            warnings,
+        )
+    }
+
+    /// Builds the table from any files' variables, as [`VarTable::build`].
+    pub fn build_from(
+        fixed_file: &str,
+        fixed: &VarFile,
+        user: Option<(&str, &VarFile)>,
         map: &MemoryMap,
         warnings: &mut Vec<String>,
     ) -> Result<VarTable, TableError> {
@@ -106,7 +217,7 @@ impl VarTable {
     fn add_file(
         &mut self,
         file_name: &str,
-        file: &PubFile,
+        file: &VarFile,
         fixed: bool,
         map: &MemoryMap,
         warnings: &mut Vec<String>,
@@ -118,7 +229,7 @@ impl VarTable {
         self.index.reserve(file.vars.len());
         for pv in &file.vars {
             let name: Box<[u8]> = cp1250::to_upper(&pv.name).into_boxed_slice();
-            if !map.contains(pv.area, pv.offset, pv.ty.size() as u32) {
+            if !map.contains(pv.area, pv.offset, pv.codec.byte_len(pv.ty)) {
                 warnings.push(format!(
                     "{file_name}: line {}: {} at {}{} is outside the PLC memory (size {}), skipped",
                     pv.line,
@@ -152,6 +263,8 @@ impl VarTable {
                 bit: pv.bit,
                 ty: pv.ty,
                 fixed,
+                codec: pv.codec,
+                writable: pv.writable,
             });
         }
     }

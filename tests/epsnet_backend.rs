@@ -46,7 +46,7 @@ fn read(area: Area, offset: u32, len: u32) -> ReadRequest {
 async fn connect_status_and_halt() {
     let sim = sim_with(SimConfig::default()).await;
     let mut plc = backend(sim.local_addr(), 500, 100, 2);
-    assert_eq!(plc.max_read_block(), 1230);
+    assert_eq!(plc.max_read_block(Area::R), 1230);
     assert_eq!(plc.max_file_block(), 1150);
     let ident = plc.connect().await.unwrap();
     assert_eq!(ident, plcsim::device::DEFAULT_IDENT);

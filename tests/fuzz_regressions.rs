@@ -46,6 +46,16 @@ fn every_target_runs_on_ordinary_input() {
     );
     checks::web_query(b"section=Demo&from=9&to=8&vars=,,");
     checks::web_query(b"section=%ZZ&&=&format=\xff");
+    for time in [
+        "-7d",
+        "2026-05-01T12:00:00.123Z",
+        "2026-05-01",
+        "now",
+        "-9999999999999999w",
+        "x",
+    ] {
+        checks::history_time(time.as_bytes());
+    }
     // READN answer of 2 bytes, then the same datagram as a request.
     let answer = [
         0x00, 0x02, 0x00, 0x07, 0x02, 0x00, 0x00, 0x0D, 0x68, 0x07, 0x07, 0x68, 0x7D, 0x00, 0x08,
@@ -56,7 +66,36 @@ fn every_target_runs_on_ordinary_input() {
     let mut line = vec![1, 0x00, 0x16, 0x68, 0x07];
     line.extend_from_slice(&answer[6..21]);
     checks::epsnet_stream(&line);
+    let mut record = Vec::new();
+    plccoms::mqtt::spool::encode_record(
+        7,
+        &plccoms::mqtt::spool::Message {
+            topic: "plccoms/Demo/A%2FB".into(),
+            payload: b"42".to_vec(),
+            qos: 1,
+            retain: true,
+        },
+        &mut record,
+    );
+    checks::mqtt_spool(&record);
+    for text in [
+        "mqtt://broker.lan:1883",
+        "mqtts://[::1]",
+        "A%2FB",
+        "TEPLOTA_KUCHYNĚ",
+        "%zz",
+    ] {
+        checks::mqtt_text(text.as_bytes());
+    }
     // IDENT request from 0x7D.
+    checks::modbus_tags(include_bytes!("../conf/demo-modbus.csv"));
+    checks::modbus_tags(
+        b"name,type,table,address,bit,order,scale,offset\nx,INT,holding,65535,,,0.5,1\n",
+    );
+    // FC 3 answer of two registers, then an exception, then half an ADU.
+    checks::modbus_answer(&[
+        0, 2, 0, 1, 0, 0, 0, 7, 1, 3, 4, 0xBE, 0xEF, 0, 1, 0, 2, 0, 0, 0, 3, 1, 0x83, 2, 0, 3, 0,
+    ]);
     checks::epsnet_device(&[
         0x00, 0x01, 0x02, 0x00, 0x00, 0x0A, 0x68, 0x04, 0x04, 0x68, 0x00, 0x7D, 0x63, 0x01, 0xE1,
         0x16,

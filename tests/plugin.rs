@@ -176,23 +176,31 @@ async fn slow_calls_are_bounded_by_the_timeout_and_counted() {
     }
 }
 
-/// Runs the server binary on `ini` with `env`; returns it and its log file.
-fn server_process(ini: &str, env: &[(&str, &str)]) -> (ChildGuard, tempfile::TempDir) {
+/// Runs the server binary on `ini` with `env`; returns it and its folder,
+/// where `plccoms.log` is its log: stderr, or with `log_file` the file it
+/// writes itself (`-l`, reopened on SIGHUP).
+fn server_process(
+    ini: &str,
+    env: &[(&str, &str)],
+    log_file: bool,
+) -> (ChildGuard, tempfile::TempDir) {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("plccoms.ini"), ini).unwrap();
-    let log = std::fs::File::create(dir.path().join("plccoms.log")).unwrap();
-    let child = ChildGuard::spawn(
-        "plccoms",
-        Command::new(PLCCOMS)
-            .args(["-c", "plccoms.ini"])
-            .current_dir(dir.path())
-            .envs(env.iter().copied())
-            .env_remove("RUST_LOG")
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(log),
-    );
-    (child, dir)
+    let mut command = Command::new(PLCCOMS);
+    command
+        .args(["-c", "plccoms.ini"])
+        .current_dir(dir.path())
+        .envs(env.iter().copied())
+        .env_remove("RUST_LOG")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null());
+    if log_file {
+        command.args(["-l", "plccoms.log"]).stderr(Stdio::null());
+    } else {
+        let log = std::fs::File::create(dir.path().join("plccoms.log")).unwrap();
+        command.stderr(log);
+    }
+    (ChildGuard::spawn("plccoms", &mut command), dir)
 }
 
 fn log_of(dir: &tempfile::TempDir) -> String {
@@ -221,8 +229,11 @@ fn bad_tables_are_refused_with_the_reason() {
         ("nofn", "the table has no read function"),
     ] {
         let port = common::process::free_port();
-        let (_server, dir) =
-            server_process(&section(port, &lib, ""), &[("BAD_PLUGIN_ENTRY", entry)]);
+        let (_server, dir) = server_process(
+            &section(port, &lib, ""),
+            &[("BAD_PLUGIN_ENTRY", entry)],
+            false,
+        );
         let log = wait_log(&dir, "cannot reach PLC");
         assert!(log.contains(reason), "{entry}: {log}");
     }
@@ -233,7 +244,7 @@ fn a_crashing_plugin_stops_the_server_and_says_so() {
     use std::os::unix::process::ExitStatusExt;
     let lib = plugin_lib("bad");
     let port = common::process::free_port();
-    let (mut server, dir) = server_process(&section(port, &lib, "SHM_SOCKET = 4"), &[]);
+    let (mut server, dir) = server_process(&section(port, &lib, "SHM_SOCKET = 4"), &[], false);
     let status = server
         .wait_timeout(BACK)
         .expect("the server ends when its plugin crashes");
@@ -245,4 +256,29 @@ fn a_crashing_plugin_stops_the_server_and_says_so() {
         lib.display()
     );
     assert!(log.contains(&fatal), "{log}");
+}
+
+#[test]
+fn a_crash_after_the_log_was_rotated_is_in_the_new_log() {
+    use std::os::unix::process::ExitStatusExt;
+    let lib = plugin_lib("bad");
+    let port = common::process::free_port();
+    // The plugin crashes 8 s into its first read: time to rotate the log.
+    let ini = section(port, &lib, "SHM_SOCKET = 4\nSHM_PORT = 8000");
+    let (mut server, dir) = server_process(&ini, &[], true);
+    wait_log(&dir, "listening");
+    let rotated = dir.path().join("plccoms.log.1");
+    std::fs::rename(dir.path().join("plccoms.log"), &rotated).unwrap();
+    // SAFETY: a signal to our own child.
+    unsafe { libc::kill(server.child().id() as libc::pid_t, libc::SIGHUP) };
+    wait_log(&dir, "reopened");
+    let status = server
+        .wait_timeout(BACK)
+        .expect("the server ends when its plugin crashes");
+    assert_eq!(status.signal(), Some(libc::SIGSEGV), "{status:?}");
+    let fatal = "plccoms: FATAL: signal SIGSEGV inside plugin";
+    let log = log_of(&dir);
+    assert!(log.contains(fatal), "not in the new log:\n{log}");
+    let old = std::fs::read_to_string(&rotated).unwrap();
+    assert!(!old.contains(fatal), "in the rotated log:\n{old}");
 }

@@ -949,15 +949,27 @@ fn getinfo_with_several_clients() {
     });
     c.send("GETINFO:\n");
     let lines = c.until("GETINFO:");
-    let version = env!("CARGO_PKG_VERSION");
-    let head = [
-        format!("GETINFO:VERSION,Ver {version} (plccoms)"),
-        format!("GETINFO:VERSION_EPSNET,Ver {version} (plccoms EPSNET)"),
-        "GETINFO:VERSION_INI,Ver 0.21 (rust-ini)".to_string(),
-        version_plc.clone(),
-        "GETINFO:IPADDR,127.0.0.1".to_string(),
-    ];
-    assert_eq!(lines[..5], head, "{lines:#?}");
+    // The vendor's shape: `Ver 5.5 Sep  9 2020 16:10:19`.
+    let version = |line: &str, key: &str, number: &str| {
+        let date = line
+            .strip_prefix(&format!("GETINFO:{key},Ver {number} "))
+            .unwrap_or_else(|| panic!("{line:?}"));
+        let b = date.as_bytes();
+        assert!(
+            b.len() == 20 && b[3] == b' ' && b[6] == b' ' && b[11] == b' ' && b[14] == b':',
+            "{line:?}"
+        );
+    };
+    let number = concat!(
+        env!("CARGO_PKG_VERSION_MAJOR"),
+        ".",
+        env!("CARGO_PKG_VERSION_MINOR")
+    );
+    version(&lines[0], "VERSION", number);
+    version(&lines[1], "VERSION_EPSNET", number);
+    version(&lines[2], "VERSION_INI", "0.21");
+    let head = [version_plc.clone(), "GETINFO:IPADDR,127.0.0.1".to_string()];
+    assert_eq!(lines[3..5], head, "{lines:#?}");
     assert!(lines[5].starts_with("GETINFO:EPSADDR,"), "{lines:#?}");
     assert_eq!(lines[6], format!("GETINFO:EPSPORT,{}", plc.udp));
     assert_eq!(lines[7], "GETINFO:PUBFILE,2/29 [FIXED.pub,demo.pub]");
@@ -1073,4 +1085,290 @@ fn halt_then_run_reinitialises_the_link() {
     let log = site.log_text();
     assert_eq!(count(&log, "PLC is in HALT"), 1, "{log}");
     assert_eq!(count(&log, "PLC is in RUN"), 1, "{log}");
+}
+
+// ------------------------------------------ a year unattended (issue 17) --
+
+/// The vendor's shipped PLCComS.ini with only its PLC's address and ports
+/// changed, against `plcsim --files DIR --pub VARLIST.PUB` (the pairing the
+/// README gives): the public file is fetched from the simulated PLC's file
+/// system, where plcsim serves it under its own name, and its CRC checked.
+#[test]
+fn the_vendors_ini_runs_against_plcsim_serving_its_public_file() {
+    let vendor = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/vendor");
+    let site = Site::new();
+    let plc_files = tempfile::tempdir().unwrap();
+    let program = tempfile::tempdir().unwrap();
+    let pubfile = program.path().join("VARLIST.PUB");
+    std::fs::write(&pubfile, DEMO_PUB).unwrap();
+    let udp = free_udp_port();
+    let log = std::fs::File::create(program.path().join("plcsim.log")).unwrap();
+    let _plc = Proc::spawn(
+        Command::new(common::process::plcsim_bin())
+            .arg("--bind")
+            .arg(format!("127.0.0.1:{udp}"))
+            .arg("--files")
+            .arg(plc_files.path())
+            .arg("--pub")
+            .arg(&pubfile)
+            .stdout(Stdio::null())
+            .stderr(log),
+    );
+    std::fs::copy(
+        vendor.join("FIXED_Foxtrot.pub"),
+        site.dir.path().join("FIXED_Foxtrot.pub"),
+    )
+    .unwrap();
+    let ini = read(&vendor.join("PLCComS.ini"))
+        .replace(
+            "IPADDR        = 192.168.89.1",
+            &format!("IPADDR        = 127.0.0.1\nEPSPORT       = {udp}"),
+        )
+        .replace(
+            "SERVER_PORT   = 5011",
+            &format!("SERVER_PORT   = {}", site.port),
+        );
+    assert!(ini.contains("PUBFILE       = //VARLIST.PUB"), "{ini}");
+    site.write_ini(&ini);
+    let _server = site.run(&[]);
+    let mut c = site.client();
+    wait_for("the public file from the PLC", || {
+        c.send("GETINFO:pubfile\n");
+        c.line() != "GETINFO:PUBFILE,2/2 [FIXED_Foxtrot.pub]"
+    });
+    c.ask(
+        "GETINFO:pubfile\n",
+        "GETINFO:PUBFILE,2/29 [FIXED_Foxtrot.pub,VARLIST.PUB]",
+    );
+    c.ask("GET:text\n", "GET:TEXT,\"Have a nice day\"");
+    let log = site.log_text();
+    assert!(log.contains("//VARLIST.PUB fetched from the PLC"), "{log}");
+    // Nothing was written into the PLC's folder to make it so.
+    assert_eq!(std::fs::read_dir(plc_files.path()).unwrap().count(), 0);
+}
+
+/// A public file that is neither on this machine nor on the PLC: the log
+/// says "file not found on the PLC" and names the local path it tried.
+#[test]
+fn a_public_file_missing_on_the_plc_is_reported_with_where_it_was_looked_for() {
+    let plc = Plcsim::start("demo");
+    let site = Site::new();
+    site.external(plc.udp);
+    site.write_ini(&read(&site.ini()).replace("//demo.pub", "//MISSING.PUB"));
+    let _server = site.run(&[]);
+    site.wait_log("file not found on the PLC");
+    let log = site.log_text();
+    let line = log
+        .lines()
+        .find(|l| l.contains("file not found on the PLC"))
+        .unwrap();
+    let local = site.dir.path().join("MISSING.PUB");
+    assert!(
+        line.contains("//MISSING.PUB") && line.contains(&format!("not at {}", local.display())),
+        "{line}"
+    );
+    assert!(
+        !line.contains("wrong service parameters (0x0C)\""),
+        "{line}"
+    );
+}
+
+/// logrotate's way: move the log away, then SIGHUP. The server logs that
+/// it reopened, writes on in a new file at the old path, and keeps serving.
+#[test]
+fn sighup_reopens_the_log_file() {
+    let site = Site::new();
+    site.simulated();
+    let mut server = site.run(&[]);
+    let mut c = site.client();
+    c.ask("GET:counter\n", "GET:COUNTER,0");
+    let rotated = site.dir.path().join("plccoms.log.1");
+    std::fs::rename(site.log(), &rotated).unwrap();
+    signal(server.pid(), libc::SIGHUP);
+    site.wait_log("reopened");
+    assert!(server.running());
+    let old = read(&rotated);
+    assert!(old.contains("SIGHUP: reopening the log file"), "{old}");
+    assert!(!old.contains("reopened"), "{old}");
+    // The same clients and new ones are served; the new log gets the rest.
+    c.ask("GET:counter\n", "GET:COUNTER,0");
+    site.client().ask("GET:counter\n", "GET:COUNTER,0");
+    signal(server.pid(), libc::SIGTERM);
+    assert_eq!(server.exit().code(), Some(0));
+    let new = site.log_text();
+    assert!(new.lines().all(timestamped), "{new}");
+    assert!(new.trim_end().ends_with("stopped"), "{new}");
+}
+
+/// Reports on a pipe (journald, docker, redirection) carry no colour
+/// escapes; SIGHUP without a log file is logged and changes nothing.
+#[test]
+fn stderr_on_a_pipe_is_plain_text_and_sighup_is_harmless() {
+    let site = Site::new();
+    site.simulated();
+    let mut server = Proc::spawn(
+        Command::new(PLCCOMS)
+            .arg("-c")
+            .arg(site.ini())
+            .current_dir(site.dir.path())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped()),
+    );
+    let stderr = common::process::Capture::start(server.child.stderr.take().unwrap());
+    wait_for("the server to listen", || {
+        assert!(server.running(), "exited: {}", stderr.text());
+        TcpStream::connect(("127.0.0.1", site.port)).is_ok()
+    });
+    signal(server.pid(), libc::SIGHUP);
+    wait_for("SIGHUP logged", || stderr.text().contains("SIGHUP"));
+    site.client().ask("GET:counter\n", "GET:COUNTER,0");
+    signal(server.pid(), libc::SIGTERM);
+    assert_eq!(server.exit().code(), Some(0));
+    let text = stderr.finish();
+    assert!(!text.contains(&0x1b), "{}", String::from_utf8_lossy(&text));
+    let text = String::from_utf8_lossy(&text);
+    assert!(text.contains(" INFO "), "{text}");
+    assert!(text.contains("SIGHUP: no log file to reopen"), "{text}");
+}
+
+/// SIGTERM with three busy sections: on each, a client that pipelines
+/// requests and never reads its answers (its session cannot finish) and
+/// one taking every DIFF. All sections stop together, within 5 s.
+#[test]
+fn sigterm_under_load_stops_every_section_within_5_s() {
+    let site = Site::new();
+    let ports = [site.port, free_port(), free_port()];
+    let mut ini = String::from("[*]\nCOMM_LOOP_DELAY = 10\n");
+    for (i, port) in ports.iter().enumerate() {
+        ini.push_str(&format!(
+            "[S{i}]\nSIMULATOR = Yes\nSIMULATOR_PROGRAM = demo\nIPADDR_LOCAL = 127.0.0.1\n\
+             SERVER_PORT = {port}\nPUBFILE = //demo.pub\n"
+        ));
+    }
+    site.write_ini(&ini);
+    let mut server = site.run(&[]);
+    let mut clients = Vec::new();
+    for port in ports {
+        let mut watcher = Client::connect(port);
+        watcher.ask(
+            "EN:*\n",
+            "WARNING:252 Changed active variables in public file: '[29/29]'",
+        );
+        watcher.until_match("a DIFF", |l| l.starts_with("DIFF:"));
+        let mut stuck = Client::connect(port);
+        let burst = "LIST:\nGETINFO:\nGET:*\n".repeat(200);
+        stuck.stream.set_nonblocking(true).unwrap();
+        // Until the server stops taking requests for a whole second: its
+        // answers fill every buffer between it and this client.
+        let mut blocked_since = None;
+        wait_for("the server to stop reading", || {
+            loop {
+                match stuck.stream.write(burst.as_bytes()) {
+                    Ok(_) => blocked_since = None,
+                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
+                    Err(e) => panic!("write: {e}"),
+                }
+            }
+            blocked_since.get_or_insert_with(Instant::now).elapsed() > Duration::from_secs(1)
+        });
+        clients.push((watcher, stuck));
+    }
+    let start = Instant::now();
+    signal(server.pid(), libc::SIGTERM);
+    let status = server.exit();
+    let took = start.elapsed();
+    assert_eq!(status.code(), Some(0), "{}", site.log_text());
+    assert!(
+        took < Duration::from_secs(5),
+        "took {took:?}:\n{}",
+        site.log_text()
+    );
+    let log = site.log_text();
+    assert!(log.trim_end().ends_with("stopped"), "{log}");
+    assert!(log.contains("session(s) still busy at shutdown"), "{log}");
+    eprintln!("SIGTERM under load, 3 sections: exited in {took:?}");
+}
+
+/// The built-in demo (no -c, no PLCComS.ini) says loudly that its PLC is
+/// simulated and listens on loopback only.
+#[test]
+fn the_built_in_demo_says_so_and_listens_on_loopback_only() {
+    let deadline = Instant::now() + DEADLINE;
+    while !common::process::port_is_free(5010) {
+        assert!(
+            Instant::now() < deadline,
+            "port 5010 is in use by another program; the demo listens there"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let server = common::process::ServerProcess::built_in(5010);
+    let log = server.log();
+    assert!(log.contains("WARN DEMO:"), "{log}");
+    assert!(log.contains("SIMULATED demo PLC"), "{log}");
+    assert!(log.contains("clients on 127.0.0.1:5010 only"), "{log}");
+    assert!(log.contains("plccoms -c /path/to/PLCComS.ini"), "{log}");
+    assert!(!log.contains('\x1b'), "{log}");
+    // The kernel's listening sockets on port 5010 (0x1392): loopback only.
+    let listening: Vec<String> = ["/proc/net/tcp", "/proc/net/tcp6"]
+        .iter()
+        .flat_map(|table| {
+            read(Path::new(table))
+                .lines()
+                .skip(1)
+                .map(str::to_string)
+                .collect::<Vec<_>>()
+        })
+        .filter_map(|line| {
+            let fields: Vec<&str> = line.split_whitespace().collect();
+            let listen = fields.get(3) == Some(&"0A");
+            (listen && fields[1].ends_with(":1392")).then(|| fields[1].to_string())
+        })
+        .collect();
+    assert_eq!(listening, ["0100007F:1392"]);
+}
+
+/// The real logrotate with the shipped snippet (`conf/plccoms.logrotate`,
+/// its path, user and signal command pointed at this test's server): the
+/// old lines end up in `.1`, the new ones in a new log.
+#[test]
+fn logrotate_with_the_shipped_snippet_rotates_a_running_servers_log() {
+    let logrotate = ["/usr/sbin/logrotate", "/sbin/logrotate"]
+        .into_iter()
+        .find(|p| Path::new(p).exists())
+        .expect("logrotate is not installed (Debian: apt-get install logrotate; .ci/run does)");
+    let site = Site::new();
+    site.simulated();
+    let mut server = site.run(&[]);
+    site.client().ask("GET:counter\n", "GET:COUNTER,0");
+    let snippet = read(&Path::new(env!("CARGO_MANIFEST_DIR")).join("conf/plccoms.logrotate"));
+    let signal_line = snippet
+        .lines()
+        .find(|l| l.contains("systemctl kill --signal=HUP"))
+        .expect("the snippet signals the service");
+    let config = snippet
+        .replace(
+            "/var/log/plccoms/*.log",
+            &format!("{}/*.log", site.dir.path().display()),
+        )
+        .replace("    su plccoms plccoms\n", "")
+        .replace(signal_line, &format!("        kill -HUP {}", server.pid()));
+    let conf = site.dir.path().join("logrotate.conf");
+    std::fs::write(&conf, config).unwrap();
+    let status = Command::new(logrotate)
+        .arg("--force")
+        .arg("--state")
+        .arg(site.dir.path().join("logrotate.state"))
+        .arg(&conf)
+        .status()
+        .unwrap();
+    assert!(status.success(), "logrotate: {status}");
+    site.wait_log("reopened");
+    let old = read(&site.dir.path().join("plccoms.log.1"));
+    assert!(old.contains("running, 1 section(s)"), "{old}");
+    site.client().ask("GET:counter\n", "GET:COUNTER,0");
+    signal(server.pid(), libc::SIGTERM);
+    assert_eq!(server.exit().code(), Some(0));
+    let new = site.log_text();
+    assert!(!new.contains("running, 1 section(s)"), "{new}");
+    assert!(new.trim_end().ends_with("stopped"), "{new}");
 }

@@ -613,6 +613,39 @@ fn the_history_api_says_when_no_historian_is_enabled() {
 }
 
 #[test]
+fn the_history_api_reads_what_the_historian_recorded() {
+    let web = start("HISTORY_SYNC = 1", "HISTORY = SINUS, TEXT");
+    // The demo program changes SINUS every cycle: samples within a commit.
+    let mut csv = String::new();
+    wait_until("recorded samples in the history API", || {
+        let (status, body) = request(
+            web.http,
+            "GET",
+            "/api/history?section=Demo&vars=sin*&from=-1h&to=now&format=csv",
+            &[],
+            None,
+        );
+        csv = String::from_utf8_lossy(&body).into_owned();
+        status == 200 && csv.lines().filter(|l| l.contains("SINUS")).count() >= 3
+    });
+    let mut lines = csv.lines();
+    assert_eq!(lines.next(), Some("unix_ms,time,name,value,quality"));
+    let sample: Vec<&str> = lines.next().unwrap().split(',').collect();
+    assert_eq!(sample[2], "SINUS");
+    assert!(sample[3].parse::<f64>().is_ok(), "{sample:?}");
+    assert_eq!(sample[4], "good");
+    assert!(!csv.contains("TEXT"), "only the masks asked for");
+    let (status, body) = request(
+        web.http,
+        "GET",
+        "/api/history?section=Nope&vars=*&from=-1h&format=json",
+        &[],
+        None,
+    );
+    assert_eq!(status, 404, "{}", String::from_utf8_lossy(&body));
+}
+
+#[test]
 fn https_with_the_configured_certificate() {
     let dir = tempfile::tempdir().unwrap();
     let key = rcgen::generate_simple_self_signed(vec!["127.0.0.1".to_string()]).unwrap();

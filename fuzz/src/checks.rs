@@ -12,6 +12,9 @@ use std::path::{Path, PathBuf};
 
 use bytes::BytesMut;
 use plccoms::backend::FileInfo;
+use plccoms::mqtt::settings::BrokerUrl;
+use plccoms::mqtt::spool::{decode_record, encode_record};
+use plccoms::mqtt::topics::{level, unlevel};
 use plccoms::vars::VarTable;
 use plccoms_plc::epsnet::codec::{decode_packet, encode_packet, EpsnetCodec};
 use plccoms_plc::epsnet::frame::{Frame as EpsFrame, MAX_PACKET};
@@ -405,6 +408,27 @@ pub fn ini(data: &[u8]) {
 }
 
 // ---------------------------------------------------------------------------
+// history_time
+
+/// A time of `plccoms history --from/--to`: parsed against two "now"s, and
+/// an accepted time written out; relative times are never after now.
+pub fn history_time(data: &[u8]) {
+    let text = String::from_utf8_lossy(data);
+    for now in [0, 1_700_000_000_000, i64::MAX] {
+        match plccoms::historian::time::parse(&text, now) {
+            Ok(t) => {
+                if text.trim_start().starts_with('-') {
+                    assert!(t <= now, "{text:?} -> {t} after now {now}");
+                }
+                let mut out = Vec::new();
+                plccoms::historian::time::iso(t, &mut out);
+            }
+            Err(message) => assert!(!message.is_empty()),
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------
 // pubfile
 
 /// The fixed public file the server ships.
@@ -777,5 +801,196 @@ pub fn web_query(data: &[u8]) {
             assert!(query.masks.iter().all(|m| !m.is_empty()), "{query:?}");
         }
         Err(message) => assert!(!message.is_empty()),
+    }
+}
+
+// ---------------------------------------------------------------------------
+// MQTT.
+
+/// Records of the MQTT on-disk queue (`src/mqtt/spool.rs`), one after
+/// another: never a panic; every record decoded encodes back to its bytes.
+pub fn mqtt_spool(data: &[u8]) {
+    let mut at = 0;
+    while at < data.len() {
+        match decode_record(&data[at..]) {
+            Ok(Some((seq, message, used))) => {
+                let mut again = Vec::new();
+                encode_record(seq, &message, &mut again);
+                assert_eq!(again, &data[at..at + used], "record {seq} re-encoded");
+                at += used;
+            }
+            Ok(None) | Err(_) => break,
+        }
+    }
+}
+
+/// MQTT text: a broker URL (MQTT_URL) and a topic level (a `/set` topic's
+/// variable name). Never a panic; a level naming a variable is written back
+/// to a level naming the same one.
+pub fn mqtt_text(data: &[u8]) {
+    let Ok(text) = std::str::from_utf8(data) else {
+        return;
+    };
+    if let Ok(url) = BrokerUrl::parse(text) {
+        assert!(!url.host.is_empty() && url.port > 0, "{text}: {url:?}");
+    }
+    if let Ok(name) = unlevel(text) {
+        let again = level(&name);
+        assert!(!again.contains(['/', '+', '#']), "{again}");
+        assert_eq!(unlevel(&again).as_deref(), Ok(&name[..]), "{text}");
+    }
+}
+
+// ---------------------------------------------------------------------------
+// modbus_tags
+
+/// A tag file: every tag lies inside the Modbus layout and is named as a
+/// public-file name is; the table builds from them; every tag's codec
+/// decodes any bytes, and a value it decoded encodes to bytes that decode
+/// to the same value.
+pub fn modbus_tags(data: &[u8]) {
+    use plccoms::vars::{VarFile, VarTable};
+    use plccoms_plc::modbus::{tags, MAP};
+
+    let file = tags::parse(data);
+    for tag in &file.tags {
+        let (area, offset, bit) = tag.place();
+        assert!(
+            MAP.contains(area, offset, tag.codec.byte_len(tag.ty)),
+            "{tag:?}"
+        );
+        assert!(!tag.name.is_empty());
+        assert_eq!(bit.is_some(), tag.ty == IecType::Bool);
+        let len = tag.codec.byte_len(tag.ty) as usize;
+        for fill in [0u8, 0x41, 0xFF] {
+            let value = tag.codec.decode(tag.ty, &vec![fill; len]);
+            if tag.ty == IecType::Bool || value_is_nan(&value) {
+                continue;
+            }
+            if let Ok(bytes) = tag.codec.encode(tag.ty, &value) {
+                assert_eq!(bytes.len(), len);
+                let again = tag.codec.decode(tag.ty, &bytes);
+                if !matches!(tag.codec, plccoms_plc::value_codec::Codec::Registers(r) if r.scale.is_some())
+                {
+                    assert_eq!(again, value, "{tag:?}");
+                }
+            }
+        }
+    }
+    let fixed = plccoms_plc::pubfile::parse(
+        b" __PLC_RUN S B 2 .2 BOOL PUB_INOUT\r\n __PF_CRC S B 70 DWORD PUB_INOUT\r\n",
+    );
+    let mut warnings = Vec::new();
+    let table = VarTable::build_from(
+        "FIXED.pub",
+        &VarFile::from(&fixed),
+        Some(("fuzz.csv", &VarFile::from(&file))),
+        &MAP,
+        &mut warnings,
+    )
+    .expect("the standard fixed file defines the system variables");
+    assert_eq!(table.len(), 2 + file.tags.len());
+}
+
+fn value_is_nan(value: &Value) -> bool {
+    match value {
+        Value::Real(x) => x.is_nan(),
+        Value::LReal(x) | Value::Date(x) => x.is_nan(),
+        _ => false,
+    }
+}
+
+// ---------------------------------------------------------------------------
+// modbus_answer
+
+/// The server's side of a Modbus TCP stream: `data[0..2]` is the count the
+/// reads asked for, the rest the bytes the device sent. Every ADU is read
+/// as the answer to every kind of request; what decodes has the count
+/// asked for, and the device's side re-encodes it to the same PDU.
+pub fn modbus_answer(data: &[u8]) {
+    use plccoms_plc::modbus::codec::{decode_response, encode_response, AduDecoder};
+    use plccoms_plc::modbus::frame::Request;
+    use tokio_util::codec::Decoder as _;
+
+    let [hi, lo, ref stream @ ..] = *data else {
+        return;
+    };
+    let count = u16::from_be_bytes([hi, lo]).clamp(1, 2000);
+    let requests = [
+        Request::ReadCoils { address: 0, count },
+        Request::ReadDiscreteInputs { address: 1, count },
+        Request::ReadHoldingRegisters {
+            address: 2,
+            count: count.min(125),
+        },
+        Request::ReadInputRegisters {
+            address: 3,
+            count: count.min(125),
+        },
+        Request::WriteSingleCoil {
+            address: 4,
+            value: true,
+        },
+        Request::WriteSingleRegister {
+            address: 5,
+            value: count,
+        },
+        Request::WriteMultipleCoils {
+            address: 6,
+            values: vec![true; usize::from(count.min(1968))],
+        },
+        Request::WriteMultipleRegisters {
+            address: 7,
+            values: vec![count; usize::from(count.min(123))],
+        },
+        Request::MaskWriteRegister {
+            address: 8,
+            and_mask: count,
+            or_mask: !count,
+        },
+    ];
+    let mut src = BytesMut::from(stream);
+    let mut decoder = AduDecoder;
+    while let Ok(Some(adu)) = decoder.decode(&mut src) {
+        assert!(adu.pdu.len() <= plccoms_plc::modbus::codec::MAX_PDU);
+        for request in &requests {
+            let Ok(outcome) = decode_response(request, &adu.pdu) else {
+                continue;
+            };
+            if let Ok(response) = &outcome {
+                use plccoms_plc::modbus::frame::Response;
+                match (request, response) {
+                    (
+                        Request::ReadCoils { count, .. }
+                        | Request::ReadDiscreteInputs { count, .. },
+                        Response::Bits(bits),
+                    ) => {
+                        assert_eq!(bits.len(), usize::from(*count))
+                    }
+                    (
+                        Request::ReadHoldingRegisters { count, .. }
+                        | Request::ReadInputRegisters { count, .. },
+                        Response::Registers(r),
+                    ) => {
+                        assert_eq!(r.len(), usize::from(*count))
+                    }
+                    (_, Response::Written) => assert!(request.is_write()),
+                    other => panic!("answer of the wrong kind: {other:?}"),
+                }
+            }
+            let mut again = Vec::new();
+            encode_response(
+                adu.header,
+                request.function(),
+                Some(request),
+                &outcome,
+                &mut again,
+            );
+            let reread = decoder
+                .decode(&mut BytesMut::from(&again[..]))
+                .expect("re-encoded ADU frames")
+                .expect("whole");
+            assert_eq!(decode_response(request, &reread.pdu), Ok(outcome));
+        }
     }
 }

@@ -2,14 +2,18 @@
 //! outside. Memory areas and their image ([`memory`]), public files
 //! ([`pubfile`]), file attributes and times ([`files`], [`time`]), and the
 //! EPSNET wire format ([`epsnet`]: frames, codec, the one table of service
-//! codes). Shared by the server's backends and the simulated PLC (`plcsim`),
-//! which reuse the same frames and codec from opposite ends.
+//! codes), Modbus TCP ([`modbus`]: frames, codec, tag files), and how a
+//! variable's bytes become a client's value ([`value_codec`]). Shared by the
+//! server's backends and the simulated PLC (`plcsim`), which reuse the same
+//! frames and codecs from opposite ends.
 
 pub mod epsnet;
 pub mod files;
 pub mod memory;
+pub mod modbus;
 pub mod pubfile;
 pub mod time;
+pub mod value_codec;
 
 pub use epsnet::Exception;
 pub use files::{DirEntry, FileInfo};

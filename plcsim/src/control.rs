@@ -6,13 +6,16 @@
 //!                   damage 20 % of the exchanges, see `serial`)
 //! latency 500       delay answers by 500 ms
 //! halt | run        PLC state (__PLC_RUN; the program runs only in RUN)
-//! pub <file>        load another public file (new program, new __PF_CRC)
+//! pub <file>        load another public file (new program, new __PF_CRC),
+//!                   served by the file system under its own name (on a
+//!                   Modbus device: a tag file)
 //! program demo|idle
 //! animate <mask>... animate these variables (none: stop animating)
 //! status            OK run|halt crc=XXXXXXXX loss=.. latency=.. program=..
 //!                   rx_bytes=.. tx_bytes=.. rx_frames=.. tx_frames=.. rx_skipped=..
 //! ```
 
+use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -108,7 +111,8 @@ pub(crate) fn command(line: &str, shared: &Shared) -> Result<String, String> {
                 return Err("pub needs a file".into());
             }
             let bytes = std::fs::read(rest).map_err(|e| format!("{rest}: {e}"))?;
-            let crc = shared.load_pub(&bytes);
+            let name = Path::new(rest).file_name().and_then(|n| n.to_str());
+            let crc = shared.load_pub(&bytes, name);
             return Ok(format!("OK crc={crc:08X}"));
         }
         "program" => shared.set_program(rest.parse()?),

@@ -1,6 +1,7 @@
-//! The simulated EPSNET PLC: a UDP server (or a serial line, [`serial`])
-//! over a [`Device`], a PLC program engine, a directory-backed file store
-//! and fault injection.
+//! The simulated PLC: a UDP server speaking EPSNET (or a serial line,
+//! [`serial`], or a TCP server speaking Modbus TCP, [`modbus`]) over a
+//! [`Device`], a PLC program engine, a directory-backed file store and fault
+//! injection.
 //!
 //! [`spawn`] starts it inside the current tokio runtime and returns a
 //! [`SimHandle`]: its address, the device, and the fault controls (packet
@@ -8,9 +9,11 @@
 //! handle stops the simulator. The `plcsim` binary wraps the same API and
 //! adds a loopback TCP control port ([`control`]).
 
+pub mod cli;
 pub mod control;
 pub mod device;
 pub mod genpub;
+pub mod modbus;
 pub mod program;
 pub mod serial;
 pub mod server;
@@ -40,6 +43,8 @@ use crate::device::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
 pub const DEMO_PUB: &[u8] = include_bytes!("../../conf/demo.pub");
 /// The fixed public file (same bytes as `conf/FIXED.pub`).
 pub const FIXED_PUB: &[u8] = include_bytes!("../../conf/FIXED.pub");
+/// The demo program's variables as a Modbus tag file (`conf/demo-modbus.csv`).
+pub const DEMO_TAGS: &[u8] = include_bytes!("../../conf/demo-modbus.csv");
 
 /// Answers delayed by injected latency and not yet sent; beyond this the
 /// simulator drops datagrams (memory stays bounded).
@@ -80,6 +85,9 @@ pub struct SimConfig {
     pub seed: Option<u64>,
     /// Serve this serial line instead of UDP (`bind` is then unused).
     pub serial: Option<serial::SerialLine>,
+    /// Serve Modbus TCP on this address instead of EPSNET; `pubfile` is then
+    /// a Modbus tag file, and the memory is laid out as Modbus tables.
+    pub modbus: Option<SocketAddr>,
 }
 
 impl Default for SimConfig {
@@ -99,6 +107,7 @@ impl Default for SimConfig {
             map: MemoryMap::FOXTROT,
             seed: None,
             serial: None,
+            modbus: None,
         }
     }
 }
@@ -110,6 +119,8 @@ pub(crate) struct Shared {
     state: Mutex<SimState>,
     /// Bytes and frames on a serial line.
     line: serial::LineStats,
+    /// The variables come from Modbus tag files.
+    modbus: bool,
 }
 
 struct SimState {
@@ -125,6 +136,16 @@ struct SimState {
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
     // Plain data: still valid after a panic elsewhere.
     mutex.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// The variables of a Modbus tag file, and its CRC.
+pub fn load_tags_bytes(bytes: &[u8]) -> (Vec<ProgVar>, u32) {
+    let parsed = plccoms_plc::modbus::tags::parse(bytes);
+    for warning in &parsed.warnings {
+        tracing::warn!("plcsim: tag file {warning}");
+    }
+    let vars = parsed.tags.into_iter().map(ProgVar::from).collect();
+    (vars, pubfile::crc_of(bytes))
 }
 
 /// The variables and `__PF_CRC` of a public file.
@@ -154,6 +175,7 @@ pub fn load_pub_bytes(bytes: &[u8]) -> (Vec<ProgVar>, u32) {
             offset: v.offset,
             bit: v.bit,
             ty: v.ty,
+            codec: plccoms_plc::value_codec::Codec::Native,
         })
         .collect();
     (vars, crc)
@@ -182,9 +204,22 @@ impl Shared {
     }
 
     /// Loads another public file: the program now works on its variables,
-    /// and `__PF_CRC` changes to its CRC.
-    fn load_pub(&self, bytes: &[u8]) -> u32 {
-        let (vars, crc) = load_pub_bytes(bytes);
+    /// and `__PF_CRC` changes to its CRC. The file system serves it under
+    /// `name`, or, without one, under the name of the file it replaces.
+    fn load_pub(&self, bytes: &[u8], name: Option<&str>) -> u32 {
+        let (vars, crc) = if self.modbus {
+            load_tags_bytes(bytes)
+        } else {
+            load_pub_bytes(bytes)
+        };
+        if let Some(files) = lock(&self.device).files.as_mut() {
+            let name = name.or(files.program_file_name()).map(str::to_string);
+            if let Some(name) = name {
+                if let Err(e) = files.set_program_file(&name, bytes.to_vec()) {
+                    tracing::warn!("public file not served by the file system: {e}");
+                }
+            }
+        }
         let mut state = lock(&self.state);
         let program = Program::new(
             state.program.kind(),
@@ -253,6 +288,16 @@ impl Shared {
     fn damage(&self, damage: serial::Damage, bytes: Vec<u8>) -> Vec<u8> {
         damage.apply(bytes, &mut lock(&self.state).rng)
     }
+
+    /// The answer to one Modbus request, and its delay; `None` to drop it.
+    fn handle_modbus(&self, adu: &plccoms_plc::modbus::codec::Adu) -> Option<(Vec<u8>, Duration)> {
+        let mut state = lock(&self.state);
+        if state.loss > 0.0 && state.rng.next_f64() < state.loss {
+            return None;
+        }
+        let answer = modbus::answer(&mut lock(&self.device).image, adu);
+        Some((answer, state.latency))
+    }
 }
 
 /// A running simulator. Dropping it stops every task of it.
@@ -272,13 +317,37 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     if let Some(path) = &config.fixed {
         check_fixed(&std::fs::read(path).map_err(|e| with_path(e, path))?);
     }
-    let mut device = Device::new(config.map);
+    let map = if config.modbus.is_some() {
+        plccoms_plc::modbus::MAP
+    } else {
+        config.map
+    };
+    let mut device = Device::new(map);
     device.ident = config.ident.clone();
     if let Some(dir) = &config.files {
-        device.files = Some(FileStore::open(dir).map_err(|e| with_path(e, dir))?);
+        let mut files = FileStore::open(dir).map_err(|e| with_path(e, dir))?;
+        if let PubSource::Path(path) = &config.pubfile {
+            let name = path
+                .file_name()
+                .and_then(|n| n.to_str())
+                .unwrap_or_default();
+            files
+                .set_program_file(name, pub_bytes.clone())
+                .map_err(|e| {
+                    io::Error::new(
+                        io::ErrorKind::InvalidInput,
+                        format!("{}: {e}", path.display()),
+                    )
+                })?;
+        }
+        device.files = Some(files);
     }
     let cycle_ms = config.cycle.as_millis().clamp(1, 60_000) as u64;
-    let (vars, crc) = load_pub_bytes(&pub_bytes);
+    let (vars, crc) = if config.modbus.is_some() {
+        load_tags_bytes(&pub_bytes)
+    } else {
+        load_pub_bytes(&pub_bytes)
+    };
     device.set_pf_crc(crc);
     let shared = Arc::new(Shared {
         device: Arc::new(Mutex::new(device)),
@@ -291,6 +360,7 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
             cycle_ms,
         }),
         line: serial::LineStats::default(),
+        modbus: config.modbus.is_some(),
     });
     shared.set_loss(config.loss);
     shared.set_latency(config.latency);
@@ -302,8 +372,8 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
         shared.clone(),
         Duration::from_millis(cycle_ms),
     ))];
-    let local_addr = match &config.serial {
-        Some(line) => {
+    let local_addr = match (&config.serial, config.modbus) {
+        (Some(line), _) => {
             let port = serial::open(line)?;
             tasks.push(tokio::spawn(serial::serve(
                 port,
@@ -312,11 +382,17 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
             )));
             SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0))
         }
-        None => {
+        (None, Some(addr)) => {
+            let listener = tokio::net::TcpListener::bind(addr).await?;
+            let local = listener.local_addr()?;
+            tasks.push(tokio::spawn(modbus::serve(listener, shared.clone())));
+            local
+        }
+        (None, None) => {
             let socket = Arc::new(UdpSocket::bind(config.bind).await?);
-            let local_addr = socket.local_addr()?;
+            let local = socket.local_addr()?;
             tasks.push(tokio::spawn(serve(socket, shared.clone())));
-            local_addr
+            local
         }
     };
     let mut control_addr = None;
@@ -399,8 +475,8 @@ async fn run_program(shared: Arc<Shared>, cycle: Duration) {
 }
 
 impl SimHandle {
-    /// The bound UDP address (the PLC's address for a backend); 0.0.0.0:0
-    /// on a serial line.
+    /// The bound UDP address (the PLC's address for a backend), or the
+    /// Modbus TCP address; 0.0.0.0:0 on a serial line.
     pub fn local_addr(&self) -> SocketAddr {
         self.local_addr
     }
@@ -451,14 +527,17 @@ impl SimHandle {
     }
 
     /// Loads another public file (another PLC program); returns the new
-    /// `__PF_CRC`.
+    /// `__PF_CRC`. The file system serves it in place of the previous one.
     pub fn load_pub(&self, bytes: &[u8]) -> u32 {
-        self.shared.load_pub(bytes)
+        self.shared.load_pub(bytes, None)
     }
 
+    /// As [`SimHandle::load_pub`], the file system serving it under the
+    /// file's own name.
     pub fn load_pub_file(&self, path: &Path) -> io::Result<u32> {
         let bytes = std::fs::read(path).map_err(|e| with_path(e, path))?;
-        Ok(self.load_pub(&bytes))
+        let name = path.file_name().and_then(|n| n.to_str());
+        Ok(self.shared.load_pub(&bytes, name))
     }
 
     pub fn pf_crc(&self) -> u32 {

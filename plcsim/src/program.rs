@@ -12,9 +12,14 @@
 //! Independently of the program, every variable matching an `animate` mask
 //! changes every cycle: integers ramp, reals follow a sine, BOOLs toggle,
 //! STRINGs count, DATE/DT/TIME/TOD advance.
+//!
+//! A variable of a Modbus tag file is written through its codec (word
+//! order, scale, TS48), so the program's values are the ones a client reads.
 
+use plccoms_protocol::value::Value;
 use plccoms_protocol::{Area, IecType};
 
+use plccoms_plc::value_codec::Codec;
 use plccoms_plc::MemoryImage;
 
 /// A variable the program can address: name, place and type.
@@ -25,6 +30,22 @@ pub struct ProgVar {
     pub offset: u32,
     pub bit: Option<u8>,
     pub ty: IecType,
+    /// How the value is laid out (Native for public files).
+    pub codec: Codec,
+}
+
+impl From<plccoms_plc::modbus::tags::Tag> for ProgVar {
+    fn from(tag: plccoms_plc::modbus::tags::Tag) -> ProgVar {
+        let (area, offset, bit) = tag.place();
+        ProgVar {
+            name: tag.name,
+            area,
+            offset,
+            bit,
+            ty: tag.ty,
+            codec: tag.codec,
+        }
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -229,11 +250,34 @@ fn animate(v: &ProgVar, image: &mut MemoryImage, cycle: u64, cycle_ms: u64, now:
 fn place<'a>(image: &'a mut MemoryImage, v: &ProgVar) -> Option<&'a mut [u8]> {
     let area = image.area_mut(v.area);
     let start = v.offset as usize;
-    let end = start.checked_add(v.ty.size())?;
+    let end = start.checked_add(v.codec.byte_len(v.ty) as usize)?;
     area.get_mut(start..end)
 }
 
+/// Whether `v` is laid out by a codec of its own (a Modbus tag) rather
+/// than in Tecomat memory's little-endian form.
+fn encoded(v: &ProgVar) -> bool {
+    v.codec != Codec::Native && v.bit.is_none()
+}
+
+/// Writes `value` through `v`'s codec; a value its raw type cannot hold
+/// (a scaled tag) is left out.
+fn write_value(image: &mut MemoryImage, v: &ProgVar, value: &Value) {
+    if let (Ok(bytes), Some(target)) = (v.codec.encode(v.ty, value), place(image, v)) {
+        let n = bytes.len().min(target.len());
+        target[..n].copy_from_slice(&bytes[..n]);
+    }
+}
+
+/// Little-endian bytes of an integer of `v`'s type.
 fn write_bytes(image: &mut MemoryImage, v: &ProgVar, bytes: &[u8]) {
+    if encoded(v) {
+        let mut le = [0u8; 8];
+        let n = bytes.len().min(8);
+        le[..n].copy_from_slice(&bytes[..n]);
+        let value = Value::decode(v.ty, &le[..v.ty.size().min(8)]);
+        return write_value(image, v, &value);
+    }
     if let Some(target) = place(image, v) {
         let n = bytes.len().min(target.len());
         target[..n].copy_from_slice(&bytes[..n]);
@@ -241,6 +285,13 @@ fn write_bytes(image: &mut MemoryImage, v: &ProgVar, bytes: &[u8]) {
 }
 
 fn write_text(image: &mut MemoryImage, v: &ProgVar, text: &[u8]) {
+    if encoded(v) {
+        let cap = match v.ty {
+            IecType::String(n) => usize::from(n),
+            _ => 0,
+        };
+        return write_value(image, v, &Value::Str(text[..text.len().min(cap)].to_vec()));
+    }
     if let Some(target) = place(image, v) {
         let n = text.len().min(target.len().saturating_sub(1));
         target[..n].copy_from_slice(&text[..n]);
@@ -252,6 +303,10 @@ fn write_text(image: &mut MemoryImage, v: &ProgVar, text: &[u8]) {
 pub fn read_f64(image: &mut MemoryImage, v: &ProgVar) -> Option<f64> {
     let bit = v.bit;
     let ty = v.ty;
+    if encoded(v) {
+        let value = v.codec.decode(ty, place(image, v)?);
+        return (!ty.is_string()).then(|| value.as_f64());
+    }
     let b = place(image, v)?;
     let u = |n: usize| {
         let mut raw = [0u8; 8];
@@ -276,6 +331,20 @@ pub fn read_f64(image: &mut MemoryImage, v: &ProgVar) -> Option<f64> {
 pub fn write_f64(image: &mut MemoryImage, v: &ProgVar, x: f64) {
     let bit = v.bit;
     let ty = v.ty;
+    if encoded(v) {
+        let value = match ty {
+            IecType::Real => Value::Real(x as f32),
+            IecType::Lreal => Value::LReal(x),
+            IecType::Date | IecType::Dt => Value::Date(x),
+            IecType::Time | IecType::Tod => Value::Time(x.round() as u32),
+            IecType::Sint | IecType::Int | IecType::Dint | IecType::Lint => {
+                Value::Signed(x.round() as i64)
+            }
+            IecType::String(_) => return,
+            _ => Value::Unsigned(x.round() as u64),
+        };
+        return write_value(image, v, &value);
+    }
     let Some(b) = place(image, v) else { return };
     match ty {
         IecType::Bool => {
@@ -314,6 +383,7 @@ mod tests {
             offset,
             bit,
             ty,
+            codec: Codec::Native,
         }
     }
 
@@ -357,6 +427,31 @@ mod tests {
         assert_eq!(f64::from_le_bytes(r[24..32].try_into().unwrap()), c.sin());
         assert_eq!(r[40], 0x0C, "positive set, neighbour bit kept");
         assert_eq!(&r[41..57], b"Have a nice day\0");
+    }
+
+    #[test]
+    fn modbus_tags_are_written_through_their_codec() {
+        use plccoms_plc::modbus::{tags, MAP};
+        let file = tags::parse(
+            b"name,type,table,address,bit,order\n\
+              sinus,REAL,holding,0,,CDAB\ntext,STRING[16],holding,10\n\
+              positive,BOOL,coil,3\ncount,DINT,input,4,,DCBA\n",
+        );
+        let vars: Vec<ProgVar> = file.tags.into_iter().map(ProgVar::from).collect();
+        let mut image = MemoryImage::new(MAP);
+        let mut program = Program::new(ProgramKind::Demo, vars.clone(), &["count".into()], 10);
+        program.step(&mut image, 0.0);
+        let r = image.area(Area::R);
+        let sinus = f32::from_be_bytes([r[2], r[3], r[0], r[1]]);
+        assert_eq!(sinus, (0.001f64).sin() as f32);
+        assert_eq!(&r[20..36], b"Have a nice day\0");
+        assert_eq!(image.area(Area::Y)[3], 1, "sinus > 0");
+        let input = plccoms_plc::modbus::INPUT_BASE as usize + 8;
+        assert_eq!(
+            i32::from_le_bytes(r[input..input + 4].try_into().unwrap()),
+            1
+        );
+        assert_eq!(read_f64(&mut image, &vars[0]), Some(f64::from(sinus)));
     }
 
     #[test]

@@ -6,6 +6,10 @@
 //! staged in a hidden temporary file next to the target and renamed into
 //! place only with the block flagged last, so readers never see half a file.
 //!
+//! The running program's public file is served too, read-only, at the root
+//! under its own name ([`FileStore::set_program_file`]): a PLC keeps it with
+//! the program, so a server told `PUBFILE = //VARLIST.PUB` finds it there.
+//!
 //! Every refusal is the PLC error byte 0x0C (wrong parameters): which byte a
 //! real PLC answers for a missing file is unverified.
 
@@ -47,6 +51,16 @@ pub struct FileStore {
     /// The last file committed and its length, so a repeated last block (a
     /// retry whose answer was lost) is acknowledged again.
     committed: Option<(PathBuf, u64)>,
+    program_file: Option<ProgramFile>,
+}
+
+/// The program's public file as the PLC holds it: the bytes it was loaded
+/// from, whatever happens to the host file later.
+#[derive(Debug, Clone)]
+struct ProgramFile {
+    name: String,
+    bytes: Vec<u8>,
+    info: FileInfo,
 }
 
 const BAD: Exception = Exception::BadParameters;
@@ -68,11 +82,58 @@ impl FileStore {
             root,
             staged: HashMap::new(),
             committed: None,
+            program_file: None,
         })
     }
 
     pub fn root(&self) -> &Path {
         &self.root
+    }
+
+    /// Serves `bytes` read-only as `/<name>` (matched without regard to
+    /// ASCII case: clients and ini files spell names as they like), hiding a
+    /// host file of that name. `name` must be one file name that cp1250 can hold.
+    pub fn set_program_file(&mut self, name: &str, bytes: Vec<u8>) -> Result<(), String> {
+        if matches!(name, "" | "." | "..")
+            || name.contains(['/', '\\', ':', '\0'])
+            || name.starts_with(STAGING_PREFIX)
+        {
+            return Err(format!("'{name}' is not a plain file name"));
+        }
+        if cp1250::try_encode(name).is_none() {
+            return Err(format!("'{name}' cannot be written in cp1250"));
+        }
+        let now = time::ttida_from_system(std::time::SystemTime::now());
+        let info = FileInfo {
+            size: bytes.len() as u64,
+            attributes: FILE_ATTRIBUTE_ARCHIVE | FILE_ATTRIBUTE_READONLY,
+            created: now,
+            modified: now,
+        };
+        self.program_file = Some(ProgramFile {
+            name: name.to_string(),
+            bytes,
+            info,
+        });
+        Ok(())
+    }
+
+    /// The name the program's public file is served under, if any.
+    pub fn program_file_name(&self) -> Option<&str> {
+        self.program_file.as_ref().map(|f| f.name.as_str())
+    }
+
+    /// The program's public file when `path` names it.
+    fn program_file(&self, path: &[u8]) -> Option<&ProgramFile> {
+        let file = self.program_file.as_ref()?;
+        let text = cp1250::decode(path);
+        let mut parts = text
+            .split(['/', '\\'])
+            .filter(|part| !part.is_empty() && *part != ".");
+        match (parts.next(), parts.next()) {
+            (Some(name), None) if name.eq_ignore_ascii_case(&file.name) => Some(file),
+            _ => None,
+        }
     }
 
     /// The host path of a PLC path, confined to the root.
@@ -111,6 +172,9 @@ impl FileStore {
     }
 
     pub fn info(&self, path: &[u8]) -> Result<FileInfo, Exception> {
+        if let Some(file) = self.program_file(path) {
+            return Ok(file.info);
+        }
         let host = self.resolve(path)?;
         let meta = fs::symlink_metadata(&host).map_err(bad)?;
         Ok(info_of(&host, &meta))
@@ -119,6 +183,12 @@ impl FileStore {
     pub fn read(&self, path: &[u8], offset: u64, len: u32) -> Result<Vec<u8>, Exception> {
         if len > MAX_BLOCK {
             return Err(BAD);
+        }
+        if let Some(file) = self.program_file(path) {
+            let start =
+                usize::try_from(offset).map_or(file.bytes.len(), |o| o.min(file.bytes.len()));
+            let end = start.saturating_add(len as usize).min(file.bytes.len());
+            return Ok(file.bytes[start..end].to_vec());
         }
         let host = self.resolve(path)?;
         let mut file = File::open(&host).map_err(bad)?;
@@ -140,6 +210,9 @@ impl FileStore {
         data: &[u8],
         last: bool,
     ) -> Result<(), Exception> {
+        if self.program_file(path).is_some() {
+            return Err(BAD);
+        }
         let host = self.resolve(path)?;
         let end = offset.checked_add(data.len() as u64).ok_or(BAD)?;
         if end > MAX_FILE_SIZE {
@@ -222,6 +295,9 @@ impl FileStore {
     /// Sets the read-only attribute and the modification time (0 leaves it);
     /// creation time cannot be set on the host and is ignored.
     pub fn write_info(&mut self, path: &[u8], info: &FileInfo) -> Result<(), Exception> {
+        if self.program_file(path).is_some() {
+            return Err(BAD);
+        }
         let host = self.resolve(path)?;
         if host == self.root {
             return Err(BAD);
@@ -252,7 +328,17 @@ impl FileStore {
     /// are left out.
     pub fn list(&self, path: &[u8]) -> Result<Vec<DirEntry>, Exception> {
         let host = self.resolve(path)?;
-        list_dir(&host, STAGING_PREFIX, MAX_ENTRIES).map_err(bad)
+        let mut entries = list_dir(&host, STAGING_PREFIX, MAX_ENTRIES).map_err(bad)?;
+        if let Some(file) = self.program_file.as_ref().filter(|_| host == self.root) {
+            let name = cp1250::try_encode(&file.name).ok_or(BAD)?;
+            entries.retain(|e| !e.name.eq_ignore_ascii_case(&name));
+            entries.push(DirEntry {
+                name,
+                info: file.info,
+            });
+            entries.sort_by(|a, b| a.name.cmp(&b.name));
+        }
+        Ok(entries)
     }
 }
 
@@ -398,5 +484,42 @@ mod tests {
             )
             .unwrap();
         store.write(b"f", 0, b"y", true).unwrap();
+    }
+
+    #[test]
+    fn the_program_file_is_served_read_only_at_the_root() {
+        let dir = tempfile::tempdir().unwrap();
+        fs::write(dir.path().join("VARLIST.PUB"), b"host copy").unwrap();
+        fs::write(dir.path().join("other.txt"), b"x").unwrap();
+        let mut store = FileStore::open(dir.path()).unwrap();
+        store
+            .set_program_file("VARLIST.PUB", b"program's".to_vec())
+            .unwrap();
+        for path in [&b"//VARLIST.PUB"[..], b"/varlist.pub", b"\\VarList.Pub"] {
+            assert_eq!(store.read(path, 0, 100).unwrap(), b"program's", "{path:?}");
+            let info = store.info(path).unwrap();
+            assert_eq!(info.size, 9);
+            assert_ne!(info.attributes & FILE_ATTRIBUTE_READONLY, 0);
+            assert_eq!(store.write(path, 0, b"y", true), Err(BAD));
+            assert_eq!(store.write_info(path, &FileInfo::default()), Err(BAD));
+        }
+        assert_eq!(store.read(b"VARLIST.PUB", 3, 100).unwrap(), b"gram's");
+        assert_eq!(store.read(b"VARLIST.PUB", 100, 10).unwrap(), b"");
+        // Elsewhere than the root, the name is an ordinary path.
+        assert!(store.info(b"sub/VARLIST.PUB").is_err());
+        let names: Vec<Vec<u8>> = store
+            .list(b"/")
+            .unwrap()
+            .into_iter()
+            .map(|e| e.name)
+            .collect();
+        assert_eq!(names, [b"VARLIST.PUB".to_vec(), b"other.txt".to_vec()]);
+        assert_eq!(
+            fs::read(dir.path().join("VARLIST.PUB")).unwrap(),
+            b"host copy"
+        );
+        for bad in ["", "..", "a/b", "a\\b", "C:x", ".plcsim-staging-x"] {
+            assert!(store.set_program_file(bad, Vec::new()).is_err(), "{bad:?}");
+        }
     }
 }

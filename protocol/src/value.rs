@@ -268,7 +268,8 @@ impl Value {
         }
     }
 
-    fn as_f64(&self) -> f64 {
+    /// The value as a number (BOOL 0/1, DATE/DT in seconds, STRING 0).
+    pub fn as_f64(&self) -> f64 {
         match self {
             Value::Bool(b) => f64::from(u8::from(*b)),
             Value::Unsigned(u) => *u as f64,

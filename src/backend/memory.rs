@@ -54,7 +54,7 @@ impl PlcBackend for MemoryBackend {
         "in-process memory".to_string()
     }
 
-    fn max_read_block(&self) -> u32 {
+    fn max_read_block(&self, _area: plccoms_protocol::Area) -> u32 {
         MAX_READ_BLOCK
     }
 

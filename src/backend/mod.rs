@@ -7,6 +7,7 @@
 
 pub mod epsnet;
 pub mod memory;
+pub mod modbus;
 pub mod plugin;
 
 use async_trait::async_trait;
@@ -84,9 +85,29 @@ pub trait PlcBackend: Send {
         None
     }
 
-    /// Largest block one memory read request may carry; the poller plans
-    /// around it.
-    fn max_read_block(&self) -> u32;
+    /// Largest block one memory read request of `area` may carry; the
+    /// poller plans around it.
+    fn max_read_block(&self, area: Area) -> u32;
+
+    /// Widest run of unwanted bytes of `area` a read may span to join two
+    /// wanted ranges; `None`: any within the block limit.
+    fn read_gap(&self, _area: Area) -> Option<u32> {
+        None
+    }
+
+    /// Reads of `area` start and end on multiples of this many bytes.
+    fn read_align(&self, _area: Area) -> u32 {
+        1
+    }
+
+    /// Pause after the first failed connection attempt of an outage, and
+    /// the longest it doubles to (see `link::health`).
+    fn probe_backoff(&self) -> (std::time::Duration, std::time::Duration) {
+        (
+            crate::link::health::PROBE_MIN,
+            crate::link::health::PROBE_MAX,
+        )
+    }
 
     /// Largest block one file read or write request may carry.
     fn max_file_block(&self) -> u32;
@@ -114,35 +135,48 @@ pub trait PlcBackend: Send {
 
     async fn status(&mut self) -> Result<PlcStatus, PlcError>;
 
+    // File services. A backend without a file system (a Modbus device)
+    // keeps the defaults: "service not activated", as from a PLC without one.
+
     /// Information about a file or directory in the PLC.
-    async fn file_info(&mut self, path: &[u8]) -> Result<Answer<FileInfo>, PlcError>;
+    async fn file_info(&mut self, _path: &[u8]) -> Result<Answer<FileInfo>, PlcError> {
+        Ok(Err(Exception::NotActivated))
+    }
 
     /// Up to `len` (at most `max_file_block`) bytes of a file from `offset`;
     /// fewer at its end.
     async fn read_file(
         &mut self,
-        path: &[u8],
-        offset: u64,
-        len: u32,
-    ) -> Result<Answer<Vec<u8>>, PlcError>;
+        _path: &[u8],
+        _offset: u64,
+        _len: u32,
+    ) -> Result<Answer<Vec<u8>>, PlcError> {
+        Ok(Err(Exception::NotActivated))
+    }
 
     /// Write a block of a file. The PLC commits the file only when `last` is
     /// set; a write at offset 0 starts the file anew.
     async fn write_file(
         &mut self,
-        path: &[u8],
-        offset: u64,
-        data: &[u8],
-        last: bool,
-    ) -> Result<Answer<()>, PlcError>;
+        _path: &[u8],
+        _offset: u64,
+        _data: &[u8],
+        _last: bool,
+    ) -> Result<Answer<()>, PlcError> {
+        Ok(Err(Exception::NotActivated))
+    }
 
     async fn write_file_info(
         &mut self,
-        path: &[u8],
-        info: &FileInfo,
-    ) -> Result<Answer<()>, PlcError>;
+        _path: &[u8],
+        _info: &FileInfo,
+    ) -> Result<Answer<()>, PlcError> {
+        Ok(Err(Exception::NotActivated))
+    }
 
-    async fn list_dir(&mut self, path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError>;
+    async fn list_dir(&mut self, _path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError> {
+        Ok(Err(Exception::NotActivated))
+    }
 }
 
 /// Adds a page of a directory listing to `all`; `Ok(true)` when the
@@ -169,16 +203,66 @@ pub type Opened = Result<Option<Box<dyn PlcBackend>>, String>;
 
 /// The backends, by the name the section key `PROTOCOL` gives them. A new
 /// backend is a module, its name here and its arm in [`open`].
-pub const PROTOCOLS: &[&str] = &["EPSNET"];
+pub const PROTOCOLS: &[&str] = &["EPSNET", "MODBUS_TCP"];
 
-/// The backend of a section, chosen by its `PROTOCOL` key.
-pub fn open(section: &crate::config::Section) -> Opened {
+/// The backend of a section, chosen by its `PROTOCOL` key; `dir` is the
+/// configuration's folder (where relative file names start).
+pub fn open(section: &crate::config::Section, dir: &std::path::Path) -> Opened {
     match section.protocol.as_str() {
         "EPSNET" => open_epsnet(section),
+        "MODBUS_TCP" => open_modbus(section, dir),
         other => Err(format!(
             "PROTOCOL = {other} is not a backend of this server"
         )),
     }
+}
+
+/// Modbus TCP to `IPADDR:MODBUS_PORT`, or `None` when the section has no
+/// device yet (`IPADDR` unset or `0.0.0.0`).
+fn open_modbus(section: &crate::config::Section, dir: &std::path::Path) -> Opened {
+    use std::net::{IpAddr, SocketAddr};
+    if section.serial_device.is_some() || section.shm_name.is_some() {
+        return Err(
+            "PROTOCOL = MODBUS_TCP runs over TCP: SERIAL_DEVICE and SHM_NAME do not apply"
+                .to_string(),
+        );
+    }
+    match section.ipaddr {
+        Some(ip) if !ip.is_unspecified() => {
+            let device = SocketAddr::new(IpAddr::V4(ip), section.modbus.port);
+            Ok(Some(Box::new(modbus::ModbusBackend::new(modbus_config(
+                section, device, dir,
+            )))))
+        }
+        _ => Ok(None),
+    }
+}
+
+/// Modbus settings from a section's keys, for a device at `device`.
+pub fn modbus_config(
+    section: &crate::config::Section,
+    device: std::net::SocketAddr,
+    dir: &std::path::Path,
+) -> modbus::ModbusConfig {
+    let mut config = modbus::ModbusConfig::new(device);
+    config.local_ip = section.ipaddr_local.map(std::net::IpAddr::V4);
+    if device.ip().is_loopback() {
+        config.local_ip = None;
+    }
+    config.unit = section.modbus.unit;
+    config.timeout = section.modbus.timeout;
+    config.limits = modbus::layout::DeviceLimits {
+        max_regs: section.modbus.max_regs,
+        max_bits: section.modbus.max_bits,
+    };
+    config.gap = section.modbus.gap;
+    config.inflight = usize::from(section.modbus.inflight);
+    config.tags = section
+        .modbus
+        .tags
+        .as_deref()
+        .map(|name| crate::link::tables::local_path(dir, section, name));
+    config
 }
 
 /// A section's link: the backend plugin `SHM_NAME` when set (the vendor's

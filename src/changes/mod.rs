@@ -17,6 +17,7 @@ use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use plccoms_protocol::value::{FormatOptions, Value};
+use plccoms_protocol::IecType;
 use tokio::sync::watch;
 use tokio::time::Instant;
 
@@ -34,8 +35,8 @@ const NOTICE_HISTORY: usize = 32;
 /// The last known value of one variable.
 #[derive(Debug, Clone, Default)]
 pub struct Slot {
-    /// Scalar value as little-endian bytes (a BOOL as 0/1); unused for
-    /// STRING, whose bytes are in `text`.
+    /// Scalar value: the first 8 bytes as read, as a little-endian number (a
+    /// BOOL as 0/1); unused for STRING, whose bytes are in `text`.
     raw: u64,
     /// The value as the protocol prints it; `None` until first read.
     text: Option<Arc<[u8]>>,
@@ -63,8 +64,11 @@ impl Slot {
         Some(if var.ty.is_string() {
             // text is `"..."`; the quotes are ours.
             Value::Str(text[1..text.len() - 1].to_vec())
+        } else if var.ty == IecType::Bool {
+            Value::Bool(self.raw != 0)
         } else {
-            Value::decode(var.ty, &self.raw.to_le_bytes()[..var.ty.size().min(8)])
+            let len = (var.byte_len() as usize).min(8);
+            var.codec.decode(var.ty, &self.raw.to_le_bytes()[..len])
         })
     }
 }
@@ -360,11 +364,9 @@ impl Publisher {
         };
         if changed {
             self.scratch.clear();
-            value.unwrap_or_else(|| Value::decode(ty, bytes)).format(
-                ty,
-                &self.format,
-                &mut self.scratch,
-            );
+            value
+                .unwrap_or_else(|| var.decode(bytes))
+                .format(ty, &self.format, &mut self.scratch);
             slot.raw = raw;
             slot.text = Some(Arc::from(&self.scratch[..]));
             slot.changed_seq = seq;

@@ -54,6 +54,9 @@ pub struct Subscription {
     delivered: Vec<u64>,
     seen_seq: u64,
     online: Option<bool>,
+    /// Also a batch for every poll cycle, changes or not.
+    every_poll: bool,
+    seen_poll: u64,
 }
 
 impl Subscription {
@@ -72,9 +75,20 @@ impl Subscription {
             // Everything known now is owed in the first batch.
             seen_seq: 0,
             online: None,
+            every_poll: false,
+            seen_poll: 0,
         };
         subscription.resolve(&snapshot);
         subscription
+    }
+
+    /// Also delivers a batch for every completed poll cycle, with no changes
+    /// if none: for consumers that act per cycle (heartbeats, the
+    /// historian's event capture). A batch that skipped cycles says so in
+    /// `missed`.
+    pub fn every_poll(mut self) -> Subscription {
+        self.every_poll = true;
+        self
     }
 
     /// The subscribed variables of the current table.
@@ -159,7 +173,10 @@ impl Subscription {
                 self.offer(&snapshot, index, &mut changes);
             }
         }
-        if changes.is_empty() && link.is_none() && !table_changed {
+        let new_poll = snapshot.poll_seq > self.seen_poll;
+        self.seen_poll = snapshot.poll_seq;
+        if changes.is_empty() && link.is_none() && !table_changed && !(self.every_poll && new_poll)
+        {
             return None;
         }
         Some(ChangeBatch {
@@ -249,6 +266,24 @@ mod tests {
         assert_eq!(sub.next().await.unwrap().link, Some(LinkEvent::Restored));
         drop(sub);
         assert!(!publisher.interest().is_wanted(a), "interest released");
+    }
+
+    #[tokio::test]
+    async fn every_poll_delivers_cycles_without_changes() {
+        let (mut publisher, stream) = setup();
+        let a = publisher.table().fixed_count() as VarId;
+        let mut sub = stream.subscribe(&["A"]).every_poll();
+        poll(&mut publisher, &[(a, 1)]);
+        assert_eq!(names(&sub.next().await.unwrap()), ["A"]);
+        poll(&mut publisher, &[(a, 1)]);
+        let batch = sub.next().await.unwrap();
+        assert!(batch.changes.is_empty());
+        assert_eq!(batch.snapshot.poll_seq, batch.snapshot.seq);
+        // A publish outside a poll without subscribed changes: nothing.
+        publisher.publish();
+        poll(&mut publisher, &[(a, 2)]);
+        let batch = sub.next().await.unwrap();
+        assert_eq!((names(&batch), batch.missed), (vec!["A".to_string()], 1));
     }
 
     #[tokio::test]

@@ -2,7 +2,9 @@
 //! answer ends with `GET:`. Values of polled variables come from the latest
 //! poll while it is fresh (see `link::fresh_for`); the others (and any GET
 //! behind an unanswered SET of this client) are read from the PLC, batched
-//! with other clients' reads.
+//! with other clients' reads. A Modbus device's exception is ERROR:80 with
+//! the variable and the exception (`'NAME: Modbus exception 2 (illegal data
+//! address)'`); other refusals ERROR:20, as from a Tecomat PLC.
 
 use plccoms_protocol::address::{parse_direct, DirectAddress};
 use plccoms_protocol::answer::ErrorCode;
@@ -14,7 +16,7 @@ use std::sync::Arc;
 use tokio::time::Instant;
 
 use super::{error, link_error, select, Cx, Reply, Selection};
-use crate::backend::ReadRequest;
+use crate::backend::{Exception, ReadRequest};
 use crate::link::ReadReply;
 use crate::vars::{VarId, VarTable};
 
@@ -186,6 +188,14 @@ pub fn complete(cx: &mut Cx<'_>, then: ReadThen, reply: ReadReply, out: &mut Vec
                 } else {
                     match answers.next() {
                         Some(Ok(bytes)) => var.decode(&bytes).format(var.ty, format, out),
+                        Some(Err(Exception::Modbus(code))) => {
+                            // The device's exception, named in the context.
+                            out.truncate(start);
+                            let context = super::set::exception_context(&var.name, code);
+                            plccoms_protocol::answer::write_error(out, ErrorCode::MemGet, &context);
+                            out.extend_from_slice(eol);
+                            return;
+                        }
                         _ => {
                             out.truncate(start);
                             plccoms_protocol::answer::write_error(out, ErrorCode::GetData, b"");

@@ -1,7 +1,10 @@
 //! `SET:<name|%addr>,<value>`: writes the value (a BOOL as its bit only) and
 //! answers `DIFF:<NAME>,<value>` with the value read back from the PLC, unless
-//! DIFF lines are off for this client. An invalid value is ERROR:35 and
-//! nothing is written.
+//! DIFF lines are off for this client. An invalid value, or one the
+//! variable's raw type cannot hold (a scaled Modbus tag), is ERROR:35 and
+//! nothing is written; a SET of a read-only variable (a Modbus input, or a
+//! tag with `access = ro`) is ERROR:30 with the request, as on a `READ_ONLY`
+//! section.
 //!
 //! [`plan`] and [`write`] are the same validation and errors for in-process
 //! writers (MQTT, the web page): a write is confirmed with the value read
@@ -11,22 +14,22 @@ use std::sync::Arc;
 
 use plccoms_protocol::address::parse_direct;
 use plccoms_protocol::answer::{write_error, ErrorCode};
+use plccoms_protocol::cp1250;
 use plccoms_protocol::request::{parse_set, ArgError};
 use plccoms_protocol::value::{FormatOptions, Value};
-use plccoms_protocol::{cp1250, IecType};
 
 use super::{error, link_error, Cx, Reply};
-use crate::backend::{ReadRequest, WriteData, WriteRequest};
+use crate::backend::{Exception, ReadRequest, WriteRequest};
 use crate::link::{LinkError, SetItem, SetReply};
 use crate::section::Section;
-use crate::vars::{VarId, VarTable};
+use crate::vars::{Codec, Var, VarId, VarTable};
 
 pub struct SetThen {
-    name: Vec<u8>,
     table: Arc<VarTable>,
-    var: Option<VarId>,
-    ty: IecType,
-    bit: Option<u8>,
+    id: Option<VarId>,
+    /// The variable written (a direct address as a variable of its own):
+    /// its name as printed, and how to read its answer.
+    var: Var,
 }
 
 /// A validated SET: what the link writes, and how its answer is read.
@@ -42,8 +45,11 @@ pub enum Refusal {
     BadAddress,
     /// No such variable (ERROR:33, with the request).
     UnknownVariable,
-    /// Not a value of the variable's type (ERROR:35, with the request).
+    /// Not a value of the variable's type, or not one its raw type holds
+    /// (ERROR:35, with the request).
     BadValue,
+    /// The variable cannot be written (ERROR:30, with the request).
+    ReadOnly,
 }
 
 impl Refusal {
@@ -52,6 +58,7 @@ impl Refusal {
             Refusal::BadAddress => ErrorCode::MemSet,
             Refusal::UnknownVariable => ErrorCode::UnknownVariable,
             Refusal::BadValue => ErrorCode::WrongValue,
+            Refusal::ReadOnly => ErrorCode::BadRequest,
         }
     }
 }
@@ -64,46 +71,46 @@ pub fn plan(
     name: &[u8],
     text: &[u8],
 ) -> Result<Planned, Refusal> {
-    let (area, offset, ty, bit, var, printed) = if name.first() == Some(&b'%') {
+    let (var, id) = if name.first() == Some(&b'%') {
         let address = parse_direct(name).ok_or(Refusal::BadAddress)?;
-        (
-            address.area,
-            address.offset,
-            address.ty,
-            address.bit,
-            None,
-            cp1250::to_upper(name),
-        )
+        let var = Var {
+            name: cp1250::to_upper(name).into_boxed_slice(),
+            area: address.area,
+            offset: address.offset,
+            bit: address.bit,
+            ty: address.ty,
+            fixed: false,
+            codec: Codec::Native,
+            writable: true,
+        };
+        (var, None)
     } else {
         let id = table.lookup(name).ok_or(Refusal::UnknownVariable)?;
-        let v = table.var(id);
-        (v.area, v.offset, v.ty, v.bit, Some(id), v.name.to_vec())
+        (table.var(id).clone(), Some(id))
     };
-    let value = Value::parse(ty, text, format).map_err(|_| Refusal::BadValue)?;
-    let data = match (bit, &value) {
-        (Some(bit), Value::Bool(on)) => WriteData::Bit { bit, value: *on },
-        _ => {
-            let mut bytes = Vec::with_capacity(ty.size());
-            value.encode(ty, &mut bytes);
-            WriteData::Bytes(bytes)
-        }
-    };
+    if !var.writable {
+        return Err(Refusal::ReadOnly);
+    }
+    let value = Value::parse(var.ty, text, format).map_err(|_| Refusal::BadValue)?;
+    let data = var.encode(&value).map_err(|_| Refusal::BadValue)?;
     Ok(Planned {
         item: SetItem {
-            write: WriteRequest { area, offset, data },
-            readback: ReadRequest {
-                area,
-                offset,
-                len: ty.size() as u32,
+            write: WriteRequest {
+                area: var.area,
+                offset: var.offset,
+                data,
             },
-            var: var.map(|id| (table.clone(), id)),
+            readback: ReadRequest {
+                area: var.area,
+                offset: var.offset,
+                len: var.byte_len(),
+            },
+            var: id.map(|id| (table.clone(), id)),
         },
         then: SetThen {
-            name: printed,
             table: table.clone(),
+            id,
             var,
-            ty,
-            bit,
         },
     })
 }
@@ -122,23 +129,37 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
     }
 }
 
-/// The value a SET read back, or the error its sender gets.
-fn confirm(then: &SetThen, reply: SetReply) -> Result<(Value, u64), (ErrorCode, &[u8])> {
+/// The value a SET read back, or the error its sender gets (the context
+/// of its line).
+fn confirm(then: &SetThen, reply: SetReply) -> Result<(Value, u64), (ErrorCode, Vec<u8>)> {
     let outcome = match reply {
         Ok(outcome) => outcome,
-        Err(LinkError::Offline) => return Err((ErrorCode::ConnectPlc, b"")),
-        Err(_) => return Err((ErrorCode::SendData, b"")),
+        Err(LinkError::Offline) => return Err((ErrorCode::ConnectPlc, Vec::new())),
+        Err(_) => return Err((ErrorCode::SendData, Vec::new())),
     };
     let bytes = match outcome.answer {
         Ok(bytes) => bytes,
-        Err(_) if then.var.is_some() => return Err((ErrorCode::SendData, b"")),
-        Err(_) => return Err((ErrorCode::MemSet, &then.name)),
+        Err(Exception::Modbus(code)) => {
+            // The device's exception, named in the context: a value it
+            // refuses is a wrong value, anything else the address's fault.
+            let errcode = if code == plccoms_plc::modbus::ExceptionCode::ILLEGAL_DATA_VALUE {
+                ErrorCode::WrongValue
+            } else {
+                ErrorCode::MemSet
+            };
+            return Err((errcode, exception_context(&then.var.name, code)));
+        }
+        Err(_) if then.id.is_some() => return Err((ErrorCode::SendData, Vec::new())),
+        Err(_) => return Err((ErrorCode::MemSet, then.var.name.to_vec())),
     };
-    let value = match then.bit {
-        Some(bit) => Value::Bool(bytes.first().is_some_and(|b| b & (1 << bit) != 0)),
-        None => Value::decode(then.ty, &bytes),
-    };
-    Ok((value, outcome.seq))
+    Ok((then.var.decode(&bytes), outcome.seq))
+}
+
+/// `NAME: Modbus exception 2 (illegal data address)`, an error's context.
+pub fn exception_context(name: &[u8], code: plccoms_plc::modbus::ExceptionCode) -> Vec<u8> {
+    let mut context = name.to_vec();
+    context.extend_from_slice(format!(": {code}").as_bytes());
+    context
 }
 
 pub fn complete(cx: &mut Cx<'_>, then: SetThen, reply: SetReply, out: &mut Vec<u8>) {
@@ -149,20 +170,20 @@ pub fn complete(cx: &mut Cx<'_>, then: SetThen, reply: SetReply, out: &mut Vec<u
             return link_error(LinkError::Offline, ErrorCode::SendData, eol, out)
         }
         Err((code, context)) => {
-            write_error(out, code, context);
+            write_error(out, code, &context);
             out.extend_from_slice(eol);
             return;
         }
     };
     if cx.client.diff {
         out.extend_from_slice(b"DIFF:");
-        out.extend_from_slice(&then.name);
+        out.extend_from_slice(&then.var.name);
         out.push(b',');
-        value.format(then.ty, &cx.section.format, out);
+        value.format(then.var.ty, &cx.section.format, out);
         out.extend_from_slice(eol);
     }
     // The table may have changed while the SET was under way.
-    if let (Some(id), true) = (then.var, Arc::ptr_eq(&then.table, cx.client.vars.table())) {
+    if let (Some(id), true) = (then.id, Arc::ptr_eq(&then.table, cx.client.vars.table())) {
         cx.client.vars.mark_sent(id, seq, Some(value));
     }
 }
@@ -229,13 +250,13 @@ pub async fn write(section: &Section, name: &[u8], text: &[u8]) -> Result<Confir
     match confirm(&then, reply) {
         Ok((value, _)) => {
             let mut text = Vec::new();
-            value.format(then.ty, &section.format, &mut text);
+            value.format(then.var.ty, &section.format, &mut text);
             Ok(Confirmed {
-                name: then.name,
+                name: then.var.name.to_vec(),
                 value,
                 text,
             })
         }
-        Err((code, context)) => Err(WriteError::new(code, context)),
+        Err((code, context)) => Err(WriteError::new(code, &context)),
     }
 }

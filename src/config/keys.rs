@@ -6,7 +6,8 @@
 use std::net::{IpAddr, Ipv4Addr};
 use std::time::Duration;
 
-use super::{Global, Network, Section, Simulator};
+use super::history::{self, Form};
+use super::{split_masks, Global, MqttFormat, Network, Section, Simulator, MQTT_FORMATS};
 
 /// The backends a section's `PROTOCOL` names (the backend module's list).
 pub use crate::backend::PROTOCOLS;
@@ -73,6 +74,8 @@ pub enum Kind {
         what: &'static str,
         choices: &'static [&'static str],
     },
+    /// Text of a form of the historian's (`history.rs`), checked on load.
+    Form(Form),
 }
 
 /// A parsed value, of the key's [`Kind`].
@@ -279,6 +282,7 @@ impl Kind {
             Kind::Networks => "a.b.c.d, a.b.c.d/n, x:y::z, x:y::/n".to_string(),
             Kind::Choice { choices, .. } => choices.join(", "),
             Kind::Choices { choices, .. } => format!("a list of {}", choices.join(", ")),
+            Kind::Form(form) => form.allowed().to_string(),
         }
     }
 
@@ -334,6 +338,10 @@ impl Kind {
                 })
                 .collect::<Result<Vec<_>, _>>()
                 .map(Value::Choices),
+            Kind::Form(form) => form
+                .check(text)
+                .map(|()| Value::Text(text.to_string()))
+                .map_err(|problem| format!("{problem} {allowed}")),
         }
     }
 }
@@ -559,6 +567,43 @@ static KEYS: &[Key] = &[
         Setter::Global(|g, v| g.http_cert = Some(v.text()))),
     row("HTTP_KEY", None, Kind::Text, "TLS private key (PEM) of the web page",
         Setter::Global(|g, v| g.http_key = Some(v.text()))),
+    // The historian (issue 13).
+    row("HISTORY_DIR", None, Kind::Text,
+        "folder of the history files (default: history beside the configuration file)",
+        Setter::Global(|g, v| g.history_dir = Some(v.text()))),
+    row("HISTORY_RETENTION", None, Kind::Form(Form::Retention),
+        "history kept: days and/or a size; older day files are deleted (default: all)",
+        Setter::Global(|g, v| g.history_retention = history::parse_retention(&v.text()).unwrap_or_default())),
+    row("HISTORY_SYNC", Some("1"), number(1, 3600, "s"),
+        "seconds between durable commits of the history (at most this much is lost on a crash)",
+        Setter::Global(|g, v| g.history_sync = v.secs())),
+    // MQTT (src/mqtt/): the broker, the client, the spool.
+    row("MQTT_URL", None, Kind::Text,
+        "broker: mqtt://host[:port] (1883) or mqtts://host[:port] (8883, TLS); unset = MQTT off",
+        Setter::Global(|g, v| g.mqtt.url = Some(v.text()))),
+    row("MQTT_USER", None, Kind::Text, "user name at the broker",
+        Setter::Global(|g, v| g.mqtt.user = Some(v.text()))),
+    row("MQTT_PASSWORD", None, Kind::Text, "password at the broker",
+        Setter::Global(|g, v| g.mqtt.password = Some(v.text()))),
+    row("MQTT_PASSWORD_FILE", None, Kind::Text, "file holding the password (instead of MQTT_PASSWORD)",
+        Setter::Global(|g, v| g.mqtt.password_file = Some(v.text()))),
+    row("MQTT_CLIENT_ID", None, Kind::Text,
+        "client id base (default plccoms-<host name>-<hash of the configuration path>)",
+        Setter::Global(|g, v| g.mqtt.client_id = Some(v.text()))),
+    row("MQTT_PREFIX", Some("plccoms"), Kind::Text, "first topic level(s)",
+        Setter::Global(|g, v| g.mqtt.prefix = v.text())),
+    row("MQTT_CA", None, Kind::Text, "PEM file of the CA(s) the broker's certificate is checked against",
+        Setter::Global(|g, v| g.mqtt.ca = Some(v.text()))),
+    row("MQTT_CERT", None, Kind::Text, "PEM file of a client certificate (with MQTT_KEY)",
+        Setter::Global(|g, v| g.mqtt.cert = Some(v.text()))),
+    row("MQTT_KEY", None, Kind::Text, "PEM file of the client certificate's private key",
+        Setter::Global(|g, v| g.mqtt.key = Some(v.text()))),
+    row("MQTT_BUFFER", Some("67108864"), number(65536, 1 << 40, "bytes"),
+        "unsent messages kept on disk per section; over it the oldest are dropped",
+        Setter::Global(|g, v| g.mqtt.buffer = v.number())),
+    row("MQTT_SPOOL", Some("mqtt-spool"), Kind::Text,
+        "folder of the on-disk queues (relative to the configuration file)",
+        Setter::Global(|g, v| g.mqtt.spool = v.text())),
 
     // A PLC section.
     row("IPADDR", None, Kind::Ipv4, "IP address of the PLC (0.0.0.0 = none yet)",
@@ -606,10 +651,10 @@ static KEYS: &[Key] = &[
         Setter::Section(|s, v| s.pubfile_fixed = Some(v.text()))),
     // This server's own keys.
     row("PROTOCOL", Some("EPSNET"), choice("protocol", PROTOCOLS),
-        "backend: EPSNET (default)",
+        "backend: EPSNET (default) or MODBUS_TCP",
         Setter::Section(|s, v| s.protocol = v.text())),
     row("SIMULATOR", Some("No"), Kind::Bool,
-        "Yes runs a simulated EPSNET PLC inside the server on a loopback port",
+        "Yes runs a simulated PLC (EPSNET, or Modbus TCP) inside the server on a loopback port",
         Setter::Section(|s, v| {
             s.simulator = v.bool().then(|| Simulator { program: String::new(), pubfile: None });
         })),
@@ -631,6 +676,65 @@ static KEYS: &[Key] = &[
     row("SETCONF_KEYS", None, Kind::Choices { what: "SETCONF name", choices: &SETCONF_NAMES },
         "the SETCONF names clients may use (default: all); others answer ERROR:30",
         Setter::Section(|s, v| s.setconf_keys = Some(v.choices()))),
+    // The historian (issue 13).
+    row("HISTORY", None, Kind::Form(Form::Masks), "variables recorded in the history (masks)",
+        Setter::Section(|s, v| s.history.masks = history::parse_masks(&v.text()).unwrap_or_default())),
+    row("HISTORY_DELTA", Some("0"), Kind::Form(Form::Deadband),
+        "deadband: a change must exceed it to be recorded (0 = every change)",
+        Setter::Section(|s, v| s.history.delta = history::parse_deadband(&v.text()).unwrap_or_default())),
+    row("HISTORY_HEARTBEAT", Some("0"), number(0, 86400, "s"),
+        "an unchanged value is recorded again this often (0 = off)",
+        Setter::Section(|s, v| s.history.heartbeat = v.secs())),
+    row("HISTORY_TRIGGER", None, Kind::Text,
+        "BOOL variable whose rising edge records every cycle from HISTORY_PRE before to HISTORY_POST after",
+        Setter::Section(|s, v| s.history.trigger = Some(v.text()))),
+    row("HISTORY_PRE", Some("10"), number(0, 10000, "cycles"), "cycles recorded before a trigger",
+        Setter::Section(|s, v| s.history.pre = v.number() as u32)),
+    row("HISTORY_POST", Some("10"), number(0, 10000, "cycles"), "cycles recorded after a trigger",
+        Setter::Section(|s, v| s.history.post = v.number() as u32)),
+    row("HISTORY_STAMP", None, Kind::Form(Form::Stamps),
+        "VALUE_VAR:STAMP_VAR pairs: samples carry the PLC's time from a DT or LINT/ULINT/LWORD (ms) variable",
+        Setter::Section(|s, v| s.history.stamps = history::parse_stamps(&v.text()).unwrap_or_default())),
+    // MQTT (src/mqtt/): what the section publishes and what may be written.
+    row("MQTT_PUBLISH", None, Kind::Text, "masks of the variables published (default none)",
+        Setter::Section(|s, v| s.mqtt.publish = split_masks(&v.text()))),
+    row("MQTT_WRITE", None, Kind::Text, "masks of the variables <var>/set may write (default none)",
+        Setter::Section(|s, v| s.mqtt.write = split_masks(&v.text()))),
+    row("MQTT_QOS", Some("1"), number(0, 1, ""), "QoS of value messages; 1 = kept on disk while the broker is away",
+        Setter::Section(|s, v| s.mqtt.qos = v.number() as u8)),
+    row("MQTT_RETAIN", Some("Yes"), Kind::Bool, "value messages are retained",
+        Setter::Section(|s, v| s.mqtt.retain = v.bool())),
+    row("MQTT_FORMAT", Some("plain"), choice("MQTT format", &MQTT_FORMATS),
+        "plain (the value as GET prints it) or json (value, time of the poll, quality)",
+        Setter::Section(|s, v| {
+            s.mqtt.format = if v.text() == "json" { MqttFormat::Json } else { MqttFormat::Plain };
+        })),
+    row("MQTT_DELTA", None, Kind::Text, "deadband: a value is published when it moved more than this",
+        Setter::Section(|s, v| s.mqtt.delta = Some(v.text()))),
+    row("MQTT_HA_DISCOVERY", Some("No"), Kind::Bool, "Home Assistant MQTT discovery",
+        Setter::Section(|s, v| s.mqtt.ha_discovery = v.bool())),
+    // Modbus TCP (PROTOCOL = MODBUS_TCP).
+    row("MODBUS_PORT", Some("502"), number(1, 65535, ""), "Modbus TCP port of the device",
+        Setter::Section(|s, v| s.modbus.port = v.number() as u16)),
+    row("MODBUS_UNIT", Some("1"), number(0, 255, ""), "Modbus unit id (slave address)",
+        Setter::Section(|s, v| s.modbus.unit = v.number() as u8)),
+    row("MODBUS_TAGS", None, Kind::Text,
+        "Modbus tag file (CSV): //name = root folder, as PUBFILE",
+        Setter::Section(|s, v| s.modbus.tags = Some(v.text()))),
+    row("MODBUS_TIMEOUT", Some("1000"), number(1, 60000, "ms"), "Modbus transaction timeout",
+        Setter::Section(|s, v| s.modbus.timeout = v.millis())),
+    row("MODBUS_MAX_REGS", Some("125"), number(1, 125, "registers"),
+        "registers one Modbus read may ask for",
+        Setter::Section(|s, v| s.modbus.max_regs = v.number() as u16)),
+    row("MODBUS_MAX_BITS", Some("2000"), number(1, 2000, "bits"),
+        "coils or discrete inputs one Modbus read may ask for",
+        Setter::Section(|s, v| s.modbus.max_bits = v.number() as u16)),
+    row("MODBUS_GAP", Some("125"), number(0, 125, "registers"),
+        "unwanted registers a Modbus read may span to join two blocks",
+        Setter::Section(|s, v| s.modbus.gap = v.number() as u16)),
+    row("MODBUS_INFLIGHT", Some("1"), number(1, 16, ""),
+        "Modbus transactions in flight at once (devices that allow more)",
+        Setter::Section(|s, v| s.modbus.inflight = v.number() as u8)),
     // Accepted in a PLC section for symmetry with [*]: no effect there.
     row("SERIAL_DEVICE_CFG", None, Kind::Text, "no effect in a PLC section (a [*] key)",
         Setter::Section(|_, _| {})),

@@ -19,8 +19,10 @@
 //! server instead of a real one.
 
 mod diag;
+pub mod history;
 mod ini;
 mod keys;
+mod mqtt;
 #[cfg(test)]
 mod tests;
 
@@ -31,6 +33,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 pub use diag::{Diagnostic, Severity};
+pub use history::{History, Retention, StampPair};
 pub use keys::{
     global_keys, key, keys, parse_bool, parse_ipv4, section_keys, setconf_key, Key, Kind, Scope,
     SetConfScope, Value, PROTOCOLS, SIMULATOR_PROGRAMS,
@@ -39,6 +42,7 @@ pub use keys::{
 use diag::Diags;
 use ini::{Entry, RawSection};
 use keys::Settings;
+pub use mqtt::{check_prefix, split_masks, MqttFormat, MqttGlobal, MqttSection, MQTT_FORMATS};
 
 /// A loaded ini file.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -91,6 +95,13 @@ pub struct Global {
     pub http_token: Option<String>,
     pub http_cert: Option<String>,
     pub http_key: Option<String>,
+    /// HISTORY_DIR as written; `None`: `history` beside the configuration.
+    pub history_dir: Option<String>,
+    pub history_retention: Retention,
+    /// HISTORY_SYNC: time between durable commits of the history.
+    pub history_sync: Duration,
+    /// The MQTT_* keys (this server's own).
+    pub mqtt: MqttGlobal,
 }
 
 impl Default for Global {
@@ -125,6 +136,10 @@ impl Default for Global {
             http_token: None,
             http_cert: None,
             http_key: None,
+            history_dir: None,
+            history_retention: Retention::default(),
+            history_sync: Duration::ZERO,
+            mqtt: MqttGlobal::default(),
         })
     }
 }
@@ -171,6 +186,12 @@ pub struct Section {
     pub read_only: bool,
     /// `SETCONF_KEYS`: the SETCONF names clients may use; `None`: all.
     pub setconf_keys: Option<Vec<&'static str>>,
+    /// `HISTORY*`: what the historian records (this server's own keys).
+    pub history: History,
+    /// The MQTT_* keys (this server's own).
+    pub mqtt: MqttSection,
+    /// The `MODBUS_*` keys (`PROTOCOL = MODBUS_TCP`).
+    pub modbus: Modbus,
 }
 
 /// An address or CIDR network of `ALLOW`.
@@ -254,6 +275,27 @@ pub struct Simulator {
     pub program: String,
     /// `SIMULATOR_PUB`: the public file the simulated PLC serves.
     pub pubfile: Option<String>,
+}
+
+/// The settings of a Modbus TCP section (`MODBUS_*`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Modbus {
+    /// `MODBUS_PORT`: the device's TCP port.
+    pub port: u16,
+    /// `MODBUS_UNIT`: the unit id in every request.
+    pub unit: u8,
+    /// `MODBUS_TAGS`: the tag file (path rules as PUBFILE).
+    pub tags: Option<String>,
+    /// `MODBUS_TIMEOUT`: how long a transaction may take.
+    pub timeout: Duration,
+    /// `MODBUS_MAX_REGS`: registers one read may ask for.
+    pub max_regs: u16,
+    /// `MODBUS_MAX_BITS`: coils or inputs one read may ask for.
+    pub max_bits: u16,
+    /// `MODBUS_GAP`: unwanted registers a read may span to join two blocks.
+    pub gap: u16,
+    /// `MODBUS_INFLIGHT`: transactions in flight at once.
+    pub inflight: u8,
 }
 
 /// A loaded file with the warnings and skipped-section errors found on the way.
@@ -562,6 +604,7 @@ fn read_global(
         global.output_soft_limit = hard;
     }
     check_http(&global, &map, diags, errors);
+    mqtt::check_global(&global.mqtt, &map, diags, errors);
     if let (Some(text), Some(entry)) = (&global.serial_device_cfg, map.get("SERIAL_DEVICE_CFG")) {
         if let Err(problem) = crate::backend::epsnet::serial::parse_device_cfg(text) {
             errors.push(diags.make(Severity::Error, entry.line, problem));
@@ -637,6 +680,18 @@ fn section_defaults(name: &str) -> Section {
         allow: None,
         read_only: false,
         setconf_keys: None,
+        history: History::default(),
+        mqtt: MqttSection::default(),
+        modbus: Modbus {
+            port: 0,
+            unit: 0,
+            tags: None,
+            timeout: Duration::ZERO,
+            max_regs: 0,
+            max_bits: 0,
+            gap: 0,
+            inflight: 0,
+        },
     })
 }
 
@@ -649,6 +704,7 @@ fn read_section(
     let map = collect(raw, Scope::Section, diags);
     let mut section = section_defaults(&raw.name);
     fill(&mut section, &map, diags, errors);
+    mqtt::check_section(&section.mqtt, &map, diags, errors);
     if section.simulator.is_none() {
         for key in ["SIMULATOR_PROGRAM", "SIMULATOR_PUB"] {
             if let Some(entry) = map.get(key) {
@@ -659,6 +715,32 @@ fn read_section(
                 );
             }
         }
+    }
+    history::warn_unused(&section.history, &map, diags);
+    // Modbus keys: only with PROTOCOL = MODBUS_TCP; such a section reads a
+    // tag file, not public files.
+    let modbus = section.protocol == "MODBUS_TCP";
+    for (key, entry) in &map {
+        let misplaced = if modbus {
+            matches!(*key, "PUBFILE" | "PUBFILE_FIXED")
+                .then(|| format!("{key} has no effect with PROTOCOL = MODBUS_TCP (its variables come from MODBUS_TAGS)"))
+        } else {
+            key.starts_with("MODBUS_")
+                .then(|| format!("{key} has no effect without PROTOCOL = MODBUS_TCP"))
+        };
+        if let Some(message) = misplaced {
+            diags.push(Severity::Warning, entry.line, message);
+        }
+    }
+    if modbus && section.modbus.tags.is_none() && section.simulator.is_none() {
+        diags.push(
+            Severity::Warning,
+            raw.line,
+            format!(
+                "section [{}] has no MODBUS_TAGS: it serves __PLC_RUN and __PF_CRC only",
+                raw.name
+            ),
+        );
     }
     if !map.contains_key("SERVER_PORT") {
         errors.push(diags.make(

@@ -905,10 +905,17 @@ fn defaults_come_from_the_table() {
     assert_eq!(expected.protocol, "EPSNET");
 }
 
-/// A PLC section body to try a key in: keys of the simulator need it on.
+/// A PLC section body to try a key in: keys of the simulator need it on,
+/// Modbus keys a Modbus section (with a tag file, or a simulated device).
 fn base(key: &str) -> &'static str {
-    if key.starts_with("SIMULATOR_") {
+    if key.starts_with("SIMULATOR_") || key == "PROTOCOL" {
         "SERVER_PORT = 5010\nSIMULATOR = Yes"
+    } else if key.starts_with("HISTORY_") {
+        "SERVER_PORT = 5010\nHISTORY = *"
+    } else if key == "MODBUS_TAGS" {
+        "SERVER_PORT = 5010\nPROTOCOL = MODBUS_TCP\nSIMULATOR = Yes"
+    } else if key.starts_with("MODBUS_") {
+        "SERVER_PORT = 5010\nPROTOCOL = MODBUS_TCP\nMODBUS_TAGS = t.csv"
     } else {
         "SERVER_PORT = 5010"
     }
@@ -917,6 +924,12 @@ fn base(key: &str) -> &'static str {
 /// A good value of the key's kind other than its default.
 fn sample(key: &Key) -> Option<String> {
     let default = key.default_value();
+    // Text keys whose values are checked beyond their kind.
+    match key.name {
+        "MQTT_URL" => return Some("mqtt://broker.lan".into()),
+        "MQTT_DELTA" => return Some("0.5".into()),
+        _ => {}
+    }
     Some(match key.kind {
         Kind::Number { min, max, .. } if default == Some(Value::Number(min)) => max.to_string(),
         Kind::Number { min, .. } => min.to_string(),
@@ -932,6 +945,7 @@ fn sample(key: &Key) -> Option<String> {
             .find(|c| default != Some(Value::Choice(c)))?
             .to_string(),
         Kind::Choices { choices, .. } => choices[..2].join(", "),
+        Kind::Form(form) => form.example().into(),
     })
 }
 
@@ -975,8 +989,36 @@ fn protocol() {
         "EPSNET"
     );
     assert_eq!(
+        section("SERVER_PORT = 1\nPROTOCOL = modbus_tcp\nMODBUS_TAGS = t.csv").protocol,
+        "MODBUS_TCP"
+    );
+    assert_eq!(
         section_error("SERVER_PORT = 1\nPROTOCOL = modbus"),
-        "PLCComS.ini:4: PROTOCOL = modbus is not a protocol (allowed EPSNET)"
+        "PLCComS.ini:4: PROTOCOL = modbus is not a protocol (allowed EPSNET, MODBUS_TCP)"
+    );
+}
+
+#[test]
+fn modbus_keys_where_they_do_nothing_are_warnings() {
+    let warnings = |body: &str| {
+        let loaded = with_section(body).unwrap_or_else(|e| panic!("{body}: {e}"));
+        assert_eq!(loaded.config.sections.len(), 1, "{body}");
+        messages(&loaded)
+    };
+    assert_eq!(
+        warnings("SERVER_PORT = 1\nMODBUS_PORT = 1502"),
+        ["PLCComS.ini:4: MODBUS_PORT has no effect without PROTOCOL = MODBUS_TCP"]
+    );
+    assert_eq!(
+        warnings("SERVER_PORT = 1\nPROTOCOL = MODBUS_TCP\nMODBUS_TAGS = t.csv\nPUBFILE = x.pub"),
+        [
+            "PLCComS.ini:6: PUBFILE has no effect with PROTOCOL = MODBUS_TCP \
+          (its variables come from MODBUS_TAGS)"
+        ]
+    );
+    assert_eq!(
+        warnings("SERVER_PORT = 1\nPROTOCOL = MODBUS_TCP"),
+        ["PLCComS.ini:2: section [PLC] has no MODBUS_TAGS: it serves __PLC_RUN and __PF_CRC only"]
     );
 }
 

@@ -7,7 +7,8 @@
 //!   vendor's defaults); the loss is logged once;
 //! - while it is lost, requests are answered with the link error at once
 //!   (the handle refuses them without queueing) and one probe at a time
-//!   looks for its return, [`PROBE_MIN`] doubling to [`PROBE_MAX`] apart;
+//!   looks for its return, [`PROBE_MIN`] doubling to [`PROBE_MAX`] apart
+//!   (the backend may choose other bounds: a Modbus device 1 s to 30 s);
 //! - a failed first connection is logged once too, then retried the same
 //!   way; the return is logged with the outage's length.
 
@@ -96,6 +97,8 @@ pub struct Health {
     state: LinkState,
     shared: SharedState,
     pause: Duration,
+    /// The first pause of an outage and the longest it doubles to.
+    backoff: (Duration, Duration),
     next_probe: Instant,
     /// Since when the PLC has not answered.
     down_since: Option<Instant>,
@@ -112,9 +115,17 @@ impl Health {
             state,
             shared: SharedState::new(state),
             pause: PROBE_MIN,
+            backoff: (PROBE_MIN, PROBE_MAX),
             next_probe: now,
             down_since: None,
         }
+    }
+
+    /// Probes of an outage pause `min` doubling to `max` (the backend's
+    /// choice).
+    pub fn set_backoff(&mut self, (min, max): (Duration, Duration)) {
+        self.backoff = (min, max.max(min));
+        self.pause = min;
     }
 
     pub fn state(&self) -> LinkState {
@@ -139,7 +150,7 @@ impl Health {
     /// away (`None` at the first connection).
     pub fn connected(&mut self, now: Instant) -> Option<Duration> {
         self.set(LinkState::Online);
-        self.pause = PROBE_MIN;
+        self.pause = self.backoff.0;
         self.down_since.take().map(|since| now - since)
     }
 
@@ -159,11 +170,11 @@ impl Health {
         // A loss is probed again at once (it may have been one lost
         // datagram pair); a failed probe waits, longer each time.
         if failure == Failure::Lost {
-            self.pause = PROBE_MIN;
+            self.pause = self.backoff.0;
             self.next_probe = now;
         } else {
             self.next_probe = now + self.pause;
-            self.pause = (self.pause * 2).min(PROBE_MAX);
+            self.pause = (self.pause * 2).min(self.backoff.1);
         }
         failure
     }
@@ -175,7 +186,7 @@ impl Health {
         } else {
             LinkState::NoPlc
         });
-        self.pause = PROBE_MIN;
+        self.pause = self.backoff.0;
         self.next_probe = now;
         self.down_since = None;
     }
@@ -219,6 +230,27 @@ mod tests {
         let back = now + Duration::from_millis(10);
         assert_eq!(health.connected(back), Some(back - t1));
         assert_eq!(shared.get(), LinkState::Online);
+    }
+
+    #[test]
+    fn the_backend_chooses_the_pauses() {
+        let t0 = Instant::now();
+        let mut health = Health::new(true, t0);
+        health.set_backoff((Duration::from_secs(1), Duration::from_secs(30)));
+        health.connected(t0);
+        assert_eq!(health.failed(t0), Failure::Lost);
+        let mut now = t0;
+        let mut pauses = Vec::new();
+        for _ in 0..7 {
+            assert_eq!(health.failed(now), Failure::StillDown);
+            let mut wait = Duration::ZERO;
+            while !health.probe_due(now + wait) {
+                wait += Duration::from_millis(500);
+            }
+            pauses.push(wait.as_secs());
+            now += wait;
+        }
+        assert_eq!(pauses, [1, 2, 4, 8, 16, 30, 30]);
     }
 
     #[test]

@@ -14,7 +14,7 @@ use std::sync::Arc;
 
 use tokio::sync::oneshot;
 
-use super::plan::{Range, ReadPlan};
+use super::plan::{Limits, Range, ReadPlan};
 use super::{LinkError, ReadReply, SetOutcome, SetReply};
 use crate::backend::{
     Answer, Exception, PlcBackend, PlcError, ReadRequest, WriteData, WriteRequest,
@@ -37,7 +37,8 @@ pub async fn read_ranges(
     backend: &mut dyn PlcBackend,
     requests: &[ReadRequest],
 ) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
-    let max = backend.max_read_block();
+    let limits = Limits::of(backend);
+    let max = |area: plccoms_protocol::Area| limits.max_block[area.index()];
     let ranges: Vec<Range> = requests
         .iter()
         .map(|r| Range {
@@ -46,7 +47,7 @@ pub async fn read_ranges(
             len: r.len,
         })
         .collect();
-    let plan = ReadPlan::new(&ranges, max);
+    let plan = ReadPlan::new(&ranges, &limits);
     let (data, refused) = plan.assemble_answers(backend.read(plan.blocks()).await?);
     let mut answers: Vec<Answer<Vec<u8>>> = (0..requests.len())
         .map(|i| plan.range_answer(&data, i).map(<[u8]>::to_vec))
@@ -59,11 +60,11 @@ pub async fn read_ranges(
         .collect();
     let single: Vec<ReadRequest> = retry
         .iter()
-        .flat_map(|&i| split(requests[i], max))
+        .flat_map(|&i| split(requests[i], max(requests[i].area)))
         .collect();
     let mut results = backend.read(&single).await?.into_iter();
     for &i in &retry {
-        let parts = split(requests[i], max).count();
+        let parts = split(requests[i], max(requests[i].area)).count();
         let mut bytes = Vec::with_capacity(requests[i].len as usize);
         let mut failure: Option<Exception> = None;
         for answer in results.by_ref().take(parts) {

@@ -5,7 +5,10 @@
 //! state ([`crate::section::state`]).
 //!
 //! Its parts, each with one job: [`health`] (connected, lost, when to probe,
-//! what to log), [`cycle`] (plan, read, system variables), [`jobs`] (batching
+//! what to log), [`cycle`] (plan, read in slices with SETs served between
+//! them, system variables), [`refusals`]
+//! (what the PLC refuses to read, so one bad variable does not stop its
+//! neighbours), [`jobs`] (batching
 //! client reads and SETs), [`reconf`] (SETCONF), [`files`] (file transfers
 //! and their cache), [`tables`] (public files and the variable table).
 //!
@@ -23,6 +26,7 @@ pub mod health;
 pub mod jobs;
 pub mod plan;
 pub mod reconf;
+pub mod refusals;
 pub mod tables;
 
 use std::sync::Arc;
@@ -266,13 +270,19 @@ pub struct Link {
     metrics: Arc<SectionMetrics>,
     /// The next poll cycle is due then.
     deadline: Instant,
+    /// Jobs that came in during a poll behind one that is not a SET: served
+    /// when the poll ends, before newer ones.
+    held: std::collections::VecDeque<Job>,
 }
 
 impl Link {
     /// Creates the link, the handle sessions use and the live state.
     pub fn new(setup: LinkSetup) -> (Link, LinkHandle, watch::Receiver<Arc<SectionState>>) {
         let (jobs_tx, jobs) = mpsc::unbounded_channel();
-        let health = Health::new(setup.backend.is_some(), Instant::now());
+        let mut health = Health::new(setup.backend.is_some(), Instant::now());
+        if let Some(backend) = &setup.backend {
+            health.set_backoff(backend.probe_backoff());
+        }
         let link_status = LinkStatus {
             state: health.state(),
             describe: describe(setup.backend.as_deref()),
@@ -304,6 +314,7 @@ impl Link {
             tables: setup.tables,
             metrics: setup.metrics,
             deadline: Instant::now(),
+            held: std::collections::VecDeque::new(),
         };
         link.update_freshness();
         link.count_backend();
@@ -373,13 +384,18 @@ impl Link {
                         std::thread::sleep(deadline - now);
                     }
                     self.tick().await;
+                    if !self.held.is_empty() {
+                        let held: Vec<Job> = self.held.drain(..).collect();
+                        self.serve(held).await;
+                    }
                     let missed;
                     (self.deadline, missed) = next_deadline(self.deadline, self.loop_delay, Instant::now());
                     self.metrics.overruns.add(u64::from(missed));
                 }
                 job = self.jobs.recv() => {
                     let Some(job) = job else { break };
-                    let mut batch = vec![job];
+                    let mut batch: Vec<Job> = self.held.drain(..).collect();
+                    batch.push(job);
                     while batch.len() < MAX_BATCH {
                         match self.jobs.try_recv() {
                             Ok(job) => batch.push(job),
@@ -504,7 +520,21 @@ impl Link {
             return;
         };
         let started = Instant::now();
-        let polled = self.cycle.poll(backend, &mut self.publisher).await;
+        let mut round = self.cycle.begin(backend, &self.publisher);
+        loop {
+            let backend = self.backend.as_deref_mut().expect("polling it");
+            match self.cycle.read_slice(backend, &mut round).await {
+                Ok(true) => {}
+                Ok(false) => break,
+                Err(err) => return self.failed(&err),
+            }
+            self.sets_meanwhile().await;
+            if self.health.state() != LinkState::Online {
+                return;
+            }
+        }
+        let backend = self.backend.as_deref_mut().expect("polling it");
+        let polled = self.cycle.finish(backend, &mut self.publisher, round).await;
         self.metrics.poll_cycle.observe(started.elapsed());
         if let Err(err) = polled {
             return self.failed(&err);
@@ -532,6 +562,22 @@ impl Link {
         }
     }
 
+    /// Serves the SETs that came in during a poll, between its slices; the
+    /// jobs queued after the first that is not a SET wait for the poll's
+    /// end, in order.
+    async fn sets_meanwhile(&mut self) {
+        while let Ok(job) = self.jobs.try_recv() {
+            self.held.push_back(job);
+        }
+        let mut sets = Vec::new();
+        while matches!(self.held.front(), Some(Job::Set { .. })) {
+            sets.extend(self.held.pop_front());
+        }
+        if !sets.is_empty() {
+            self.serve(sets).await;
+        }
+    }
+
     /// PUBFILE_CRC: the user file's CRC trailer must match `__PF_CRC`. A
     /// mismatch is logged once per file; the variables stay served.
     fn check_crc(&mut self, pf_crc: u64) {
@@ -549,7 +595,7 @@ impl Link {
         if !check {
             return;
         }
-        match tables::trailer_crc(user) {
+        match tables::expected_crc(tables.source.kind, user) {
             Some(crc) if u64::from(crc) == pf_crc => {
                 debug!(section = %self.name, "public file {} matches __PF_CRC {crc:08X}", user.name)
             }
@@ -619,7 +665,10 @@ impl Link {
         let (user, table) = loaded?;
         if by == NamedBy::Client && config.pubfile_crc {
             let file = user.as_ref().map_or("", |u| u.name.as_str());
-            let Some(crc) = user.as_ref().and_then(tables::trailer_crc) else {
+            let Some(crc) = user
+                .as_ref()
+                .and_then(|user| tables::expected_crc(source.kind, user))
+            else {
                 return Err(format!(
                     "PUBFILE_CRC = Yes and public file {file} has no CRC line"
                 ));
@@ -729,7 +778,10 @@ impl Link {
         // A link this server cannot make is refused before anything
         // changes, so the section keeps its working link.
         let backend = if relink {
-            Some(crate::backend::open(&config).map_err(ReconfError::Unreachable)?)
+            Some(
+                crate::backend::open(&config, &tables.source.dir)
+                    .map_err(ReconfError::Unreachable)?,
+            )
         } else {
             None
         };
@@ -772,6 +824,9 @@ impl Link {
     /// A new backend is in place: connect to it from scratch.
     fn relinked(&mut self) {
         self.count_backend();
+        if let Some(backend) = &self.backend {
+            self.health.set_backoff(backend.probe_backoff());
+        }
         self.health.reset(self.backend.is_some(), Instant::now());
         self.cycle.reset();
         self.update_freshness();

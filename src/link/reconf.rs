@@ -45,6 +45,12 @@ pub fn apply(config: &Section, change: &ConfChange) -> (Section, bool) {
             // Kept for a later SETCONF:serial_device on a UDP section.
             config.serial_device.is_some()
         }
+        // On a Modbus section it names the tag file, which the backend
+        // watches (its CRC is `__PF_CRC`): a new link.
+        ConfChange::PubFile(name) if config.protocol == "MODBUS_TCP" => {
+            config.modbus.tags = Some(name.clone());
+            true
+        }
         ConfChange::PubFile(name) => {
             config.pubfile = Some(name.clone());
             false

@@ -1,7 +1,10 @@
-//! Where a section's public files come from, and building its variable table
-//! from them: at start-up (a local file at once; one that must be fetched
-//! from the PLC when the link first connects), when the PLC's program changes
-//! (`__PF_CRC`), and on `SETCONF:pubfile` or a new PLC address.
+//! Where a section's variable files come from, and building its variable
+//! table from them: at start-up (a local file at once; one that must be
+//! fetched from the PLC when the link first connects), when the PLC's
+//! program changes (`__PF_CRC`), and on `SETCONF:pubfile` or a new PLC
+//! address. The user's file is a choice ([`UserKind`]): a public file
+//! (PUBFILE), or a Modbus tag file (MODBUS_TAGS, on this machine only),
+//! both under the same path rules.
 
 use std::path::{Path, PathBuf};
 
@@ -9,7 +12,8 @@ use tracing::{info, warn};
 
 use crate::backend::{Exception, PlcBackend};
 use crate::config::Section;
-use crate::vars::VarTable;
+use crate::vars::{VarFile, VarTable};
+use plccoms_plc::modbus::tags;
 use plccoms_plc::pubfile::{self, PubFile};
 use plccoms_plc::MemoryMap;
 
@@ -28,14 +32,51 @@ pub struct UserFile {
     pub bytes: Vec<u8>,
 }
 
-/// Where a section's public files are: everything but the section's own
-/// settings (PUBFILE, PUBFILE_WRITE), which come from its live state.
+/// What describes the user's variables.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum UserKind {
+    /// A public file (PUBFILE): local first, else fetched from the PLC.
+    PubFile,
+    /// A Modbus tag file (MODBUS_TAGS), on this machine only.
+    ModbusTags,
+}
+
+impl UserKind {
+    /// The kind a section's backend reads.
+    pub fn of(section: &Section) -> UserKind {
+        if section.protocol == "MODBUS_TCP" {
+            UserKind::ModbusTags
+        } else {
+            UserKind::PubFile
+        }
+    }
+
+    /// The section's setting that names the user file.
+    pub fn name(self, section: &Section) -> Option<&String> {
+        match self {
+            UserKind::PubFile => section.pubfile.as_ref(),
+            UserKind::ModbusTags => section.modbus.tags.as_ref(),
+        }
+    }
+
+    fn what(self) -> &'static str {
+        match self {
+            UserKind::PubFile => "public file",
+            UserKind::ModbusTags => "tag file",
+        }
+    }
+}
+
+/// Where a section's variable files are: everything but the section's own
+/// settings (PUBFILE or MODBUS_TAGS, PUBFILE_WRITE), which come from its
+/// live state.
 #[derive(Debug, Clone)]
 pub struct PubSource {
     /// The configuration file's folder.
     pub dir: PathBuf,
     pub fixed_name: String,
     pub fixed: PubFile,
+    pub kind: UserKind,
 }
 
 /// Why the user public file is not loaded.
@@ -51,19 +92,23 @@ impl PubSource {
     /// Reads the fixed file (PUBFILE_FIXED beside the configuration, or the
     /// standard one when the key is not set).
     pub fn new(section: &Section, dir: &Path) -> Result<PubSource, String> {
+        let kind = UserKind::of(section);
         let (fixed_name, fixed) = match &section.pubfile_fixed {
-            Some(name) => {
+            // A Modbus backend answers the system variables where the
+            // standard file places them.
+            Some(name) if kind == UserKind::PubFile => {
                 let path = dir.join(name);
                 let file = pubfile::load(&path)
                     .map_err(|e| format!("fixed public file {}: {e}", path.display()))?;
                 (name.clone(), file)
             }
-            None => ("FIXED.pub".to_string(), pubfile::parse(STANDARD_FIXED)),
+            _ => ("FIXED.pub".to_string(), pubfile::parse(STANDARD_FIXED)),
         };
         Ok(PubSource {
             dir: dir.to_path_buf(),
             fixed_name,
             fixed,
+            kind,
         })
     }
 
@@ -71,15 +116,7 @@ impl PubSource {
     /// folder (the configuration's, or the section's subfolder with
     /// PUBFILE_WRITE), anything else relative to the configuration.
     pub fn local_path(&self, section: &Section, name: &str) -> PathBuf {
-        let root = if section.pubfile_write {
-            self.dir.join(&section.name)
-        } else {
-            self.dir.clone()
-        };
-        match name.strip_prefix("//") {
-            Some(rest) => root.join(rest),
-            None => self.dir.join(name),
-        }
+        local_path(&self.dir, section, name)
     }
 
     /// The user public file if it is on this machine (`Ok(None)` when the
@@ -92,12 +129,13 @@ impl PubSource {
         section: &Section,
         by: NamedBy,
     ) -> Result<Option<UserFile>, LoadError> {
-        let Some(name) = &section.pubfile else {
+        let Some(name) = self.kind.name(section) else {
             return Ok(None);
         };
         let local = self.local_path(section, name);
+        let what = self.kind.what();
         if by == NamedBy::Client {
-            let refused = || LoadError::Failed(format!("public file {name} refused"));
+            let refused = || LoadError::Failed(format!("{what} {name} refused"));
             check_client_name(name).map_err(|_| refused())?;
             if let Ok(real) = std::fs::canonicalize(&local) {
                 let dir = std::fs::canonicalize(&self.dir).map_err(|_| refused())?;
@@ -116,7 +154,13 @@ impl PubSource {
                         bytes,
                     })
                 })
-                .map_err(|e| LoadError::Failed(format!("public file {}: {e}", local.display())));
+                .map_err(|e| LoadError::Failed(format!("{what} {}: {e}", local.display())));
+        }
+        if self.kind == UserKind::ModbusTags {
+            return Err(LoadError::Failed(format!(
+                "tag file {} not found",
+                local.display()
+            )));
         }
         if name.starts_with("../") {
             return Err(LoadError::Failed(format!(
@@ -175,24 +219,34 @@ impl PubSource {
 
     /// The variable table of the fixed file and `user`; bad lines are logged.
     pub fn build(&self, section: &str, user: Option<&UserFile>) -> Result<VarTable, String> {
-        let parsed = user.map(|u| (u.name.as_str(), pubfile::parse(&u.bytes)));
+        let (parsed, map) = match self.kind {
+            UserKind::PubFile => (
+                user.map(|u| (u.name.as_str(), VarFile::from(&pubfile::parse(&u.bytes)))),
+                MemoryMap::FOXTROT,
+            ),
+            UserKind::ModbusTags => (
+                user.map(|u| (u.name.as_str(), VarFile::from(&tags::parse(&u.bytes)))),
+                plccoms_plc::modbus::MAP,
+            ),
+        };
         let mut warnings = Vec::new();
-        let table = VarTable::build(
+        let table = VarTable::build_from(
             &self.fixed_name,
-            &self.fixed,
+            &VarFile::from(&self.fixed),
             parsed.as_ref().map(|(name, file)| (*name, file)),
-            &MemoryMap::FOXTROT,
+            &map,
             &mut warnings,
         )
         .map_err(|e| e.to_string())?;
         // A file of garbage is a few lines of log, not megabytes.
+        let what = self.kind.what();
         for warning in warnings.iter().take(LOGGED_WARNINGS) {
-            warn!(section = %section, "public file {warning}");
+            warn!(section = %section, "{what} {warning}");
         }
         let more = warnings.len().saturating_sub(LOGGED_WARNINGS)
             + parsed.as_ref().map_or(0, |(_, file)| file.more_warnings);
         if more > 0 {
-            warn!(section = %section, "public file: {more} more problems not shown");
+            warn!(section = %section, "{what}: {more} more problems not shown");
         }
         Ok(table)
     }
@@ -249,9 +303,28 @@ fn read_bounded(path: &Path) -> std::io::Result<Vec<u8>> {
     Ok(bytes)
 }
 
-/// The CRC that `__PF_CRC` must match for `user` (PUBFILE_CRC): its trailer.
-pub fn trailer_crc(user: &UserFile) -> Option<u32> {
-    pubfile::parse(&user.bytes).crc
+/// Where a PUBFILE (or MODBUS_TAGS) value lives on this machine: `//name`
+/// in the root folder (`dir`, the configuration's, or the section's
+/// subfolder with PUBFILE_WRITE), anything else relative to `dir`.
+pub fn local_path(dir: &Path, section: &Section, name: &str) -> PathBuf {
+    let root = if section.pubfile_write {
+        dir.join(&section.name)
+    } else {
+        dir.to_path_buf()
+    };
+    match name.strip_prefix("//") {
+        Some(rest) => root.join(rest),
+        None => dir.join(name),
+    }
+}
+
+/// The CRC that `__PF_CRC` must match for `user` (PUBFILE_CRC): a public
+/// file's trailer; a tag file's content (the Modbus backend's `__PF_CRC`).
+pub fn expected_crc(kind: UserKind, user: &UserFile) -> Option<u32> {
+    match kind {
+        UserKind::PubFile => pubfile::parse(&user.bytes).crc,
+        UserKind::ModbusTags => Some(pubfile::crc_of(&user.bytes)),
+    }
 }
 
 /// The name a PUBFILE value has in the PLC's file system.

@@ -6,7 +6,7 @@ pub mod state;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 
 use plccoms_protocol::value::FormatOptions;
 use tokio::sync::watch;
@@ -57,6 +57,8 @@ pub struct Section {
     /// The configuration file's folder (public files are found from it).
     pub config_dir: PathBuf,
     clients: Mutex<Clients>,
+    /// The historian's figures, when it records this section (GETINFO).
+    pub history: OnceLock<Arc<crate::historian::Stats>>,
 }
 
 #[derive(Default)]
@@ -97,6 +99,7 @@ impl Section {
             root,
             config_dir,
             clients: Mutex::new(Clients::default()),
+            history: OnceLock::new(),
         }
     }
 

@@ -6,9 +6,9 @@
 //! [`HistorySource`], which start-up hands it when a historian runs. With
 //! none the endpoint answers 503 "historian not enabled".
 //!
-//! `from`/`to`: UTC milliseconds since 1970, or RFC 3339
-//! (`2026-11-30T12:00:00Z`); `to` defaults to now, `from` to an hour before
-//! `to`. Output, oldest first:
+//! `from`/`to`: UTC milliseconds since 1970, or a time as `plccoms history`
+//! takes it (`now`, `-1h`, `-7d`, `2026-11-30T12:00:00Z`); `to` defaults to
+//! now, `from` to an hour before `to`. Output, oldest first:
 //! - CSV: `unix_ms,time,name,value,quality`, one line per sample (values as
 //!   the protocol prints them; quoted as RFC 4180 when needed);
 //! - JSON: `{"section":S,"from_ms":f,"to_ms":t,"samples":[{"t":ms,
@@ -94,15 +94,14 @@ const DEFAULT_SPAN_MS: i64 = 3_600_000;
 /// Bytes gathered before a chunk of the body goes out.
 const CHUNK: usize = 16 * 1024;
 
-/// A time parameter: UTC milliseconds, or RFC 3339.
-pub fn parse_time(name: &str, text: &str) -> Result<i64, String> {
+/// A time parameter: UTC milliseconds, or what `plccoms history` takes
+/// (`now`, `-1h`, `-7d`, ISO 8601 / RFC 3339, a date).
+pub fn parse_time(name: &str, text: &str, now_ms: i64) -> Result<i64, String> {
     let text = text.trim();
     if let Ok(ms) = text.parse::<i64>() {
         return Ok(ms);
     }
-    chrono::DateTime::parse_from_rfc3339(text)
-        .map(|t| t.timestamp_millis())
-        .map_err(|e| format!("{name}={text}: not UTC milliseconds nor an RFC 3339 time ({e})"))
+    crate::historian::time::parse(text, now_ms).map_err(|e| format!("{name}={text}: {e}"))
 }
 
 /// The query the parameters ask for, or what is wrong with them.
@@ -118,11 +117,11 @@ pub fn parse_params(params: &HistoryParams, now_ms: i64) -> Result<(HistoryQuery
         other => return Err(format!("format={other}: csv or json")),
     };
     let to_ms = match &params.to {
-        Some(text) => parse_time("to", text)?,
+        Some(text) => parse_time("to", text, now_ms)?,
         None => now_ms,
     };
     let from_ms = match &params.from {
-        Some(text) => parse_time("from", text)?,
+        Some(text) => parse_time("from", text, now_ms)?,
         None => to_ms.saturating_sub(DEFAULT_SPAN_MS),
     };
     if from_ms > to_ms {
@@ -442,7 +441,10 @@ mod tests {
     fn parameters_are_checked_and_named() {
         let err = |q: &str| parse_params(&params(q), 10_000).unwrap_err();
         assert_eq!(err("vars=a"), "section= is required");
-        assert!(err("section=D&from=yesterday").starts_with("from=yesterday: not UTC milliseconds"));
+        assert!(err("section=D&from=yesterday")
+            .starts_with("from=yesterday: 'yesterday' is not a time"));
+        let (query, _) = parse_params(&params("section=D&from=-1h&to=now"), 10_000_000).unwrap();
+        assert_eq!((query.from_ms, query.to_ms), (6_400_000, 10_000_000));
         assert_eq!(err("section=D&from=5&to=4"), "from (5) is after to (4)");
         assert_eq!(err("section=D&format=xml"), "format=xml: csv or json");
         let (query, format) = parse_params(&params("section=D"), 10_000_000).unwrap();

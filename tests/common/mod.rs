@@ -6,6 +6,8 @@ pub mod epsnet;
 pub mod health;
 pub mod line;
 pub mod logs;
+pub mod modbus;
+pub mod mqtt;
 pub mod process;
 
 use std::net::SocketAddr;

@@ -207,6 +207,12 @@ impl ServerProcess {
         ServerProcess::start(dir, &["-c", "plccoms.ini"], port)
     }
 
+    /// Runs `plccoms -c plccoms.ini` again in the directory of an earlier
+    /// run (whatever it left there stays).
+    pub fn with_config_in(dir: tempfile::TempDir, port: u16) -> ServerProcess {
+        ServerProcess::start(dir, &["-c", "plccoms.ini"], port)
+    }
+
     /// Runs `plccoms` with no arguments in an empty temporary directory: the
     /// built-in configuration. Returns once `port` accepts.
     pub fn built_in(port: u16) -> ServerProcess {

@@ -8,7 +8,7 @@
 //! | 1 | wrong lengths: reads report one byte less than asked |
 //! | 2 | bad codes: reads answer status 1000, writes -77, SETs of bits the EPSNET byte 0x0C with an unterminated 256-byte message |
 //! | 3 | slow: every read sleeps `SHM_PORT` ms (default 5000) |
-//! | 4 | crash: reads dereference NULL |
+//! | 4 | crash: reads sleep `SHM_PORT` ms (default 0), then dereference NULL |
 //! | 5 | open fails with an I/O error and a message |
 //! | 6 | the identification is longer than its buffer |
 //! | 7 | refusing writes: reads good, writes and SETs of bits as in 2 |
@@ -41,7 +41,11 @@ impl Plugin for Bad {
         }
         Ok(Bad {
             mode,
-            delay: Duration::from_millis(key("SHM_PORT").unwrap_or(5000)),
+            delay: Duration::from_millis(key("SHM_PORT").unwrap_or(if mode == 3 {
+                5000
+            } else {
+                0
+            })),
             memory: vec![0; SIZE * 4],
         })
     }
@@ -63,6 +67,7 @@ impl Plugin for Bad {
             2 => return Err(Failure::new(1000, "status out of range")),
             3 => std::thread::sleep(self.delay),
             4 => {
+                std::thread::sleep(self.delay);
                 // SAFETY: none: this plugin crashes on purpose.
                 unsafe {
                     let null: *mut u8 = std::ptr::null_mut();

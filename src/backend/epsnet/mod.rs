@@ -327,7 +327,7 @@ impl<T: Transport> PlcBackend for EpsnetClient<T> {
         Some(self.sa)
     }
 
-    fn max_read_block(&self) -> u32 {
+    fn max_read_block(&self, _area: plccoms_protocol::Area) -> u32 {
         MAX_READ
     }
 

@@ -34,9 +34,17 @@ thread_local! {
     static INSIDE: Cell<(*const u8, usize)> = const { Cell::new((std::ptr::null(), 0)) };
 }
 
-/// The log file's descriptor, when the log is a file (a duplicate of it,
-/// kept open for good).
+/// The log file's descriptor, when the log is a file: a duplicate of it,
+/// kept open for good. Called again when the log is reopened (SIGHUP), it
+/// makes the same descriptor number refer to the new file (`dup2`, atomic
+/// for a handler writing meanwhile), so the rotated file is let go.
 pub fn set_log_fd(fd: RawFd) {
+    let ours = LOG_FD.load(Ordering::Relaxed);
+    if ours != libc::STDERR_FILENO {
+        // SAFETY: both descriptors are open; `ours` is our own duplicate.
+        unsafe { libc::dup2(fd, ours) };
+        return;
+    }
     // SAFETY: dup of a descriptor the caller owns; the copy is never closed.
     let copy = unsafe { libc::dup(fd) };
     if copy >= 0 {

@@ -600,7 +600,7 @@ impl PlcBackend for PluginBackend {
         format!("plugin {}", self.config.library)
     }
 
-    fn max_read_block(&self) -> u32 {
+    fn max_read_block(&self, _area: plccoms_protocol::Area) -> u32 {
         self.max_read
     }
 

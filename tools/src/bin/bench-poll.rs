@@ -302,6 +302,8 @@ struct Cycle {
     bytes: u64,
     /// Relay counters at the end of the cycle.
     relay: [u64; 6],
+    /// Its first block.
+    first: ReadRequest,
 }
 
 struct Counting {
@@ -318,8 +320,8 @@ impl PlcBackend for Counting {
     fn source_address(&self) -> Option<u8> {
         self.inner.source_address()
     }
-    fn max_read_block(&self) -> u32 {
-        self.inner.max_read_block()
+    fn max_read_block(&self, area: plccoms_protocol::Area) -> u32 {
+        self.inner.max_read_block(area)
     }
     fn max_file_block(&self) -> u32 {
         self.inner.max_file_block()
@@ -327,18 +329,35 @@ impl PlcBackend for Counting {
     async fn connect(&mut self) -> Result<String, PlcError> {
         self.inner.connect().await
     }
+    /// The link reads a poll in slices: a read whose first block comes
+    /// after the current cycle's first continues that cycle; one that starts
+    /// again from the front begins the next.
     async fn read(&mut self, requests: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
         let start = Instant::now();
         let answer = self.inner.read(requests).await;
         let end = Instant::now();
         let relay = self.relay.as_ref().map_or([0; 6], |r| r.snapshot());
-        self.cycles.lock().unwrap().push(Cycle {
-            start,
-            end,
-            requests: requests.len(),
-            bytes: requests.iter().map(|r| u64::from(r.len)).sum(),
-            relay,
-        });
+        let Some(&first) = requests.first() else {
+            return answer;
+        };
+        let bytes: u64 = requests.iter().map(|r| u64::from(r.len)).sum();
+        let mut cycles = self.cycles.lock().unwrap();
+        match cycles.last_mut() {
+            Some(last) if (first.area, first.offset) > (last.first.area, last.first.offset) => {
+                last.end = end;
+                last.requests += requests.len();
+                last.bytes += bytes;
+                last.relay = relay;
+            }
+            _ => cycles.push(Cycle {
+                start,
+                end,
+                requests: requests.len(),
+                bytes,
+                relay,
+                first,
+            }),
+        }
         answer
     }
     async fn write(&mut self, requests: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {

@@ -1,0 +1,18 @@
+complete -c plcsim -l bind -d 'UDP address to listen on' -r
+complete -c plcsim -l pub -d 'User public file (variables, their addresses and types; its CRC becomes __PF_CRC). Default: the built-in demo file (conf/demo.pub). With --files, the PLC\'s file system serves it, read-only, at its root under its own name (as a PLC keeps it with its program)' -r -F
+complete -c plcsim -l fixed -d 'Fixed public file; checked to place __PLC_RUN at S2.2 and __PF_CRC at S70' -r -F
+complete -c plcsim -l files -d 'Directory served as the PLC\'s file system (paths confined to it). Without it, file services answer "service not activated"' -r -F
+complete -c plcsim -l program -d 'PLC program: `demo` (manual chapter 6.1: dat, tim, c, sinus, cosinus, positive, text) or `idle` (none)' -r
+complete -c plcsim -l animate -d 'Make every variable matching MASK change every cycle (`*` wildcard, case-insensitive; repeatable): integers ramp, reals follow a sine, BOOLs toggle, STRINGs count, times advance' -r
+complete -c plcsim -l loss -d 'Fraction of incoming packets to drop (0.0 - 1.0)' -r
+complete -c plcsim -l latency -d 'Delay every answer by this many milliseconds' -r
+complete -c plcsim -l control -d 'Loopback TCP address for run-time control (see below)' -r
+complete -c plcsim -l cycle -d 'PLC cycle in milliseconds' -r
+complete -c plcsim -l ident -d 'Identification string the PLC reports' -r
+complete -c plcsim -l modbus -d 'Serve Modbus TCP on this address instead of EPSNET (coils, discrete inputs, holding and input registers; any unit id)' -r
+complete -c plcsim -l tags -d 'Modbus tag file (CSV) naming the variables the program and --animate drive. Default: the built-in conf/demo-modbus.csv' -r -F
+complete -c plcsim -l serial -d 'Serve EPSNET on this serial device (a port, or one end of a pty pair: `socat -d -d pty,raw,echo=0,link=/tmp/plc pty,raw,echo=0,link=/tmp/srv`) instead of UDP. `--loss` then damages that fraction of the exchanges (answer lost, cut short, corrupted, or after noise)' -r
+complete -c plcsim -l speed -d 'Serial line speed, baud (8N1, no flow control)' -r
+complete -c plcsim -l emulate-line -d 'Hold each answer back for the time the request and the answer take on a real line at --speed (a pty passes bytes at memory speed)'
+complete -c plcsim -s h -l help -d 'Print help (see more with \'--help\')'
+complete -c plcsim -s V -l version -d 'Print version'

@@ -1,0 +1,708 @@
+//! The Modbus tag file: which registers and bits of a device a section
+//! serves, under which names and types. CSV with a header line naming the
+//! columns (any order, any case):
+//!
+//! ```text
+//! name,type,table,address,bit,order,scale,offset,access,unit,description
+//! Temperature,INT,input,0,,,0.1,,,°C,"Outdoor, north wall"
+//! Energy,UDINT,holding,100,,CDAB
+//! Pump,BOOL,coil,3
+//! Alarm,BOOL,holding,20,15
+//! ```
+//!
+//! - `name`, `type`, `table`, `address` are required; the rest optional.
+//! - `table`: `coil`, `discrete`, `input` or `holding`; `address` 0-based
+//!   (the 1-based reference 40001 is holding address 0, 30001 input 0,
+//!   10001 discrete 0, 00001 coil 0).
+//! - `type`: every IEC type a public file has, `STRING[n]` (two characters a
+//!   register, high byte first) and `TS48` (milliseconds since 1970 UTC in
+//!   three registers, most significant first; clients see DT). Coils and
+//!   discrete inputs are BOOL; a BOOL in a register needs `bit` 0-15.
+//! - `order`: ABCD (default), CDAB, BADC or DCBA for values of two or more
+//!   registers (a STRING: ABCD or BADC).
+//! - `scale`, `offset`: the client sees raw x scale + offset as REAL.
+//! - `access`: `ro` or `rw`; default rw for coils and holding registers, ro
+//!   for the others (which cannot be written).
+//! - `unit`, `description`: kept, shown nowhere yet.
+//!
+//! Lines starting with `#` are comments; fields may be quoted; a value past
+//! the header's last column makes its line bad (empty trailing fields are
+//! fine). A file that
+//! is valid UTF-8 is read as UTF-8 (names are stored in cp1250, as public
+//! files'), any other as cp1250. A line that does not fit is skipped with a
+//! [`TagWarning`] naming its line and column; the rest loads. Pure: bytes
+//! in, tags out.
+
+use std::collections::HashMap;
+use std::fmt;
+
+use plccoms_protocol::{cp1250, Area, IecType};
+
+use super::Table;
+use crate::value_codec::{Codec, Raw, Registers, Scale, WordOrder};
+
+/// One tag.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Tag {
+    /// cp1250 bytes, case as written.
+    pub name: Box<[u8]>,
+    /// The type clients see (REAL when scaled, DT for TS48).
+    pub ty: IecType,
+    pub table: Table,
+    pub address: u16,
+    /// Bit 0-15 of a register, for a BOOL there.
+    pub bit: Option<u8>,
+    pub codec: Codec,
+    pub writable: bool,
+    pub unit: String,
+    pub description: String,
+    /// 1-based line in the file.
+    pub line: usize,
+}
+
+impl Tag {
+    /// Area, byte offset and bit (see the layout in [`super`]).
+    pub fn place(&self) -> (Area, u32, Option<u8>) {
+        let (area, offset) = self.table.place(self.address);
+        match (self.table.is_bits(), self.bit) {
+            (true, _) => (area, offset, Some(0)),
+            // Bits 8-15 are in the register's high byte, which comes first.
+            (false, Some(bit)) => (area, offset + u32::from(bit < 8), Some(bit % 8)),
+            (false, None) => (area, offset, None),
+        }
+    }
+
+    /// Registers (or bits) the tag occupies.
+    pub fn span(&self) -> u32 {
+        match (&self.codec, self.table.is_bits()) {
+            (_, true) => 1,
+            (Codec::Registers(r), false) => r.raw.len() / 2,
+            (Codec::Native, false) => 1,
+        }
+    }
+}
+
+/// A problem on one line.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TagWarning {
+    /// 1-based line.
+    pub line: usize,
+    /// 1-based column (CSV field), when one field is at fault.
+    pub column: Option<usize>,
+    pub message: String,
+}
+
+impl fmt::Display for TagWarning {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.column {
+            Some(column) => write!(f, "line {}, column {column}: {}", self.line, self.message),
+            None => write!(f, "line {}: {}", self.line, self.message),
+        }
+    }
+}
+
+/// A parsed tag file.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct TagFile {
+    pub tags: Vec<Tag>,
+    /// The first [`crate::pubfile::MAX_WARNINGS`] problems, in file order.
+    pub warnings: Vec<TagWarning>,
+    /// Problems beyond those, counted only (a file of garbage must not
+    /// become megabytes of messages).
+    pub more_warnings: usize,
+}
+
+impl TagFile {
+    fn warn(&mut self, warning: TagWarning) {
+        if self.warnings.len() < crate::pubfile::MAX_WARNINGS {
+            self.warnings.push(warning);
+        } else {
+            self.more_warnings += 1;
+        }
+    }
+}
+
+/// The columns a tag file may have.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+enum Column {
+    Name,
+    Type,
+    Table,
+    Address,
+    Bit,
+    Order,
+    Scale,
+    Offset,
+    Access,
+    Unit,
+    Description,
+}
+
+const COLUMNS: [(&str, Column); 11] = [
+    ("name", Column::Name),
+    ("type", Column::Type),
+    ("table", Column::Table),
+    ("address", Column::Address),
+    ("bit", Column::Bit),
+    ("order", Column::Order),
+    ("scale", Column::Scale),
+    ("offset", Column::Offset),
+    ("access", Column::Access),
+    ("unit", Column::Unit),
+    ("description", Column::Description),
+];
+
+const REQUIRED: [Column; 4] = [Column::Name, Column::Type, Column::Table, Column::Address];
+
+/// Longest name accepted (a public file's names are far shorter).
+const MAX_NAME: usize = 255;
+
+/// Parses a tag file. Never fails: bad lines become warnings.
+pub fn parse(bytes: &[u8]) -> TagFile {
+    let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
+    let utf8 = std::str::from_utf8(bytes).is_ok();
+    let mut reader = csv::ReaderBuilder::new()
+        .has_headers(false)
+        .flexible(true)
+        .trim(csv::Trim::All)
+        .comment(Some(b'#'))
+        .from_reader(bytes);
+    let mut file = TagFile::default();
+    let mut columns: Option<HashMap<Column, usize>> = None;
+    let mut seen: HashMap<Vec<u8>, usize> = HashMap::new();
+    let mut lines = LineCounter::default();
+    let mut header_len = 0;
+    for record in reader.byte_records() {
+        let record = match record {
+            Ok(record) => record,
+            Err(e) => {
+                let line = e
+                    .position()
+                    .map_or(0, |p| lines.line_of(bytes, p.byte() as usize));
+                file.warn(TagWarning {
+                    line,
+                    column: None,
+                    message: format!("unreadable CSV: {e}"),
+                });
+                break;
+            }
+        };
+        let line = record
+            .position()
+            .map_or(0, |p| lines.line_of(bytes, p.byte() as usize));
+        let fields: Vec<String> = record.iter().map(|f| text(f, utf8)).collect();
+        let Some(columns) = &columns else {
+            match header(&fields, line, &mut file.warnings) {
+                Some(found) => columns = Some(found),
+                None => return file,
+            }
+            header_len = fields.len();
+            continue;
+        };
+        if fields.iter().all(String::is_empty) {
+            continue;
+        }
+        // A value under no column is a mistake (a column left out of the
+        // header), not something to drop quietly; empty trailing fields
+        // (spreadsheets write them) are fine.
+        if let Some(extra) = (header_len..fields.len()).find(|&i| !fields[i].is_empty()) {
+            file.warn(TagWarning {
+                line,
+                column: Some(extra + 1),
+                message: format!(
+                    "'{}' is under no column (the header names {header_len}); line skipped",
+                    fields[extra]
+                ),
+            });
+            continue;
+        }
+        let field = |c: Column| -> (&str, usize) {
+            columns.get(&c).map_or(("", 0), |&i| {
+                (fields.get(i).map_or("", String::as_str), i + 1)
+            })
+        };
+        match tag(&field, line, utf8, record.get(columns[&Column::Name])) {
+            Ok(tag) => {
+                let folded = cp1250::to_upper(&tag.name);
+                if let Some(&first) = seen.get(&folded) {
+                    file.warn(TagWarning {
+                        line,
+                        column: Some(field(Column::Name).1),
+                        message: format!(
+                            "duplicate name '{}' (first defined on line {first}); skipped",
+                            cp1250::decode(&tag.name)
+                        ),
+                    });
+                } else {
+                    seen.insert(folded, line);
+                    file.tags.push(tag);
+                }
+            }
+            Err((column, message)) => file.warn(TagWarning {
+                line,
+                column: (column > 0).then_some(column),
+                message,
+            }),
+        }
+    }
+    if columns.is_none() {
+        file.warn(TagWarning {
+            line: 1,
+            column: None,
+            message: "no header line (expected name,type,table,address,...)".to_string(),
+        });
+    }
+    file
+}
+
+/// 1-based line numbers of records. The csv crate's own line count and
+/// record offsets are off after blank and comment lines (csv 1.4: the
+/// offset is where the skipped lines begin), so the record's line is found
+/// from that offset by skipping them here, counting as it goes.
+#[derive(Default)]
+struct LineCounter {
+    at: usize,
+    line: usize,
+}
+
+impl LineCounter {
+    fn line_of(&mut self, bytes: &[u8], offset: usize) -> usize {
+        let mut start = offset.min(bytes.len());
+        loop {
+            match bytes.get(start) {
+                Some(b'\n') => start += 1,
+                Some(b'\r') if bytes.get(start + 1) == Some(&b'\n') => start += 2,
+                Some(b'#') => match bytes[start..].iter().position(|&b| b == b'\n') {
+                    Some(end) => start += end + 1,
+                    None => start = bytes.len(),
+                },
+                _ => break,
+            }
+        }
+        if start < self.at {
+            self.at = 0;
+            self.line = 0;
+        }
+        self.line += bytes[self.at..start]
+            .iter()
+            .filter(|&&b| b == b'\n')
+            .count();
+        self.at = start;
+        self.line + 1
+    }
+}
+
+fn text(field: &[u8], utf8: bool) -> String {
+    if utf8 {
+        String::from_utf8_lossy(field).into_owned()
+    } else {
+        cp1250::decode(field).into_owned()
+    }
+}
+
+/// The header's columns by name; `None` (with a warning) when a required
+/// one is missing.
+fn header(
+    fields: &[String],
+    line: usize,
+    warnings: &mut Vec<TagWarning>,
+) -> Option<HashMap<Column, usize>> {
+    let mut columns = HashMap::new();
+    for (i, name) in fields.iter().enumerate() {
+        match COLUMNS.iter().find(|(n, _)| n.eq_ignore_ascii_case(name)) {
+            Some(&(_, column)) if !columns.contains_key(&column) => {
+                columns.insert(column, i);
+            }
+            Some(_) => warnings.push(TagWarning {
+                line,
+                column: Some(i + 1),
+                message: format!("column '{name}' given twice; the first counts"),
+            }),
+            None => warnings.push(TagWarning {
+                line,
+                column: Some(i + 1),
+                message: format!("unknown column '{name}' ignored"),
+            }),
+        }
+    }
+    let missing: Vec<&str> = REQUIRED
+        .iter()
+        .filter(|c| !columns.contains_key(c))
+        .map(|c| COLUMNS.iter().find(|(_, k)| k == c).map_or("", |(n, _)| *n))
+        .collect();
+    if missing.is_empty() {
+        return Some(columns);
+    }
+    warnings.push(TagWarning {
+        line,
+        column: None,
+        message: format!(
+            "the header lacks the column(s) {}; no tag loaded",
+            missing.join(", ")
+        ),
+    });
+    None
+}
+
+type Field<'a> = dyn Fn(Column) -> (&'a str, usize) + 'a;
+
+fn tag(
+    field: &Field<'_>,
+    line: usize,
+    utf8: bool,
+    raw_name: Option<&[u8]>,
+) -> Result<Tag, (usize, String)> {
+    let (name_text, name_col) = field(Column::Name);
+    let name = name_bytes(name_text, utf8, raw_name.unwrap_or_default())
+        .map_err(|message| (name_col, message))?;
+
+    let (type_text, type_col) = field(Column::Type);
+    let raw = if type_text.eq_ignore_ascii_case("TS48") {
+        Raw::Ts48
+    } else {
+        Raw::Iec(IecType::parse(type_text.as_bytes()).ok_or_else(|| {
+            (
+                type_col,
+                format!("unknown type '{type_text}' (an IEC type, STRING[n] or TS48)"),
+            )
+        })?)
+    };
+
+    let (table_text, table_col) = field(Column::Table);
+    let table = Table::parse(table_text).ok_or_else(|| {
+        (
+            table_col,
+            format!("unknown table '{table_text}' (coil, discrete, input or holding)"),
+        )
+    })?;
+
+    let (address_text, address_col) = field(Column::Address);
+    let address: u16 = address_text.parse().map_err(|_| {
+        (
+            address_col,
+            format!("bad address '{address_text}' (0 to 65535, 0-based)"),
+        )
+    })?;
+
+    let (bit_text, bit_col) = field(Column::Bit);
+    let bit = if bit_text.is_empty() {
+        None
+    } else {
+        match bit_text.parse::<u8>() {
+            Ok(b) if b <= 15 => Some(b),
+            _ => return Err((bit_col, format!("bad bit '{bit_text}' (0 to 15)"))),
+        }
+    };
+
+    let is_bool = raw == Raw::Iec(IecType::Bool);
+    if table.is_bits() {
+        if !is_bool {
+            return Err((type_col, format!("a {table} holds a BOOL, not {raw}")));
+        }
+        if bit.is_some() {
+            return Err((
+                bit_col,
+                format!("a {table} has no bits to choose (bit is for registers)"),
+            ));
+        }
+    } else if is_bool && bit.is_none() {
+        return Err((
+            bit_col,
+            "a BOOL in a register needs its bit (0 to 15)".to_string(),
+        ));
+    } else if !is_bool && bit.is_some() {
+        return Err((
+            bit_col,
+            format!("bit given for a {raw} (only BOOL has a bit)"),
+        ));
+    }
+
+    let (order_text, order_col) = field(Column::Order);
+    let order = if order_text.is_empty() {
+        WordOrder::Abcd
+    } else {
+        WordOrder::parse(order_text).ok_or_else(|| {
+            (
+                order_col,
+                format!("unknown order '{order_text}' (ABCD, CDAB, BADC or DCBA)"),
+            )
+        })?
+    };
+    if is_bool && order != WordOrder::Abcd {
+        return Err((order_col, "a BOOL has no word order".to_string()));
+    }
+    if matches!(raw, Raw::Iec(IecType::String(_)))
+        && !matches!(order, WordOrder::Abcd | WordOrder::Badc)
+    {
+        return Err((order_col, format!("a STRING is ABCD or BADC, not {order}")));
+    }
+
+    let number = |column: Column| -> Result<Option<f64>, (usize, String)> {
+        let (text, col) = field(column);
+        if text.is_empty() {
+            return Ok(None);
+        }
+        match text.parse::<f64>() {
+            Ok(x) if x.is_finite() => Ok(Some(x)),
+            _ => Err((col, format!("'{text}' is not a number"))),
+        }
+    };
+    let factor = number(Column::Scale)?;
+    let offset = number(Column::Offset)?;
+    let scale = match (factor, offset) {
+        (None, None) => None,
+        (Some(0.0), _) => {
+            return Err((
+                field(Column::Scale).1,
+                "scale 0 cannot be written back".to_string(),
+            ))
+        }
+        (factor, offset) => {
+            let scalable = matches!(raw, Raw::Iec(ty) if !matches!(ty,
+                IecType::Bool | IecType::String(_) | IecType::Date | IecType::Dt | IecType::Time | IecType::Tod));
+            if !scalable {
+                let col = field(if factor.is_some() {
+                    Column::Scale
+                } else {
+                    Column::Offset
+                })
+                .1;
+                return Err((col, format!("a {raw} cannot be scaled")));
+            }
+            Some(Scale {
+                factor: factor.unwrap_or(1.0),
+                offset: offset.unwrap_or(0.0),
+            })
+        }
+    };
+
+    let (access_text, access_col) = field(Column::Access);
+    let writable = match access_text.to_ascii_lowercase().as_str() {
+        "" => table.writable(),
+        "rw" => {
+            if !table.writable() {
+                return Err((access_col, format!("a {table} is read-only (access ro)")));
+            }
+            true
+        }
+        "ro" => false,
+        _ => {
+            return Err((
+                access_col,
+                format!("unknown access '{access_text}' (ro or rw)"),
+            ))
+        }
+    };
+
+    let (ty, codec) = if table.is_bits() || is_bool {
+        (IecType::Bool, Codec::Native)
+    } else {
+        let ty = match (raw, scale) {
+            (_, Some(_)) => IecType::Real,
+            (Raw::Ts48, None) => IecType::Dt,
+            (Raw::Iec(ty), None) => ty,
+        };
+        (ty, Codec::Registers(Registers { raw, order, scale }))
+    };
+    let tag = Tag {
+        name,
+        ty,
+        table,
+        address,
+        bit,
+        codec,
+        writable,
+        unit: field(Column::Unit).0.to_string(),
+        description: field(Column::Description).0.to_string(),
+        line,
+    };
+    if u32::from(address) + tag.span() > 65_536 {
+        return Err((
+            address_col,
+            format!("{raw} at {address} runs past the end of the table (65535)"),
+        ));
+    }
+    Ok(tag)
+}
+
+/// The name in cp1250, checked as a public file's names are.
+fn name_bytes(text: &str, utf8: bool, raw: &[u8]) -> Result<Box<[u8]>, String> {
+    if text.is_empty() {
+        return Err("empty name".to_string());
+    }
+    let bytes: Vec<u8> = if utf8 {
+        cp1250::try_encode(text)
+            .ok_or_else(|| format!("name '{text}' has characters cp1250 lacks"))?
+    } else {
+        raw.to_vec()
+    };
+    if bytes.len() > MAX_NAME {
+        return Err(format!("name longer than {MAX_NAME} characters"));
+    }
+    if let Some(&bad) = bytes
+        .iter()
+        .find(|&&b| b <= 0x20 || b == 0x7f || matches!(b, b',' | b':' | b'*' | b'"' | b';'))
+    {
+        return Err(format!(
+            "invalid character '{}' in name '{text}'",
+            cp1250::decode(&[bad])
+        ));
+    }
+    if bytes[0] == b'%' {
+        return Err(format!(
+            "name '{text}' starts with %, which marks direct addresses"
+        ));
+    }
+    Ok(bytes.into_boxed_slice())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const HEADER: &str = "name,type,table,address,bit,order,scale,offset,access,unit,description\n";
+
+    fn one(line: &str) -> Result<Tag, TagWarning> {
+        let file = parse(format!("{HEADER}{line}\n").as_bytes());
+        match (
+            file.tags.into_iter().next(),
+            file.warnings.into_iter().next(),
+        ) {
+            (Some(tag), None) => Ok(tag),
+            (_, Some(warning)) => Err(warning),
+            (None, None) => panic!("nothing for {line}"),
+        }
+    }
+
+    #[test]
+    fn every_table_and_the_layout() {
+        let coil = one("Pump,BOOL,coil,3").unwrap();
+        assert_eq!(coil.place(), (Area::Y, 3, Some(0)));
+        assert!(coil.writable);
+        let input = one("In,bool,discrete,65535").unwrap();
+        assert_eq!(input.place(), (Area::X, 65535, Some(0)));
+        assert!(!input.writable);
+        let high = one("Alarm,BOOL,holding,20,15").unwrap();
+        assert_eq!(high.place(), (Area::R, 40, Some(7)));
+        let low = one("Ready,BOOL,input,20,0").unwrap();
+        assert_eq!(
+            low.place(),
+            (Area::R, super::super::INPUT_BASE + 41, Some(0))
+        );
+        let energy = one("Energy,UDINT,holding,100,,CDAB").unwrap();
+        assert_eq!(energy.place(), (Area::R, 200, None));
+        assert_eq!(energy.codec.byte_len(energy.ty), 4);
+        let t = one("T,INT,input,0,,,0.1,-40,,°C,\"Outdoor, north\"").unwrap();
+        assert_eq!(t.ty, IecType::Real);
+        assert_eq!(t.unit, "°C");
+        assert_eq!(t.description, "Outdoor, north");
+        let ts = one("Stamp,TS48,holding,10").unwrap();
+        assert_eq!((ts.ty, ts.span()), (IecType::Dt, 3));
+        let s = one("Text,STRING[5],holding,50,,BADC").unwrap();
+        assert_eq!(s.span(), 3);
+    }
+
+    #[test]
+    fn bad_lines_name_line_and_column_and_the_rest_loads() {
+        let text = "# a comment\n\
+name,type,table,address,access\n\
+good,INT,holding,0\n\
+bad1,INT,holdng,1\n\
+bad2,WORD,input,1,rw\n\
+bad3,DINT,holding,65535\n\
+\n\
+bad4,BOOL,holding,7\n\
+GOOD,INT,holding,2\n\
+bad5 x,INT,holding,3\n\
+good2,LREAL,input,4\n\
+bad6,REAL,holding,5,,CDAB\n\
+good3,INT,holding,6,,,\n";
+        let file = parse(text.as_bytes());
+        let names: Vec<&[u8]> = file.tags.iter().map(|t| &t.name[..]).collect();
+        assert_eq!(names, [&b"good"[..], b"good2", b"good3"]);
+        let shown: Vec<String> = file.warnings.iter().map(|w| w.to_string()).collect();
+        assert_eq!(
+            shown[0],
+            "line 4, column 3: unknown table 'holdng' (coil, discrete, input or holding)"
+        );
+        assert_eq!(
+            shown[1],
+            "line 5, column 5: a input is read-only (access ro)"
+        );
+        assert!(
+            shown[2].starts_with("line 6, column 4: DINT at 65535 runs past"),
+            "{}",
+            shown[2]
+        );
+        assert!(
+            shown[3].starts_with("line 8: a BOOL in a register needs"),
+            "{}",
+            shown[3]
+        );
+        assert!(
+            shown[4].starts_with("line 9, column 1: duplicate name 'GOOD'"),
+            "{}",
+            shown[4]
+        );
+        assert!(
+            shown[5].starts_with("line 10, column 1: invalid character"),
+            "{}",
+            shown[5]
+        );
+        assert_eq!(
+            shown[6],
+            "line 12, column 6: 'CDAB' is under no column (the header names 5); line skipped"
+        );
+    }
+
+    #[test]
+    fn a_header_without_required_columns_loads_nothing() {
+        let file = parse(b"name,type,address\nx,INT,0\n");
+        assert!(file.tags.is_empty());
+        assert_eq!(
+            file.warnings[0].to_string(),
+            "line 1: the header lacks the column(s) table; no tag loaded"
+        );
+        assert_eq!(parse(b"").warnings.len(), 1);
+    }
+
+    /// A file of bad lines keeps the first problems and counts the rest.
+    #[test]
+    fn warnings_are_bounded() {
+        let mut bytes = b"name,type,table,address\n".to_vec();
+        for i in 0..1000 {
+            bytes.extend_from_slice(format!("v{i},NOPE,holding,{i}\n").as_bytes());
+        }
+        let file = parse(&bytes);
+        assert_eq!(file.warnings.len(), crate::pubfile::MAX_WARNINGS);
+        assert_eq!(file.more_warnings, 1000 - crate::pubfile::MAX_WARNINGS);
+        assert!(file.warnings[0].to_string().starts_with("line 2"));
+    }
+
+    /// The README's example tag files load without a warning.
+    #[test]
+    fn the_readme_examples_load() {
+        let readme = include_str!("../../../README.md");
+        let blocks: Vec<&str> = readme
+            .split("```csv\n")
+            .skip(1)
+            .map(|rest| rest.split("```").next().unwrap_or_default())
+            .collect();
+        assert_eq!(blocks.len(), 2);
+        for block in blocks {
+            let file = parse(block.as_bytes());
+            assert!(file.warnings.is_empty(), "{:?}", file.warnings);
+            assert!(file.tags.len() >= 6);
+        }
+        let demo = parse(include_bytes!("../../../conf/demo-modbus.csv"));
+        assert!(demo.warnings.is_empty(), "{:?}", demo.warnings);
+    }
+
+    #[test]
+    fn cp1250_and_utf8_names() {
+        let utf8 = parse("name,type,table,address\nteplota_kuchyně,INT,holding,0\n".as_bytes());
+        assert_eq!(&utf8.tags[0].name[..], b"teplota_kuchyn\xEC");
+        let raw = parse(b"name,type,table,address\nteplota_kuchyn\xEC,INT,holding,0\n");
+        assert_eq!(&raw.tags[0].name[..], b"teplota_kuchyn\xEC");
+    }
+}

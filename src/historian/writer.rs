@@ -1,0 +1,356 @@
+//! The writer: one thread (SQLite is blocking I/O) that takes the
+//! recorders' samples from a queue and commits them every HISTORY_SYNC, one
+//! transaction per section and day file. It never slows a link: the queue's
+//! bound is enforced by the recorders, which drop (and count) what does not
+//! fit.
+//!
+//! A failed write (a full disk, the size limit, an I/O error) keeps the
+//! samples it could not commit, stops recording with one log line, and is
+//! tried again every HISTORY_SYNC; the queue then fills and recorders drop
+//! what is over its bound. Recording resumes by itself, with one log line.
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::atomic::Ordering;
+use std::sync::mpsc::{Receiver, RecvTimeoutError};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use tracing::{error, info, warn};
+
+use super::sample::{Event, Sample};
+use super::store::{self, day_of, DayFile, WriteCounts};
+use super::{State, Stats};
+use crate::changes::unix_ms;
+use crate::config::Retention;
+use crate::vars::VarTable;
+
+/// What the recorders send.
+pub enum Message {
+    Record {
+        section: usize,
+        table: Arc<VarTable>,
+        samples: Vec<Sample>,
+        events: Vec<Event>,
+    },
+    /// Write what is pending and end.
+    Stop,
+}
+
+pub struct SectionOut {
+    pub name: String,
+    pub stats: Arc<Stats>,
+}
+
+pub struct Settings {
+    pub dir: PathBuf,
+    pub sync: Duration,
+    pub retention: Retention,
+}
+
+/// How often retention looks at the files.
+const RETENTION_EVERY: Duration = Duration::from_secs(10);
+
+struct Section {
+    out: SectionOut,
+    pending: Vec<(Arc<VarTable>, Vec<Sample>)>,
+    events: Vec<Event>,
+    pending_samples: u64,
+    files: HashMap<i64, DayFile>,
+    /// Why writing failed, while it does.
+    failing: Option<String>,
+}
+
+pub fn run(rx: Receiver<Message>, sections: Vec<SectionOut>, settings: Settings) {
+    let mut sections: Vec<Section> = sections
+        .into_iter()
+        .map(|out| Section {
+            out,
+            pending: Vec::new(),
+            events: Vec::new(),
+            pending_samples: 0,
+            files: HashMap::new(),
+            failing: None,
+        })
+        .collect();
+    let mut next_sync = Instant::now() + settings.sync;
+    let mut next_retention = Instant::now();
+    let mut over_limit = false;
+    let mut stopping = false;
+    while !stopping {
+        let now = Instant::now();
+        if now >= next_retention {
+            over_limit = retention(&settings, &sections);
+            next_retention = now + RETENTION_EVERY;
+        }
+        match rx.recv_timeout(next_sync.saturating_duration_since(now)) {
+            Ok(Message::Record {
+                section,
+                table,
+                samples,
+                events,
+            }) => {
+                let s = &mut sections[section];
+                s.pending_samples += samples.len() as u64;
+                if !samples.is_empty() {
+                    s.pending.push((table, samples));
+                }
+                s.events.extend(events);
+                continue;
+            }
+            Ok(Message::Stop) | Err(RecvTimeoutError::Disconnected) => stopping = true,
+            Err(RecvTimeoutError::Timeout) => {}
+        }
+        let interval_start = next_sync - settings.sync;
+        let started = Instant::now();
+        for section in &mut sections {
+            flush(section, &settings, over_limit);
+        }
+        let took = started.elapsed();
+        let filled = started
+            .saturating_duration_since(interval_start)
+            .max(settings.sync);
+        for section in &sections {
+            section.out.stats.flush_us.set(took.as_micros() as u64);
+            section
+                .out
+                .stats
+                .flush_max_us
+                .raise(took.as_micros() as u64);
+            if took > filled {
+                section.out.stats.overruns.inc();
+            }
+        }
+        next_sync += settings.sync;
+        if next_sync < Instant::now() {
+            next_sync = Instant::now() + settings.sync;
+        }
+    }
+    for section in sections {
+        for (_, file) in section.files {
+            file.close();
+        }
+    }
+}
+
+/// Commits what a section has pending.
+fn flush(section: &mut Section, settings: &Settings, over_limit: bool) {
+    if section.pending.is_empty() && section.events.is_empty() {
+        return;
+    }
+    let stats = section.out.stats.clone();
+    if over_limit {
+        fail(
+            section,
+            "the history size limit (HISTORY_RETENTION) is reached".into(),
+        );
+        return;
+    }
+    match write(section, settings) {
+        Ok(counts) => {
+            if section.failing.take().is_some() {
+                info!(section = %section.out.name, "history: recording resumed");
+            }
+            stats.state.store(State::Recording as u8, Ordering::Relaxed);
+            stats.written.add(counts.written);
+            stats.duplicates.add(counts.duplicates);
+            stats.shifted.add(counts.shifted);
+            if counts.over_limit > 0 {
+                stats.dropped.add(counts.over_limit);
+                warn!(section = %section.out.name, "history: {} samples of variables beyond the 32,767 of a day file were not stored", counts.over_limit);
+            }
+            stats
+                .queued
+                .fetch_sub(section.pending_samples, Ordering::Relaxed);
+            section.pending.clear();
+            section.events.clear();
+            section.pending_samples = 0;
+        }
+        Err(e) => {
+            fail(section, e.to_string());
+            // A fresh connection on the next try.
+            for (_, file) in section.files.drain() {
+                drop(file);
+            }
+        }
+    }
+    // Close the files of days that are over (kept open for a late sample
+    // at midnight only until the next flush after).
+    let today = day_of(unix_ms(std::time::SystemTime::now()));
+    let old: Vec<i64> = section
+        .files
+        .keys()
+        .copied()
+        .filter(|&d| d < today - 1 || (d < today && section.pending.is_empty()))
+        .collect();
+    for day in old {
+        if let Some(file) = section.files.remove(&day) {
+            file.close();
+        }
+    }
+    stats.bytes.set(
+        section
+            .files
+            .values()
+            .map(|f| store::file_bytes(&f.path))
+            .sum(),
+    );
+}
+
+fn fail(section: &mut Section, why: String) {
+    if section.failing.is_none() {
+        error!(section = %section.out.name, "history: recording stopped: {why}; samples are kept in memory up to the queue's bound and recording resumes by itself");
+        section
+            .out
+            .stats
+            .state
+            .store(State::Stopped as u8, Ordering::Relaxed);
+    }
+    section.failing = Some(why);
+}
+
+fn write(section: &mut Section, settings: &Settings) -> Result<WriteCounts, store::StoreError> {
+    // Samples by day, each day one transaction.
+    let mut days: Vec<i64> = section
+        .pending
+        .iter()
+        .flat_map(|(_, s)| s.iter().map(|s| day_of(s.t)))
+        .chain(section.events.iter().map(|e| day_of(e.t)))
+        .collect();
+    days.sort_unstable();
+    days.dedup();
+    let mut counts = WriteCounts::default();
+    for day in days {
+        let file = match section.files.entry(day) {
+            std::collections::hash_map::Entry::Occupied(o) => o.into_mut(),
+            std::collections::hash_map::Entry::Vacant(v) => {
+                v.insert(DayFile::open(&settings.dir, &section.out.name, day)?)
+            }
+        };
+        let parts: Vec<(&Arc<VarTable>, Vec<Sample>)> = section
+            .pending
+            .iter()
+            .map(|(table, samples)| {
+                (
+                    table,
+                    samples
+                        .iter()
+                        .filter(|s| day_of(s.t) == day)
+                        .cloned()
+                        .collect(),
+                )
+            })
+            .collect();
+        let parts: Vec<(&Arc<VarTable>, &[Sample])> =
+            parts.iter().map(|(t, s)| (*t, s.as_slice())).collect();
+        let events: Vec<Event> = section
+            .events
+            .iter()
+            .filter(|e| day_of(e.t) == day)
+            .cloned()
+            .collect();
+        counts += file.write(&parts, &events)?;
+    }
+    Ok(counts)
+}
+
+/// Deletes day files past the retention; returns whether the files still
+/// take more than the size limit (recording must stop).
+fn retention(settings: &Settings, sections: &[Section]) -> bool {
+    let Retention { days, bytes } = settings.retention;
+    if days.is_none() && bytes.is_none() {
+        return false;
+    }
+    let today = day_of(unix_ms(std::time::SystemTime::now()));
+    let mut files: Vec<(i64, PathBuf, u64, bool)> = Vec::new();
+    let Ok(entries) = std::fs::read_dir(&settings.dir) else {
+        return false;
+    };
+    let open: Vec<&PathBuf> = sections
+        .iter()
+        .flat_map(|s| s.files.values().map(|f| &f.path))
+        .collect();
+    for entry in entries.filter_map(Result::ok) {
+        if !entry.path().is_dir() {
+            continue;
+        }
+        for (day, path) in store::day_files(&entry.path()) {
+            let size = store::file_bytes(&path);
+            let is_open = open.contains(&&path);
+            files.push((day, path, size, is_open));
+        }
+    }
+    files.sort_by_key(|f| f.0);
+    let mut total: u64 = files.iter().map(|f| f.2).sum();
+    for (day, path, size, is_open) in &files {
+        let too_old = days.is_some_and(|keep| *day <= today - i64::from(keep));
+        let too_big = bytes.is_some_and(|limit| total > limit);
+        if (too_old || too_big) && !is_open && *day < today {
+            match remove_day(path) {
+                Ok(()) => {
+                    info!(
+                        "history: deleted {} ({})",
+                        path.display(),
+                        if too_old {
+                            "older than the retention"
+                        } else {
+                            "over the size limit"
+                        }
+                    );
+                    total -= size;
+                }
+                Err(e) => warn!("history: cannot delete {}: {e}", path.display()),
+            }
+        }
+    }
+    bytes.is_some_and(|limit| total > limit)
+}
+
+fn remove_day(path: &std::path::Path) -> std::io::Result<()> {
+    std::fs::remove_file(path)?;
+    for suffix in ["-wal", "-shm", "-journal"] {
+        let mut name = path.as_os_str().to_owned();
+        name.push(suffix);
+        let _ = std::fs::remove_file(PathBuf::from(name));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::historian::store::day_path;
+
+    #[test]
+    fn retention_by_days_and_by_size() {
+        let dir = tempfile::tempdir().unwrap();
+        let today = day_of(unix_ms(std::time::SystemTime::now()));
+        let make = |section: &str, day: i64, bytes: usize| {
+            let path = day_path(dir.path(), section, day);
+            std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+            std::fs::write(&path, vec![0u8; bytes]).unwrap();
+            path
+        };
+        let old = make("A", today - 40, 10);
+        let wal = PathBuf::from(format!("{}-wal", old.display()));
+        std::fs::write(&wal, b"x").unwrap();
+        let a_week = make("A", today - 7, 1000);
+        let b_yesterday = make("B", today - 1, 1000);
+        let b_today = make("B", today, 1000);
+        let settings = |days, bytes| Settings {
+            dir: dir.path().to_path_buf(),
+            sync: Duration::from_secs(1),
+            retention: Retention { days, bytes },
+        };
+        // 30 days: the 40-day-old file (and its WAL) goes.
+        assert!(!retention(&settings(Some(30), None), &[]));
+        assert!(!old.exists() && !wal.exists());
+        assert!(a_week.exists() && b_yesterday.exists());
+        // 2500 bytes for 3000: the oldest goes, whatever its section.
+        assert!(!retention(&settings(None, Some(2500)), &[]));
+        assert!(!a_week.exists() && b_yesterday.exists() && b_today.exists());
+        // Today's file is never deleted: over the limit, recording stops.
+        assert!(retention(&settings(None, Some(500)), &[]));
+        assert!(!b_yesterday.exists() && b_today.exists());
+    }
+}

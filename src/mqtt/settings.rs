@@ -1,0 +1,349 @@
+//! From the MQTT keys to what the client needs: the broker's address and
+//! transport, credentials (a password file read once, at start-up), the
+//! client ids, the TLS configuration and each section's publishing rules.
+//!
+//! Each section has a connection of its own, because a connection has one
+//! last will and every section has its own `status` topic: its client id is
+//! `<base>-<section>`, the base being MQTT_CLIENT_ID or, by default,
+//! `plccoms-<host name>-<hash of the configuration file's path>`, stable
+//! across restarts and different for two configurations on one host.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use plccoms_protocol::{cp1250, Delta, Mask};
+use rustls::pki_types::pem::PemObject;
+use rustls::pki_types::{CertificateDer, PrivateKeyDer};
+
+use crate::config::{self, MqttFormat};
+
+/// A broker address from MQTT_URL.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BrokerUrl {
+    pub host: String,
+    pub port: u16,
+    pub tls: bool,
+}
+
+impl BrokerUrl {
+    /// `mqtt://host[:port]` (port 1883) or `mqtts://host[:port]` (8883); the
+    /// host a name, an IPv4 address or `[IPv6]`. `Err` says what is wrong.
+    pub fn parse(text: &str) -> Result<BrokerUrl, String> {
+        let (scheme, rest) = text
+            .split_once("://")
+            .ok_or("is not a URL (mqtt://host:port or mqtts://host:port)")?;
+        let (tls, default_port) = match scheme.to_ascii_lowercase().as_str() {
+            "mqtt" | "tcp" => (false, 1883),
+            "mqtts" | "ssl" => (true, 8883),
+            _ => return Err(format!("has scheme '{scheme}' (allowed mqtt, mqtts)")),
+        };
+        let authority = rest.strip_suffix('/').unwrap_or(rest);
+        if authority.contains('/') || authority.contains('?') || authority.contains('#') {
+            return Err("has a path or query (only mqtt://host:port)".into());
+        }
+        if authority.contains('@') {
+            return Err("holds a user (give MQTT_USER and MQTT_PASSWORD instead)".into());
+        }
+        let bracketed = authority.starts_with('[');
+        let (host, port) = if let Some(v6) = authority.strip_prefix('[') {
+            let (host, after) = v6.split_once(']').ok_or("has '[' without ']'")?;
+            if host.parse::<std::net::Ipv6Addr>().is_err() {
+                return Err(format!("has '[{host}]', which is not an IPv6 address"));
+            }
+            match after {
+                "" => (host, None),
+                _ => (
+                    host,
+                    Some(after.strip_prefix(':').ok_or("has text after ']'")?),
+                ),
+            }
+        } else {
+            match authority.rsplit_once(':') {
+                Some((host, port)) => (host, Some(port)),
+                None => (authority, None),
+            }
+        };
+        if host.is_empty() {
+            return Err("has no host".into());
+        }
+        if !bracketed
+            && !host
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_'))
+        {
+            return Err(format!(
+                "has host '{host}', which is not a host name or address"
+            ));
+        }
+        let port = match port {
+            None => default_port,
+            Some(p) => match p.parse::<u16>() {
+                Ok(port) if port > 0 && p.bytes().all(|b| b.is_ascii_digit()) => port,
+                _ => return Err(format!("has port '{p}' (allowed 1-65535)")),
+            },
+        };
+        Ok(BrokerUrl {
+            host: host.to_string(),
+            port,
+            tls,
+        })
+    }
+}
+
+/// The `[*]` MQTT settings, resolved.
+#[derive(Clone)]
+pub struct Settings {
+    pub broker: BrokerUrl,
+    pub credentials: Option<(String, String)>,
+    /// Base of the client ids (`<base>-<section>`).
+    pub client_id: String,
+    pub prefix: String,
+    pub tls: Option<Arc<rustls::ClientConfig>>,
+    pub buffer: u64,
+    pub spool: PathBuf,
+}
+
+impl std::fmt::Debug for Settings {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // Never the password.
+        f.debug_struct("Settings")
+            .field("broker", &self.broker)
+            .field("user", &self.credentials.as_ref().map(|c| &c.0))
+            .field("client_id", &self.client_id)
+            .field("prefix", &self.prefix)
+            .field("tls", &self.tls.is_some())
+            .field("buffer", &self.buffer)
+            .field("spool", &self.spool)
+            .finish()
+    }
+}
+
+impl Settings {
+    /// The settings of `[*]`, files read (password, certificates), relative
+    /// paths from `dir` (the configuration's folder); `None` when MQTT_URL is
+    /// unset. `config_path` seeds the default client id.
+    pub fn load(
+        mqtt: &config::MqttGlobal,
+        dir: &Path,
+        config_path: &Path,
+    ) -> Result<Option<Settings>, String> {
+        let Some(url) = &mqtt.url else {
+            return Ok(None);
+        };
+        let broker = BrokerUrl::parse(url).map_err(|p| format!("MQTT_URL = {url} {p}"))?;
+        config::check_prefix(&mqtt.prefix)
+            .map_err(|p| format!("MQTT_PREFIX = {} {p}", mqtt.prefix))?;
+        let password = match (&mqtt.password, &mqtt.password_file) {
+            (Some(password), _) => Some(password.clone()),
+            (None, Some(file)) => {
+                let path = dir.join(file);
+                let text = std::fs::read_to_string(&path)
+                    .map_err(|e| format!("MQTT_PASSWORD_FILE {}: {e}", path.display()))?;
+                Some(text.trim_end_matches(['\r', '\n']).to_string())
+            }
+            (None, None) => None,
+        };
+        let credentials = match (&mqtt.user, password) {
+            (Some(user), password) => Some((user.clone(), password.unwrap_or_default())),
+            (None, Some(_)) => return Err("MQTT_PASSWORD is given without MQTT_USER".into()),
+            (None, None) => None,
+        };
+        let tls = if broker.tls {
+            Some(Arc::new(tls_config(mqtt, dir)?))
+        } else {
+            None
+        };
+        let client_id = match &mqtt.client_id {
+            Some(id) => id.clone(),
+            None => default_client_id(config_path),
+        };
+        Ok(Some(Settings {
+            broker,
+            credentials,
+            client_id,
+            prefix: mqtt.prefix.clone(),
+            tls,
+            buffer: mqtt.buffer,
+            spool: dir.join(&mqtt.spool),
+        }))
+    }
+
+    /// The client id of a section's connection.
+    pub fn section_client_id(&self, section: &str) -> String {
+        format!("{}-{}", self.client_id, id_safe(section))
+    }
+}
+
+/// `plccoms-<host name>-<crc32 of the configuration's absolute path>`.
+fn default_client_id(config_path: &Path) -> String {
+    let host = nix::unistd::gethostname()
+        .ok()
+        .and_then(|h| h.into_string().ok())
+        .unwrap_or_else(|| "host".into());
+    let path = std::fs::canonicalize(config_path).unwrap_or_else(|_| config_path.to_path_buf());
+    let hash = CRC32.checksum(path.as_os_str().as_encoded_bytes());
+    format!("plccoms-{}-{hash:08x}", id_safe(&host))
+}
+
+pub(super) const CRC32: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC);
+
+/// `text` with everything but ASCII letters, digits, `-` and `_` made `_`:
+/// what every broker accepts in a client id.
+pub fn id_safe(text: &str) -> String {
+    text.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
+/// rustls on ring: the broker checked against MQTT_CA, else the system's CA
+/// store; a client certificate with MQTT_CERT and MQTT_KEY.
+fn tls_config(mqtt: &config::MqttGlobal, dir: &Path) -> Result<rustls::ClientConfig, String> {
+    let mut roots = rustls::RootCertStore::empty();
+    match &mqtt.ca {
+        Some(ca) => {
+            let path = dir.join(ca);
+            let certs = read_certs(&path, "MQTT_CA")?;
+            for cert in certs {
+                roots
+                    .add(cert)
+                    .map_err(|e| format!("MQTT_CA {}: {e}", path.display()))?;
+            }
+        }
+        None => {
+            let native = rustls_native_certs::load_native_certs();
+            roots.add_parsable_certificates(native.certs);
+            if roots.is_empty() {
+                return Err(
+                    "mqtts:// without MQTT_CA, and no CA certificates in the system's store".into(),
+                );
+            }
+        }
+    }
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let builder = rustls::ClientConfig::builder_with_provider(provider)
+        .with_safe_default_protocol_versions()
+        .map_err(|e| format!("TLS: {e}"))?
+        .with_root_certificates(roots);
+    match (&mqtt.cert, &mqtt.key) {
+        (Some(_), None) | (None, Some(_)) => {
+            Err("MQTT_CERT and MQTT_KEY go together (a client certificate and its key)".into())
+        }
+        (Some(cert), Some(key)) => {
+            let certs = read_certs(&dir.join(cert), "MQTT_CERT")?;
+            let key_path = dir.join(key);
+            let key = PrivateKeyDer::from_pem_file(&key_path)
+                .map_err(|e| format!("MQTT_KEY {}: {e}", key_path.display()))?;
+            builder
+                .with_client_auth_cert(certs, key)
+                .map_err(|e| format!("MQTT_CERT/MQTT_KEY: {e}"))
+        }
+        _ => Ok(builder.with_no_client_auth()),
+    }
+}
+
+fn read_certs(path: &Path, key: &str) -> Result<Vec<CertificateDer<'static>>, String> {
+    let certs = CertificateDer::pem_file_iter(path)
+        .and_then(|iter| iter.collect::<Result<Vec<_>, _>>())
+        .map_err(|e| format!("{key} {}: {e}", path.display()))?;
+    if certs.is_empty() {
+        return Err(format!("{key} {}: no certificate in it", path.display()));
+    }
+    Ok(certs)
+}
+
+/// A section's publishing rules, from its MQTT keys.
+#[derive(Debug, Clone)]
+pub struct SectionRules {
+    /// MQTT_PUBLISH as given, for the change subscription.
+    pub publish: Vec<Vec<u8>>,
+    /// MQTT_WRITE, compiled.
+    pub write: Vec<Mask>,
+    pub qos: u8,
+    pub retain: bool,
+    pub format: MqttFormat,
+    pub delta: Option<Delta>,
+    pub ha_discovery: bool,
+}
+
+impl SectionRules {
+    pub fn new(mqtt: &config::MqttSection) -> Result<SectionRules, String> {
+        let delta = match &mqtt.delta {
+            Some(text) => {
+                let delta = Delta::parse(text.as_bytes())
+                    .map_err(|e| format!("MQTT_DELTA = {text} {}", e.message()))?;
+                (!delta.is_zero()).then_some(delta)
+            }
+            None => None,
+        };
+        let masks = |list: &[String]| -> Vec<Vec<u8>> {
+            list.iter()
+                .map(|m| cp1250::encode(m).into_owned())
+                .collect()
+        };
+        Ok(SectionRules {
+            publish: masks(&mqtt.publish),
+            write: masks(&mqtt.write).iter().map(|m| Mask::new(m)).collect(),
+            qos: mqtt.qos,
+            retain: mqtt.retain,
+            format: mqtt.format,
+            delta,
+            ha_discovery: mqtt.ha_discovery,
+        })
+    }
+
+    /// Whether `/set` may write `upper_name` (MQTT_WRITE).
+    pub fn writable(&self, upper_name: &[u8]) -> bool {
+        self.write.iter().any(|m| m.matches(upper_name))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn broker_urls() {
+        for (text, host, port, tls) in [
+            ("mqtt://broker", "broker", 1883, false),
+            ("mqtts://10.0.0.1", "10.0.0.1", 8883, true),
+            ("MQTT://b.lan:1884/", "b.lan", 1884, false),
+            ("mqtts://[::1]:8884", "::1", 8884, true),
+            ("mqtt://[fe80::1]", "fe80::1", 1883, false),
+        ] {
+            let host = host.to_string();
+            assert_eq!(BrokerUrl::parse(text), Ok(BrokerUrl { host, port, tls }));
+        }
+        for (bad, says) in [
+            ("broker:1883", "is not a URL"),
+            ("http://b", "scheme 'http'"),
+            ("mqtt://", "no host"),
+            ("mqtt://b:0", "port '0'"),
+            ("mqtt://b:70000", "port '70000'"),
+            ("mqtt://b:+1", "port '+1'"),
+            ("mqtt://u:p@b", "MQTT_USER"),
+            ("mqtt://b/topic", "path"),
+            ("mqtt://[::1", "without ']'"),
+            ("mqtt://[zz]:1", "not an IPv6"),
+            ("mqtt://b c", "not a host name"),
+            ("mqtt://::1", "not a host name"),
+        ] {
+            let problem = BrokerUrl::parse(bad).unwrap_err();
+            assert!(problem.contains(says), "{bad}: {problem}");
+        }
+    }
+
+    #[test]
+    fn client_ids_are_stable_and_safe() {
+        let a = default_client_id(Path::new("/etc/plccoms/a.ini"));
+        assert_eq!(a, default_client_id(Path::new("/etc/plccoms/a.ini")));
+        assert_ne!(a, default_client_id(Path::new("/etc/plccoms/b.ini")));
+        assert!(a.starts_with("plccoms-"));
+        assert_eq!(id_safe("Hala 1/ä"), "Hala_1__");
+    }
+}

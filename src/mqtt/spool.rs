@@ -1,0 +1,745 @@
+//! The on-disk queue of one section's messages (store-and-forward): every
+//! QoS 1 message is appended here before it is sent, and leaves when the
+//! broker acknowledged it. While the broker is away the queue grows on disk,
+//! bounded by MQTT_BUFFER: past it the oldest messages are dropped (whole
+//! segments) and counted. When the broker returns, sending starts again at
+//! the oldest unacknowledged message, in order.
+//!
+//! Layout of the folder (one per section's client id):
+//!
+//! ```text
+//! lock                    flock()ed while a process uses the folder
+//! 00000000000000000042.seg  records from sequence number 42 on
+//! head                    the first unacknowledged sequence number
+//! ```
+//!
+//! A record is `len: u32 LE | crc32c(body): u32 LE | body`, the body
+//! `seq: u64 LE | flags: u8 (bits 0-1 QoS, bit 2 retain) | topic length:
+//! u16 LE | topic (UTF-8) | payload`.
+//!
+//! What survives what:
+//! - the server stopping (SIGTERM) or crashing, kill -9 included: every
+//!   record written (records are written to the file as each batch of
+//!   changes is taken, before they are sent); `head` is saved at most a
+//!   second late, so up to a second of acknowledged messages may be sent
+//!   again after a crash (QoS 1 is at least once);
+//! - power loss: what was written up to the last sync; the queue is synced
+//!   each second while the broker is away (or behind), not while every
+//!   message is acknowledged at once;
+//! - a record torn by a crash in the middle of a write, or damaged on disk:
+//!   found by its length and checksum when the folder is opened; the segment
+//!   is cut there (logged), the records before it and the later segments
+//!   stay.
+//!
+//! Segments that are wholly acknowledged are deleted; when everything is
+//! acknowledged the current one is deleted too once it holds 64 KiB, so
+//! while the broker keeps up the files stay small and short-lived.
+
+use std::collections::{BTreeSet, VecDeque};
+use std::fs::{self, File, OpenOptions};
+use std::io::{self, BufReader, BufWriter, Read, Write};
+use std::path::{Path, PathBuf};
+
+use nix::fcntl::{Flock, FlockArg};
+use tracing::warn;
+
+/// A message as it is published.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Message {
+    pub topic: String,
+    pub payload: Vec<u8>,
+    /// 0 or 1.
+    pub qos: u8,
+    pub retain: bool,
+}
+
+const HEADER: usize = 8;
+/// Body bytes before the topic: seq, flags, topic length.
+const BODY_HEAD: usize = 11;
+/// The largest body a record may have (far beyond any message here).
+pub const MAX_BODY: usize = 16 << 20;
+/// The current segment is deleted when everything is acknowledged and it
+/// holds at least this much.
+const ROTATE_EMPTY: u64 = 64 << 10;
+
+const CRC32C: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISCSI);
+
+/// Appends the record of message `seq` to `out`.
+pub fn encode_record(seq: u64, message: &Message, out: &mut Vec<u8>) {
+    let topic = message.topic.as_bytes();
+    let topic_len = u16::try_from(topic.len()).unwrap_or(u16::MAX);
+    let topic = &topic[..usize::from(topic_len)];
+    let body_len = BODY_HEAD + topic.len() + message.payload.len();
+    let start = out.len();
+    out.extend_from_slice(&(body_len as u32).to_le_bytes());
+    out.extend_from_slice(&[0; 4]);
+    out.extend_from_slice(&seq.to_le_bytes());
+    out.push((message.qos & 3) | (u8::from(message.retain) << 2));
+    out.extend_from_slice(&topic_len.to_le_bytes());
+    out.extend_from_slice(topic);
+    out.extend_from_slice(&message.payload);
+    let crc = CRC32C.checksum(&out[start + HEADER..]);
+    out[start + 4..start + 8].copy_from_slice(&crc.to_le_bytes());
+}
+
+/// Why bytes are not a record.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum RecordError {
+    #[error("record length {0} is out of range ({BODY_HEAD}-{MAX_BODY})")]
+    Length(u32),
+    #[error("record checksum does not match")]
+    Checksum,
+    #[error("record flags {0:#04x} are not a QoS 0/1 message")]
+    Flags(u8),
+    #[error("record topic length {0} runs past the record")]
+    TopicLength(u16),
+    #[error("record topic is not UTF-8")]
+    Topic,
+}
+
+/// The record at the start of `bytes`: `Ok(None)` when `bytes` ends before
+/// it does, else the sequence number, the message and the bytes it took.
+pub fn decode_record(bytes: &[u8]) -> Result<Option<(u64, Message, usize)>, RecordError> {
+    let Some(header) = bytes.get(..HEADER) else {
+        return Ok(None);
+    };
+    let len = u32::from_le_bytes(header[..4].try_into().unwrap_or_default());
+    let body_len = len as usize;
+    if !(BODY_HEAD..=MAX_BODY).contains(&body_len) {
+        return Err(RecordError::Length(len));
+    }
+    let Some(body) = bytes.get(HEADER..HEADER + body_len) else {
+        return Ok(None);
+    };
+    let crc = u32::from_le_bytes(header[4..8].try_into().unwrap_or_default());
+    if CRC32C.checksum(body) != crc {
+        return Err(RecordError::Checksum);
+    }
+    let seq = u64::from_le_bytes(body[..8].try_into().unwrap_or_default());
+    let flags = body[8];
+    if flags & !7 != 0 || flags & 3 > 1 {
+        return Err(RecordError::Flags(flags));
+    }
+    let topic_len = u16::from_le_bytes([body[9], body[10]]);
+    let topic_end = BODY_HEAD + usize::from(topic_len);
+    let topic = body
+        .get(BODY_HEAD..topic_end)
+        .ok_or(RecordError::TopicLength(topic_len))?;
+    let topic = std::str::from_utf8(topic).map_err(|_| RecordError::Topic)?;
+    let message = Message {
+        topic: topic.to_string(),
+        payload: body[topic_end..].to_vec(),
+        qos: flags & 3,
+        retain: flags & 4 != 0,
+    };
+    Ok(Some((seq, message, HEADER + body_len)))
+}
+
+/// What opening a folder found.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct Recovered {
+    /// Unacknowledged messages queued from before.
+    pub messages: u64,
+    pub bytes: u64,
+    /// Damaged or torn records cut off, with where and why.
+    pub cut: Vec<String>,
+}
+
+#[derive(Debug)]
+struct Segment {
+    first: u64,
+    /// One past the last record's sequence number.
+    next: u64,
+    bytes: u64,
+    path: PathBuf,
+}
+
+struct Reader {
+    file: BufReader<File>,
+    /// Sequence number of the record the next read returns.
+    next: u64,
+    /// Index-free identity of the segment: its first sequence number.
+    segment: u64,
+}
+
+pub struct Spool {
+    dir: PathBuf,
+    _lock: Flock<File>,
+    limit: u64,
+    segment_limit: u64,
+    segments: VecDeque<Segment>,
+    writer: Option<BufWriter<File>>,
+    next_seq: u64,
+    /// The first unacknowledged sequence number.
+    head: u64,
+    /// Acknowledged sequence numbers above `head`.
+    acked: BTreeSet<u64>,
+    /// The next sequence number to send.
+    cursor: u64,
+    reader: Option<Reader>,
+    bytes: u64,
+    saved_head: u64,
+    /// Written (or a segment created) since the last sync.
+    unsynced: bool,
+    scratch: Vec<u8>,
+}
+
+impl Spool {
+    /// Opens (creating) the queue in `dir`, at most `limit` bytes, and
+    /// recovers what it holds. Fails when another process holds the folder.
+    pub fn open(dir: &Path, limit: u64) -> io::Result<(Spool, Recovered)> {
+        fs::create_dir_all(dir)?;
+        let lock_file = OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(dir.join("lock"))?;
+        let lock = Flock::lock(lock_file, FlockArg::LockExclusiveNonblock).map_err(|(_, e)| {
+            io::Error::new(
+                io::ErrorKind::WouldBlock,
+                format!(
+                    "{} is in use by another process ({e}): two servers with the same MQTT client id?",
+                    dir.display()
+                ),
+            )
+        })?;
+        let mut recovered = Recovered::default();
+        let mut names: Vec<(u64, PathBuf)> = fs::read_dir(dir)?
+            .filter_map(|entry| {
+                let path = entry.ok()?.path();
+                let first = path
+                    .file_name()?
+                    .to_str()?
+                    .strip_suffix(".seg")?
+                    .parse()
+                    .ok()?;
+                Some((first, path))
+            })
+            .collect();
+        names.sort();
+        let mut segments = VecDeque::new();
+        for (first, path) in names {
+            let segment = recover_segment(first, path, &mut recovered)?;
+            if segment.next > segment.first {
+                segments.push_back(segment);
+            } else {
+                let _ = fs::remove_file(&segment.path);
+            }
+        }
+        let saved = read_head(&dir.join("head"));
+        let next_seq = segments
+            .back()
+            .map_or(saved.unwrap_or(1).max(1), |s| s.next);
+        let first = segments.front().map_or(next_seq, |s| s.first);
+        let head = saved.unwrap_or(first).clamp(first, next_seq);
+        let bytes = segments.iter().map(|s| s.bytes).sum();
+        recovered.messages = next_seq - head;
+        recovered.bytes = bytes;
+        let mut spool = Spool {
+            dir: dir.to_path_buf(),
+            _lock: lock,
+            limit,
+            segment_limit: (limit / 16).clamp(4 << 10, 4 << 20),
+            segments,
+            writer: None,
+            next_seq,
+            head,
+            acked: BTreeSet::new(),
+            cursor: head,
+            reader: None,
+            bytes,
+            saved_head: saved.unwrap_or(0),
+            unsynced: false,
+            scratch: Vec::new(),
+        };
+        spool.release();
+        Ok((spool, recovered))
+    }
+
+    /// Unacknowledged messages.
+    pub fn len(&self) -> u64 {
+        self.next_seq - self.head - self.acked.len() as u64
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Bytes on disk.
+    pub fn bytes(&self) -> u64 {
+        self.bytes
+    }
+
+    /// Whether messages are waiting to be sent.
+    pub fn has_unsent(&self) -> bool {
+        self.cursor < self.next_seq
+    }
+
+    /// Appends `messages`; returns how many unacknowledged messages were
+    /// dropped (the oldest) to stay within the limit.
+    pub fn push(&mut self, messages: &[Message]) -> io::Result<u64> {
+        if messages.is_empty() {
+            return Ok(0);
+        }
+        for message in messages {
+            let full = self
+                .segments
+                .back()
+                .is_none_or(|s| s.bytes >= self.segment_limit);
+            if self.writer.is_none() || full {
+                self.start_segment()?;
+            }
+            self.scratch.clear();
+            encode_record(self.next_seq, message, &mut self.scratch);
+            let n = self.scratch.len() as u64;
+            if let Some(writer) = self.writer.as_mut() {
+                writer.write_all(&self.scratch)?;
+            }
+            if let Some(segment) = self.segments.back_mut() {
+                segment.bytes += n;
+                segment.next = self.next_seq + 1;
+            }
+            self.bytes += n;
+            self.next_seq += 1;
+        }
+        if let Some(writer) = self.writer.as_mut() {
+            writer.flush()?;
+        }
+        self.unsynced = true;
+        Ok(self.enforce_limit())
+    }
+
+    fn start_segment(&mut self) -> io::Result<()> {
+        if let Some(mut writer) = self.writer.take() {
+            writer.flush()?;
+        }
+        let path = self.dir.join(format!("{:020}.seg", self.next_seq));
+        let file = OpenOptions::new()
+            .create(true)
+            .truncate(true)
+            .write(true)
+            .open(&path)?;
+        self.segments.push_back(Segment {
+            first: self.next_seq,
+            next: self.next_seq,
+            bytes: 0,
+            path,
+        });
+        self.writer = Some(BufWriter::with_capacity(64 << 10, file));
+        Ok(())
+    }
+
+    /// Drops the oldest segments while over the limit; returns the
+    /// unacknowledged messages they held.
+    fn enforce_limit(&mut self) -> u64 {
+        let mut dropped = 0;
+        while self.bytes > self.limit && self.segments.len() > 1 {
+            let Some(segment) = self.segments.pop_front() else {
+                break;
+            };
+            let _ = fs::remove_file(&segment.path);
+            self.bytes -= segment.bytes;
+            let from = self.head.max(segment.first);
+            if segment.next > from {
+                let acked = self.acked.range(from..segment.next).count() as u64;
+                dropped += segment.next - from - acked;
+            }
+            self.set_head(self.segments.front().map_or(self.next_seq, |s| s.first));
+        }
+        dropped
+    }
+
+    fn set_head(&mut self, head: u64) {
+        if head > self.head {
+            self.head = head;
+            self.acked = self.acked.split_off(&head);
+        }
+        while self.acked.remove(&self.head) {
+            self.head += 1;
+        }
+        if self.cursor < self.head {
+            self.cursor = self.head;
+            self.reader = None;
+        }
+    }
+
+    /// The next message to send, if any, with its sequence number.
+    pub fn next_unsent(&mut self) -> io::Result<Option<(u64, Message)>> {
+        while self.cursor < self.next_seq {
+            let reader = match self.reader.take() {
+                Some(reader) if reader.next == self.cursor => reader,
+                _ => match self.open_reader()? {
+                    Some(reader) => reader,
+                    None => return Ok(None),
+                },
+            };
+            match self.read_record(reader)? {
+                Step::Found(seq, message) => return Ok(Some((seq, message))),
+                Step::Wait => return Ok(None),
+                Step::Next => continue,
+            }
+        }
+        Ok(None)
+    }
+
+    /// A reader positioned at the cursor (moved past a gap if need be).
+    fn open_reader(&mut self) -> io::Result<Option<Reader>> {
+        let Some(segment) = self
+            .segments
+            .iter()
+            .rev()
+            .find(|s| s.first <= self.cursor)
+            .or_else(|| self.segments.front())
+        else {
+            return Ok(None);
+        };
+        if self.cursor < segment.first {
+            self.cursor = segment.first;
+        }
+        let mut reader = Reader {
+            file: BufReader::with_capacity(64 << 10, File::open(&segment.path)?),
+            next: segment.first,
+            segment: segment.first,
+        };
+        let target = self.cursor;
+        let mut body = Vec::new();
+        while reader.next < target {
+            if read_raw(&mut reader.file, &mut body)?.is_none() {
+                break;
+            }
+            reader.next += 1;
+        }
+        Ok(Some(reader))
+    }
+
+    /// Reads the record at the reader.
+    fn read_record(&mut self, mut reader: Reader) -> io::Result<Step> {
+        let mut raw = Vec::new();
+        let decoded = match read_raw(&mut reader.file, &mut raw)? {
+            Some(()) => decode_record(&raw),
+            None => Ok(None),
+        };
+        let later = self
+            .segments
+            .iter()
+            .find(|s| s.first > reader.segment)
+            .map(|s| s.first);
+        match decoded {
+            Ok(Some((seq, message, _))) if seq >= self.cursor => {
+                self.cursor = seq + 1;
+                reader.next = seq + 1;
+                self.reader = Some(reader);
+                Ok(Step::Found(seq, message))
+            }
+            // The end of what was written: wait for more, or go on to the
+            // next segment.
+            Ok(None) => match later {
+                Some(first) => {
+                    self.cursor = self.cursor.max(first);
+                    Ok(Step::Next)
+                }
+                None => {
+                    self.reader = Some(reader);
+                    Ok(Step::Wait)
+                }
+            },
+            damaged => {
+                let problem = match damaged {
+                    Err(e) => e.to_string(),
+                    _ => "a sequence number out of order".to_string(),
+                };
+                warn!(spool = %self.dir.display(), "damaged record at {}: {problem}; skipping the rest of its segment", self.cursor);
+                self.cursor = later.unwrap_or(self.next_seq).max(self.cursor);
+                Ok(Step::Next)
+            }
+        }
+    }
+
+    /// Marks `seq` acknowledged by the broker.
+    pub fn ack(&mut self, seq: u64) {
+        if seq < self.head || seq >= self.next_seq {
+            return;
+        }
+        self.acked.insert(seq);
+        self.set_head(self.head);
+        self.release();
+    }
+
+    /// Deletes wholly acknowledged segments.
+    fn release(&mut self) {
+        while self.segments.len() > 1 && self.segments[0].next <= self.head {
+            if let Some(segment) = self.segments.pop_front() {
+                let _ = fs::remove_file(&segment.path);
+                self.bytes -= segment.bytes;
+            }
+        }
+        let drained = self.head == self.next_seq;
+        if drained && self.segments.len() == 1 && self.segments[0].bytes >= ROTATE_EMPTY {
+            if let Some(segment) = self.segments.pop_front() {
+                self.writer = None;
+                self.reader = None;
+                let _ = fs::remove_file(&segment.path);
+                self.bytes -= segment.bytes;
+            }
+        }
+    }
+
+    /// Sending starts again at the oldest unacknowledged message (a new
+    /// connection).
+    pub fn rewind(&mut self) {
+        self.cursor = self.head;
+        self.reader = None;
+    }
+
+    /// Saves `head` if it moved, and syncs what was written if `durable`.
+    pub fn checkpoint(&mut self, durable: bool) -> io::Result<()> {
+        if durable && self.unsynced {
+            if let Some(writer) = self.writer.as_mut() {
+                writer.flush()?;
+                writer.get_ref().sync_data()?;
+            }
+            File::open(&self.dir)?.sync_all()?;
+            self.unsynced = false;
+        }
+        if self.head != self.saved_head {
+            let tmp = self.dir.join("head.tmp");
+            let mut bytes = self.head.to_le_bytes().to_vec();
+            bytes.extend_from_slice(&CRC32C.checksum(&bytes).to_le_bytes());
+            fs::write(&tmp, &bytes)?;
+            fs::rename(&tmp, self.dir.join("head"))?;
+            self.saved_head = self.head;
+        }
+        Ok(())
+    }
+}
+
+/// What reading at the cursor found.
+enum Step {
+    Found(u64, Message),
+    /// Nothing more written yet.
+    Wait,
+    /// The segment is done: read on at the (moved) cursor.
+    Next,
+}
+
+/// Reads one record's bytes (header and body) into `out`; `None` at the end
+/// of the file or of what was written whole.
+fn read_raw(file: &mut impl Read, out: &mut Vec<u8>) -> io::Result<Option<()>> {
+    out.clear();
+    out.resize(HEADER, 0);
+    if !read_full(file, &mut out[..])? {
+        return Ok(None);
+    }
+    let len = u32::from_le_bytes([out[0], out[1], out[2], out[3]]) as usize;
+    if !(BODY_HEAD..=MAX_BODY).contains(&len) {
+        // Let the decoder name the problem.
+        return Ok(Some(()));
+    }
+    out.resize(HEADER + len, 0);
+    if !read_full(file, &mut out[HEADER..])? {
+        return Ok(None);
+    }
+    Ok(Some(()))
+}
+
+/// `read_exact` that says `false` at end of file instead of failing.
+fn read_full(file: &mut impl Read, buf: &mut [u8]) -> io::Result<bool> {
+    let mut done = 0;
+    while done < buf.len() {
+        match file.read(&mut buf[done..]) {
+            Ok(0) => return Ok(false),
+            Ok(n) => done += n,
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(true)
+}
+
+/// Checks a segment's records; cuts it at the first damaged or torn one.
+fn recover_segment(first: u64, path: PathBuf, recovered: &mut Recovered) -> io::Result<Segment> {
+    let bytes = fs::read(&path)?;
+    let mut at = 0;
+    let mut next = first;
+    let mut problem = None;
+    while at < bytes.len() {
+        match decode_record(&bytes[at..]) {
+            Ok(Some((seq, _, used))) if seq == next => {
+                at += used;
+                next += 1;
+            }
+            Ok(Some((seq, _, _))) => {
+                problem = Some(format!("sequence {seq} where {next} was due"));
+                break;
+            }
+            Ok(None) => {
+                problem = Some("a record torn at the end".to_string());
+                break;
+            }
+            Err(e) => {
+                problem = Some(e.to_string());
+                break;
+            }
+        }
+    }
+    if let Some(problem) = problem {
+        recovered.cut.push(format!(
+            "{} cut at byte {at} of {} ({problem})",
+            path.display(),
+            bytes.len()
+        ));
+        let file = OpenOptions::new().write(true).open(&path)?;
+        file.set_len(at as u64)?;
+        file.sync_all()?;
+    }
+    Ok(Segment {
+        first,
+        next,
+        bytes: at as u64,
+        path,
+    })
+}
+
+fn read_head(path: &Path) -> Option<u64> {
+    let bytes = fs::read(path).ok()?;
+    let (seq, crc) = (bytes.get(..8)?, bytes.get(8..12)?);
+    let seq: [u8; 8] = seq.try_into().ok()?;
+    (CRC32C.checksum(&seq).to_le_bytes() == crc).then(|| u64::from_le_bytes(seq))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn message(i: u64) -> Message {
+        Message {
+            topic: format!("p/S/V{}", i % 7),
+            payload: i.to_string().into_bytes(),
+            qos: 1,
+            retain: i & 1 == 0,
+        }
+    }
+
+    fn drain(spool: &mut Spool) -> Vec<u64> {
+        let mut seen = Vec::new();
+        while let Some((seq, m)) = spool.next_unsent().unwrap() {
+            assert_eq!(m, message(seq));
+            seen.push(seq);
+        }
+        seen
+    }
+
+    #[test]
+    fn records_round_trip_and_reject_damage() {
+        let mut out = Vec::new();
+        encode_record(7, &message(7), &mut out);
+        let (seq, m, used) = decode_record(&out).unwrap().unwrap();
+        assert_eq!((seq, m, used), (7, message(7), out.len()));
+        assert_eq!(decode_record(&out[..out.len() - 1]), Ok(None));
+        assert_eq!(decode_record(&out[..3]), Ok(None));
+        let mut bad = out.clone();
+        *bad.last_mut().unwrap() ^= 1;
+        assert_eq!(decode_record(&bad), Err(RecordError::Checksum));
+        assert_eq!(
+            decode_record(&[0xff, 0xff, 0xff, 0xff, 0, 0, 0, 0]),
+            Err(RecordError::Length(u32::MAX))
+        );
+    }
+
+    #[test]
+    fn sends_in_order_acks_and_reopens_with_what_is_unacknowledged() {
+        let dir = tempfile::tempdir().unwrap();
+        let messages: Vec<Message> = (1..=100).map(message).collect();
+        {
+            let (mut spool, recovered) = Spool::open(dir.path(), 1 << 20).unwrap();
+            assert_eq!(recovered, Recovered::default());
+            assert_eq!(spool.push(&messages).unwrap(), 0);
+            assert_eq!(drain(&mut spool), (1..=100).collect::<Vec<_>>());
+            for seq in 1..=40 {
+                spool.ack(seq);
+            }
+            // Out of order: 42 before 41.
+            spool.ack(42);
+            assert_eq!(spool.len(), 59);
+            spool.ack(41);
+            assert_eq!(spool.len(), 58);
+            // A new connection sends again from the first unacknowledged.
+            spool.rewind();
+            assert_eq!(drain(&mut spool), (43..=100).collect::<Vec<_>>());
+            spool.checkpoint(true).unwrap();
+            // Another process cannot take the folder.
+            assert!(Spool::open(dir.path(), 1 << 20).is_err());
+        }
+        let (mut spool, recovered) = Spool::open(dir.path(), 1 << 20).unwrap();
+        assert_eq!(recovered.messages, 58);
+        assert_eq!(drain(&mut spool), (43..=100).collect::<Vec<_>>());
+        spool.push(&[message(101)]).unwrap();
+        assert_eq!(drain(&mut spool), [101]);
+        for seq in 43..=101 {
+            spool.ack(seq);
+        }
+        assert!(spool.is_empty());
+    }
+
+    #[test]
+    fn a_torn_tail_is_cut_and_the_rest_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let (mut spool, _) = Spool::open(dir.path(), 1 << 20).unwrap();
+            spool
+                .push(&(1..=10).map(message).collect::<Vec<_>>())
+                .unwrap();
+        }
+        let seg = dir.path().join(format!("{:020}.seg", 1));
+        let len = fs::metadata(&seg).unwrap().len();
+        OpenOptions::new()
+            .write(true)
+            .open(&seg)
+            .unwrap()
+            .set_len(len - 3)
+            .unwrap();
+        let (mut spool, recovered) = Spool::open(dir.path(), 1 << 20).unwrap();
+        assert_eq!(recovered.messages, 9);
+        assert_eq!(recovered.cut.len(), 1, "{:?}", recovered.cut);
+        assert!(recovered.cut[0].contains("torn"), "{:?}", recovered.cut);
+        assert_eq!(drain(&mut spool), (1..=9).collect::<Vec<_>>());
+        spool.push(&[message(10)]).unwrap();
+        assert_eq!(drain(&mut spool), [10]);
+    }
+
+    #[test]
+    fn over_the_limit_the_oldest_are_dropped_and_counted() {
+        let dir = tempfile::tempdir().unwrap();
+        // 64 KiB: segments of 4 KiB.
+        let (mut spool, _) = Spool::open(dir.path(), 64 << 10).unwrap();
+        let mut dropped = 0;
+        for chunk in (1..=5000).collect::<Vec<u64>>().chunks(100) {
+            let batch: Vec<Message> = chunk.iter().map(|&i| message(i)).collect();
+            dropped += spool.push(&batch).unwrap();
+        }
+        assert!(spool.bytes() <= 64 << 10, "{}", spool.bytes());
+        assert!(dropped > 0);
+        assert_eq!(spool.len() + dropped, 5000);
+        let seen = drain(&mut spool);
+        assert_eq!(seen.len() as u64, spool.len());
+        assert_eq!(*seen.last().unwrap(), 5000);
+        assert!(seen.windows(2).all(|w| w[1] == w[0] + 1));
+    }
+
+    #[test]
+    fn acknowledged_segments_are_deleted() {
+        let dir = tempfile::tempdir().unwrap();
+        let (mut spool, _) = Spool::open(dir.path(), 1 << 20).unwrap();
+        for round in 0..50u64 {
+            let batch: Vec<Message> = (round * 100 + 1..=round * 100 + 100).map(message).collect();
+            spool.push(&batch).unwrap();
+            while let Some((seq, _)) = spool.next_unsent().unwrap() {
+                spool.ack(seq);
+            }
+        }
+        assert!(spool.is_empty());
+        let files = fs::read_dir(dir.path()).unwrap().count();
+        assert!(files <= 3, "{files} files left");
+        assert!(spool.bytes() < ROTATE_EMPTY + (64 << 10));
+    }
+}

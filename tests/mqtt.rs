@@ -1,0 +1,797 @@
+//! The MQTT north side against a real Mosquitto broker (started here on a
+//! loopback port), with its own `mosquitto_sub` and `mosquitto_pub` as the
+//! other clients, and the built `plccoms` (and `plcsim`) as processes:
+//! values (plain, json, retained, escaped names, cp1250), writes and their
+//! refusals, Home Assistant discovery, the last will on kill -9, a broker
+//! outage of 30 s with a server crash in it, TLS with a CA made here, a
+//! wrong password, and two servers on one broker.
+//!
+//! Waits poll against generous deadlines; nothing here measures speed.
+
+mod common;
+
+use std::io::{BufRead, BufReader, Write};
+use std::net::TcpStream;
+use std::process::{Command, Stdio};
+use std::thread;
+use std::time::{Duration, Instant};
+
+use common::mqtt::{signal, write, Broker, Received, Sub, DEADLINE};
+use common::process::{free_port, free_udp_port, plcsim_bin, ChildGuard, ServerProcess};
+
+/// A section served by the simulator inside the server.
+fn sim_section(name: &str, port: u16, keys: &str) -> String {
+    format!(
+        "[{name}]\nSIMULATOR = Yes\nSIMULATOR_PROGRAM = idle\nSERVER_PORT = {port}\nPUBFILE = //demo.pub\n{keys}\n"
+    )
+}
+
+fn config(broker: &Broker, global: &str, sections: &str) -> String {
+    format!(
+        "[*]\nCOMM_LOOP_DELAY = 50\nMQTT_URL = {}\n{global}\n{sections}",
+        broker.url()
+    )
+}
+
+/// The simulated PLC as a process of its own (it outlives a server), with
+/// the demo project in its file system.
+fn plcsim(files: &std::path::Path, udp: u16) -> ChildGuard {
+    std::fs::write(files.join("demo.pub"), include_bytes!("../conf/demo.pub")).unwrap();
+    ChildGuard::spawn(
+        "plcsim",
+        Command::new(plcsim_bin())
+            .args(["--bind", &format!("127.0.0.1:{udp}"), "--program", "idle"])
+            .arg("--files")
+            .arg(files)
+            .arg("--pub")
+            .arg(files.join("demo.pub"))
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null()),
+    )
+}
+
+/// A line-protocol client of the server.
+struct Line {
+    stream: BufReader<TcpStream>,
+}
+
+impl Line {
+    fn connect(port: u16) -> Line {
+        let stream = TcpStream::connect(("127.0.0.1", port)).expect("connect");
+        stream
+            .set_read_timeout(Some(DEADLINE))
+            .expect("read timeout");
+        Line {
+            stream: BufReader::new(stream),
+        }
+    }
+
+    /// Sends one request and returns the first answer line.
+    fn ask(&mut self, request: &str) -> String {
+        self.stream
+            .get_mut()
+            .write_all(format!("{request}\r\n").as_bytes())
+            .expect("send");
+        let mut line = Vec::new();
+        self.stream.read_until(b'\n', &mut line).expect("answer");
+        plccoms_protocol::cp1250::decode(&line)
+            .trim_end()
+            .to_string()
+    }
+}
+
+fn in_secs(n: u64) -> Instant {
+    Instant::now() + Duration::from_secs(n)
+}
+
+#[track_caller]
+fn wait_until(what: &str, mut ready: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !ready() {
+        assert!(start.elapsed() < DEADLINE, "timed out waiting for {what}");
+        thread::sleep(Duration::from_millis(20));
+    }
+}
+
+// ------------------------------------------------------------------ values
+
+#[test]
+fn values_plain_and_json_retained_with_escaped_and_cp1250_names() {
+    let broker = Broker::anonymous();
+    let dir = tempfile::tempdir().unwrap();
+    // Names MQTT gives a meaning in topics, and a cp1250 one (0xCC is Ě).
+    let mut pubfile = b" A/B R B 0 INT PUB_INOUT\r\n C+D R B 2 INT PUB_INOUT\r\n E#F R B 4 INT PUB_INOUT\r\n G%H R B 6 INT PUB_INOUT\r\n TEXT R B 8 STRING[20] PUB_INOUT\r\n".to_vec();
+    pubfile.extend_from_slice(b" TEPLOTA_KUCHYN\xcc R F 40 REAL PUB_INOUT\r\n");
+    std::fs::write(dir.path().join("names.pub"), &pubfile).unwrap();
+    let (plain, json) = (free_port(), free_port());
+    let sections = format!(
+        "{}{}",
+        sim_section(
+            "Plain",
+            plain,
+            &format!(
+                "SIMULATOR_PUB = {}\nMQTT_PUBLISH = *\nMQTT_WRITE = A/B",
+                dir.path().join("names.pub").display()
+            )
+        ),
+        sim_section(
+            "Json",
+            json,
+            "SIMULATOR_PROGRAM = demo\nMQTT_PUBLISH = text, counter, sinus\nMQTT_FORMAT = json"
+        ),
+    );
+    let server = ServerProcess::with_config(&config(&broker, "", &sections), json);
+    // A subscriber that comes after the values: it gets them retained.
+    let sub = broker.subscribe(&["plccoms/#"]);
+    let status = sub.wait_payload("plccoms/Plain/status", "online");
+    assert!(status.retain);
+    sub.wait_payload("plccoms/Plain/plc", "online");
+    for topic in ["A%2FB", "C%2BD", "E%23F", "G%25H"] {
+        let m = sub.wait(&format!("plccoms/Plain/{topic}"), |_| true);
+        assert_eq!((m.payload.as_str(), m.retain), ("0", true), "{topic}");
+    }
+    sub.wait_payload("plccoms/Plain/TEXT", "\"\"");
+    sub.wait(&format!("plccoms/Plain/TEPLOTA_KUCHYN{}", 'Ě'), |m| {
+        m.payload == "0.000000"
+    });
+    // A write to an escaped name reaches the variable.
+    broker.publish("plccoms/Plain/A%2FB/set", "-7", false);
+    sub.wait_payload("plccoms/Plain/A%2FB", "-7");
+    let mut line = Line::connect(plain);
+    assert_eq!(line.ask("GET:a/b"), "GET:A/B,-7");
+
+    // json: value, the poll's time in UTC with milliseconds, quality.
+    let text = sub.wait("plccoms/Json/TEXT", |_| true).json();
+    assert_eq!(text["value"], "Have a nice day");
+    assert_eq!(text["quality"], "good");
+    let ts = text["ts"].as_str().unwrap();
+    let parsed = chrono::DateTime::parse_from_rfc3339(ts).expect("ISO 8601");
+    assert!(
+        ts.ends_with('Z') && ts.len() == "2026-01-01T00:00:00.000Z".len(),
+        "{ts}"
+    );
+    let age = chrono::Utc::now().signed_duration_since(parsed);
+    assert!(age.num_seconds().abs() < 120, "{ts}");
+    let sinus = sub.wait("plccoms/Json/SINUS", |m| !m.retain).json();
+    assert!(sinus["value"].is_f64(), "{sinus}");
+    assert_eq!(
+        sub.wait("plccoms/Json/COUNTER", |_| true).json()["value"],
+        0
+    );
+    drop(server);
+}
+
+/// A section that publishes no variable still says how it and its PLC are,
+/// also when the PLC answered before the broker did.
+#[test]
+fn a_section_publishing_nothing_reports_its_plc() {
+    let mut broker = Broker::anonymous();
+    broker.stop();
+    let port = free_port();
+    // A local public file: no new table, so no batch of changes, after start.
+    let dir = tempfile::tempdir().unwrap();
+    let pubfile = dir.path().join("demo.pub");
+    std::fs::write(&pubfile, include_bytes!("../conf/demo.pub")).unwrap();
+    let section = format!(
+        "[Bare]\nSIMULATOR = Yes\nSIMULATOR_PROGRAM = idle\nSIMULATOR_PUB = {p}\nSERVER_PORT = {port}\nPUBFILE = {p}\n",
+        p = pubfile.display()
+    );
+    let server = ServerProcess::with_config(&config(&broker, "", &section), port);
+    wait_until("the PLC", || server.log().contains("PLC connected"));
+    thread::sleep(Duration::from_millis(500));
+    broker.restart();
+    let sub = broker.subscribe(&["plccoms/#"]);
+    sub.wait_payload("plccoms/Bare/status", "online");
+    sub.wait_payload("plccoms/Bare/plc", "online");
+}
+
+// ------------------------------------------------------------------ writes
+
+#[test]
+fn writes_round_trip_and_refusals_never_applied_later() {
+    let broker = Broker::anonymous();
+    // A retained write waiting at the broker before the server connects:
+    // it must never be written.
+    broker.publish("plccoms/Plc/NOTE/set", "stale", true);
+    let udp = free_udp_port();
+    let files = tempfile::tempdir().unwrap();
+    let plc_process = plcsim(files.path(), udp);
+    let (plc, ro) = (free_port(), free_port());
+    let sections = format!(
+        "[Plc]\nIPADDR = 127.0.0.1\nEPSPORT = {udp}\nEPSTOUT = 200\nEPSTOUT_STEP = 0\nSERVER_PORT = {plc}\nPUBFILE = //demo.pub\nMQTT_PUBLISH = counter, sinus, note\nMQTT_WRITE = counter, note, setpoint\n{}",
+        sim_section("Ro", ro, "READ_ONLY = Yes\nMQTT_PUBLISH = counter\nMQTT_WRITE = *")
+    );
+    let server = ServerProcess::with_config(&config(&broker, "", &sections), plc);
+    let sub = broker.subscribe(&["plccoms/#"]);
+    sub.wait_payload("plccoms/Plc/plc", "online");
+    sub.wait_payload("plccoms/Plc/COUNTER", "0");
+
+    // A write comes back confirmed on the value topic, also for a variable
+    // not published, and in cp1250 text.
+    broker.publish("plccoms/Plc/COUNTER/set", "42", false);
+    sub.wait_payload("plccoms/Plc/COUNTER", "42");
+    broker.publish("plccoms/Plc/setpoint/set", "21.5", false);
+    sub.wait_payload("plccoms/Plc/SETPOINT", "21.500000");
+    broker.publish("plccoms/Plc/NOTE/set", "Dobrý den", false);
+    sub.wait_payload("plccoms/Plc/NOTE", "\"Dobrý den\"");
+
+    // Refusals on <VAR>/error, with SET's error lines.
+    broker.publish("plccoms/Plc/counter/set", "abc", false);
+    sub.wait_payload(
+        "plccoms/Plc/counter/error",
+        "ERROR:35 Wrong parameter value in request: 'SET:counter,abc'",
+    );
+    broker.publish("plccoms/Plc/COUNTER/set", "70000", false);
+    sub.wait("plccoms/Plc/COUNTER/error", |m| {
+        m.payload.starts_with("ERROR:35")
+    });
+    broker.publish("plccoms/Plc/SINUS/set", "1", false);
+    sub.wait_payload(
+        "plccoms/Plc/SINUS/error",
+        "ERROR:30 Bad client request: 'SET:SINUS,1' (not writable over MQTT: see MQTT_WRITE)",
+    );
+    broker.publish("plccoms/Ro/COUNTER/set", "5", false);
+    sub.wait_payload(
+        "plccoms/Ro/COUNTER/error",
+        "ERROR:30 Bad client request: 'SET:COUNTER,5'",
+    );
+    let mut line = Line::connect(plc);
+    assert_eq!(line.ask("GET:note"), "GET:NOTE,\"Dobrý den\"");
+    let log = server.log();
+    assert!(log.contains("write refused: ERROR:35"), "{log}");
+    assert!(
+        log.contains("a retained /set message is never written"),
+        "{log}"
+    );
+
+    // The PLC goes away: a write is refused at once, and never made later.
+    drop(plc_process);
+    sub.wait_payload("plccoms/Plc/plc", "offline");
+    broker.publish("plccoms/Plc/COUNTER/set", "99", false);
+    sub.wait("plccoms/Plc/COUNTER/error", |m| {
+        m.payload.starts_with("ERROR:10")
+    });
+    let _plcsim = plcsim(files.path(), udp);
+    sub.wait("plccoms/Plc/plc", |m| m.payload == "online" && !m.retain);
+    thread::sleep(Duration::from_millis(500));
+    // A fresh PLC: memory zero; the refused 99 was not written.
+    assert_eq!(line_after_reconnect(plc), "GET:COUNTER,0");
+    assert!(sub
+        .on("plccoms/Plc/COUNTER")
+        .iter()
+        .all(|m| m.payload != "99"));
+}
+
+fn line_after_reconnect(port: u16) -> String {
+    let mut line = Line::connect(port);
+    let start = Instant::now();
+    loop {
+        let answer = line.ask("GET:counter");
+        if answer.starts_with("GET:") || start.elapsed() > DEADLINE {
+            return answer;
+        }
+        thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// MQTT_DELTA: a change is published once it moved more than the deadband
+/// from the value last published.
+#[test]
+fn deadband() {
+    let broker = Broker::anonymous();
+    let port = free_port();
+    let ini = config(
+        &broker,
+        "",
+        &sim_section("Demo", port, "MQTT_PUBLISH = counter\nMQTT_DELTA = 5"),
+    );
+    let _server = ServerProcess::with_config(&ini, port);
+    let sub = broker.subscribe(&["plccoms/Demo/COUNTER"]);
+    sub.wait_payload("plccoms/Demo/COUNTER", "0");
+    let mut line = Line::connect(port);
+    for value in [3, 5, 6, 8, 11, 12, -1] {
+        assert_eq!(
+            line.ask(&format!("SET:counter,{value}")),
+            format!("DIFF:COUNTER,{value}")
+        );
+        thread::sleep(Duration::from_millis(150));
+    }
+    sub.wait_payload("plccoms/Demo/COUNTER", "-1");
+    let seen: Vec<String> = sub
+        .on("plccoms/Demo/COUNTER")
+        .into_iter()
+        .map(|m| m.payload)
+        .collect();
+    assert_eq!(seen, ["0", "6", "12", "-1"]);
+}
+
+// --------------------------------------------------------------- discovery
+
+#[test]
+fn home_assistant_discovery_stable_ids_and_removed_configs_cleared() {
+    let broker = Broker::anonymous();
+    let port = free_port();
+    let section = |publish: &str| {
+        sim_section(
+            "Hala",
+            port,
+            &format!(
+                "MQTT_PUBLISH = {publish}\nMQTT_WRITE = switch, counter, note\nMQTT_HA_DISCOVERY = Yes"
+            ),
+        )
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let ini = dir.path().join("plccoms.ini");
+    let sub = broker.subscribe(&["homeassistant/#"]);
+    let run = |publish: &str| {
+        write(&ini, &config(&broker, "", &section(publish)));
+        let mut child = ChildGuard::spawn(
+            "plccoms",
+            Command::new(common::process::PLCCOMS)
+                .args(["-c", "plccoms.ini"])
+                .current_dir(dir.path())
+                .env_remove("RUST_LOG")
+                .stdin(Stdio::null())
+                .stdout(Stdio::null())
+                .stderr(Stdio::null()),
+        );
+        assert!(child.exited().is_none());
+        child
+    };
+    let server = run("switch, positive, counter, sinus, note, text");
+    let config_of = |component: &str, name: &str| -> (Received, serde_json::Value) {
+        let m = sub.wait_for(&format!("the {component} config of {name}"), || {
+            sub.messages().into_iter().rev().find(|m| {
+                m.topic.starts_with(&format!("homeassistant/{component}/"))
+                    && m.payload.contains(&format!("\"name\":\"{name}\""))
+            })
+        });
+        let json = m.json();
+        (m, json)
+    };
+    let mut ids = Vec::new();
+    for (component, name, writable) in [
+        ("switch", "SWITCH", true),
+        ("binary_sensor", "POSITIVE", false),
+        ("number", "COUNTER", true),
+        ("sensor", "SINUS", false),
+        ("text", "NOTE", true),
+        ("sensor", "TEXT", false),
+    ] {
+        let (m, c) = config_of(component, name);
+        let id = c["unique_id"].as_str().expect("unique_id").to_string();
+        assert_eq!(m.topic, format!("homeassistant/{component}/{id}/config"));
+        assert_eq!(c["state_topic"], format!("plccoms/Hala/{name}"));
+        assert_eq!(
+            c["command_topic"].as_str(),
+            writable
+                .then(|| format!("plccoms/Hala/{name}/set"))
+                .as_deref(),
+            "{name}"
+        );
+        assert_eq!(c["availability"][0]["topic"], "plccoms/Hala/status");
+        assert_eq!(c["availability"][1]["topic"], "plccoms/Hala/plc");
+        assert_eq!(c["availability_mode"], "all");
+        assert_eq!(c["device"]["identifiers"][0], "plccoms_Hala");
+        assert_eq!(c["device"]["name"], "Hala");
+        ids.push((m.topic.clone(), m.payload.clone()));
+    }
+    let (_, number) = config_of("number", "COUNTER");
+    assert_eq!(
+        (number["min"].as_f64(), number["max"].as_f64()),
+        (Some(-32768.0), Some(32767.0))
+    );
+    let (_, switch) = config_of("switch", "SWITCH");
+    assert_eq!(
+        (switch["payload_on"].as_str(), switch["state_off"].as_str()),
+        (Some("1"), Some("0"))
+    );
+    // Home Assistant restarting asks for the configs again.
+    let before = sub.messages().len();
+    broker.publish("homeassistant/status", "online", false);
+    sub.wait_for("configs sent again", || {
+        (sub.messages()[before..]
+            .iter()
+            .filter(|m| m.topic.ends_with("/config"))
+            .count()
+            >= 6)
+            .then_some(())
+    });
+
+    // Restarted without SINUS and TEXT: same ids for the others, and the
+    // two configs cleared (an empty retained message).
+    drop(server);
+    let before = sub.messages().len();
+    let _server = run("switch, positive, counter, note");
+    let (sinus_topic, text_topic) = (&ids[3].0, &ids[5].0);
+    for gone in [sinus_topic, text_topic] {
+        sub.wait_for(&format!("{gone} cleared"), || {
+            sub.messages()[before..]
+                .iter()
+                .find(|m| &m.topic == gone && m.payload.is_empty())
+                .cloned()
+        });
+    }
+    for (topic, payload) in [&ids[0], &ids[1], &ids[2], &ids[4]] {
+        sub.wait_for(&format!("{topic} again, unchanged"), || {
+            sub.messages()[before..]
+                .iter()
+                .find(|m| &m.topic == topic && &m.payload == payload)
+                .cloned()
+        });
+    }
+    // What stays retained at the broker: only the four.
+    let late = broker.subscribe(&["homeassistant/#"]);
+    thread::sleep(Duration::from_secs(1));
+    let retained: Vec<String> = late.messages().into_iter().map(|m| m.topic).collect();
+    assert_eq!(retained.len(), 4, "{retained:?}");
+}
+
+/// A new public file (SETCONF:pubfile) re-sends the configs of the
+/// variables that stay, under the same ids, and clears the others.
+#[test]
+fn discovery_follows_a_new_public_file() {
+    let broker = Broker::anonymous();
+    let files = tempfile::tempdir().unwrap();
+    let udp = free_udp_port();
+    let _plcsim = plcsim(files.path(), udp);
+    std::fs::write(
+        files.path().join("small.pub"),
+        " switch R B 128 .0 BOOL PUB_INOUT\r\n counter R B 130 INT PUB_INOUT\r\n",
+    )
+    .unwrap();
+    let port = free_port();
+    let section = format!(
+        "[Plc]\nIPADDR = 127.0.0.1\nEPSPORT = {udp}\nSERVER_PORT = {port}\nPUBFILE = //demo.pub\nMQTT_PUBLISH = counter, sinus, switch\nMQTT_WRITE = switch\nMQTT_HA_DISCOVERY = Yes\n"
+    );
+    let sub = broker.subscribe(&["homeassistant/#"]);
+    let _server = ServerProcess::with_config(&config(&broker, "", &section), port);
+    let config_of = |name: &str, from: usize| {
+        sub.wait_for(&format!("the config of {name}"), || {
+            sub.messages()[from..]
+                .iter()
+                .find(|m| m.payload.contains(&format!("\"name\":\"{name}\"")))
+                .cloned()
+        })
+    };
+    let (counter, sinus, switch) = (
+        config_of("COUNTER", 0),
+        config_of("SINUS", 0),
+        config_of("SWITCH", 0),
+    );
+    assert!(switch.topic.starts_with("homeassistant/switch/"));
+    let before = sub.messages().len();
+    let mut line = Line::connect(port);
+    assert_eq!(
+        line.ask("SETCONF:pubfile,//small.pub"),
+        "WARNING:250 Changed public file: 'small.pub'"
+    );
+    sub.wait_for("SINUS cleared", || {
+        sub.messages()[before..]
+            .iter()
+            .find(|m| m.topic == sinus.topic && m.payload.is_empty())
+            .cloned()
+    });
+    for kept in [&counter, &switch] {
+        let again = config_of(kept.json()["name"].as_str().unwrap(), before);
+        assert_eq!(
+            (&again.topic, again.json()["unique_id"].clone()),
+            (&kept.topic, kept.json()["unique_id"].clone())
+        );
+    }
+}
+
+// ---------------------------------------------------------------- the will
+
+#[test]
+fn last_will_on_kill_9_and_offline_on_a_clean_stop() {
+    let broker = Broker::anonymous();
+    let port = free_port();
+    let ini = config(
+        &broker,
+        "",
+        &sim_section("Demo", port, "MQTT_PUBLISH = counter"),
+    );
+    let sub = broker.subscribe(&["plccoms/Demo/status"]);
+    let mut server = ServerProcess::with_config(&ini, port);
+    sub.wait_payload("plccoms/Demo/status", "online");
+    // kill -9: the broker sends the will.
+    server.child.child().kill().expect("SIGKILL");
+    let _ = server.child.child().wait();
+    let will = sub.wait("plccoms/Demo/status", |m| m.payload == "offline");
+    assert!(!will.retain, "delivered live");
+    let late = broker.subscribe(&["plccoms/Demo/status"]);
+    late.wait("plccoms/Demo/status", |m| {
+        m.payload == "offline" && m.retain
+    });
+
+    // A clean stop says offline itself.
+    let before = sub.on("plccoms/Demo/status").len();
+    let mut server = ServerProcess::with_config(&ini, port);
+    sub.wait_for("online again", || {
+        sub.on("plccoms/Demo/status")[before..]
+            .iter()
+            .find(|m| m.payload == "online")
+            .cloned()
+    });
+    signal(server.child.child().id(), libc::SIGTERM);
+    assert!(server.child.wait_timeout(DEADLINE).is_some());
+    sub.wait_for("offline after SIGTERM", || {
+        sub.on("plccoms/Demo/status")[before..]
+            .iter()
+            .find(|m| m.payload == "offline")
+            .cloned()
+    });
+    assert!(server.log().contains("MQTT: connected"), "{}", server.log());
+}
+
+// ------------------------------------------------------------------ outage
+
+/// The broker is stopped for 30 s while a counter keeps rising, and the
+/// server is killed (-9) and started again in the middle of it: every value
+/// arrives, in order, once the broker is back.
+#[test]
+fn broker_outage_of_30_s_with_a_crash_loses_nothing() {
+    let mut broker = Broker::anonymous();
+    let udp = free_udp_port();
+    // The PLC outlives the server, so the counter is what the test wrote.
+    let files = tempfile::tempdir().unwrap();
+    let _plcsim = plcsim(files.path(), udp);
+    let port = free_port();
+    let dir = tempfile::tempdir().unwrap();
+    let ini = config(
+        &broker,
+        &format!("MQTT_SPOOL = {}", dir.path().join("spool").display()),
+        &format!(
+            "[Plc]\nIPADDR = 127.0.0.1\nEPSPORT = {udp}\nSERVER_PORT = {port}\nPUBFILE = //demo.pub\nMQTT_PUBLISH = counter\n"
+        ),
+    );
+    let topic = "plccoms/Plc/COUNTER";
+    // A persistent subscriber: the broker keeps its messages while it is
+    // itself away, and it reconnects by itself.
+    let sub = Sub::start(broker.port, &[topic], Some("outage-test"));
+    let mut server = ServerProcess::with_config(&ini, port);
+    sub.wait_payload(topic, "0");
+    let mut line = Line::connect(port);
+    let mut next = 1;
+    let write_until = |line: &mut Line, until: Instant, next: &mut i32| {
+        while Instant::now() < until {
+            assert_eq!(
+                line.ask(&format!("SET:counter,{next}")),
+                format!("DIFF:COUNTER,{next}")
+            );
+            *next += 1;
+            thread::sleep(Duration::from_millis(100));
+        }
+    };
+    write_until(&mut line, in_secs(2), &mut next);
+    let before_outage = next - 1;
+    sub.wait_payload(topic, &before_outage.to_string());
+
+    broker.stop();
+    let back_at = in_secs(30);
+    write_until(&mut line, in_secs(10), &mut next);
+    // A crash in the middle of the outage: the queue is on disk.
+    server.child.child().kill().expect("SIGKILL");
+    let _ = server.child.child().wait();
+    drop(line);
+    let queued_at_crash = next - 1;
+    let mut server = ServerProcess::with_config_in(server.dir, port);
+    let log = server.log();
+    assert!(log.contains("queued from before"), "{log}");
+    let mut line = Line::connect(port);
+    write_until(&mut line, back_at, &mut next);
+    broker.restart();
+    write_until(&mut line, in_secs(2), &mut next);
+    let last = next - 1;
+    sub.wait_payload(topic, &last.to_string());
+
+    // Every value from 0 to the last, in order; a value may come twice (a
+    // message the broker took but did not acknowledge before it stopped,
+    // or the restarted server publishing its first value again) but never
+    // after a later one.
+    let values: Vec<i32> = sub
+        .on(topic)
+        .iter()
+        .map(|m| m.payload.parse().expect("a number"))
+        .collect();
+    let mut firsts = Vec::new();
+    for &v in &values {
+        if !firsts.contains(&v) {
+            assert!(firsts.last().is_none_or(|&l| v > l), "{v} after {firsts:?}");
+            firsts.push(v);
+        } else {
+            assert!(
+                firsts.iter().rev().take(256).any(|&f| f == v),
+                "{v} long after"
+            );
+        }
+    }
+    assert_eq!(
+        firsts,
+        (0..=last).collect::<Vec<_>>(),
+        "queued at the crash: {queued_at_crash}"
+    );
+    let metrics = server.log();
+    assert!(metrics.contains("connected to"), "{metrics}");
+    drop(line);
+    signal(server.child.child().id(), libc::SIGTERM);
+    assert!(server.child.wait_timeout(DEADLINE).is_some());
+}
+
+// --------------------------------------------------------------------- TLS
+
+#[test]
+fn tls_with_a_test_ca() {
+    let dir = tempfile::tempdir().unwrap();
+    let (ca_pem, cert_pem, key_pem) = test_ca();
+    write(&dir.path().join("ca.pem"), &ca_pem);
+    write(&dir.path().join("cert.pem"), &cert_pem);
+    write(&dir.path().join("key.pem"), &key_pem);
+    let tls_port = free_port();
+    let broker = Broker::start(&format!(
+        "allow_anonymous true\nlistener {tls_port} 127.0.0.1\ncafile {d}/ca.pem\ncertfile {d}/cert.pem\nkeyfile {d}/key.pem\n",
+        d = dir.path().display()
+    ));
+    let sub = broker.subscribe(&["plccoms/#"]);
+    // A server on the TLS listener, checking the broker against `ca`.
+    let server_with_ca = |section: &str, ca: &str, keys: &str| {
+        let port = free_port();
+        let ini = format!(
+            "[*]\nMQTT_URL = mqtts://127.0.0.1:{tls_port}\nMQTT_CA = {}\n{}",
+            dir.path().join(ca).display(),
+            sim_section(section, port, keys)
+        );
+        ServerProcess::with_config(&ini, port)
+    };
+    let server = server_with_ca(
+        "Tls",
+        "ca.pem",
+        "MQTT_PUBLISH = text\nSIMULATOR_PROGRAM = demo",
+    );
+    sub.wait_payload("plccoms/Tls/status", "online");
+    sub.wait_payload("plccoms/Tls/TEXT", "\"Have a nice day\"");
+    drop(server);
+
+    // A CA that did not sign the broker's certificate: refused, and said.
+    let (other_ca, _, _) = test_ca();
+    write(&dir.path().join("other.pem"), &other_ca);
+    let server = server_with_ca("Tls2", "other.pem", "MQTT_PUBLISH = text");
+    wait_until("a TLS log line", || server.log().contains("cannot connect"));
+    let log = server.log();
+    assert!(log.contains("TLS") && log.contains("MQTT_CA"), "{log}");
+    assert!(sub.on("plccoms/Tls2/status").is_empty());
+}
+
+/// A CA, and a certificate for 127.0.0.1 and localhost it signed (PEM).
+fn test_ca() -> (String, String, String) {
+    use rcgen::{BasicConstraints, CertificateParams, IsCa, KeyPair, SanType};
+    let ca_key = KeyPair::generate().unwrap();
+    let mut ca = CertificateParams::new(Vec::<String>::new()).unwrap();
+    ca.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+    ca.distinguished_name
+        .push(rcgen::DnType::CommonName, "plccoms test CA");
+    let ca_cert = ca.self_signed(&ca_key).unwrap();
+    let issuer = rcgen::Issuer::new(ca, ca_key);
+    let key = KeyPair::generate().unwrap();
+    let mut params = CertificateParams::new(vec!["localhost".to_string()]).unwrap();
+    params
+        .subject_alt_names
+        .push(SanType::IpAddress("127.0.0.1".parse().unwrap()));
+    let cert = params.signed_by(&key, &issuer).unwrap();
+    (ca_cert.pem(), cert.pem(), key.serialize_pem())
+}
+
+// ------------------------------------------------------------- credentials
+
+#[test]
+fn a_wrong_password_is_a_clear_log_line_and_the_right_one_connects() {
+    let dir = tempfile::tempdir().unwrap();
+    let passwords = dir.path().join("passwords");
+    let status = Command::new("mosquitto_passwd")
+        .args(["-b", "-c"])
+        .arg(&passwords)
+        .args(["plc", "right"])
+        .status()
+        .expect("run mosquitto_passwd");
+    assert!(status.success());
+    let broker = Broker::start(&format!(
+        "allow_anonymous false\npassword_file {}\n",
+        passwords.display()
+    ));
+    let port = free_port();
+    let section = sim_section("Auth", port, "MQTT_PUBLISH = counter");
+    let ini = config(&broker, "MQTT_USER = plc\nMQTT_PASSWORD = wrong", &section);
+    let server = ServerProcess::with_config(&ini, port);
+    wait_until("the refusal in the log", || {
+        server.log().contains("refused the connection")
+    });
+    let log = server.log();
+    let refusal = log
+        .lines()
+        .find(|l| l.contains("refused the connection"))
+        .unwrap();
+    assert!(refusal.contains("MQTT_PASSWORD"), "{refusal}");
+    assert!(
+        !log.contains("wrong"),
+        "the password is never logged: {log}"
+    );
+    // Retrying does not repeat the line.
+    thread::sleep(Duration::from_secs(2));
+    assert_eq!(server.log().matches("refused the connection").count(), 1);
+    drop(server);
+
+    write(&dir.path().join("pass"), "right\n");
+    let port = free_port();
+    let ini = config(
+        &broker,
+        &format!(
+            "MQTT_USER = plc\nMQTT_PASSWORD_FILE = {}",
+            dir.path().join("pass").display()
+        ),
+        &sim_section("Auth", port, "MQTT_PUBLISH = counter"),
+    );
+    let server = ServerProcess::with_config(&ini, port);
+    wait_until("connected", || server.log().contains("MQTT: connected"));
+}
+
+// ------------------------------------------------------------ two servers
+
+#[test]
+fn two_servers_on_one_broker_never_clash() {
+    let broker = Broker::anonymous();
+    let sub = broker.subscribe(&["#"]);
+    // The same section name in both, told apart by MQTT_PREFIX; client ids
+    // differ by default (the configuration's path).
+    let (p1, p2) = (free_port(), free_port());
+    let one = ServerProcess::with_config(
+        &config(
+            &broker,
+            "MQTT_PREFIX = site1",
+            &sim_section("Demo", p1, "MQTT_PUBLISH = counter\nMQTT_WRITE = counter"),
+        ),
+        p1,
+    );
+    let two = ServerProcess::with_config(
+        &config(
+            &broker,
+            "MQTT_PREFIX = site2",
+            &sim_section("Demo", p2, "MQTT_PUBLISH = counter\nMQTT_WRITE = counter"),
+        ),
+        p2,
+    );
+    sub.wait_payload("site1/Demo/status", "online");
+    sub.wait_payload("site2/Demo/status", "online");
+    broker.publish("site1/Demo/COUNTER/set", "1", false);
+    broker.publish("site2/Demo/COUNTER/set", "2", false);
+    sub.wait_payload("site1/Demo/COUNTER", "1");
+    sub.wait_payload("site2/Demo/COUNTER", "2");
+    assert!(sub
+        .on("site1/Demo/COUNTER")
+        .iter()
+        .all(|m| m.payload != "2"));
+    let id = |log: &str| {
+        log.lines()
+            .find_map(|l| {
+                l.split(" as ")
+                    .nth(1)
+                    .map(|s| s.split_whitespace().next().unwrap_or("").to_string())
+            })
+            .unwrap()
+    };
+    let (id1, id2) = (id(&one.log()), id(&two.log()));
+    assert_ne!(id1, id2);
+    // Neither was thrown off by the other.
+    assert!(!one.log().contains("lost") && !two.log().contains("lost"));
+    // One stops: only its status says so.
+    drop(one);
+    sub.wait_payload("site1/Demo/status", "offline");
+    thread::sleep(Duration::from_millis(500));
+    assert!(sub
+        .on("site2/Demo/status")
+        .iter()
+        .all(|m| m.payload == "online"));
+    broker.publish("site2/Demo/COUNTER/set", "3", false);
+    sub.wait_payload("site2/Demo/COUNTER", "3");
+}
