@@ -218,12 +218,21 @@ async fn line_noise_never_yields_a_wrong_value() {
     until(&mut c, "GET:setpoint\n", "GET:SETPOINT,0.000000\r\n", BACK).await;
 
     // One exchange in ten damaged (lost, cut, corrupted, after noise): the
-    // retries carry most through; whatever is answered is right.
+    // retries carry most through; whatever is answered is right. At least
+    // 30 SETs confirmed, and on until a bad answer and a retry were counted
+    // (a few dozen exchanges may chance to have neither).
     sim.set_loss(0.1);
+    let metrics = &server.sections[0].section.metrics.backend;
     let (mut good, mut errors) = (0, 0);
     let start = Instant::now();
     let mut i = 0u32;
-    while good < 30 && start.elapsed() < Duration::from_secs(60) {
+    while good < 30 || metrics.errors.get() == 0 || metrics.retries.get() == 0 {
+        assert!(
+            start.elapsed() < Duration::from_secs(120),
+            "in 120 s: {good} SETs confirmed, {} bad answers and {} retries counted",
+            metrics.errors.get(),
+            metrics.retries.get()
+        );
         i += 1;
         let value = f64::from(i) + 0.5;
         let (set, _) = answer(&mut c, &format!("SET:setpoint,{value}\n")).await;
@@ -244,10 +253,6 @@ async fn line_noise_never_yields_a_wrong_value() {
         );
     }
     println!("with 10 % damaged exchanges: {good} SETs confirmed, {errors} refused");
-    assert_eq!(good, 30, "SETs confirmed in 60 s");
-    let metrics = &server.sections[0].section.metrics.backend;
-    assert!(metrics.errors.get() > 0, "no bad answer counted");
-    assert!(metrics.retries.get() > 0, "no retry counted");
 
     // Every exchange damaged (only answers after mere noise get through,
     // and an attempt in four is such): the link fails soon, and still no
