@@ -156,6 +156,13 @@ for length, f in answers:
     put("epsnet_client", struct.pack(">H", length) + packet(7, [f]))
 put("epsnet_client", struct.pack(">H", 16) + packet(8, [f for _, f in answers[:3]] + [b"\xe5"]))
 
+# A serial line: chunk size, then frames back to back, with noise and a
+# truncated frame.
+line = b"".join(f for _, f in answers)
+put("epsnet_stream", b"\x01" + line)
+put("epsnet_stream", b"\x07" + b"\x00\x16\x68" + line[:40] + line)
+put("epsnet_stream", b"\xff" + frame(PLC, US, FC_REQ, requests[12]) + b"\xe5\x68\x00\x00\x68\xff\xff")
+
 for query in [b"section=Demo&vars=SIN*,counter&from=0&to=1000&format=csv",
               b"section=D%20x&vars=%E8&from=2026-11-30T12:00:00Z&format=json",
               b"section=Demo&from=-5&to=-9", b"vars=a&section=&to=1e9"]:

@@ -5,6 +5,7 @@
 
 use std::fs::{File, OpenOptions};
 use std::io::{self, Write};
+use std::os::fd::{AsRawFd, RawFd};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, MutexGuard};
 
@@ -38,12 +39,21 @@ impl LogFile {
     pub fn reopen(&self) -> io::Result<()> {
         let file = open(&self.path)?;
         *self.lock() = file;
+        // The line a crashing plugin leaves goes to the new file too.
+        crate::backend::plugin::crash::set_log_fd(self.as_raw_fd());
         Ok(())
     }
 
     fn lock(&self) -> MutexGuard<'_, File> {
         // A File stays usable after a panic elsewhere.
         self.file.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+impl AsRawFd for LogFile {
+    /// The file written now (another after [`LogFile::reopen`]).
+    fn as_raw_fd(&self) -> RawFd {
+        self.lock().as_raw_fd()
     }
 }
 

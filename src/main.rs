@@ -78,6 +78,8 @@ fn init_logging(cli: &Cli) -> Result<Option<Arc<LogFile>>, String> {
             plccoms::localfs::protect(&path, false);
             let file = LogFile::open(&path)
                 .map_err(|e| format!("cannot open log file {}: {e}", path.display()))?;
+            // A plugin that crashes the process says so in the log too.
+            plccoms::backend::plugin::crash::set_log_fd(std::os::fd::AsRawFd::as_raw_fd(&*file));
             registry
                 .with(fmt.with_ansi(false).with_writer(file.clone()))
                 .init();

@@ -62,6 +62,10 @@ fn every_target_runs_on_ordinary_input() {
         0x10, 0x00, 0xAA, 0xBB, 0xFA, 0x16, 0x00,
     ];
     checks::epsnet_client(&answer);
+    // The same frame on a serial line, after noise, one byte at a time.
+    let mut line = vec![1, 0x00, 0x16, 0x68, 0x07];
+    line.extend_from_slice(&answer[6..21]);
+    checks::epsnet_stream(&line);
     let mut record = Vec::new();
     plccoms::mqtt::spool::encode_record(
         7,

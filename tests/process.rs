@@ -862,14 +862,14 @@ fn setconf_every_key() {
         "ERROR:35 Wrong parameter value in request: 'SETCONF:epsport,0'",
     );
 
-    // serial_device / serial_speed: this server has no serial lines, so no
-    // PLC answers there (ERROR:10), and the section stays on its link.
+    // serial_device / serial_speed: no PLC answers on /dev/ttyS0 here (or
+    // there is no such device): ERROR:10, and the section stays on its link.
     c.ask(
         "SETCONF:serial_device,/dev/ttyS0\n",
         "ERROR:10 Unable to connect to PLC.",
     );
     c.ask("GETINFO:serial_device\n", "GETINFO:SERIAL_DEVICE,");
-    // A speed alone changes nothing on an Ethernet link: reconnected, 251.
+    // A speed alone changes nothing on an Ethernet link: 251.
     c.ask("SETCONF:serial_speed,115200\n", same);
     notices.push(same);
     c.ask(

@@ -584,6 +584,48 @@ pub fn epsnet_client(data: &[u8]) {
     }
 }
 
+/// A serial line's bytes: `data[0]` is the size of the chunks they arrive
+/// in, the rest the bytes. The decoder never holds more than one frame's
+/// worth while waiting, consumes everything by EOF, and every frame it
+/// yields re-encodes to bytes that decode to the same frame.
+pub fn epsnet_stream(data: &[u8]) {
+    use plccoms_plc::epsnet::stream::{self, StreamCodec, StreamItem, MAX_FRAME};
+    use tokio_util::codec::Decoder as _;
+    let [chunk, ref line @ ..] = *data else {
+        return;
+    };
+    let mut codec = StreamCodec;
+    let mut src = BytesMut::new();
+    let mut items = Vec::new();
+    for piece in line.chunks(usize::from(chunk).max(1)) {
+        src.extend_from_slice(piece);
+        while let Some(item) = codec
+            .decode(&mut src)
+            .expect("the stream decoder never fails")
+        {
+            items.push(item);
+        }
+        assert!(src.len() <= MAX_FRAME, "{} bytes held", src.len());
+    }
+    while let Some(item) = codec.decode_eof(&mut src).expect("never fails") {
+        items.push(item);
+    }
+    assert!(src.is_empty());
+    for item in items {
+        match item {
+            StreamItem::Frame(frame) => {
+                let bytes = stream::encode(&frame).expect("a decoded frame re-encodes");
+                let mut again = BytesMut::from(&bytes[..]);
+                assert_eq!(
+                    codec.decode(&mut again).expect("never fails"),
+                    Some(StreamItem::Frame(frame))
+                );
+            }
+            StreamItem::Skipped { bytes, .. } => assert!(bytes > 0),
+        }
+    }
+}
+
 fn tokio_util_decode(codec: &mut EpsnetCodec, src: &mut BytesMut) -> bool {
     use tokio_util::codec::Decoder as _;
     codec.decode(src).is_ok()

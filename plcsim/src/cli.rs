@@ -9,7 +9,7 @@ use clap::Parser;
 
 use crate::program::ProgramKind;
 
-/// A simulated Tecomat PLC that speaks EPSNET over UDP, for testing plccoms
+/// A simulated Tecomat PLC that speaks EPSNET over UDP or a serial line, for testing plccoms
 /// (or the vendor's server) without hardware.
 ///
 /// It serves a memory image laid out by a public file, runs a PLC program on
@@ -86,6 +86,27 @@ pub struct Args {
         conflicts_with = "pubfile"
     )]
     pub tags: Option<PathBuf>,
+
+    /// Serve EPSNET on this serial device (a port, or one end of a pty pair:
+    /// `socat -d -d pty,raw,echo=0,link=/tmp/plc pty,raw,echo=0,link=/tmp/srv`)
+    /// instead of UDP. `--loss` then damages that fraction of the exchanges
+    /// (answer lost, cut short, corrupted, or after noise).
+    #[arg(long, value_name = "DEVICE", conflicts_with = "modbus")]
+    pub serial: Option<String>,
+
+    /// Serial line speed, baud (8N1, no flow control).
+    #[arg(
+        long,
+        default_value_t = 115_200,
+        value_name = "BAUD",
+        requires = "serial"
+    )]
+    pub speed: u32,
+
+    /// Hold each answer back for the time the request and the answer take on
+    /// a real line at --speed (a pty passes bytes at memory speed).
+    #[arg(long, requires = "serial")]
+    pub emulate_line: bool,
 }
 
 pub const CONTROL_HELP: &str = "\

@@ -2,7 +2,8 @@
 //! a line, each answered `OK` or `ERR <why>`:
 //!
 //! ```text
-//! loss 0.2          drop 20 % of incoming datagrams
+//! loss 0.2          drop 20 % of incoming datagrams (on a serial line:
+//!                   damage 20 % of the exchanges, see `serial`)
 //! latency 500       delay answers by 500 ms
 //! halt | run        PLC state (__PLC_RUN; the program runs only in RUN)
 //! pub <file>        load another public file (new program, new __PF_CRC),
@@ -10,7 +11,8 @@
 //!                   Modbus device: a tag file)
 //! program demo|idle
 //! animate <mask>... animate these variables (none: stop animating)
-//! status            OK run|halt crc=XXXXXXXX loss=.. latency=..
+//! status            OK run|halt crc=XXXXXXXX loss=.. latency=.. program=..
+//!                   rx_bytes=.. tx_bytes=.. rx_frames=.. tx_frames=.. rx_skipped=..
 //! ```
 
 use std::path::Path;
@@ -122,12 +124,13 @@ pub(crate) fn command(line: &str, shared: &Shared) -> Result<String, String> {
             let state = lock(&shared.state);
             let device = lock(&shared.device);
             return Ok(format!(
-                "OK {} crc={:08X} loss={} latency={} program={:?}",
+                "OK {} crc={:08X} loss={} latency={} program={:?} {}",
                 if device.run() { "run" } else { "halt" },
                 device.pf_crc(),
                 state.loss,
                 state.latency.as_millis(),
                 state.program.kind(),
+                shared.line.text(),
             ));
         }
         "" => return Err("empty command".into()),

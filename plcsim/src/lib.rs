@@ -1,6 +1,7 @@
-//! The simulated PLC: a UDP server speaking EPSNET (or a TCP server speaking
-//! Modbus TCP, [`modbus`]) over a [`Device`], a PLC program engine, a
-//! directory-backed file store and fault injection.
+//! The simulated PLC: a UDP server speaking EPSNET (or a serial line,
+//! [`serial`], or a TCP server speaking Modbus TCP, [`modbus`]) over a
+//! [`Device`], a PLC program engine, a directory-backed file store and fault
+//! injection.
 //!
 //! [`spawn`] starts it inside the current tokio runtime and returns a
 //! [`SimHandle`]: its address, the device, and the fault controls (packet
@@ -14,6 +15,7 @@ pub mod device;
 pub mod genpub;
 pub mod modbus;
 pub mod program;
+pub mod serial;
 pub mod server;
 pub mod store;
 
@@ -81,6 +83,8 @@ pub struct SimConfig {
     pub map: MemoryMap,
     /// Seed of the packet-loss generator (default: from the clock).
     pub seed: Option<u64>,
+    /// Serve this serial line instead of UDP (`bind` is then unused).
+    pub serial: Option<serial::SerialLine>,
     /// Serve Modbus TCP on this address instead of EPSNET; `pubfile` is then
     /// a Modbus tag file, and the memory is laid out as Modbus tables.
     pub modbus: Option<SocketAddr>,
@@ -102,6 +106,7 @@ impl Default for SimConfig {
             ident: crate::device::DEFAULT_IDENT.to_string(),
             map: MemoryMap::FOXTROT,
             seed: None,
+            serial: None,
             modbus: None,
         }
     }
@@ -112,6 +117,8 @@ impl Default for SimConfig {
 pub(crate) struct Shared {
     device: Arc<Mutex<Device>>,
     state: Mutex<SimState>,
+    /// Bytes and frames on a serial line.
+    line: serial::LineStats,
     /// The variables come from Modbus tag files.
     modbus: bool,
 }
@@ -259,6 +266,29 @@ impl Shared {
         Some((answer, latency))
     }
 
+    /// Decides the fate of one frame from a serial line: `None` to stay
+    /// silent, else the answer, its delay and the damage the line does to it.
+    fn handle_frame(
+        &self,
+        frame: &plccoms_plc::epsnet::frame::Frame,
+    ) -> Option<(
+        plccoms_plc::epsnet::frame::Frame,
+        Duration,
+        Option<serial::Damage>,
+    )> {
+        let mut state = lock(&self.state);
+        let mut offset = state.clock_offset;
+        let answer = server::handle_frame(frame, &mut lock(&self.device), &mut offset)?;
+        state.clock_offset = offset;
+        let damage = (state.loss > 0.0 && state.rng.next_f64() < state.loss)
+            .then(|| serial::Damage::draw(&mut state.rng, answer.encoded_len()));
+        Some((answer, state.latency, damage))
+    }
+
+    fn damage(&self, damage: serial::Damage, bytes: Vec<u8>) -> Vec<u8> {
+        damage.apply(bytes, &mut lock(&self.state).rng)
+    }
+
     /// The answer to one Modbus request, and its delay; `None` to drop it.
     fn handle_modbus(&self, adu: &plccoms_plc::modbus::codec::Adu) -> Option<(Vec<u8>, Duration)> {
         let mut state = lock(&self.state);
@@ -329,6 +359,7 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
             rng: config.seed.map(Rng::new).unwrap_or_else(Rng::from_time),
             cycle_ms,
         }),
+        line: serial::LineStats::default(),
         modbus: config.modbus.is_some(),
     });
     shared.set_loss(config.loss);
@@ -341,14 +372,23 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
         shared.clone(),
         Duration::from_millis(cycle_ms),
     ))];
-    let local_addr = match config.modbus {
-        Some(addr) => {
+    let local_addr = match (&config.serial, config.modbus) {
+        (Some(line), _) => {
+            let port = serial::open(line)?;
+            tasks.push(tokio::spawn(serial::serve(
+                port,
+                line.clone(),
+                shared.clone(),
+            )));
+            SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0))
+        }
+        (None, Some(addr)) => {
             let listener = tokio::net::TcpListener::bind(addr).await?;
             let local = listener.local_addr()?;
             tasks.push(tokio::spawn(modbus::serve(listener, shared.clone())));
             local
         }
-        None => {
+        (None, None) => {
             let socket = Arc::new(UdpSocket::bind(config.bind).await?);
             let local = socket.local_addr()?;
             tasks.push(tokio::spawn(serve(socket, shared.clone())));
@@ -436,9 +476,14 @@ async fn run_program(shared: Arc<Shared>, cycle: Duration) {
 
 impl SimHandle {
     /// The bound UDP address (the PLC's address for a backend), or the
-    /// Modbus TCP address.
+    /// Modbus TCP address; 0.0.0.0:0 on a serial line.
     pub fn local_addr(&self) -> SocketAddr {
         self.local_addr
+    }
+
+    /// Bytes and frames on the serial line (zero over UDP).
+    pub fn line_stats(&self) -> &serial::LineStats {
+        &self.shared.line
     }
 
     /// The bound control port, when one was asked for.

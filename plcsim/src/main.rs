@@ -1,5 +1,5 @@
-//! plcsim: a simulated Tecomat PLC speaking EPSNET over UDP, or a Modbus TCP
-//! device.
+//! plcsim: a simulated Tecomat PLC speaking EPSNET over UDP or a serial
+//! line, or a Modbus TCP device.
 
 use std::time::Duration;
 
@@ -35,8 +35,17 @@ async fn main() -> std::process::ExitCode {
         latency: Duration::from_millis(args.latency),
         cycle: Duration::from_millis(args.cycle),
         control: args.control,
+        serial: args.serial.map(|device| plcsim::serial::SerialLine {
+            device,
+            speed: args.speed,
+            emulate: args.emulate_line,
+        }),
         ..SimConfig::default()
     };
+    let line = config
+        .serial
+        .as_ref()
+        .map(|line| format!("EPSNET on serial {} {} 8N1", line.device, line.speed));
     if let Some(path) = args.pubfile {
         config.pubfile = PubSource::Path(path);
     }
@@ -59,10 +68,10 @@ async fn main() -> std::process::ExitCode {
     };
     tracing::info!(
         "plcsim: {} (__PF_CRC {:08X}){}",
-        if args.modbus.is_some() {
-            format!("Modbus TCP on tcp://{}", handle.local_addr())
-        } else {
-            format!("EPSNET on udp://{}", handle.local_addr())
+        match line {
+            Some(line) => line,
+            None if args.modbus.is_some() => format!("Modbus TCP on tcp://{}", handle.local_addr()),
+            None => format!("EPSNET on udp://{}", handle.local_addr()),
         },
         handle.pf_crc(),
         handle

@@ -129,6 +129,18 @@ fn files(device: &mut Device) -> Result<&mut crate::FileStore, Exception> {
     device.files.as_mut().ok_or(Exception::NotActivated)
 }
 
+/// Answers one request frame; `None` means stay silent (an `E5`, or a
+/// frame for another station).
+pub fn handle_frame(frame: &Frame, device: &mut Device, clock_offset: &mut f64) -> Option<Frame> {
+    let Frame::Data(f) = frame else { return None };
+    if f.da != PLC_EPS_ADDR {
+        return None;
+    }
+    let code = f.data.first().copied().unwrap_or(0);
+    let answer = Request::decode(f.fc, &f.data).and_then(|r| execute(r, device, clock_offset));
+    Some(answer_frame(f.sa, PLC_EPS_ADDR, code, &answer))
+}
+
 /// Answers one datagram; `None` means stay silent.
 pub fn handle_datagram(
     bytes: &[u8],
@@ -144,13 +156,7 @@ pub fn handle_datagram(
     };
     let mut frames = Vec::with_capacity(packet.frames.len());
     for frame in &packet.frames {
-        let Frame::Data(f) = frame else { return None };
-        if f.da != PLC_EPS_ADDR {
-            return None;
-        }
-        let code = f.data.first().copied().unwrap_or(0);
-        let answer = Request::decode(f.fc, &f.data).and_then(|r| execute(r, device, clock_offset));
-        frames.push(answer_frame(f.sa, PLC_EPS_ADDR, code, &answer));
+        frames.push(handle_frame(frame, device, clock_offset)?);
     }
     // The answer must fit one datagram too: the largest data answers give
     // way to an error byte until it does.

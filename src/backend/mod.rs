@@ -8,6 +8,7 @@
 pub mod epsnet;
 pub mod memory;
 pub mod modbus;
+pub mod plugin;
 
 use async_trait::async_trait;
 use plccoms_protocol::Area;
@@ -178,6 +179,24 @@ pub trait PlcBackend: Send {
     }
 }
 
+/// Adds a page of a directory listing to `all`; `Ok(true)` when the
+/// listing is complete. A page announcing more but bringing nothing would
+/// page for ever: an error.
+pub(crate) fn add_dir_page(
+    all: &mut Vec<DirEntry>,
+    entries: Vec<DirEntry>,
+    more: bool,
+) -> Result<bool, PlcError> {
+    let empty = entries.is_empty();
+    all.extend(entries);
+    if more && empty {
+        return Err(PlcError::Protocol(
+            "empty directory page announcing more".into(),
+        ));
+    }
+    Ok(!more)
+}
+
 /// A section's backend, `None` when it has no PLC yet; or why it cannot be
 /// made.
 pub type Opened = Result<Option<Box<dyn PlcBackend>>, String>;
@@ -246,16 +265,20 @@ pub fn modbus_config(
     config
 }
 
-/// EPSNET over UDP to `IPADDR:EPSPORT`, or `None` when the section has no
-/// PLC yet (`IPADDR` unset or `0.0.0.0`). Serial lines and shared modules
-/// are refused with the reason.
+/// A section's link: the backend plugin `SHM_NAME` when set (the vendor's
+/// shared module), else EPSNET on the serial line `SERIAL_DEVICE` when set,
+/// else over UDP to `IPADDR:EPSPORT`; `None` when the section has no PLC yet
+/// (`IPADDR` unset or `0.0.0.0`). Nothing is opened here: the link opens
+/// its socket or device when it connects, and again after each loss.
 fn open_epsnet(section: &crate::config::Section) -> Opened {
     use std::net::{IpAddr, SocketAddr};
-    if section.serial_device.is_some() {
-        return Err("serial lines (SERIAL_DEVICE) are not supported by this server".to_string());
+    if let Some(library) = &section.shm_name {
+        let config = plugin::PluginConfig::from_section(section, library);
+        return Ok(Some(Box::new(plugin::PluginBackend::new(config))));
     }
-    if section.shm_name.is_some() {
-        return Err("shared modules (SHM_NAME) are not supported by this server".to_string());
+    if let Some(device) = &section.serial_device {
+        let config = serial_config(section, device)?;
+        return Ok(Some(Box::new(epsnet::SerialBackend::new(config))));
     }
     match section.ipaddr {
         Some(ip) if !ip.is_unspecified() => {
@@ -266,6 +289,24 @@ fn open_epsnet(section: &crate::config::Section) -> Opened {
         }
         _ => Ok(None),
     }
+}
+
+/// EPSNET serial settings from a section's keys, for the line `device`.
+pub fn serial_config(
+    section: &crate::config::Section,
+    device: &str,
+) -> Result<epsnet::SerialConfig, String> {
+    let mut config = epsnet::SerialConfig::new(device);
+    config.speed = section.serial_speed.unwrap_or(config.speed);
+    config.rts = epsnet::serial::rts_of(
+        device,
+        section.serial_rts,
+        section.serial_device_cfg.as_deref(),
+    )?;
+    config.timing.eps_addr = section.epsaddr;
+    config.timing.timeout = section.epstout;
+    config.timing.timeout_step = section.epstout_step;
+    Ok(config)
 }
 
 /// EPSNET settings from a section's keys, for a PLC at `plc`.

@@ -167,6 +167,9 @@ pub struct Section {
     pub shm_name: Option<String>,
     pub shm_socket: Option<u32>,
     pub shm_port: Option<u32>,
+    /// `[*] SERIAL_DEVICE_CFG`, which every section inherits: the RTS GPIO
+    /// pin of each serial device.
+    pub serial_device_cfg: Option<String>,
     pub pubfile_crc: bool,
     pub pubfile_write: bool,
     pub pubfile: Option<String>,
@@ -459,6 +462,9 @@ pub fn parse(path_for_messages: &Path, text: &str) -> Result<Loaded, ConfigError
     let (Some(global), false) = (global, unusable) else {
         return Err(invalid(diags.list));
     };
+    for section in &mut sections {
+        section.serial_device_cfg = global.serial_device_cfg.clone();
+    }
     diags.list.sort_by_key(|d| d.line);
     if sections.is_empty() {
         return Err(ConfigError::NoSections {
@@ -599,6 +605,11 @@ fn read_global(
     }
     check_http(&global, &map, diags, errors);
     mqtt::check_global(&global.mqtt, &map, diags, errors);
+    if let (Some(text), Some(entry)) = (&global.serial_device_cfg, map.get("SERIAL_DEVICE_CFG")) {
+        if let Err(problem) = crate::backend::epsnet::serial::parse_device_cfg(text) {
+            errors.push(diags.make(Severity::Error, entry.line, problem));
+        }
+    }
     global
 }
 
@@ -659,6 +670,7 @@ fn section_defaults(name: &str) -> Section {
         shm_name: None,
         shm_socket: None,
         shm_port: None,
+        serial_device_cfg: None,
         pubfile_crc: false,
         pubfile_write: false,
         pubfile: None,

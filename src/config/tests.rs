@@ -125,8 +125,14 @@ fn vendor_file_loads_unchanged() {
             ..Global::default()
         }
     );
+    // Every section inherits [*] SERIAL_DEVICE_CFG (the RTS pins of lines).
+    let mut sections = config.sections.clone();
+    for section in &mut sections {
+        assert_eq!(section.serial_device_cfg, config.global.serial_device_cfg);
+        section.serial_device_cfg = None;
+    }
     assert_eq!(
-        config.sections,
+        sections,
         vec![Section {
             ipaddr: Some(Ipv4Addr::new(192, 168, 89, 1)),
             pubfile_crc: true,
@@ -476,6 +482,10 @@ fn unterminated_quote() {
     assert_eq!(
         global_error("SERIAL_DEVICE_CFG = \"/dev/ttyS0 -1"),
         "PLCComS.ini:2: SERIAL_DEVICE_CFG: unterminated \" quote in value"
+    );
+    assert_eq!(
+        global_error("SERIAL_DEVICE_CFG = /dev/ttyS0 -1, /dev/ttyS1"),
+        "PLCComS.ini:2: SERIAL_DEVICE_CFG: '/dev/ttyS1' is not DEVICE PIN (e.g. /dev/ttyS0 -1)"
     );
 }
 
@@ -927,6 +937,7 @@ fn sample(key: &Key) -> Option<String> {
         Kind::Bool => "Yes".into(),
         Kind::Ipv4 => "10.0.0.1".into(),
         Kind::IpAddr => "::1".into(),
+        Kind::Text if key.name == "SERIAL_DEVICE_CFG" => "/dev/ttyS0 17".into(),
         Kind::Text => "x".into(),
         Kind::Networks => "10.0.0.0/8".into(),
         Kind::Choice { choices, .. } => choices

@@ -21,8 +21,9 @@ pub fn apply(config: &Section, change: &ConfChange) -> (Section, bool) {
     let relink = match change {
         ConfChange::IpAddr(ip) => {
             config.ipaddr = Some(*ip);
-            // A real address replaces the simulated PLC.
+            // A real address replaces the simulated PLC or the serial line.
             config.simulator = None;
+            config.serial_device = None;
             true
         }
         ConfChange::EpsAddr(addr) => {
@@ -34,12 +35,15 @@ pub fn apply(config: &Section, change: &ConfChange) -> (Section, bool) {
             true
         }
         ConfChange::SerialDevice(device) => {
+            // The section's PLC is now on this line (see `backend::open`).
             config.serial_device = Some(device.clone());
+            config.simulator = None;
             true
         }
         ConfChange::SerialSpeed(speed) => {
             config.serial_speed = Some(*speed);
-            true
+            // Kept for a later SETCONF:serial_device on a UDP section.
+            config.serial_device.is_some()
         }
         // On a Modbus section it names the tag file, which the backend
         // watches (its CRC is `__PF_CRC`): a new link.

@@ -3,6 +3,8 @@
 #![allow(dead_code)]
 
 pub mod epsnet;
+pub mod health;
+pub mod line;
 pub mod logs;
 pub mod modbus;
 pub mod mqtt;

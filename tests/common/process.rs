@@ -13,33 +13,47 @@ use std::time::{Duration, Instant};
 /// The binary under test, as cargo built it for this test run.
 pub const PLCCOMS: &str = env!("CARGO_BIN_EXE_plccoms");
 
-/// The `plcsim` binary of this build. It belongs to another workspace crate,
-/// so cargo does not hand its path to these tests: it sits beside `plccoms`,
-/// and is built here when a narrower `cargo test -p plccoms` left it out.
+/// The `plcsim` binary of this build.
 pub fn plcsim_bin() -> std::path::PathBuf {
-    static BUILT: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
-    BUILT
-        .get_or_init(|| {
-            let dir = std::path::Path::new(PLCCOMS).parent().expect("bin dir");
-            let bin = dir.join("plcsim");
-            if !bin.exists() {
-                let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-                let profile = if dir.ends_with("release") {
-                    vec!["--release"]
-                } else {
-                    vec![]
-                };
-                let status = std::process::Command::new(cargo)
-                    .args(["build", "-p", "plcsim", "--bin", "plcsim"])
-                    .args(profile)
-                    .current_dir(env!("CARGO_MANIFEST_DIR"))
-                    .status()
-                    .expect("run cargo build -p plcsim");
-                assert!(status.success(), "cargo build -p plcsim failed");
-            }
-            bin
-        })
-        .clone()
+    artifact("plcsim", &["-p", "plcsim", "--bin", "plcsim"])
+}
+
+/// A backend plugin of this build: `demo` or `bad` (the workspace's
+/// `plugins/*-plugin` cdylibs).
+pub fn plugin_lib(name: &str) -> std::path::PathBuf {
+    let package = format!("plccoms-{name}-plugin");
+    artifact(&format!("libplccoms_{name}_plugin.so"), &["-p", &package])
+}
+
+/// A file another workspace crate builds: cargo does not hand its path to
+/// these tests, but it sits beside `plccoms` (target/<profile>/). It is
+/// brought up to date (`cargo build <args>`) once per test process: `cargo
+/// test` leaves it out with `-p plccoms`, and never builds a cdylib at all,
+/// so a file already there may be stale.
+fn artifact(file: &str, args: &[&str]) -> std::path::PathBuf {
+    static BUILT: Mutex<Vec<String>> = Mutex::new(Vec::new());
+    let dir = std::path::Path::new(PLCCOMS).parent().expect("bin dir");
+    let path = dir.join(file);
+    let mut built = BUILT.lock().unwrap_or_else(|e| e.into_inner());
+    if !built.iter().any(|f| f == file) {
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let profile = if dir.ends_with("release") {
+            vec!["--release"]
+        } else {
+            vec![]
+        };
+        let status = std::process::Command::new(cargo)
+            .arg("build")
+            .arg("--quiet")
+            .args(args)
+            .args(profile)
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .status()
+            .expect("run cargo build");
+        assert!(status.success(), "cargo build {args:?} failed");
+        built.push(file.to_string());
+    }
+    path
 }
 
 /// How long a server gets from spawn to accepting connections.

@@ -6,7 +6,8 @@
 use bytes::{Buf, BufMut, BytesMut};
 
 use super::frame::{
-    DataFrame, Frame, Header, Packet, ACK, END, HEADER_LEN, MAX_PACKET, PN, SHORT_MAX_LE, START,
+    DataFrame, Frame, Header, Packet, ACK, END, HEADER_LEN, MAX_DPLEN, MAX_PACKET, PN,
+    SHORT_MAX_LE, START,
 };
 
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -47,6 +48,8 @@ pub enum DecodeError {
     MissingEnd { offset: usize, byte: u8 },
     #[error("datagram of {len} bytes exceeds the {MAX_PACKET}-byte limit")]
     TooLong { len: usize },
+    #[error("frame at offset {offset} claims {len} bytes, more than the {MAX_DPLEN}-byte limit")]
+    FrameTooLong { offset: usize, len: usize },
 }
 
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

@@ -21,6 +21,18 @@
 //!   big-endian u16. FCS and the end byte are as in the normal form.
 //! - A datagram's total size is capped at [`MAX_PACKET`] (1472 bytes: an
 //!   Ethernet MTU of 1500 less IP and UDP headers), in both directions.
+//!
+//! On a serial line (public: the same frames, a frame ends at its end byte
+//! 0x16) this project decides, unverified against a real PLC:
+//! - frames follow each other with nothing between them: no header, no MESI,
+//!   no padding; the long form is the same;
+//! - the server sends one request frame and waits for its one answer frame
+//!   before the next (half-duplex, as on RS-485), so answers are matched by
+//!   order; the timeouts and retries are those of UDP (EPSTOUT,
+//!   EPSTOUT_STEP);
+//! - a frame is at most [`MAX_DPLEN`] bytes, as any frame a datagram carries;
+//! - the line settings are 8 data bits, no parity, 1 stop bit at
+//!   SERIAL_SPEED.
 
 /// The UDP port PLCs listen on (0xF0F2).
 pub const DEFAULT_PORT: u16 = 61682;

@@ -1,10 +1,12 @@
 //! EPSNET, the protocol Tecomat PLCs speak: frame types ([`frame`]), bytes
-//! <-> frames ([`codec`]), and requests and answers ([`service`], the one
-//! place where choices unverified against a real PLC are made).
+//! <-> frames ([`codec`] for UDP datagrams, [`stream`] for serial lines), and
+//! requests and answers ([`service`] and [`frame`], the places where choices
+//! unverified against a real PLC are made).
 
 pub mod codec;
 pub mod frame;
 pub mod service;
+pub mod stream;
 
 use std::fmt;
 
