@@ -176,8 +176,10 @@ async fn cable_pulled_and_plugged_back_adapter_unplugged_and_back() {
     .await;
     let (refused, took) = answer(&mut c, "SET:setpoint,1\n").await;
     assert!(is_link_error(&refused), "{refused:?}");
+    // At once, not after a timeout (EPSTOUT is 1 s here): the bound leaves
+    // a loaded machine room without letting a timed-out request pass.
     assert!(
-        took < Duration::from_millis(500),
+        took < Duration::from_millis(900),
         "SET refused after {took:?}"
     );
 
