@@ -93,6 +93,8 @@ pub const MQTT_GRACE: std::time::Duration = std::time::Duration::from_millis(500
 
 /// Starts every section of `config`; fails only when none could start.
 pub async fn start(config: &Config) -> Result<Server, String> {
+    #[cfg(feature = "fanout-trace")]
+    crate::trace::listen();
     // The configuration holds passwords and tokens: clients neither read
     // nor write it, whatever FILES_ROOT says.
     crate::localfs::protect(&config.path, true);

@@ -17,9 +17,43 @@ struct Trace {
     last_write: HashMap<u64, Duration>,
     /// Every client write of DIFF lines, from the poll's completion.
     writes: Vec<Duration>,
+    /// Only polls completed in this window count (SIGUSR1 opens it,
+    /// SIGUSR2 closes it; without them, every poll): a load generator
+    /// marks its measurement window, leaving out its clients' initial
+    /// full snapshots and the end, when it stops reading.
+    window: (Option<Instant>, Option<Instant>),
 }
 
 static TRACE: Mutex<Option<Trace>> = Mutex::new(None);
+
+fn with_trace<T>(f: impl FnOnce(&mut Trace) -> T) -> T {
+    let mut trace = TRACE.lock().unwrap_or_else(|p| p.into_inner());
+    f(trace.get_or_insert_with(Trace::default))
+}
+
+/// Opens the window on SIGUSR1 (forgetting what was recorded before) and
+/// closes it on SIGUSR2.
+pub fn listen() {
+    use tokio::signal::unix::{signal, SignalKind};
+    let (Ok(mut open), Ok(mut close)) = (
+        signal(SignalKind::user_defined1()),
+        signal(SignalKind::user_defined2()),
+    ) else {
+        tracing::warn!("fan-out trace: no signal handlers; every poll counts");
+        return;
+    };
+    tokio::spawn(async move {
+        loop {
+            tokio::select! {
+                _ = open.recv() => with_trace(|t| {
+                    *t = Trace::default();
+                    t.window.0 = Some(Instant::now());
+                }),
+                _ = close.recv() => with_trace(|t| t.window.1 = Some(Instant::now())),
+            }
+        }
+    });
+}
 
 /// A client's socket took every DIFF line of the snapshots in `blocks`
 /// (sequence, poll completion).
@@ -27,7 +61,11 @@ pub fn written(blocks: &mut Vec<(u64, Instant)>) {
     let now = Instant::now();
     let mut trace = TRACE.lock().unwrap_or_else(|p| p.into_inner());
     let trace = trace.get_or_insert_with(Trace::default);
+    let (from, to) = trace.window;
     for (seq, polled) in blocks.drain(..) {
+        if from.is_some_and(|from| polled < from) || to.is_some_and(|to| polled > to) {
+            continue;
+        }
         let took = now.saturating_duration_since(polled);
         trace.writes.push(took);
         let last = trace.last_write.entry(seq).or_default();

@@ -48,6 +48,11 @@ pub struct FanoutArgs {
     /// Longest wait for every client to receive its initial values.
     #[arg(long, default_value_t = 90.0)]
     pub settle_max: f64,
+    /// Mark the measurement window for a server built with the
+    /// fanout-trace feature: SIGUSR1 to --server-pid at its start, SIGUSR2
+    /// at its end.
+    #[arg(long)]
+    pub trace_window: bool,
     /// Wait after the window for late DIFFs.
     #[arg(long, default_value_t = 2.0)]
     pub grace: f64,
@@ -252,11 +257,19 @@ pub async fn run(args: FanoutArgs) -> Result<(), String> {
     tokio::time::sleep(Duration::from_millis(300)).await;
     let server = ProcWindow::start(args.common.server_pid);
     let me = ProcWindow::start(Some(std::process::id()));
+    let signal_server = |signal| {
+        if let (true, Some(pid)) = (args.trace_window, args.common.server_pid) {
+            // SAFETY: kill(2) with a pid and a signal number; no memory shared.
+            unsafe { libc::kill(pid as libc::pid_t, signal) };
+        }
+    };
     let t0 = now_ns(obs.epoch);
     shared.t0.store(t0, Ordering::Relaxed);
+    signal_server(libc::SIGUSR1);
     tokio::time::sleep(Duration::from_secs_f64(args.duration.clamp(0.5, 600.0))).await;
     let t1 = now_ns(obs.epoch);
     shared.t1.store(t1, Ordering::Relaxed);
+    signal_server(libc::SIGUSR2);
     let mut report = Report::new(
         args.common.label.as_deref().unwrap_or("fanout"),
         args.common.out.clone(),
