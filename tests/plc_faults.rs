@@ -323,7 +323,10 @@ async fn halt_run_cycles() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn half_a_second_of_latency() {
-    let rig = rig("").await;
+    // EPSTOUT well above the latency: a SET queued behind a poll read of
+    // 500 ms on a loaded machine must not reach the rule that refuses a SET
+    // not sent within EPSTOUT (tests/link_health.rs covers that rule).
+    let rig = rig("EPSTOUT = 2500").await;
     let mut c = rig.client().await;
     c.send(b"EN:counter\n").await;
     c.line().await;
