@@ -540,8 +540,9 @@ async fn halt_then_run_diffs_plc_run_and_polling_goes_on() {
          WARNING:252 Changed active variables in public file: '[4/29]'\r\n",
     )
     .await;
-    c.wait_for_line(b"DIFF:__PLC_RUN,1\r\n", SLOW).await;
-    c.wait_for_line(b"DIFF:COUNTER,0\r\n", SLOW).await;
+    // Both values, from whichever polls they come in.
+    c.wait_for_lines(&[b"DIFF:__PLC_RUN,1\r\n", b"DIFF:COUNTER,0\r\n"], SLOW)
+        .await;
 
     sim.halt();
     for line in c.wait_for_line(b"DIFF:__PLC_RUN,0\r\n", SLOW).await {

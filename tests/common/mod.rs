@@ -327,6 +327,32 @@ impl Client {
         }
     }
 
+    /// Reads lines until every one of `wants` has come, in any order,
+    /// within `within` (values that come from different polls).
+    pub async fn wait_for_lines(&mut self, wants: &[&[u8]], within: Duration) {
+        let deadline = tokio::time::Instant::now() + within;
+        let mut missing: Vec<&[u8]> = wants.to_vec();
+        let mut skipped = Vec::new();
+        while !missing.is_empty() {
+            let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+            match self.line_within(left).await {
+                Some(line) => match missing.iter().position(|w| *w == line) {
+                    Some(i) => {
+                        missing.remove(i);
+                    }
+                    None => skipped.push(String::from_utf8_lossy(&line).into_owned()),
+                },
+                None => panic!(
+                    "no {:?} within {within:?}; got {skipped:?}",
+                    missing
+                        .iter()
+                        .map(|l| String::from_utf8_lossy(l).into_owned())
+                        .collect::<Vec<_>>()
+                ),
+            }
+        }
+    }
+
     /// Reads lines until one equals `want`, within `within`; returns the
     /// lines skipped before it.
     pub async fn wait_for_line(&mut self, want: &[u8], within: Duration) -> Vec<Vec<u8>> {
