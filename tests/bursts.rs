@@ -13,11 +13,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 #[tokio::test]
 async fn a_burst_of_gets_is_answered_in_one_write() {
-    let project = plcsim::genpub::generate(&plcsim::genpub::Layout {
-        vars: 300,
-        animated: 0,
-        setvars: 0,
-    });
+    let project = plcsim::genpub::plain(300);
     let (server, addr, _dir) = simulated("", "PUBFILE = //project.pub", Some(&project)).await;
     // The PLC answers after 5 ms: GETs of variables nobody polls wait for it.
     server.simulators()[0].set_latency(Duration::from_millis(5));

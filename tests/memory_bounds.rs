@@ -11,19 +11,15 @@ use common::{rss_kib, simulated as server, Client};
 /// One memory measurement at a time.
 static ALONE: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
-/// A public file of `n` INT variables `V_00000`... (plus a CRC trailer).
-fn project(n: usize) -> Vec<u8> {
-    plcsim::genpub::generate(&plcsim::genpub::Layout {
-        vars: n,
-        animated: 0,
-        setvars: 0,
-    })
-}
-
 #[tokio::test]
 async fn pipelining_without_reading_holds_bounded_memory_and_gives_it_back() {
     let _alone = ALONE.lock().await;
-    let (_server, addr, _dir) = server("", "PUBFILE = //project.pub", Some(&project(2000))).await;
+    let (_server, addr, _dir) = server(
+        "",
+        "PUBFILE = //project.pub",
+        Some(&plcsim::genpub::plain(2000)),
+    )
+    .await;
     let before = rss_kib();
     // Four clients pipeline 200,000 GET:* each and never read.
     let mut flooders = Vec::new();

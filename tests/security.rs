@@ -225,18 +225,14 @@ async fn pubfile_crc_is_enforced_and_setconf_keys_limit_clients() {
     c.ask("SETCONF:crlf,yes\n", "SETCONF:CRLF,YES\r\n").await;
 }
 
-/// A public file of `n` variables `VAR_00000`... (plus a CRC trailer).
-fn project(n: usize) -> Vec<u8> {
-    plcsim::genpub::generate(&plcsim::genpub::Layout {
-        vars: n,
-        animated: 0,
-        setvars: 0,
-    })
-}
-
 #[tokio::test]
 async fn megabytes_of_star_masks_do_not_starve_other_clients() {
-    let (_server, addr, _dir) = server("", "PUBFILE = //project.pub", Some(&project(2000))).await;
+    let (_server, addr, _dir) = server(
+        "",
+        "PUBFILE = //project.pub",
+        Some(&plcsim::genpub::plain(2000)),
+    )
+    .await;
     let mut other = Client::connect(addr).await;
     let flood = tokio::spawn(async move {
         use tokio::io::{AsyncReadExt, AsyncWriteExt};

@@ -12,6 +12,16 @@ pub struct Layout {
     pub setvars: usize,
 }
 
+/// A project of `vars` VAR variables only (nothing animated, no SET
+/// targets).
+pub fn plain(vars: usize) -> Vec<u8> {
+    generate(&Layout {
+        vars,
+        animated: 0,
+        setvars: 0,
+    })
+}
+
 /// The public file of `layout`: ANIM, then SETV, then VAR variables.
 pub fn generate(layout: &Layout) -> Vec<u8> {
     let mut text = String::with_capacity(layout.vars * 40);

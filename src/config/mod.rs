@@ -277,8 +277,9 @@ pub struct Simulator {
     pub pubfile: Option<String>,
 }
 
-/// The settings of a Modbus TCP section (`MODBUS_*`).
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// The settings of a Modbus TCP section (`MODBUS_*`); the key table sets
+/// every field's default.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct Modbus {
     /// `MODBUS_PORT`: the device's TCP port.
     pub port: u16,
@@ -682,16 +683,7 @@ fn section_defaults(name: &str) -> Section {
         setconf_keys: None,
         history: History::default(),
         mqtt: MqttSection::default(),
-        modbus: Modbus {
-            port: 0,
-            unit: 0,
-            tags: None,
-            timeout: Duration::ZERO,
-            max_regs: 0,
-            max_bits: 0,
-            gap: 0,
-            inflight: 0,
-        },
+        modbus: Modbus::default(),
     })
 }
 
