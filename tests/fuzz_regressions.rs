@@ -56,6 +56,13 @@ fn every_target_runs_on_ordinary_input() {
     ] {
         checks::history_time(time.as_bytes());
     }
+    // A packed history block (the seed of fuzz/seed.sh), whole and cut.
+    let block: &[u8] = b"\x01\x01\x64\x03\x02\x00\x02\x05\x01\x00\xc8\x01\x00\x01\x02\x03\x0e\
+        \x3f\xf8\x00\x00\x00\x00\x00\x00\x02ab\x00\x02\x00\x01\x00\x09";
+    for end in [block.len(), block.len() - 3, 1, 0] {
+        checks::history_block(&block[..end]);
+    }
+    checks::history_block(b"\x00\x28\xb5\x2f\xfd garbage");
     // READN answer of 2 bytes, then the same datagram as a request.
     let answer = [
         0x00, 0x02, 0x00, 0x07, 0x02, 0x00, 0x00, 0x0D, 0x68, 0x07, 0x07, 0x68, 0x7D, 0x00, 0x08,

@@ -428,6 +428,38 @@ pub fn history_time(data: &[u8]) {
     }
 }
 
+/// A packed history block: the first byte chooses whether the rest is the
+/// stored (zstd) form or the packed form before compression. Damage is an
+/// error; what decodes packs again to the same samples.
+pub fn history_block(data: &[u8]) {
+    use plccoms::historian::block;
+    use plccoms::historian::sample::Stored;
+    let Some((&mode, rest)) = data.split_first() else {
+        return;
+    };
+    let stored = if mode & 1 == 0 {
+        rest.to_vec()
+    } else {
+        zstd::bulk::compress(rest, 1).expect("compress")
+    };
+    let Ok(rows) = block::decode(&stored) else {
+        return;
+    };
+    assert!(rows.len() <= block::MAX_ROWS);
+    let again = block::decode(&block::encode(&rows)).expect("a block packed again decodes");
+    assert_eq!(rows.len(), again.len());
+    for (a, b) in rows.iter().zip(&again) {
+        assert_eq!(
+            (a.key, a.quality, a.plc_time),
+            (b.key, b.quality, b.plc_time)
+        );
+        match (&a.value, &b.value) {
+            (Stored::Real(x), Stored::Real(y)) => assert_eq!(x.to_bits(), y.to_bits()),
+            (x, y) => assert_eq!(x, y),
+        }
+    }
+}
+
 // ---------------------------------------------------------------------------
 // pubfile
 

@@ -577,6 +577,9 @@ static KEYS: &[Key] = &[
     row("HISTORY_SYNC", Some("1"), number(1, 3600, "s"),
         "seconds between durable commits of the history (at most this much is lost on a crash)",
         Setter::Global(|g, v| g.history_sync = v.secs())),
+    row("HISTORY_COMPACT", Some("3600"), number(0, 86_400, "s"),
+        "seconds after which samples are packed into compressed blocks (a few bytes each instead of ~20); 0 = never",
+        Setter::Global(|g, v| g.history_compact = v.secs())),
     // MQTT (src/mqtt/): the broker, the client, the spool.
     row("MQTT_URL", None, Kind::Text,
         "broker: mqtt://host[:port] (1883) or mqtts://host[:port] (8883, TLS); unset = MQTT off",

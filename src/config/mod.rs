@@ -100,6 +100,8 @@ pub struct Global {
     pub history_retention: Retention,
     /// HISTORY_SYNC: time between durable commits of the history.
     pub history_sync: Duration,
+    /// HISTORY_COMPACT: age at which samples are packed (zero: never).
+    pub history_compact: Duration,
     /// The MQTT_* keys (this server's own).
     pub mqtt: MqttGlobal,
 }
@@ -139,6 +141,7 @@ impl Default for Global {
             history_dir: None,
             history_retention: Retention::default(),
             history_sync: Duration::ZERO,
+            history_compact: Duration::ZERO,
             mqtt: MqttGlobal::default(),
         })
     }

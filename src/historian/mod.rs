@@ -8,8 +8,9 @@
 //!   POST cycles). One task per section, fed by a
 //!   [`crate::changes::Subscription`] that also delivers every poll cycle.
 //! - `writer.rs`: one thread that commits what the recorders queue every
-//!   HISTORY_SYNC, and applies the retention; `store.rs`: the files and
-//!   their schema.
+//!   HISTORY_SYNC, packs older samples (HISTORY_COMPACT) and applies the
+//!   retention; `store.rs`: the files and their schema; `block.rs`: the
+//!   packed form of samples.
 //! - `query.rs`: samples of a time range as a stream; `export.rs`: CSV,
 //!   JSON and Parquet; `time.rs`: the times the command line takes;
 //!   `command.rs`: `plccoms history`.
@@ -19,6 +20,7 @@
 //! which drop (counting, logging, and recording a `dropped` event) what
 //! does not fit.
 
+pub mod block;
 pub mod capture;
 pub mod command;
 pub mod export;
@@ -96,6 +98,9 @@ pub struct Stats {
     pub shifted: Counter,
     /// Bytes of the day files open for writing.
     pub bytes: Gauge,
+    /// Samples packed into blocks (HISTORY_COMPACT), and the blocks.
+    pub packed: Counter,
+    pub blocks: Counter,
     pub state: AtomicU8,
     /// HISTORY_SYNC in milliseconds, for the flush/fill comparison.
     pub sync_ms: Gauge,
@@ -142,6 +147,14 @@ impl Stats {
                     self.sync_ms.get(),
                     self.flush_max_us.get() as f64 / 1000.0,
                     self.overruns.get()
+                ),
+            ),
+            (
+                "HISTORY_PACKED",
+                format!(
+                    "{} samples in {} blocks",
+                    self.packed.get(),
+                    self.blocks.get()
                 ),
             ),
         ]
@@ -206,6 +219,8 @@ impl Historian {
             dir,
             sync: config.global.history_sync,
             retention: config.global.history_retention,
+            pack_after: (!config.global.history_compact.is_zero())
+                .then_some(config.global.history_compact),
         };
         let writer = std::thread::Builder::new()
             .name("historian".into())
@@ -381,7 +396,7 @@ struct Metrics(Vec<(String, Arc<Stats>)>);
 impl metrics::Source for Metrics {
     fn render(&self, out: &mut String) {
         type Get = fn(&Stats) -> u64;
-        let families: [(&str, &str, &str, Get); 9] = [
+        let families: [(&str, &str, &str, Get); 11] = [
             ("plccoms_historian_samples_written_total", "counter", "Samples committed to the history files.", |s| s.written.get()),
             ("plccoms_historian_samples_dropped_total", "counter", "Samples not recorded: the writer's queue was full, or past a file's variables.", |s| s.dropped.get()),
             ("plccoms_historian_publishes_missed_total", "counter", "Change-stream publishes the recorder did not see; changes in between may be missing.", |s| s.missed.get()),
@@ -389,6 +404,8 @@ impl metrics::Source for Metrics {
             ("plccoms_historian_queue_max_samples", "gauge", "The most samples ever waiting for the writer.", |s| s.queue_max.get()),
             ("plccoms_historian_flush_seconds", "gauge", "Duration of the last commit round (compare with HISTORY_SYNC).", |s| s.flush_us.get()),
             ("plccoms_historian_flush_overruns_total", "counter", "Commit rounds that took longer than the interval they held.", |s| s.overruns.get()),
+            ("plccoms_historian_samples_packed_total", "counter", "Samples packed into compressed blocks (HISTORY_COMPACT).", |s| s.packed.get()),
+            ("plccoms_historian_blocks_total", "counter", "Compressed blocks written.", |s| s.blocks.get()),
             ("plccoms_historian_file_bytes", "gauge", "Bytes of the day files being written.", |s| s.bytes.get()),
             ("plccoms_historian_recording", "gauge", "1 while recording, 0 while stopped (disk full, size limit).", |s| u64::from(s.state() == State::Recording)),
         ];

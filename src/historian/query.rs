@@ -26,7 +26,7 @@ use std::sync::Arc;
 
 use plccoms_protocol::mask::Mask;
 use plccoms_protocol::IecType;
-use rusqlite::Connection;
+use rusqlite::{Connection, OptionalExtension};
 
 use super::sample::{quality_from_code, Stored};
 use super::store::{self, day_of, DAY_MS, VAR_BITS, VAR_MASK};
@@ -125,8 +125,18 @@ fn file_vars(
     conn: &Connection,
     masks: &[Mask],
 ) -> rusqlite::Result<Vec<(i64, String, String, bool)>> {
+    let packed: bool = conn.query_row(
+        "SELECT count(*) FROM sqlite_master WHERE name = 'packed_stamps'",
+        [],
+        |r| r.get::<_, i64>(0).map(|n| n > 0),
+    )?;
+    let sql = if packed {
+        format!("SELECT DISTINCT key & {VAR_MASK} FROM stamps UNION SELECT id FROM packed_stamps")
+    } else {
+        format!("SELECT DISTINCT key & {VAR_MASK} FROM stamps")
+    };
     let stamped: Vec<i64> = conn
-        .prepare(&format!("SELECT DISTINCT key & {VAR_MASK} FROM stamps"))?
+        .prepare(&sql)?
         .query_map([], |r| r.get(0))?
         .collect::<Result<_, _>>()?;
     let mut stmt = conn.prepare("SELECT id, name, type FROM vars ORDER BY id")?;
@@ -240,7 +250,14 @@ struct FileCursor {
     next_key: i64,
     end_key: i64,
     has_stamps: bool,
-    done: bool,
+    /// Rows of `samples` read and not yet merged, with their keys.
+    rows: VecDeque<(i64, Row)>,
+    rows_done: bool,
+    /// Samples of blocks unpacked and not yet merged, and where the next
+    /// block starts (none left: `blocks_done`).
+    packed: VecDeque<(i64, Row)>,
+    next_block_key: i64,
+    blocks_done: bool,
 }
 
 impl Rows {
@@ -255,6 +272,9 @@ impl Rows {
             return Ok(false);
         };
         let conn = open(&path)?;
+        // One snapshot for the whole file: samples being packed meanwhile
+        // are read once, from where they were.
+        conn.execute_batch("BEGIN").map_err(file_error(&path))?;
         let vars = file_vars(&conn, &self.masks).map_err(file_error(&path))?;
         let start_ms = day * DAY_MS;
         let mut by_id: Vec<Option<Arc<Variable>>> = Vec::new();
@@ -275,6 +295,13 @@ impl Rows {
             format!(" AND (key & {VAR_MASK}) IN ({})", ids.join(","))
         };
         let has_stamps = vars.iter().any(|v| v.3);
+        let has_blocks: bool = conn
+            .query_row(
+                "SELECT count(*) FROM sqlite_master WHERE name = 'blocks'",
+                [],
+                |r| r.get::<_, i64>(0).map(|n| n > 0),
+            )
+            .map_err(file_error(&path))?;
         let from = (self.query.from_ms - start_ms).clamp(0, DAY_MS);
         let to = (self.query.to_ms - start_ms).clamp(0, DAY_MS);
         self.current = Some(FileCursor {
@@ -286,7 +313,11 @@ impl Rows {
             next_key: from << VAR_BITS,
             end_key: to << VAR_BITS,
             has_stamps,
-            done: vars.is_empty(),
+            rows: VecDeque::new(),
+            rows_done: vars.is_empty(),
+            packed: VecDeque::new(),
+            next_block_key: from << VAR_BITS,
+            blocks_done: vars.is_empty() || !has_blocks,
         });
         Ok(true)
     }
@@ -302,20 +333,57 @@ impl FileCursor {
         rows.collect()
     }
 
-    /// Reads the next chunk into `buffer`; `false` when the file is done.
+    /// Merges the next samples of `samples` and of the blocks into
+    /// `buffer`, in key order; `false` when the file is done.
     fn fill(&mut self, buffer: &mut VecDeque<Row>) -> rusqlite::Result<bool> {
-        if self.done {
-            return Ok(false);
+        loop {
+            if self.rows.is_empty() && !self.rows_done {
+                self.read_rows()?;
+            }
+            if self.packed.is_empty() && !self.blocks_done {
+                self.read_block()?;
+            }
+            if self.rows.is_empty() && self.packed.is_empty() {
+                if self.rows_done && self.blocks_done {
+                    return Ok(false);
+                }
+                continue;
+            }
+            let mut merged = false;
+            loop {
+                let from_rows = match (self.rows.front(), self.packed.front()) {
+                    (Some(row), Some(packed)) => row.0 < packed.0,
+                    (Some(_), None) if self.blocks_done => true,
+                    (None, Some(_)) if self.rows_done => false,
+                    _ => break,
+                };
+                let side = if from_rows {
+                    &mut self.rows
+                } else {
+                    &mut self.packed
+                };
+                if let Some((_, row)) = side.pop_front() {
+                    buffer.push_back(row);
+                    merged = true;
+                }
+            }
+            if merged {
+                return Ok(true);
+            }
         }
+    }
+
+    /// Reads the next chunk of `samples` rows.
+    fn read_rows(&mut self) -> rusqlite::Result<()> {
         let sql = format!(
             "SELECT key, value FROM samples WHERE key >= ?1 AND key < ?2{} ORDER BY key LIMIT {CHUNK}",
             self.filter
         );
         let mut stmt = self.conn.prepare_cached(&sql)?;
         let mut rows = stmt.query([self.next_key, self.end_key])?;
-        let mut keys = Vec::new();
         let mut last = None;
         let mut returned = 0;
+        let start = self.rows.len();
         while let Some(row) = rows.next()? {
             let key: i64 = row.get(0)?;
             last = Some(key);
@@ -323,41 +391,79 @@ impl FileCursor {
             let Some(Some(var)) = self.vars.get((key & VAR_MASK) as usize) else {
                 continue;
             };
-            keys.push(key);
-            buffer.push_back(Row {
-                t: self.start_ms + (key >> VAR_BITS),
-                plc_time: None,
-                var: var.clone(),
-                value: Stored::from_sql(row.get_ref(1)?),
-                quality: Quality::Good,
-            });
+            self.rows.push_back((
+                key,
+                Row {
+                    t: self.start_ms + (key >> VAR_BITS),
+                    plc_time: None,
+                    var: var.clone(),
+                    value: Stored::from_sql(row.get_ref(1)?),
+                    quality: Quality::Good,
+                },
+            ));
         }
-        let n = keys.len();
+        drop(rows);
+        drop(stmt);
         let Some(last) = last else {
-            self.done = true;
-            return Ok(false);
+            self.rows_done = true;
+            return Ok(());
         };
         // Qualities other than good and PLC stamps: side tables, few rows.
-        let start = buffer.len() - n;
         let qualities = self.side("qualities", "quality", last)?;
-        if !qualities.is_empty() {
-            for (row, key) in buffer.iter_mut().skip(start).zip(&keys) {
-                if let Some(&code) = qualities.get(key) {
-                    row.quality = quality_from_code(code);
-                }
+        let stamps = if self.has_stamps {
+            self.side("stamps", "plc_time", last)?
+        } else {
+            HashMap::new()
+        };
+        for (key, row) in self.rows.iter_mut().skip(start) {
+            if let Some(&code) = qualities.get(key) {
+                row.quality = quality_from_code(code);
             }
-        }
-        if self.has_stamps {
-            let stamps = self.side("stamps", "plc_time", last)?;
-            for (row, key) in buffer.iter_mut().skip(start).zip(&keys) {
-                row.plc_time = stamps.get(key).copied();
-            }
+            row.plc_time = stamps.get(key).copied();
         }
         self.next_key = last + 1;
         if returned < CHUNK {
-            self.done = true;
+            self.rows_done = true;
         }
-        Ok(true)
+        Ok(())
+    }
+
+    /// Unpacks the next block that holds samples of the range.
+    fn read_block(&mut self) -> rusqlite::Result<()> {
+        let block: Option<(i64, Vec<u8>)> = self
+            .conn
+            .prepare_cached(
+                "SELECT last_key, data FROM blocks WHERE last_key >= ?1 AND first_key < ?2 \
+                 ORDER BY first_key LIMIT 1",
+            )?
+            .query_row([self.next_block_key, self.end_key], |r| {
+                Ok((r.get(0)?, r.get(1)?))
+            })
+            .optional()?;
+        let Some((last, data)) = block else {
+            self.blocks_done = true;
+            return Ok(());
+        };
+        for sample in store::unpack(&data)? {
+            if sample.key < self.next_block_key || sample.key >= self.end_key {
+                continue;
+            }
+            let Some(Some(var)) = self.vars.get((sample.key & VAR_MASK) as usize) else {
+                continue;
+            };
+            self.packed.push_back((
+                sample.key,
+                Row {
+                    t: self.start_ms + (sample.key >> VAR_BITS),
+                    plc_time: sample.plc_time,
+                    var: var.clone(),
+                    value: sample.value,
+                    quality: quality_from_code(i64::from(sample.quality)),
+                },
+            ));
+        }
+        self.next_block_key = last + 1;
+        Ok(())
     }
 }
 

@@ -4,10 +4,15 @@
 //! transaction in progress), switched back to a single file when the day is
 //! done, so a day can be copied away as it is.
 //!
-//! Schema (version 1), chosen for size: a sample is one row of a rowid
-//! table whose integer key packs the time and the variable, so time and
-//! variable cost one 6-byte varint and rows are appended in key order
-//! (SQLite fills pages completely on append):
+//! Schema (version 2), chosen for size: a sample is first one row of a
+//! rowid table whose integer key packs the time and the variable, so time
+//! and variable cost one 6-byte varint and rows are appended in key order
+//! (SQLite fills pages completely on append). Samples older than
+//! HISTORY_COMPACT are then packed, a run of up to 65,536 consecutive keys
+//! at a time, into one row of `blocks` (see [`super::block`]): a few bytes
+//! a sample instead of 12 plus the value. Keys are unique across `samples`
+//! and `blocks`; a late sample (a clock set back) below the packed range
+//! stays a row.
 //!
 //! ```sql
 //! meta    (key TEXT PRIMARY KEY, value)            -- format, version, section, day, day_start_ms, var_bits
@@ -18,22 +23,31 @@
 //! qualities (key INTEGER PRIMARY KEY, quality INTEGER) -- 1 stale, 2 link_lost;
 //!         -- a sample without a row here is good (almost all are: a byte saved)
 //! stamps  (key INTEGER PRIMARY KEY, plc_time INTEGER)  -- samples.key -> PLC ms
+//! blocks  (first_key INTEGER PRIMARY KEY, last_key INTEGER, samples INTEGER, data BLOB)
+//!         -- the samples with keys first_key..=last_key, packed
+//! packed_stamps (id INTEGER PRIMARY KEY) -- variables with PLC stamps in blocks
 //! events  (id INTEGER PRIMARY KEY, time INTEGER, kind TEXT, detail TEXT)
-//! history -- a view: time (ISO 8601), time_ms, name, value, quality, plc_time_ms
+//! history -- a view of the rows of `samples`: time (ISO 8601), time_ms,
+//!         -- name, value, quality, plc_time_ms
 //! ```
+//!
+//! Version 1 files (no `blocks`) are read as they are and gain the table
+//! when written to.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use std::time::Instant;
 
-use rusqlite::types::{ToSqlOutput, Value as SqlValue, ValueRef};
+use rusqlite::types::{ToSqlOutput, ValueRef};
 use rusqlite::{params, Connection, OpenFlags, OptionalExtension, ToSql};
 
+use super::block::{self, Packed};
 use super::sample::{quality_code, Event, Sample, Stored};
 use crate::vars::VarTable;
 
 pub const FORMAT: &str = "plccoms-history";
-pub const VERSION: i64 = 1;
+pub const VERSION: i64 = 2;
 /// Bits of the key that hold the variable: 32,767 variables per section and
 /// day, and a key below 2^42 (a 6-byte varint).
 pub const VAR_BITS: u32 = 15;
@@ -124,6 +138,25 @@ pub fn open_read(path: &Path) -> Result<Connection, StoreError> {
     Ok(conn)
 }
 
+/// Whether a day file has samples packing would take: rows above its last
+/// block.
+pub fn needs_packing(path: &Path) -> bool {
+    let check = |conn: Connection| -> Result<bool, StoreError> {
+        let has_blocks: bool = conn.query_row(
+            "SELECT count(*) FROM sqlite_master WHERE name = 'blocks'",
+            [],
+            |r| r.get::<_, i64>(0).map(|n| n > 0),
+        )?;
+        let sql = if has_blocks {
+            "SELECT EXISTS (SELECT 1 FROM samples WHERE key > (SELECT coalesce(max(last_key), -1) FROM blocks))"
+        } else {
+            "SELECT EXISTS (SELECT 1 FROM samples)"
+        };
+        conn.query_row(sql, [], |r| r.get(0))
+    };
+    open_read(path).and_then(check).unwrap_or(false)
+}
+
 fn check_format(conn: &Connection) -> Result<(), StoreError> {
     let format: Option<String> = conn
         .query_row("SELECT value FROM meta WHERE key = 'format'", [], |r| {
@@ -135,9 +168,9 @@ fn check_format(conn: &Connection) -> Result<(), StoreError> {
             r.get(0)
         })
         .optional()?;
-    if format.as_deref() != Some(FORMAT) || version != Some(VERSION) {
+    if format.as_deref() != Some(FORMAT) || !version.is_some_and(|v| (1..=VERSION).contains(&v)) {
         return Err(rusqlite::Error::InvalidParameterName(format!(
-            "not a {FORMAT} file of version {VERSION} (format {format:?}, version {version:?})"
+            "not a {FORMAT} file of version 1 to {VERSION} (format {format:?}, version {version:?})"
         )));
     }
     Ok(())
@@ -175,7 +208,24 @@ pub struct DayFile {
     next_id: i64,
     /// The table last mapped, and its variables' ids here (-1: none yet).
     mapped: Option<(Arc<VarTable>, Vec<i64>)>,
+    /// The last key packed into a block (-1: none).
+    packed_to: i64,
+    /// The block last unpacked for a late sample: (first key, last key, samples).
+    late_block: Option<(i64, i64, Vec<Packed>)>,
 }
+
+/// What packing did.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct Packing {
+    pub blocks: u64,
+    pub samples: u64,
+    /// Stopped at the deadline with samples left to pack.
+    pub more: bool,
+}
+
+/// Blocks smaller than this wait for more samples (unless the day is over):
+/// a block's own cost is spread over many samples.
+pub const MIN_BLOCK: usize = 4096;
 
 const SCHEMA: &str = "
 CREATE TABLE meta (key TEXT PRIMARY KEY, value) WITHOUT ROWID;
@@ -184,6 +234,14 @@ CREATE TABLE samples (key INTEGER PRIMARY KEY, value);
 CREATE TABLE qualities (key INTEGER PRIMARY KEY, quality INTEGER NOT NULL);
 CREATE TABLE stamps (key INTEGER PRIMARY KEY, plc_time INTEGER NOT NULL);
 CREATE TABLE events (id INTEGER PRIMARY KEY, time INTEGER NOT NULL, kind TEXT NOT NULL, detail TEXT NOT NULL);
+CREATE TABLE blocks (first_key INTEGER PRIMARY KEY, last_key INTEGER NOT NULL, samples INTEGER NOT NULL, data BLOB NOT NULL);
+CREATE TABLE packed_stamps (id INTEGER PRIMARY KEY);
+";
+
+const BLOCKS_V1: &str = "
+CREATE TABLE IF NOT EXISTS blocks (first_key INTEGER PRIMARY KEY, last_key INTEGER NOT NULL, samples INTEGER NOT NULL, data BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS packed_stamps (id INTEGER PRIMARY KEY);
+UPDATE meta SET value = 2 WHERE key = 'version';
 ";
 
 impl DayFile {
@@ -197,6 +255,9 @@ impl DayFile {
         }
         let conn = Connection::open(&path)?;
         conn.busy_timeout(std::time::Duration::from_secs(5))?;
+        // Packing frees the pages of the rows it packs; a finished day
+        // gives them back (only a new file can take this setting).
+        conn.pragma_update(None, "auto_vacuum", "INCREMENTAL")?;
         conn.pragma_update(None, "journal_mode", "WAL")?;
         // Every commit is on disk when it returns (one fsync per commit,
         // one commit per HISTORY_SYNC).
@@ -209,6 +270,7 @@ impl DayFile {
         )?;
         if exists {
             check_format(&conn)?;
+            conn.execute_batch(BLOCKS_V1)?;
         } else {
             let tx = conn.unchecked_transaction()?;
             tx.execute_batch(SCHEMA)?;
@@ -239,6 +301,10 @@ impl DayFile {
                 next_id = next_id.max(id + 1);
             }
         }
+        let packed_to =
+            conn.query_row("SELECT coalesce(max(last_key), -1) FROM blocks", [], |r| {
+                r.get(0)
+            })?;
         Ok(DayFile {
             conn,
             day,
@@ -247,6 +313,8 @@ impl DayFile {
             ids,
             next_id,
             mapped: None,
+            packed_to,
+            late_block: None,
         })
     }
 
@@ -348,33 +416,43 @@ impl DayFile {
         counts: &mut WriteCounts,
     ) -> Result<(), StoreError> {
         let quality = quality_code(sample.quality);
-        let mut insert = self
-            .conn
-            .prepare_cached("INSERT INTO samples (key, value) VALUES (?1, ?2)")?;
         let mut shifted = false;
         loop {
-            match insert.execute(params![key, sample.value]) {
-                Ok(_) => break,
-                Err(e) if is_constraint(&e) => {
-                    let existing: (SqlValue, i64) = self.conn.query_row(
-                        "SELECT value, coalesce((SELECT quality FROM qualities q WHERE q.key = s.key), 0) \
-                         FROM samples s WHERE key = ?1",
-                        [key],
-                        |r| Ok((r.get(0)?, r.get(1)?)),
-                    )?;
-                    if same(&existing.0, &sample.value) && existing.1 == quality {
-                        counts.duplicates += 1;
-                        return Ok(());
+            // The sample already at this key, in a block or a row.
+            let mut taken = None;
+            if key <= self.packed_to {
+                taken = self.packed_at(key)?.map(|(v, q)| (v, i64::from(q)));
+            }
+            if taken.is_none() {
+                let inserted = self
+                    .conn
+                    .prepare_cached("INSERT INTO samples (key, value) VALUES (?1, ?2)")?
+                    .execute(params![key, sample.value]);
+                match inserted {
+                    Ok(_) => break,
+                    Err(e) if is_constraint(&e) => {
+                        taken = Some(self.conn.query_row(
+                            "SELECT value, coalesce((SELECT quality FROM qualities q WHERE q.key = s.key), 0) \
+                             FROM samples s WHERE key = ?1",
+                            [key],
+                            |r| Ok((Stored::from_sql(r.get_ref(0)?), r.get(1)?)),
+                        )?);
                     }
-                    // Another value at the same millisecond: the next one.
-                    key += 1 << VAR_BITS;
-                    shifted = true;
-                    if (key >> VAR_BITS) >= DAY_MS {
-                        counts.over_limit += 1;
-                        return Ok(());
-                    }
+                    Err(e) => return Err(e),
                 }
-                Err(e) => return Err(e),
+            }
+            if let Some((value, q)) = taken {
+                if same_stored(&value, &sample.value) && q == quality {
+                    counts.duplicates += 1;
+                    return Ok(());
+                }
+            }
+            // Another value at the same millisecond: the next one.
+            key += 1 << VAR_BITS;
+            shifted = true;
+            if (key >> VAR_BITS) >= DAY_MS {
+                counts.over_limit += 1;
+                return Ok(());
             }
         }
         counts.written += 1;
@@ -392,6 +470,141 @@ impl DayFile {
         Ok(())
     }
 
+    /// The value and quality of a packed sample, if `key` is one.
+    fn packed_at(&mut self, key: i64) -> Result<Option<(Stored, u8)>, StoreError> {
+        let cached = self
+            .late_block
+            .as_ref()
+            .is_some_and(|(first, last, _)| (*first..=*last).contains(&key));
+        if !cached {
+            let block: Option<(i64, i64, Vec<u8>)> = self
+                .conn
+                .query_row(
+                    "SELECT first_key, last_key, data FROM blocks WHERE first_key <= ?1 \
+                     ORDER BY first_key DESC LIMIT 1",
+                    [key],
+                    |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+                )
+                .optional()?;
+            let Some((first, last, data)) = block.filter(|b| b.1 >= key) else {
+                return Ok(None);
+            };
+            self.late_block = Some((first, last, unpack(&data)?));
+        }
+        let rows = &self.late_block.as_ref().expect("cached above").2;
+        Ok(rows
+            .binary_search_by_key(&key, |r| r.key)
+            .ok()
+            .map(|i| (rows[i].value.clone(), rows[i].quality)))
+    }
+
+    /// Packs the samples polled before `before_ms` (`i64::MAX`: all of
+    /// them) into blocks, one transaction a block, until `deadline`.
+    pub fn pack(&mut self, before_ms: i64, deadline: Instant) -> Result<Packing, StoreError> {
+        let all = before_ms == i64::MAX;
+        let end_key = (before_ms.saturating_sub(self.start_ms)).clamp(0, DAY_MS) << VAR_BITS;
+        let mut packing = Packing::default();
+        loop {
+            if Instant::now() >= deadline {
+                packing.more = self.has_rows_to_pack(end_key)?;
+                break;
+            }
+            let rows = self.rows_to_pack(end_key)?;
+            let (Some(first), Some(last)) = (rows.first(), rows.last()) else {
+                break;
+            };
+            if rows.len() < MIN_BLOCK && !all {
+                break;
+            }
+            let (first, last) = (first.key, last.key);
+            let data = block::encode(&rows);
+            let tx = self.conn.unchecked_transaction()?;
+            tx.prepare_cached(
+                "INSERT INTO blocks (first_key, last_key, samples, data) VALUES (?1, ?2, ?3, ?4)",
+            )?
+            .execute(params![first, last, rows.len() as i64, data])?;
+            for var in rows
+                .iter()
+                .filter(|r| r.plc_time.is_some())
+                .map(|r| r.key & VAR_MASK)
+            {
+                tx.prepare_cached("INSERT OR IGNORE INTO packed_stamps (id) VALUES (?1)")?
+                    .execute([var])?;
+            }
+            for table in ["samples", "qualities", "stamps"] {
+                tx.prepare_cached(&format!("DELETE FROM {table} WHERE key > ?1 AND key <= ?2"))?
+                    .execute(params![self.packed_to, last])?;
+            }
+            tx.commit()?;
+            self.packed_to = last;
+            packing.blocks += 1;
+            packing.samples += rows.len() as u64;
+            if rows.len() < block::MAX_ROWS {
+                break;
+            }
+        }
+        Ok(packing)
+    }
+
+    fn has_rows_to_pack(&self, end_key: i64) -> Result<bool, StoreError> {
+        self.conn
+            .prepare_cached("SELECT EXISTS (SELECT 1 FROM samples WHERE key > ?1 AND key < ?2)")?
+            .query_row([self.packed_to, end_key], |r| r.get(0))
+    }
+
+    /// The next samples to pack: rows above the packed range and below
+    /// `end_key`, with their qualities and stamps.
+    fn rows_to_pack(&self, end_key: i64) -> Result<Vec<Packed>, StoreError> {
+        let mut stmt = self.conn.prepare_cached(&format!(
+            "SELECT key, value FROM samples WHERE key > ?1 AND key < ?2 ORDER BY key LIMIT {}",
+            block::MAX_ROWS
+        ))?;
+        let mut rows: Vec<Packed> = stmt
+            .query_map([self.packed_to, end_key], |r| {
+                Ok(Packed {
+                    key: r.get(0)?,
+                    value: Stored::from_sql(r.get_ref(1)?),
+                    quality: 0,
+                    plc_time: None,
+                })
+            })?
+            .collect::<Result<_, _>>()?;
+        let Some(last) = rows.last().map(|r| r.key) else {
+            return Ok(rows);
+        };
+        for (table, column) in [("qualities", "quality"), ("stamps", "plc_time")] {
+            let mut stmt = self.conn.prepare_cached(&format!(
+                "SELECT key, {column} FROM {table} WHERE key > ?1 AND key <= ?2"
+            ))?;
+            let side = stmt.query_map([self.packed_to, last], |r| {
+                Ok((r.get::<_, i64>(0)?, r.get::<_, i64>(1)?))
+            })?;
+            for item in side {
+                let (key, v) = item?;
+                if let Ok(i) = rows.binary_search_by_key(&key, |r| r.key) {
+                    if table == "qualities" {
+                        rows[i].quality = v.clamp(0, 2) as u8;
+                    } else {
+                        rows[i].plc_time = Some(v);
+                    }
+                }
+            }
+        }
+        Ok(rows)
+    }
+
+    /// Gives pages freed by packing back to the file system, up to `pages`
+    /// of them; `true` when none are left.
+    pub fn shrink(&mut self, pages: u32) -> Result<bool, StoreError> {
+        // Stepped to the end: a step frees one page.
+        self.conn
+            .execute_batch(&format!("PRAGMA incremental_vacuum({pages})"))?;
+        let free: i64 = self
+            .conn
+            .query_row("PRAGMA freelist_count", [], |r| r.get(0))?;
+        Ok(free == 0)
+    }
+
     /// Ends writing: the WAL is folded in and the file becomes a single
     /// file again.
     pub fn close(self) {
@@ -403,14 +616,18 @@ fn is_constraint(e: &rusqlite::Error) -> bool {
     matches!(e, rusqlite::Error::SqliteFailure(f, _) if f.code == rusqlite::ErrorCode::ConstraintViolation)
 }
 
-fn same(existing: &SqlValue, value: &Stored) -> bool {
-    match (existing, value) {
-        (SqlValue::Integer(a), Stored::Int(b)) => a == b,
-        (SqlValue::Real(a), Stored::Real(b)) => a.to_bits() == b.to_bits(),
-        (SqlValue::Text(a), Stored::Text(b)) => a == b,
-        (SqlValue::Null, Stored::Null) => true,
-        _ => false,
+fn same_stored(a: &Stored, b: &Stored) -> bool {
+    match (a, b) {
+        (Stored::Real(x), Stored::Real(y)) => x.to_bits() == y.to_bits(),
+        (x, y) => x == y,
     }
+}
+
+/// A block's samples; a damaged block is an error of the file.
+pub fn unpack(data: &[u8]) -> Result<Vec<Packed>, StoreError> {
+    block::decode(data).map_err(|e| {
+        rusqlite::Error::FromSqlConversionFailure(0, rusqlite::types::Type::Blob, Box::new(e))
+    })
 }
 
 /// The `history` view: samples with their time, name and quality spelled

@@ -8,6 +8,11 @@
 //! samples it could not commit, stops recording with one log line, and is
 //! tried again every HISTORY_SYNC; the queue then fills and recorders drop
 //! what is over its bound. Recording resumes by itself, with one log line.
+//!
+//! With HISTORY_COMPACT, the time a round leaves over (up to half of
+//! HISTORY_SYNC) packs the samples older than it into blocks; a day that is
+//! over is packed whole, its freed pages given back, and then closed. Days
+//! left unpacked by a stop are finished after the next start.
 
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -46,7 +51,12 @@ pub struct Settings {
     pub dir: PathBuf,
     pub sync: Duration,
     pub retention: Retention,
+    /// HISTORY_COMPACT; `None`: samples stay rows.
+    pub pack_after: Option<Duration>,
 }
+
+/// Free pages given back per round by a finished day.
+const SHRINK_PAGES: u32 = 4096;
 
 /// How often retention looks at the files.
 const RETENTION_EVERY: Duration = Duration::from_secs(10);
@@ -57,8 +67,12 @@ struct Section {
     events: Vec<Event>,
     pending_samples: u64,
     files: HashMap<i64, DayFile>,
+    /// Days that are over, being packed before they are closed.
+    closing: Vec<DayFile>,
     /// Why writing failed, while it does.
     failing: Option<String>,
+    /// Why packing failed, while it does.
+    pack_failing: Option<String>,
 }
 
 pub fn run(rx: Receiver<Message>, sections: Vec<SectionOut>, settings: Settings) {
@@ -70,9 +84,16 @@ pub fn run(rx: Receiver<Message>, sections: Vec<SectionOut>, settings: Settings)
             events: Vec::new(),
             pending_samples: 0,
             files: HashMap::new(),
+            closing: Vec::new(),
             failing: None,
+            pack_failing: None,
         })
         .collect();
+    if settings.pack_after.is_some() {
+        for section in &mut sections {
+            section.closing = unfinished_days(&settings, &section.out.name);
+        }
+    }
     let mut next_sync = Instant::now() + settings.sync;
     let mut next_retention = Instant::now();
     let mut over_limit = false;
@@ -107,6 +128,14 @@ pub fn run(rx: Receiver<Message>, sections: Vec<SectionOut>, settings: Settings)
             flush(section, &settings, over_limit);
         }
         let took = started.elapsed();
+        if !stopping {
+            if let Some(after) = settings.pack_after {
+                let deadline = started + settings.sync / 2;
+                for section in &mut sections {
+                    pack(section, after, deadline);
+                }
+            }
+        }
         let filled = started
             .saturating_duration_since(interval_start)
             .max(settings.sync);
@@ -127,10 +156,91 @@ pub fn run(rx: Receiver<Message>, sections: Vec<SectionOut>, settings: Settings)
         }
     }
     for section in sections {
-        for (_, file) in section.files {
+        for file in section.files.into_values().chain(section.closing) {
             file.close();
         }
     }
+}
+
+/// Packs a section's samples older than `after` until `deadline`, and
+/// finishes the days that are over.
+fn pack(section: &mut Section, after: Duration, deadline: Instant) {
+    let before_ms = unix_ms(std::time::SystemTime::now()) - after.as_millis() as i64;
+    let mut result = Ok(());
+    for file in section.files.values_mut() {
+        result = result
+            .and_then(|()| packed(&section.out.stats, file.pack(before_ms, deadline)).map(drop));
+    }
+    let mut still = Vec::new();
+    for mut file in std::mem::take(&mut section.closing) {
+        let step =
+            packed(section.out.stats.as_ref(), file.pack(i64::MAX, deadline)).and_then(|more| {
+                if more {
+                    Ok(false)
+                } else {
+                    file.shrink(SHRINK_PAGES)
+                }
+            });
+        match step {
+            Ok(true) => {
+                info!(section = %section.out.name, "history: {} finished", file.path.display());
+                file.close();
+            }
+            Ok(false) => still.push(file),
+            Err(e) => {
+                result = result.and(Err(e));
+                still.push(file);
+            }
+        }
+    }
+    section.closing = still;
+    match result {
+        Ok(_) => {
+            if section.pack_failing.take().is_some() {
+                info!(section = %section.out.name, "history: packing resumed");
+            }
+        }
+        Err(e) => {
+            if section.pack_failing.is_none() {
+                warn!(section = %section.out.name, "history: packing samples failed: {e}; they stay rows and packing is tried again");
+            }
+            section.pack_failing = Some(e.to_string());
+        }
+    }
+}
+
+/// Counts what packing did; `true` while there is more to pack.
+fn packed(
+    stats: &Stats,
+    done: Result<store::Packing, store::StoreError>,
+) -> Result<bool, store::StoreError> {
+    let packing = done?;
+    stats.packed.add(packing.samples);
+    stats.blocks.add(packing.blocks);
+    Ok(packing.more)
+}
+
+/// The day files of a section, before today, that still have samples to
+/// pack: a stop came before they were finished.
+fn unfinished_days(settings: &Settings, section: &str) -> Vec<DayFile> {
+    let today = day_of(unix_ms(std::time::SystemTime::now()));
+    store::day_files(&store::section_dir(&settings.dir, section))
+        .into_iter()
+        .filter(|(day, path)| *day < today && store::needs_packing(path))
+        .filter_map(
+            |(day, path)| match DayFile::open(&settings.dir, section, day) {
+                Ok(file) => Some(file),
+                Err(e) => {
+                    warn!(
+                        section,
+                        "history: cannot open {} to pack it: {e}",
+                        path.display()
+                    );
+                    None
+                }
+            },
+        )
+        .collect()
 }
 
 /// Commits what a section has pending.
@@ -185,7 +295,11 @@ fn flush(section: &mut Section, settings: &Settings, over_limit: bool) {
         .collect();
     for day in old {
         if let Some(file) = section.files.remove(&day) {
-            file.close();
+            if settings.pack_after.is_some() {
+                section.closing.push(file);
+            } else {
+                file.close();
+            }
         }
     }
     stats.bytes.set(
@@ -224,7 +338,13 @@ fn write(section: &mut Section, settings: &Settings) -> Result<WriteCounts, stor
         let file = match section.files.entry(day) {
             std::collections::hash_map::Entry::Occupied(o) => o.into_mut(),
             std::collections::hash_map::Entry::Vacant(v) => {
-                v.insert(DayFile::open(&settings.dir, &section.out.name, day)?)
+                // A late sample of a day being finished: the same
+                // connection, so that it sees what was packed.
+                let file = match section.closing.iter().position(|f| f.day == day) {
+                    Some(i) => section.closing.swap_remove(i),
+                    None => DayFile::open(&settings.dir, &section.out.name, day)?,
+                };
+                v.insert(file)
             }
         };
         let parts: Vec<(&Arc<VarTable>, Vec<Sample>)> = section
@@ -268,7 +388,7 @@ fn retention(settings: &Settings, sections: &[Section]) -> bool {
     };
     let open: Vec<&PathBuf> = sections
         .iter()
-        .flat_map(|s| s.files.values().map(|f| &f.path))
+        .flat_map(|s| s.files.values().chain(&s.closing).map(|f| &f.path))
         .collect();
     for entry in entries.filter_map(Result::ok) {
         if !entry.path().is_dir() {
@@ -321,6 +441,84 @@ mod tests {
     use super::*;
     use crate::historian::store::day_path;
 
+    /// A day that is over is packed whole, shrunk and closed by the writer;
+    /// one a stop left unpacked is finished after the next start.
+    #[test]
+    fn days_that_are_over_are_packed_and_finished() {
+        use crate::changes::Quality;
+        use crate::historian::sample::Stored;
+        let dir = tempfile::tempdir().unwrap();
+        let table = Arc::new(crate::vars::tests::table_of(&[
+            ("A", "UDINT"),
+            ("B", "LREAL"),
+        ]));
+        let ids = [table.lookup(b"A").unwrap(), table.lookup(b"B").unwrap()];
+        let today = day_of(unix_ms(std::time::SystemTime::now()));
+        let samples = |day: i64| -> Vec<Sample> {
+            (0..5_000i64)
+                .flat_map(|c| {
+                    ids.iter().map(move |&var| Sample {
+                        t: day * store::DAY_MS + c * 100,
+                        var,
+                        value: Stored::Real(c as f64 / 7.0),
+                        quality: Quality::Good,
+                        plc_time: None,
+                    })
+                })
+                .collect()
+        };
+        // Two days ago, left as rows by an earlier run.
+        let mut old = DayFile::open(dir.path(), "W", today - 2).unwrap();
+        old.write(&[(&table, &samples(today - 2))], &[]).unwrap();
+        old.close();
+        let settings = Settings {
+            dir: dir.path().to_path_buf(),
+            sync: Duration::from_millis(50),
+            retention: Retention::default(),
+            pack_after: Some(Duration::from_secs(3600)),
+        };
+        let stats = Arc::new(Stats::default());
+        let (tx, rx) = std::sync::mpsc::channel();
+        let out = SectionOut {
+            name: "W".into(),
+            stats: stats.clone(),
+        };
+        let writer = std::thread::spawn(move || run(rx, vec![out], settings));
+        // Yesterday, recorded now (late): written, then finished.
+        tx.send(Message::Record {
+            section: 0,
+            table: table.clone(),
+            samples: samples(today - 1),
+            events: Vec::new(),
+        })
+        .unwrap();
+        let finished = |day: i64| -> bool {
+            let path = day_path(dir.path(), "W", day);
+            let Ok(conn) = store::open_read(&path) else {
+                return false;
+            };
+            let get = |sql: &str| -> i64 { conn.query_row(sql, [], |r| r.get(0)).unwrap_or(-1) };
+            get("SELECT count(*) FROM samples") == 0
+                && get("SELECT coalesce(sum(samples), 0) FROM blocks") == 10_000
+                && get("PRAGMA freelist_count") == 0
+        };
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while !(finished(today - 2) && finished(today - 1)) {
+            assert!(Instant::now() < deadline, "packed {}", stats.packed.get());
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        tx.send(Message::Stop).unwrap();
+        writer.join().unwrap();
+        assert_eq!(stats.packed.get(), 20_000);
+        for day in [today - 2, today - 1] {
+            let conn = rusqlite::Connection::open(day_path(dir.path(), "W", day)).unwrap();
+            let mode: String = conn
+                .query_row("PRAGMA journal_mode", [], |r| r.get(0))
+                .unwrap();
+            assert_eq!(mode, "delete");
+        }
+    }
+
     #[test]
     fn retention_by_days_and_by_size() {
         let dir = tempfile::tempdir().unwrap();
@@ -341,6 +539,7 @@ mod tests {
             dir: dir.path().to_path_buf(),
             sync: Duration::from_secs(1),
             retention: Retention { days, bytes },
+            pack_after: None,
         };
         // 30 days: the 40-day-old file (and its WAL) goes.
         assert!(!retention(&settings(Some(30), None), &[]));

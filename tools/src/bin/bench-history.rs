@@ -3,9 +3,11 @@
 //! - `bench-history sizes`: bytes on disk per sample, by type, for 10,000
 //!   variables changing every 100 ms (values as `plcsim --animate` makes
 //!   them), written through the store as the writer writes (one transaction
-//!   per second of samples).
-//! - `bench-history day --dir D --section S`: a day file holding one LREAL
-//!   sampled every 100 ms (864,000 rows), for timing `plccoms history`.
+//!   per second of samples), then packed into blocks as HISTORY_COMPACT
+//!   packs them (bytes per sample of the finished day, and the cost).
+//! - `bench-history day --dir D --section S [--packed]`: a day file holding
+//!   one LREAL sampled every 100 ms (864,000 samples), as rows or packed,
+//!   for timing `plccoms history`.
 //!
 //! Prints `label.metric value` lines (bench/run appends them to its
 //! results).
@@ -47,6 +49,9 @@ enum Cmd {
         /// UTC day, as days since 1970 (default: yesterday).
         #[arg(long)]
         day: Option<i64>,
+        /// Pack the samples into blocks, as a finished day is.
+        #[arg(long)]
+        packed: bool,
     },
 }
 
@@ -148,6 +153,21 @@ fn write_seconds(run: Run<'_>, mut value: impl FnMut(u64, usize) -> Stored) -> (
     (path, written, busy)
 }
 
+/// Packs a day file whole, as the writer finishes a day; (samples, seconds
+/// packing took).
+fn pack_all(dir: &Path, section: &str, day: i64) -> (u64, f64) {
+    let mut file = DayFile::open(dir, section, day).expect("day file");
+    let started = Instant::now();
+    let far = started + std::time::Duration::from_secs(24 * 3600);
+    let packing = file.pack(i64::MAX, far).expect("pack");
+    let took = started.elapsed().as_secs_f64();
+    // The pages the rows took go back (once a day, for the rows of the
+    // last HISTORY_COMPACT only when the day was packed as it went).
+    while !file.shrink(1 << 20).expect("shrink") {}
+    file.close();
+    (packing.samples, took)
+}
+
 fn main() {
     let args = Args::parse();
     match args.command {
@@ -182,9 +202,24 @@ fn main() {
                     "history_size.{label}_insert_us_per_sample {:.3}",
                     busy * 1e6 / written as f64
                 );
+                let (packed, took) = pack_all(dir.path(), "S", day_of(start + 100_000));
+                assert_eq!(packed, written, "every sample packed");
+                println!(
+                    "history_size.{label}_packed_bytes_per_sample {:.2}",
+                    file_bytes(&path) as f64 / written as f64
+                );
+                println!(
+                    "history_size.{label}_pack_us_per_sample {:.3}",
+                    took * 1e6 / written as f64
+                );
             }
         }
-        Cmd::Day { dir, section, day } => {
+        Cmd::Day {
+            dir,
+            section,
+            day,
+            packed,
+        } => {
             let now = plccoms::changes::unix_ms(std::time::SystemTime::now());
             let day = day.unwrap_or(day_of(now) - 1);
             let table = table("LREAL", 1);
@@ -201,12 +236,20 @@ fn main() {
             };
             let (path, written, busy) =
                 write_seconds(run, |c, _| Stored::Real((c as f64 * 0.001).sin()));
-            println!("history_day.rows {written}");
+            let label = if packed {
+                let (n, took) = pack_all(&dir, &section, day);
+                assert_eq!(n, written, "every sample packed");
+                println!("history_day_packed.pack_s {took:.2}");
+                "history_day_packed"
+            } else {
+                "history_day"
+            };
+            println!("{label}.rows {written}");
             println!(
-                "history_day.file_mib {:.1}",
+                "{label}.file_mib {:.1}",
                 file_bytes(&path) as f64 / 1048576.0
             );
-            println!("history_day.write_s {busy:.2}");
+            println!("{label}.write_s {busy:.2}");
         }
     }
 }

@@ -1,0 +1,276 @@
+//! Packing (HISTORY_COMPACT) through the store itself: a day file read back
+//! before and after its samples are packed into blocks gives the same
+//! samples, value for value, in the same order; late samples into a packed
+//! range are still found, deduplicated and shifted; the freed pages go back.
+
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use plccoms::changes::Quality;
+use plccoms::historian::query::{self, Query, Row};
+use plccoms::historian::sample::{Sample, Stored};
+use plccoms::historian::store::{day_path, DayFile, DAY_MS, MIN_BLOCK};
+use plccoms::vars::VarTable;
+use plccoms_plc::MemoryMap;
+
+/// A day long past: nothing else writes to it.
+const DAY: i64 = 19_000;
+
+fn table() -> Arc<VarTable> {
+    let text = b" B R B 0 .0 BOOL PUB_INOUT\r\n I R B 2 INT PUB_INOUT\r\n \
+        U R B 4 ULINT PUB_INOUT\r\n F R F 12 REAL PUB_INOUT\r\n \
+        D R F 16 LREAL PUB_INOUT\r\n S R B 24 STRING[16] PUB_INOUT\r\n \
+        T R B 44 DT PUB_INOUT\r\n EV R B 48 INT PUB_INOUT\r\n";
+    let fixed = plccoms_plc::pubfile::parse(plccoms::link::tables::STANDARD_FIXED);
+    let user = plccoms_plc::pubfile::parse(text);
+    Arc::new(
+        VarTable::build(
+            "FIXED.pub",
+            &fixed,
+            Some(("p.pub", &user)),
+            &MemoryMap::FOXTROT,
+            &mut Vec::new(),
+        )
+        .expect("table"),
+    )
+}
+
+fn id(table: &VarTable, name: &str) -> u32 {
+    table.lookup(name.as_bytes()).expect(name)
+}
+
+/// `cycles` polls of every variable, 100 ms apart, with outages, NaN,
+/// extreme integers, texts and PLC stamps.
+fn samples(table: &VarTable, cycles: i64) -> Vec<Sample> {
+    let start = DAY * DAY_MS + 3_600_000;
+    let mut out = Vec::new();
+    for c in 0..cycles {
+        let t = start + c * 100 + (c % 3);
+        let quality = match c % 500 {
+            200..=210 => Quality::LinkLost,
+            211 => Quality::Stale,
+            _ => Quality::Good,
+        };
+        let mut push = |name: &str, value: Stored, plc_time: Option<i64>| {
+            out.push(Sample {
+                t,
+                var: id(table, name),
+                value,
+                quality,
+                plc_time,
+            })
+        };
+        push("B", Stored::Int(c % 2), None);
+        push("I", Stored::Int((c * 37) % 65_536 - 32_768), None);
+        push(
+            "U",
+            Stored::Int(if c % 2 == 0 { -1 } else { i64::MAX - c }),
+            None,
+        );
+        push(
+            "F",
+            Stored::Real(f64::from(((c as f64) * 0.01).sin() as f32)),
+            None,
+        );
+        let d = match c % 97 {
+            0 => Stored::Null,
+            1 => Stored::Real(f64::INFINITY),
+            _ => Stored::Real((c as f64 * 0.001).cos() * 1e6),
+        };
+        push("D", d, None);
+        if c % 10 == 0 {
+            push("S", Stored::Text(format!("count {c} ěščř")), None);
+        }
+        push("T", Stored::Int(1_700_000_000_000 + c * 1000), None);
+        push("EV", Stored::Int(c), Some(t - 250));
+    }
+    out
+}
+
+fn read(dir: &Path, from_ms: i64, to_ms: i64, masks: &[&str]) -> Vec<Row> {
+    let query = Query {
+        dir: dir.to_path_buf(),
+        section: "Pack".into(),
+        masks: masks.iter().map(|m| m.to_string()).collect(),
+        from_ms,
+        to_ms,
+    };
+    query::rows(&query)
+        .unwrap()
+        .collect::<Result<_, _>>()
+        .unwrap()
+}
+
+/// Equal row lists; a difference is shown as the first row that differs.
+#[track_caller]
+fn assert_same(got: &[Row], want: &[Row]) {
+    if let Some(i) = (0..got.len().min(want.len())).find(|&i| got[i] != want[i]) {
+        panic!("row {i} differs:\n got  {:?}\n want {:?}", got[i], want[i]);
+    }
+    assert_eq!(got.len(), want.len(), "row count");
+}
+
+fn count(path: &Path, sql: &str) -> i64 {
+    rusqlite::Connection::open(path)
+        .unwrap()
+        .query_row(sql, [], |r| r.get(0))
+        .unwrap()
+}
+
+fn far() -> Instant {
+    Instant::now() + Duration::from_secs(3600)
+}
+
+#[test]
+fn packed_samples_read_back_exactly_and_in_order() {
+    let dir = tempfile::tempdir().unwrap();
+    let table = table();
+    let written = samples(&table, 30_000);
+    let mut file = DayFile::open(dir.path(), "Pack", DAY).unwrap();
+    for chunk in written.chunks(10_000) {
+        file.write(&[(&table, chunk)], &[]).unwrap();
+    }
+    let all = (DAY * DAY_MS, (DAY + 1) * DAY_MS);
+    let before = read(dir.path(), all.0, all.1, &["*"]);
+    assert_eq!(before.len(), written.len());
+    let window = (
+        DAY * DAY_MS + 3_600_000 + 777_777,
+        DAY * DAY_MS + 3_600_000 + 2_222_222,
+    );
+    let window_before = read(dir.path(), window.0, window.1, &["D", "s*"]);
+    let path = day_path(dir.path(), "Pack", DAY);
+    let rows_bytes = std::fs::metadata(&path).unwrap().len();
+
+    // The first half (by time) into blocks: rows and blocks are merged.
+    let half = written[written.len() / 2].t;
+    let packing = file.pack(half, far()).unwrap();
+    assert!(packing.blocks >= 1 && !packing.more, "{packing:?}");
+    assert_eq!(
+        count(&path, "SELECT count(*) FROM samples") as u64 + packing.samples,
+        written.len() as u64
+    );
+    assert_same(&read(dir.path(), all.0, all.1, &["*"]), &before);
+    assert_same(
+        &read(dir.path(), window.0, window.1, &["D", "s*"]),
+        &window_before,
+    );
+
+    // Then all of it; a file opened again knows its blocks.
+    drop(file);
+    let mut file = DayFile::open(dir.path(), "Pack", DAY).unwrap();
+    let rest = file.pack(i64::MAX, far()).unwrap();
+    assert!(!rest.more);
+    assert_eq!(count(&path, "SELECT count(*) FROM samples"), 0);
+    assert_eq!(count(&path, "SELECT count(*) FROM qualities"), 0);
+    assert_eq!(count(&path, "SELECT count(*) FROM stamps"), 0);
+    assert_eq!(
+        count(&path, "SELECT sum(samples) FROM blocks"),
+        written.len() as i64
+    );
+    assert_same(&read(dir.path(), all.0, all.1, &["*"]), &before);
+    assert_same(
+        &read(dir.path(), window.0, window.1, &["D", "s*"]),
+        &window_before,
+    );
+    // Outages and stamps came through.
+    assert!(before.iter().any(|r| r.quality == Quality::LinkLost));
+    assert!(before.iter().any(|r| r.quality == Quality::Stale));
+    assert!(before.iter().any(|r| r.plc_time.is_some()));
+
+    // Late samples into the packed range: the same one again is a
+    // duplicate, another value at a packed millisecond moves one later.
+    let ev = id(&table, "EV");
+    let packed_sample = written.iter().find(|s| s.var == ev).unwrap().clone();
+    let counts = file
+        .write(&[(&table, std::slice::from_ref(&packed_sample))], &[])
+        .unwrap();
+    assert_eq!((counts.written, counts.duplicates), (0, 1));
+    let mut other = packed_sample.clone();
+    other.value = Stored::Int(-12345);
+    other.plc_time = None;
+    let counts = file.write(&[(&table, &[other.clone()])], &[]).unwrap();
+    assert_eq!((counts.written, counts.shifted), (1, 1));
+    let after = read(dir.path(), all.0, all.1, &["EV"]);
+    let late = after
+        .iter()
+        .position(|r| r.value == Stored::Int(-12345))
+        .expect("the late sample");
+    assert_eq!(after[late].t, other.t + 1);
+    assert!(after.windows(2).all(|w| w[0].t <= w[1].t), "time order");
+    assert_eq!(
+        after.len(),
+        before.iter().filter(|r| r.var.name == "EV").count() + 1
+    );
+
+    // The rows' pages go back; the file passes SQLite's own check.
+    while !file.shrink(1024).unwrap() {}
+    file.close();
+    let packed_bytes = std::fs::metadata(&path).unwrap().len();
+    eprintln!(
+        "{} samples: {rows_bytes} bytes as rows, {packed_bytes} packed ({:.1} and {:.1} bytes a sample)",
+        written.len(),
+        rows_bytes as f64 / written.len() as f64,
+        packed_bytes as f64 / written.len() as f64
+    );
+    assert!(
+        packed_bytes * 3 < rows_bytes,
+        "{packed_bytes} of {rows_bytes}"
+    );
+    let check: String = rusqlite::Connection::open(&path)
+        .unwrap()
+        .query_row("PRAGMA integrity_check", [], |r| r.get(0))
+        .unwrap();
+    assert_eq!(check, "ok");
+}
+
+#[test]
+fn a_few_samples_wait_for_a_block_worth_unless_the_day_is_over() {
+    let dir = tempfile::tempdir().unwrap();
+    let table = table();
+    let written = samples(&table, (MIN_BLOCK / 10) as i64);
+    assert!(written.len() < MIN_BLOCK);
+    let mut file = DayFile::open(dir.path(), "Pack", DAY).unwrap();
+    file.write(&[(&table, &written)], &[]).unwrap();
+    let waiting = file.pack(written.last().unwrap().t + 1, far()).unwrap();
+    assert_eq!(waiting.blocks, 0);
+    // A deadline already past packs nothing and says there is more.
+    let more = file.pack(i64::MAX, Instant::now()).unwrap();
+    assert!(more.more && more.blocks == 0);
+    let finished = file.pack(i64::MAX, far()).unwrap();
+    assert_eq!(
+        (finished.blocks, finished.samples),
+        (1, written.len() as u64)
+    );
+    // Nothing left: no more, even past the deadline.
+    assert!(!file.pack(i64::MAX, Instant::now()).unwrap().more);
+}
+
+#[test]
+fn a_damaged_block_is_an_error_that_names_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let table = table();
+    let written = samples(&table, 1000);
+    let mut file = DayFile::open(dir.path(), "Pack", DAY).unwrap();
+    file.write(&[(&table, &written)], &[]).unwrap();
+    file.pack(i64::MAX, far()).unwrap();
+    file.close();
+    let path = day_path(dir.path(), "Pack", DAY);
+    rusqlite::Connection::open(&path)
+        .unwrap()
+        .execute("UPDATE blocks SET data = substr(data, 1, 40)", [])
+        .unwrap();
+    let query = Query {
+        dir: dir.path().to_path_buf(),
+        section: "Pack".into(),
+        masks: vec!["*".into()],
+        from_ms: DAY * DAY_MS,
+        to_ms: (DAY + 1) * DAY_MS,
+    };
+    let err = query::rows(&query)
+        .unwrap()
+        .find_map(Result::err)
+        .expect("an error");
+    let text = err.to_string();
+    assert!(text.contains("Pack-") && text.contains("damaged"), "{text}");
+}
