@@ -605,10 +605,19 @@ impl DayFile {
         Ok(free == 0)
     }
 
-    /// Ends writing: the WAL is folded in and the file becomes a single
-    /// file again.
+    /// Folds the WAL in: the file becomes a single file again. `false`
+    /// while a reader has it open (SQLite then keeps WAL mode).
+    pub fn leave_wal(&self) -> bool {
+        self.conn
+            .query_row("PRAGMA journal_mode = DELETE", [], |r| {
+                r.get::<_, String>(0)
+            })
+            .is_ok_and(|mode| mode.eq_ignore_ascii_case("delete"))
+    }
+
+    /// Ends writing, leaving WAL mode if no reader is in the way.
     pub fn close(self) {
-        let _ = self.conn.pragma_update(None, "journal_mode", "DELETE");
+        self.leave_wal();
     }
 }
 
