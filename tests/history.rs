@@ -774,6 +774,19 @@ impl Drop for Tmpfs {
 
 #[test]
 fn a_full_disk_stops_recording_and_it_resumes_when_space_returns() {
+    full_disk("", 1300);
+}
+
+/// The same while samples are being packed: packing fails with the disk
+/// (quietly: recording's line says why), and both resume.
+#[test]
+fn a_full_disk_while_packing_stops_and_resumes_both() {
+    full_disk("HISTORY_COMPACT = 1", 1700);
+}
+
+/// Records 500 variables changing every 100 ms into a 2 MiB tmpfs of which
+/// `filler_kib` are taken, until recording stops; then frees the filler.
+fn full_disk(global: &str, filler_kib: usize) {
     let dir = tempfile::tempdir().unwrap();
     let plc = Plc::start(
         dir.path(),
@@ -796,14 +809,13 @@ fn a_full_disk_stops_recording_and_it_resumes_when_space_returns() {
         server.stop();
         return;
     };
-    // Leave about 700 KiB free.
     let filler = mount.join("filler");
-    std::fs::write(&filler, vec![0u8; 1300 * 1024]).unwrap();
+    std::fs::write(&filler, vec![0u8; filler_kib * 1024]).unwrap();
     let server = Server::start(
         dir.path(),
         &plc,
         "HISTORY = ANIM_*",
-        &format!("HISTORY_DIR = {}", mount.display()),
+        &format!("HISTORY_DIR = {}\n{global}", mount.display()),
     );
     wait_for("recording to stop on the full disk", || {
         server.getinfo("HISTORY").contains("stopped")
@@ -824,6 +836,16 @@ fn a_full_disk_stops_recording_and_it_resumes_when_space_returns() {
         server.getinfo("HISTORY") == "GETINFO:HISTORY,recording"
     });
     assert!(server.log().contains("recording resumed"));
+    if !global.is_empty() {
+        wait_for("samples packed after the resume", || {
+            first_number(&server.getinfo("HISTORY_PACKED")) > 0
+        });
+        assert!(
+            !server.log().contains("packing samples failed"),
+            "{}",
+            server.log()
+        );
+    }
     server.stop();
     let files: Vec<PathBuf> = std::fs::read_dir(mount.join("Hist"))
         .unwrap()

@@ -71,8 +71,8 @@ struct Section {
     closing: Vec<DayFile>,
     /// Why writing failed, while it does.
     failing: Option<String>,
-    /// Why packing failed, while it does.
-    pack_failing: Option<String>,
+    /// While packing fails: whether that was logged.
+    pack_failing: Option<bool>,
 }
 
 pub fn run(rx: Receiver<Message>, sections: Vec<SectionOut>, settings: Settings) {
@@ -198,17 +198,24 @@ fn pack(section: &mut Section, after: Duration, deadline: Instant) {
     section.closing = still;
     match result {
         Ok(_) => {
-            if section.pack_failing.take().is_some() {
+            if section.pack_failing.take() == Some(true) {
                 info!(section = %section.out.name, "history: packing resumed");
             }
         }
         Err(e) => {
-            if section.pack_failing.is_none() {
+            // A full disk stops recording with one log line of its own,
+            // now or at the next commit: packing says nothing of it.
+            let logged = section.pack_failing.unwrap_or(false) || !is_full(&e);
+            if logged && section.pack_failing != Some(true) {
                 warn!(section = %section.out.name, "history: packing samples failed: {e}; they stay rows and packing is tried again");
             }
-            section.pack_failing = Some(e.to_string());
+            section.pack_failing = Some(logged);
         }
     }
+}
+
+fn is_full(e: &store::StoreError) -> bool {
+    matches!(e, rusqlite::Error::SqliteFailure(f, _) if f.code == rusqlite::ErrorCode::DiskFull)
 }
 
 /// Counts what packing did; `true` while there is more to pack.
