@@ -596,6 +596,15 @@ impl DayFile {
     /// Gives pages freed by packing back to the file system, up to `pages`
     /// of them; `true` when none are left.
     pub fn shrink(&mut self, pages: u32) -> Result<bool, StoreError> {
+        let auto_vacuum: i64 = self
+            .conn
+            .query_row("PRAGMA auto_vacuum", [], |r| r.get(0))?;
+        if auto_vacuum != 2 {
+            // A file of an earlier version (no incremental vacuum): rebuilt
+            // once, from its live pages only.
+            self.conn.execute_batch("VACUUM")?;
+            return Ok(true);
+        }
         // Stepped to the end: a step frees one page.
         self.conn
             .execute_batch(&format!("PRAGMA incremental_vacuum({pages})"))?;
