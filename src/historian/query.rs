@@ -125,12 +125,7 @@ fn file_vars(
     conn: &Connection,
     masks: &[Mask],
 ) -> rusqlite::Result<Vec<(i64, String, String, bool)>> {
-    let packed: bool = conn.query_row(
-        "SELECT count(*) FROM sqlite_master WHERE name = 'packed_stamps'",
-        [],
-        |r| r.get::<_, i64>(0).map(|n| n > 0),
-    )?;
-    let sql = if packed {
+    let sql = if store::has_table(conn, "packed_stamps")? {
         format!("SELECT DISTINCT key & {VAR_MASK} FROM stamps UNION SELECT id FROM packed_stamps")
     } else {
         format!("SELECT DISTINCT key & {VAR_MASK} FROM stamps")
@@ -295,13 +290,7 @@ impl Rows {
             format!(" AND (key & {VAR_MASK}) IN ({})", ids.join(","))
         };
         let has_stamps = vars.iter().any(|v| v.3);
-        let has_blocks: bool = conn
-            .query_row(
-                "SELECT count(*) FROM sqlite_master WHERE name = 'blocks'",
-                [],
-                |r| r.get::<_, i64>(0).map(|n| n > 0),
-            )
-            .map_err(file_error(&path))?;
+        let has_blocks = store::has_table(&conn, "blocks").map_err(file_error(&path))?;
         let from = (self.query.from_ms - start_ms).clamp(0, DAY_MS);
         let to = (self.query.to_ms - start_ms).clamp(0, DAY_MS);
         self.current = Some(FileCursor {
@@ -322,6 +311,16 @@ impl Rows {
         Ok(true)
     }
 }
+
+/// The next block holding keys from ?1 on, below ?2. Blocks never overlap
+/// and come in key order: it is the one starting at or before ?1 if it
+/// reaches ?1, else the next one; both found by the primary key (a filter
+/// on `last_key` alone would walk every block before it, for every block).
+pub(crate) const READ_BLOCK: &str = "SELECT last_key, data FROM blocks \
+     WHERE first_key >= coalesce((SELECT first_key FROM blocks WHERE first_key <= ?1 \
+                                  ORDER BY first_key DESC LIMIT 1), ?1) \
+       AND last_key >= ?1 AND first_key < ?2 \
+     ORDER BY first_key LIMIT 1";
 
 impl FileCursor {
     /// `key -> column` of a side table for the keys of the chunk being
@@ -432,10 +431,7 @@ impl FileCursor {
     fn read_block(&mut self) -> rusqlite::Result<()> {
         let block: Option<(i64, Vec<u8>)> = self
             .conn
-            .prepare_cached(
-                "SELECT last_key, data FROM blocks WHERE last_key >= ?1 AND first_key < ?2 \
-                 ORDER BY first_key LIMIT 1",
-            )?
+            .prepare_cached(READ_BLOCK)?
             .query_row([self.next_block_key, self.end_key], |r| {
                 Ok((r.get(0)?, r.get(1)?))
             })
@@ -492,5 +488,37 @@ impl Iterator for Rows {
                 },
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Each block is found by the primary key: a plan that walks the blocks
+    /// makes reading a day of many blocks quadratic.
+    #[test]
+    fn the_next_block_is_found_by_the_primary_key() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = store::DayFile::open(dir.path(), "Q", 19_000).unwrap();
+        let path = file.path.clone();
+        file.close();
+        let conn = Connection::open(path).unwrap();
+        let plan: Vec<String> = conn
+            .prepare(&format!("EXPLAIN QUERY PLAN {READ_BLOCK}"))
+            .unwrap()
+            .query_map([0, 1], |r| r.get(3))
+            .unwrap()
+            .collect::<Result<_, _>>()
+            .unwrap();
+        assert!(
+            plan.iter().all(|step| !step.starts_with("SCAN")),
+            "{plan:?}"
+        );
+        assert_eq!(
+            plan.iter().filter(|s| s.contains("PRIMARY KEY")).count(),
+            2,
+            "{plan:?}"
+        );
     }
 }

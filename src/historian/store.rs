@@ -142,19 +142,37 @@ pub fn open_read(path: &Path) -> Result<Connection, StoreError> {
 /// block.
 pub fn needs_packing(path: &Path) -> bool {
     let check = |conn: Connection| -> Result<bool, StoreError> {
-        let has_blocks: bool = conn.query_row(
-            "SELECT count(*) FROM sqlite_master WHERE name = 'blocks'",
-            [],
-            |r| r.get::<_, i64>(0).map(|n| n > 0),
-        )?;
-        let sql = if has_blocks {
-            "SELECT EXISTS (SELECT 1 FROM samples WHERE key > (SELECT coalesce(max(last_key), -1) FROM blocks))"
-        } else {
-            "SELECT EXISTS (SELECT 1 FROM samples)"
-        };
-        conn.query_row(sql, [], |r| r.get(0))
+        let packed_to = last_packed_key(&conn)?;
+        conn.query_row(
+            "SELECT EXISTS (SELECT 1 FROM samples WHERE key > ?1)",
+            [packed_to],
+            |r| r.get(0),
+        )
     };
     open_read(path).and_then(check).unwrap_or(false)
+}
+
+/// Whether a file has table `name` (files of an earlier version lack some).
+pub fn has_table(conn: &Connection, name: &str) -> Result<bool, StoreError> {
+    conn.query_row(
+        "SELECT EXISTS (SELECT 1 FROM sqlite_master WHERE name = ?1)",
+        [name],
+        |r| r.get(0),
+    )
+}
+
+/// The last key packed into a block (-1: none). Blocks never overlap and
+/// come in key order, so it is the last block's: found by the primary key,
+/// not by a scan of every block.
+fn last_packed_key(conn: &Connection) -> Result<i64, StoreError> {
+    if !has_table(conn, "blocks")? {
+        return Ok(-1);
+    }
+    conn.query_row(
+        "SELECT coalesce((SELECT last_key FROM blocks ORDER BY first_key DESC LIMIT 1), -1)",
+        [],
+        |r| r.get(0),
+    )
 }
 
 fn check_format(conn: &Connection) -> Result<(), StoreError> {
@@ -263,12 +281,7 @@ impl DayFile {
         // one commit per HISTORY_SYNC).
         conn.pragma_update(None, "synchronous", "FULL")?;
         let start_ms = day * DAY_MS;
-        let exists: bool = conn.query_row(
-            "SELECT count(*) FROM sqlite_master WHERE name = 'meta'",
-            [],
-            |r| r.get::<_, i64>(0).map(|n| n > 0),
-        )?;
-        if exists {
+        if has_table(&conn, "meta")? {
             check_format(&conn)?;
             conn.execute_batch(BLOCKS_V1)?;
         } else {
@@ -301,10 +314,7 @@ impl DayFile {
                 next_id = next_id.max(id + 1);
             }
         }
-        let packed_to =
-            conn.query_row("SELECT coalesce(max(last_key), -1) FROM blocks", [], |r| {
-                r.get(0)
-            })?;
+        let packed_to = last_packed_key(&conn)?;
         Ok(DayFile {
             conn,
             day,
