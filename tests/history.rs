@@ -138,9 +138,9 @@ impl Server {
         (&stream).write_all(request).unwrap();
         (&stream).write_all(b"\r\n").unwrap();
         let mut line = Vec::new();
-        BufReader::new(&stream)
-            .read_until(b'\n', &mut line)
-            .unwrap();
+        if let Err(e) = BufReader::new(&stream).read_until(b'\n', &mut line) {
+            panic!("reading the answer: {e}; the server's log:\n{}", self.log());
+        }
         String::from_utf8_lossy(&line).trim_end().to_string()
     }
 
