@@ -43,6 +43,12 @@ fn main() -> ExitCode {
     };
     let runtime = match tokio::runtime::Builder::new_multi_thread()
         .enable_all()
+        // Clients woken by the I/O driver beyond a worker's local queue wait
+        // in the global one; the self-tuned interval let busy local clients
+        // starve them (1,000 clients: GET p99 50 ms against p50 3 ms). Every
+        // 4th task from the global queue keeps them in turn at no cost in
+        // throughput (BENCHMARKS.md).
+        .global_queue_interval(4)
         .build()
     {
         Ok(runtime) => runtime,
