@@ -181,6 +181,21 @@ impl VarTable {
         )
     }
 
+    /// The standard fixed variables and the public file `text` of a
+    /// Foxtrot, warnings dropped: a table without a PLC, for tests, tools
+    /// and benchmarks.
+    pub fn from_public_text(name: &str, text: &[u8]) -> Result<VarTable, TableError> {
+        let fixed = plccoms_plc::pubfile::parse(crate::link::tables::STANDARD_FIXED);
+        let user = plccoms_plc::pubfile::parse(text);
+        VarTable::build(
+            "FIXED.pub",
+            &fixed,
+            Some((name, &user)),
+            &MemoryMap::FOXTROT,
+            &mut Vec::new(),
+        )
+    }
+
     /// Builds the table from any files' variables, as [`VarTable::build`].
     pub fn build_from(
         fixed_file: &str,
@@ -339,15 +354,6 @@ pub(crate) mod tests {
             text.push_str(&format!(" {name} R B {offset} {ty} PUB_INOUT\r\n"));
             offset += 16;
         }
-        let fixed = plccoms_plc::pubfile::parse(crate::link::tables::STANDARD_FIXED);
-        let user = plccoms_plc::pubfile::parse(text.as_bytes());
-        VarTable::build(
-            "FIXED.pub",
-            &fixed,
-            Some(("test.pub", &user)),
-            &MemoryMap::FOXTROT,
-            &mut Vec::new(),
-        )
-        .expect("table")
+        VarTable::from_public_text("test.pub", text.as_bytes()).expect("table")
     }
 }

@@ -12,7 +12,6 @@ use plccoms::historian::query::{self, Query, Row};
 use plccoms::historian::sample::{Sample, Stored};
 use plccoms::historian::store::{day_path, DayFile, DAY_MS, MIN_BLOCK};
 use plccoms::vars::VarTable;
-use plccoms_plc::MemoryMap;
 
 /// A day long past: nothing else writes to it.
 const DAY: i64 = 19_000;
@@ -22,18 +21,7 @@ fn table() -> Arc<VarTable> {
         U R B 4 ULINT PUB_INOUT\r\n F R F 12 REAL PUB_INOUT\r\n \
         D R F 16 LREAL PUB_INOUT\r\n S R B 24 STRING[16] PUB_INOUT\r\n \
         T R B 44 DT PUB_INOUT\r\n EV R B 48 INT PUB_INOUT\r\n";
-    let fixed = plccoms_plc::pubfile::parse(plccoms::link::tables::STANDARD_FIXED);
-    let user = plccoms_plc::pubfile::parse(text);
-    Arc::new(
-        VarTable::build(
-            "FIXED.pub",
-            &fixed,
-            Some(("p.pub", &user)),
-            &MemoryMap::FOXTROT,
-            &mut Vec::new(),
-        )
-        .expect("table"),
-    )
+    Arc::new(VarTable::from_public_text("p.pub", text).expect("table"))
 }
 
 fn id(table: &VarTable, name: &str) -> u32 {

@@ -21,7 +21,6 @@ use plccoms::changes::Quality;
 use plccoms::historian::sample::{Sample, Stored};
 use plccoms::historian::store::{day_of, file_bytes, DayFile, DAY_MS};
 use plccoms::vars::VarTable;
-use plccoms_plc::MemoryMap;
 
 #[derive(Parser)]
 struct Args {
@@ -70,18 +69,7 @@ fn table(ty: &str, n: usize) -> Arc<VarTable> {
             i * size
         ));
     }
-    let fixed = plccoms_plc::pubfile::parse(plccoms::link::tables::STANDARD_FIXED);
-    let user = plccoms_plc::pubfile::parse(text.as_bytes());
-    Arc::new(
-        VarTable::build(
-            "FIXED.pub",
-            &fixed,
-            Some(("bench.pub", &user)),
-            &MemoryMap::FOXTROT,
-            &mut Vec::new(),
-        )
-        .expect("table"),
-    )
+    Arc::new(VarTable::from_public_text("bench.pub", text.as_bytes()).expect("table"))
 }
 
 /// The value `plcsim --animate` gives variable `k` of type `ty` at cycle
