@@ -173,22 +173,20 @@ fn pack(section: &mut Section, after: Duration, deadline: Instant) {
     }
     let mut still = Vec::new();
     for mut file in std::mem::take(&mut section.closing) {
-        let step =
-            packed(section.out.stats.as_ref(), file.pack(i64::MAX, deadline)).and_then(|more| {
-                if more {
-                    Ok(false)
-                } else {
-                    file.shrink(SHRINK_PAGES)
-                }
-            });
+        let step = packed(&section.out.stats, file.pack(i64::MAX, deadline)).and_then(|more| {
+            if more {
+                Ok(false)
+            } else {
+                file.shrink(SHRINK_PAGES)
+            }
+        });
         match step {
             // Done once it is a single file again (a reader in the way:
             // the next round).
             Ok(true) if file.leave_wal() => {
                 info!(section = %section.out.name, "history: {} finished", file.path.display());
             }
-            Ok(true) => still.push(file),
-            Ok(false) => still.push(file),
+            Ok(_) => still.push(file),
             Err(e) => {
                 result = result.and(Err(e));
                 still.push(file);
