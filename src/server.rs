@@ -127,7 +127,12 @@ pub async fn start_section(
     let link_stop = link.stop_token();
     let link_thread = link::spawn_thread(link, global.comm_sched_pri)?;
     let section = Arc::new(Section::new(
-        global, handle, changes, state, metrics, config_dir,
+        global,
+        handle,
+        changes.woken_by_relay(),
+        state,
+        metrics,
+        config_dir,
     ));
     let sessions = TaskTracker::new();
     let accept = tokio::spawn(accept_loop(listener, section.clone(), sessions.clone()));

@@ -28,10 +28,9 @@ use plccoms_protocol::decoder::Frame;
 use plccoms_protocol::request::{classify, Command, Line};
 use tokio::io::AsyncWriteExt;
 use tokio::net::TcpStream;
-use tokio::sync::watch;
 use tracing::{debug, info, warn};
 
-use crate::changes::{Notice, Snapshot};
+use crate::changes::{Notice, Snapshot, Snapshots};
 use crate::client::ClientTable;
 use crate::cmd::{self, trim, ClientState, Cx, Effect, Reply};
 use crate::section::{ClientInfo, ClientStats, Section};
@@ -89,11 +88,11 @@ pub struct Session {
     client: ClientState,
     /// The snapshot DIFF lines were last taken from.
     snapshot: Arc<Snapshot>,
-    snapshots: watch::Receiver<Arc<Snapshot>>,
+    snapshots: Snapshots,
     /// The newest published snapshot, for answers from the poll; may be
     /// ahead of `snapshot` while DIFF lines wait. See [`Session::refresh_newest`].
     newest: Arc<Snapshot>,
-    newest_rx: watch::Receiver<Arc<Snapshot>>,
+    newest_rx: Snapshots,
     queue: AnswerQueue,
     /// The variable command a bare continuation line repeats.
     continuation: Option<Command>,
@@ -697,7 +696,7 @@ impl Session {
     /// Brings `newest` up to date: one atomic load when nothing was
     /// published since, so a burst of GETs does not contend on the channel.
     fn refresh_newest(&mut self) {
-        if self.newest_rx.has_changed().unwrap_or(false) {
+        if self.newest_rx.has_changed() {
             self.newest = self.newest_rx.borrow_and_update().clone();
         }
     }
