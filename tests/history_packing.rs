@@ -76,18 +76,28 @@ fn samples(table: &VarTable, cycles: i64) -> Vec<Sample> {
     out
 }
 
-fn read(dir: &Path, from_ms: i64, to_ms: i64, masks: &[&str]) -> Vec<Row> {
-    let query = Query {
+fn query(dir: &Path, from_ms: i64, to_ms: i64, masks: &[&str]) -> Query {
+    Query {
         dir: dir.to_path_buf(),
         section: "Pack".into(),
         masks: masks.iter().map(|m| m.to_string()).collect(),
         from_ms,
         to_ms,
-    };
-    query::rows(&query)
+    }
+}
+
+fn read(dir: &Path, from_ms: i64, to_ms: i64, masks: &[&str]) -> Vec<Row> {
+    query::rows(&query(dir, from_ms, to_ms, masks))
         .unwrap()
         .collect::<Result<_, _>>()
         .unwrap()
+}
+
+/// Day `DAY` of section "Pack" in `dir`, `samples` written to it.
+fn day_with(dir: &Path, table: &Arc<VarTable>, samples: &[Sample]) -> DayFile {
+    let mut file = DayFile::open(dir, "Pack", DAY).unwrap();
+    file.write(&[(table, samples)], &[]).unwrap();
+    file
 }
 
 /// Equal row lists; a difference is shown as the first row that differs.
@@ -218,8 +228,7 @@ fn a_few_samples_wait_for_a_block_worth_unless_the_day_is_over() {
     let table = table();
     let written = samples(&table, (MIN_BLOCK / 10) as i64);
     assert!(written.len() < MIN_BLOCK);
-    let mut file = DayFile::open(dir.path(), "Pack", DAY).unwrap();
-    file.write(&[(&table, &written)], &[]).unwrap();
+    let mut file = day_with(dir.path(), &table, &written);
     let waiting = file.pack(written.last().unwrap().t + 1, far()).unwrap();
     assert_eq!(waiting.blocks, 0);
     // A deadline already past packs nothing and says there is more.
@@ -238,9 +247,7 @@ fn a_few_samples_wait_for_a_block_worth_unless_the_day_is_over() {
 fn a_damaged_block_is_an_error_that_names_the_file() {
     let dir = tempfile::tempdir().unwrap();
     let table = table();
-    let written = samples(&table, 1000);
-    let mut file = DayFile::open(dir.path(), "Pack", DAY).unwrap();
-    file.write(&[(&table, &written)], &[]).unwrap();
+    let mut file = day_with(dir.path(), &table, &samples(&table, 1000));
     file.pack(i64::MAX, far()).unwrap();
     file.close();
     let path = day_path(dir.path(), "Pack", DAY);
@@ -248,14 +255,8 @@ fn a_damaged_block_is_an_error_that_names_the_file() {
         .unwrap()
         .execute("UPDATE blocks SET data = substr(data, 1, 40)", [])
         .unwrap();
-    let query = Query {
-        dir: dir.path().to_path_buf(),
-        section: "Pack".into(),
-        masks: vec!["*".into()],
-        from_ms: DAY * DAY_MS,
-        to_ms: (DAY + 1) * DAY_MS,
-    };
-    let err = query::rows(&query)
+    let all = query(dir.path(), DAY * DAY_MS, (DAY + 1) * DAY_MS, &["*"]);
+    let err = query::rows(&all)
         .unwrap()
         .find_map(Result::err)
         .expect("an error");
@@ -271,9 +272,7 @@ fn a_version_1_file_is_upgraded_packed_and_read_back_the_same() {
     let dir = tempfile::tempdir().unwrap();
     let table = table();
     let written = samples(&table, 2000);
-    let mut file = DayFile::open(dir.path(), "Pack", DAY).unwrap();
-    file.write(&[(&table, &written)], &[]).unwrap();
-    file.close();
+    day_with(dir.path(), &table, &written).close();
     let path = day_path(dir.path(), "Pack", DAY);
     rusqlite::Connection::open(&path)
         .unwrap()
