@@ -232,18 +232,27 @@ impl LineConn {
 pub struct ProcSample {
     /// user + system, seconds.
     pub cpu_s: f64,
+    /// The system (kernel) part of `cpu_s`.
+    pub sys_s: f64,
     pub rss_kib: u64,
     pub hwm_kib: u64,
 }
 
-pub fn proc_sample(pid: u32) -> Option<ProcSample> {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
-    // Fields after the parenthesised command name; utime and stime are the
-    // 14th and 15th fields of the line, in clock ticks (USER_HZ = 100 on Linux).
-    let rest = &stat[stat.rfind(')')? + 2..];
+/// User and system CPU seconds from a `/proc/<pid>/stat` line.
+fn cpu_times(stat: &str) -> Option<(f64, f64)> {
+    // Fields after the parenthesised command name (which may hold spaces and
+    // parentheses); utime and stime are the 14th and 15th fields of the
+    // line, in clock ticks (USER_HZ = 100 on Linux).
+    let rest = stat.get(stat.rfind(')')? + 2..)?;
     let fields: Vec<&str> = rest.split_whitespace().collect();
     let utime: f64 = fields.get(11)?.parse().ok()?;
     let stime: f64 = fields.get(12)?.parse().ok()?;
+    Some((utime / 100.0, stime / 100.0))
+}
+
+pub fn proc_sample(pid: u32) -> Option<ProcSample> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    let (user_s, sys_s) = cpu_times(&stat)?;
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
     let kib = |key: &str| {
         status
@@ -254,7 +263,8 @@ pub fn proc_sample(pid: u32) -> Option<ProcSample> {
             .unwrap_or(0)
     };
     Some(ProcSample {
-        cpu_s: (utime + stime) / 100.0,
+        cpu_s: user_s + sys_s,
+        sys_s,
         rss_kib: kib("VmRSS:"),
         hwm_kib: kib("VmHWM:"),
     })
@@ -276,7 +286,8 @@ impl ProcWindow {
         }
     }
 
-    /// CPU seconds, cores used (CPU s / wall s), RSS and peak RSS now.
+    /// CPU seconds (and their kernel part), cores used (CPU s / wall s),
+    /// RSS and peak RSS now.
     pub fn finish(&self, report: &mut Report, who: &str) {
         let (Some(pid), Some(start)) = (self.pid, self.start) else {
             return;
@@ -285,6 +296,7 @@ impl ProcWindow {
         let wall = self.at.elapsed().as_secs_f64();
         let cpu = end.cpu_s - start.cpu_s;
         report.metric(&format!("{who}_cpu_s"), cpu);
+        report.metric(&format!("{who}_sys_s"), end.sys_s - start.sys_s);
         report.metric(&format!("{who}_cpu_cores"), cpu / wall.max(1e-9));
         report.metric(&format!("{who}_rss_mib"), end.rss_kib as f64 / 1024.0);
         report.metric(&format!("{who}_peak_rss_mib"), end.hwm_kib as f64 / 1024.0);
@@ -361,4 +373,19 @@ impl Report {
 /// Nanoseconds since `epoch` (the process-wide clock of proxy and clients).
 pub fn now_ns(epoch: Instant) -> u64 {
     epoch.elapsed().as_nanos() as u64
+}
+
+#[cfg(test)]
+mod tests {
+    use super::cpu_times;
+
+    #[test]
+    fn cpu_times_are_the_14th_and_15th_fields_whatever_the_command_name() {
+        let line = "4242 (tokio) (rt x) S 1 4242 4242 0 -1 4194560 1093 0 0 0 \
+                    731 254 0 0 20 0 3 0 977 123456 789 18446744073709551615";
+        assert_eq!(cpu_times(line), Some((7.31, 2.54)));
+        assert_eq!(cpu_times("4242 (plccoms) S 1 2"), None);
+        assert_eq!(cpu_times("no command name"), None);
+        assert_eq!(cpu_times("4242 (x)"), None);
+    }
 }
