@@ -568,6 +568,34 @@ mod tests {
             .collect()
     }
 
+    #[tokio::test]
+    async fn a_waiting_session_is_woken_by_the_relay_not_by_the_publish() {
+        let (mut publisher, stream) = Publisher::new(
+            Arc::new(VarTable::default()),
+            FormatOptions::default(),
+            Duration::from_secs(1),
+        );
+        // The relay's side in the test's hands.
+        let (relay, relay_rx) = watch::channel(());
+        let mut session = Snapshots {
+            rx: stream.rx.clone(),
+            relay: Some(relay_rx),
+        };
+        let mut waiting = Box::pin(session.changed());
+        let quiet = Duration::from_millis(50);
+        assert!(tokio::time::timeout(quiet, &mut waiting).await.is_err());
+        publisher.publish_poll(PollStamp::now());
+        let early = tokio::time::timeout(quiet, &mut waiting).await;
+        assert!(early.is_err(), "woken by the publisher, not the relay");
+        relay.send_replace(());
+        tokio::time::timeout(Duration::from_secs(10), &mut waiting)
+            .await
+            .expect("woken by the relay")
+            .expect("link up");
+        drop(waiting);
+        assert_eq!(session.borrow_and_update().seq, 1);
+    }
+
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn sessions_woken_by_the_relay_see_every_publish_and_the_end() {
         let (mut publisher, stream) = Publisher::new(
