@@ -98,6 +98,13 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     // The configuration holds passwords and tokens: clients neither read
     // nor write it, whatever FILES_ROOT says.
     crate::localfs::protect(&config.path, true);
+    // So is every file and folder a key names: certificates, keys and
+    // passwords, plugin libraries, tag and public files, the history and
+    // the queues. Registered before anything starts, so that a part that
+    // fails to start leaves its files guarded all the same.
+    for own in config.own_paths() {
+        crate::localfs::protect(&own.path, own.used != crate::config::PathUse::Input);
+    }
     let global = Arc::new(config.global.clone());
     let dir = config_dir(&config.path);
     let mut server = Server {
@@ -140,8 +147,6 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     server.historian = crate::historian::Historian::start(config, &sections);
     if let Some(historian) = &server.historian {
         server.metrics.add_source(historian.metrics());
-        // The recorded history is the server's own: clients never write it.
-        crate::localfs::protect(&crate::historian::history_dir(&config.path, &global), false);
     }
     // Like the web page, an MQTT north side that cannot start (a queue
     // folder locked by another process, an unreadable password or CA file)
@@ -178,13 +183,7 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     Ok(server)
 }
 
-/// The folder relative paths in the configuration start from.
-pub fn config_dir(path: &Path) -> PathBuf {
-    match path.parent() {
-        Some(parent) if !parent.as_os_str().is_empty() => parent.to_path_buf(),
-        _ => PathBuf::from("."),
-    }
-}
+pub use crate::config::config_dir;
 
 async fn start_one(
     global: &Arc<Global>,

@@ -209,7 +209,7 @@ pub const PROTOCOLS: &[&str] = &["EPSNET", "MODBUS_TCP"];
 /// configuration's folder (where relative file names start).
 pub fn open(section: &crate::config::Section, dir: &std::path::Path) -> Opened {
     match section.protocol.as_str() {
-        "EPSNET" => open_epsnet(section),
+        "EPSNET" => open_epsnet(section, dir),
         "MODBUS_TCP" => open_modbus(section, dir),
         other => Err(format!(
             "PROTOCOL = {other} is not a backend of this server"
@@ -270,10 +270,17 @@ pub fn modbus_config(
 /// else over UDP to `IPADDR:EPSPORT`; `None` when the section has no PLC yet
 /// (`IPADDR` unset or `0.0.0.0`). Nothing is opened here: the link opens
 /// its socket or device when it connects, and again after each loss.
-fn open_epsnet(section: &crate::config::Section) -> Opened {
+fn open_epsnet(section: &crate::config::Section, dir: &std::path::Path) -> Opened {
     use std::net::{IpAddr, SocketAddr};
     if let Some(library) = &section.shm_name {
-        let config = plugin::PluginConfig::from_section(section, library);
+        // A path starts from the configuration's folder, as every path key;
+        // a bare name is the dynamic loader's to find.
+        let library = if library.contains('/') {
+            section.path_of(dir, library).to_string_lossy().into_owned()
+        } else {
+            library.clone()
+        };
+        let config = plugin::PluginConfig::from_section(section, &library);
         return Ok(Some(Box::new(plugin::PluginBackend::new(config))));
     }
     if let Some(device) = &section.serial_device {

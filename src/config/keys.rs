@@ -76,6 +76,27 @@ pub enum Kind {
     },
     /// Text of a form of the historian's (`history.rs`), checked on load.
     Form(Form),
+    /// A file or folder on this machine, relative to the configuration's
+    /// folder unless absolute; what the server does with it decides what
+    /// clients may do with it ([`PathUse`]).
+    Path(PathUse),
+}
+
+/// What the server does with a path a key names. Every such path is the
+/// server's own: line-protocol clients never write it (`localfs::protect`,
+/// registered from [`super::Config::own_paths`] at start).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PathUse {
+    /// Read by the server: certificates, tag and public files, libraries,
+    /// devices. Clients may read it.
+    Input,
+    /// Holds a private key or a password: clients do not read it either.
+    Secret,
+    /// A folder the server writes (history, queues): clients neither read
+    /// nor write it.
+    State,
+    /// The folder clients' own files live in (FILES_ROOT): theirs.
+    ClientFiles,
 }
 
 /// A parsed value, of the key's [`Kind`].
@@ -191,12 +212,29 @@ impl Key {
     pub(super) fn set<T: Settings>(&self, target: &mut T, value: Value) {
         target.apply(self.setter, value);
     }
+
+    /// [`Key::set`], and a path key's value noted for
+    /// [`super::Config::own_paths`].
+    pub(super) fn set_recording_path<T: Settings>(&self, target: &mut T, value: Value) {
+        if let (Kind::Path(used), Value::Text(text)) = (self.kind, &value) {
+            let paths = target.paths_mut();
+            paths.retain(|p| p.key != self.name);
+            paths.push(ConfiguredPath {
+                key: self.name,
+                text: text.clone(),
+                used,
+            });
+        }
+        self.set(target, value);
+    }
 }
 
 /// The structs rows set: `[*]` and a PLC section.
 pub(super) trait Settings {
     const SCOPE: Scope;
     fn apply(&mut self, setter: Setter, value: Value);
+    /// The paths the file's keys name, as written.
+    fn paths_mut(&mut self) -> &mut Vec<ConfiguredPath>;
 }
 
 impl Settings for Global {
@@ -205,6 +243,9 @@ impl Settings for Global {
         if let Setter::Global(set) = setter {
             set(self, value);
         }
+    }
+    fn paths_mut(&mut self) -> &mut Vec<ConfiguredPath> {
+        &mut self.paths
     }
 }
 
@@ -215,13 +256,24 @@ impl Settings for Section {
             set(self, value);
         }
     }
+    fn paths_mut(&mut self) -> &mut Vec<ConfiguredPath> {
+        &mut self.paths
+    }
+}
+
+/// A path a key of the file names (or its default), as written.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ConfiguredPath {
+    pub key: &'static str,
+    pub text: String,
+    pub used: PathUse,
 }
 
 /// `target` with the default of every key of its scope applied.
 pub(super) fn with_defaults<T: Settings>(mut target: T) -> T {
     for key in of_scope(T::SCOPE) {
         if let Some(value) = key.default_value() {
-            key.set(&mut target, value);
+            key.set_recording_path(&mut target, value);
         }
     }
     target
@@ -279,6 +331,7 @@ impl Kind {
             Kind::Ipv4 => "a.b.c.d, each part 0-255".to_string(),
             Kind::IpAddr => "a.b.c.d or x:y::z".to_string(),
             Kind::Text => "any non-empty text".to_string(),
+            Kind::Path(_) => "a file or folder name".to_string(),
             Kind::Networks => "a.b.c.d, a.b.c.d/n, x:y::z, x:y::/n".to_string(),
             Kind::Choice { choices, .. } => choices.join(", "),
             Kind::Choices { choices, .. } => format!("a list of {}", choices.join(", ")),
@@ -309,8 +362,8 @@ impl Kind {
                 .parse()
                 .map(Value::IpAddr)
                 .map_err(|_| format!("is not an IP address {allowed}")),
-            Kind::Text if text.is_empty() => Err(format!("is empty {allowed}")),
-            Kind::Text => Ok(Value::Text(text.to_string())),
+            Kind::Text | Kind::Path(_) if text.is_empty() => Err(format!("is empty {allowed}")),
+            Kind::Text | Kind::Path(_) => Ok(Value::Text(text.to_string())),
             Kind::Networks => text
                 .split(',')
                 .map(str::trim)
@@ -551,7 +604,7 @@ static KEYS: &[Key] = &[
     row("OUTPUT_SOFT_TIMEOUT", Some("30"), number(1, 3600, "s"),
         "time at or over OUTPUT_SOFT_LIMIT before a client that does not read is disconnected",
         Setter::Global(|g, v| g.output_soft_timeout = v.secs())),
-    row("FILES_ROOT", None, Kind::Text,
+    row("FILES_ROOT", None, Kind::Path(PathUse::ClientFiles),
         "folder of the PC files clients read and write (names beginning with .); \
          default: the configuration's folder",
         Setter::Global(|g, v| g.files_root = Some(v.text().into()))),
@@ -563,12 +616,12 @@ static KEYS: &[Key] = &[
     row("HTTP_TOKEN", None, Kind::Text,
         "token for writes, and for everything when HTTP_BIND is not a loopback address",
         Setter::Global(|g, v| g.http_token = Some(v.text()))),
-    row("HTTP_CERT", None, Kind::Text, "TLS certificate chain (PEM) of the web page",
+    row("HTTP_CERT", None, Kind::Path(PathUse::Input), "TLS certificate chain (PEM) of the web page",
         Setter::Global(|g, v| g.http_cert = Some(v.text()))),
-    row("HTTP_KEY", None, Kind::Text, "TLS private key (PEM) of the web page",
+    row("HTTP_KEY", None, Kind::Path(PathUse::Secret), "TLS private key (PEM) of the web page",
         Setter::Global(|g, v| g.http_key = Some(v.text()))),
     // The historian (issue 13).
-    row("HISTORY_DIR", None, Kind::Text,
+    row("HISTORY_DIR", None, Kind::Path(PathUse::State),
         "folder of the history files (default: history beside the configuration file)",
         Setter::Global(|g, v| g.history_dir = Some(v.text()))),
     row("HISTORY_RETENTION", None, Kind::Form(Form::Retention),
@@ -588,23 +641,23 @@ static KEYS: &[Key] = &[
         Setter::Global(|g, v| g.mqtt.user = Some(v.text()))),
     row("MQTT_PASSWORD", None, Kind::Text, "password at the broker",
         Setter::Global(|g, v| g.mqtt.password = Some(v.text()))),
-    row("MQTT_PASSWORD_FILE", None, Kind::Text, "file holding the password (instead of MQTT_PASSWORD)",
+    row("MQTT_PASSWORD_FILE", None, Kind::Path(PathUse::Secret), "file holding the password (instead of MQTT_PASSWORD)",
         Setter::Global(|g, v| g.mqtt.password_file = Some(v.text()))),
     row("MQTT_CLIENT_ID", None, Kind::Text,
         "client id base (default plccoms-<host name>-<hash of the configuration path>)",
         Setter::Global(|g, v| g.mqtt.client_id = Some(v.text()))),
     row("MQTT_PREFIX", Some("plccoms"), Kind::Text, "first topic level(s)",
         Setter::Global(|g, v| g.mqtt.prefix = v.text())),
-    row("MQTT_CA", None, Kind::Text, "PEM file of the CA(s) the broker's certificate is checked against",
+    row("MQTT_CA", None, Kind::Path(PathUse::Input), "PEM file of the CA(s) the broker's certificate is checked against",
         Setter::Global(|g, v| g.mqtt.ca = Some(v.text()))),
-    row("MQTT_CERT", None, Kind::Text, "PEM file of a client certificate (with MQTT_KEY)",
+    row("MQTT_CERT", None, Kind::Path(PathUse::Input), "PEM file of a client certificate (with MQTT_KEY)",
         Setter::Global(|g, v| g.mqtt.cert = Some(v.text()))),
-    row("MQTT_KEY", None, Kind::Text, "PEM file of the client certificate's private key",
+    row("MQTT_KEY", None, Kind::Path(PathUse::Secret), "PEM file of the client certificate's private key",
         Setter::Global(|g, v| g.mqtt.key = Some(v.text()))),
     row("MQTT_BUFFER", Some("67108864"), number(65536, 1 << 40, "bytes"),
         "unsent messages kept on disk per section; over it the oldest are dropped",
         Setter::Global(|g, v| g.mqtt.buffer = v.number())),
-    row("MQTT_SPOOL", Some("mqtt-spool"), Kind::Text,
+    row("MQTT_SPOOL", Some("mqtt-spool"), Kind::Path(PathUse::State),
         "folder of the on-disk queues (relative to the configuration file)",
         Setter::Global(|g, v| g.mqtt.spool = v.text())),
 
@@ -627,7 +680,7 @@ static KEYS: &[Key] = &[
         .setconf("epsport", SetConfScope::Section),
     row("SERVER_PORT", None, number(1, 65535, ""), "TCP port clients connect to (required)",
         Setter::Section(|s, v| s.server_port = v.number() as u16)),
-    row("SERIAL_DEVICE", None, Kind::Text, "serial device of the PLC link",
+    row("SERIAL_DEVICE", None, Kind::Path(PathUse::Input), "serial device of the PLC link",
         Setter::Section(|s, v| s.serial_device = Some(v.text())))
         .setconf("serial_device", SetConfScope::Section),
     row("SERIAL_SPEED", None, number(1, U32_MAX, "baud"), "serial line speed",
@@ -635,7 +688,7 @@ static KEYS: &[Key] = &[
         .setconf("serial_speed", SetConfScope::Section),
     row("SERIAL_RTS", None, number(0, U32_MAX, ""), "serial RTS control",
         Setter::Section(|s, v| s.serial_rts = Some(v.number() as u32))),
-    row("SHM_NAME", None, Kind::Text, "shared-memory module of a SoftPLC",
+    row("SHM_NAME", None, Kind::Path(PathUse::Input), "shared-memory module of a SoftPLC",
         Setter::Section(|s, v| s.shm_name = Some(v.text()))),
     row("SHM_SOCKET", None, number(0, U32_MAX, ""), "shared-memory socket of a SoftPLC",
         Setter::Section(|s, v| s.shm_socket = Some(v.number() as u32))),
@@ -646,11 +699,11 @@ static KEYS: &[Key] = &[
     row("PUBFILE_WRITE", Some("No"), Kind::Bool,
         "store public files fetched from the PLC in a folder named after the section",
         Setter::Section(|s, v| s.pubfile_write = v.bool())),
-    row("PUBFILE", None, Kind::Text,
+    row("PUBFILE", None, Kind::Path(PathUse::Input),
         "user public file: //name = root folder; local first, else fetched from the PLC",
         Setter::Section(|s, v| s.pubfile = Some(v.text())))
         .setconf("pubfile", SetConfScope::Section),
-    row("PUBFILE_FIXED", None, Kind::Text, "fixed public file; built in when not set",
+    row("PUBFILE_FIXED", None, Kind::Path(PathUse::Input), "fixed public file; built in when not set",
         Setter::Section(|s, v| s.pubfile_fixed = Some(v.text()))),
     // This server's own keys.
     row("PROTOCOL", Some("EPSNET"), choice("protocol", PROTOCOLS),
@@ -666,7 +719,7 @@ static KEYS: &[Key] = &[
         Setter::Section(|s, v| {
             if let Some(sim) = &mut s.simulator { sim.program = v.text() }
         })),
-    row("SIMULATOR_PUB", None, Kind::Text,
+    row("SIMULATOR_PUB", None, Kind::Path(PathUse::Input),
         "public file of the simulated PLC (default: the built-in conf/demo.pub)",
         Setter::Section(|s, v| {
             if let Some(sim) = &mut s.simulator { sim.pubfile = Some(v.text()) }
@@ -721,7 +774,7 @@ static KEYS: &[Key] = &[
         Setter::Section(|s, v| s.modbus.port = v.number() as u16)),
     row("MODBUS_UNIT", Some("1"), number(0, 255, ""), "Modbus unit id (slave address)",
         Setter::Section(|s, v| s.modbus.unit = v.number() as u8)),
-    row("MODBUS_TAGS", None, Kind::Text,
+    row("MODBUS_TAGS", None, Kind::Path(PathUse::Input),
         "Modbus tag file (CSV): //name = root folder, as PUBFILE",
         Setter::Section(|s, v| s.modbus.tags = Some(v.text()))),
     row("MODBUS_TIMEOUT", Some("1000"), number(1, 60000, "ms"), "Modbus transaction timeout",

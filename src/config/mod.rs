@@ -35,8 +35,8 @@ use std::time::Duration;
 pub use diag::{Diagnostic, Severity};
 pub use history::{History, Retention, StampPair};
 pub use keys::{
-    global_keys, key, keys, parse_bool, parse_ipv4, section_keys, setconf_key, Key, Kind, Scope,
-    SetConfScope, Value, PROTOCOLS, SIMULATOR_PROGRAMS,
+    global_keys, key, keys, parse_bool, parse_ipv4, section_keys, setconf_key, ConfiguredPath, Key,
+    Kind, PathUse, Scope, SetConfScope, Value, PROTOCOLS, SIMULATOR_PROGRAMS,
 };
 
 use diag::Diags;
@@ -52,6 +52,83 @@ pub struct Config {
     pub global: Global,
     /// The PLC sections that loaded, in file order.
     pub sections: Vec<Section>,
+}
+
+/// The folder relative paths in the configuration start from: the
+/// configuration file's.
+pub fn config_dir(path: &Path) -> PathBuf {
+    match path.parent() {
+        Some(parent) if !parent.as_os_str().is_empty() => parent.to_path_buf(),
+        _ => PathBuf::from("."),
+    }
+}
+
+/// A file or folder the configuration names, where it is on this machine.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OwnPath {
+    /// The key that names it, and its section (`None`: `[*]`).
+    pub key: &'static str,
+    pub section: Option<String>,
+    pub path: PathBuf,
+    pub used: PathUse,
+}
+
+impl Config {
+    /// Every file and folder the configuration names through a path key
+    /// ([`Kind::Path`]), defaults included, resolved as the server's parts
+    /// resolve them; and the history folder, which has a computed default.
+    /// FILES_ROOT, the clients' own folder, is not among them.
+    pub fn own_paths(&self) -> Vec<OwnPath> {
+        let dir = config_dir(&self.path);
+        let mut own = Vec::new();
+        let mut add = |key, section: Option<&Section>, path, used| {
+            if used != PathUse::ClientFiles {
+                own.push(OwnPath {
+                    key,
+                    section: section.map(|s| s.name.clone()),
+                    path,
+                    used,
+                });
+            }
+        };
+        for p in &self.global.paths {
+            add(p.key, None, dir.join(&p.text), p.used);
+        }
+        add(
+            "HISTORY_DIR",
+            None,
+            self.global.history_dir(&dir),
+            PathUse::State,
+        );
+        for section in &self.sections {
+            for p in &section.paths {
+                add(p.key, Some(section), section.path_of(&dir, &p.text), p.used);
+            }
+        }
+        own
+    }
+}
+
+impl Global {
+    /// The history folder: HISTORY_DIR, relative to `dir` (the
+    /// configuration's folder), by default `history` there.
+    pub fn history_dir(&self, dir: &Path) -> PathBuf {
+        dir.join(self.history_dir.as_deref().unwrap_or("history"))
+    }
+}
+
+impl Section {
+    /// Where a file name of this section's keys lives on this machine:
+    /// `//name` in the root folder (`dir`, the configuration's, or the
+    /// section's subfolder of it with PUBFILE_WRITE), anything else relative
+    /// to `dir` (an absolute path as it is).
+    pub fn path_of(&self, dir: &Path, name: &str) -> PathBuf {
+        match name.strip_prefix("//") {
+            Some(rest) if self.pubfile_write => dir.join(&self.name).join(rest),
+            Some(rest) => dir.join(rest),
+            None => dir.join(name),
+        }
+    }
 }
 
 /// The `[*]` section.
@@ -104,6 +181,8 @@ pub struct Global {
     pub history_compact: Duration,
     /// The MQTT_* keys (this server's own).
     pub mqtt: MqttGlobal,
+    /// Every path a `[*]` key names ([`Kind::Path`]), for [`Config::own_paths`].
+    pub paths: Vec<ConfiguredPath>,
 }
 
 impl Default for Global {
@@ -143,6 +222,7 @@ impl Default for Global {
             history_sync: Duration::ZERO,
             history_compact: Duration::ZERO,
             mqtt: MqttGlobal::default(),
+            paths: Vec::new(),
         })
     }
 }
@@ -195,6 +275,9 @@ pub struct Section {
     pub mqtt: MqttSection,
     /// The `MODBUS_*` keys (`PROTOCOL = MODBUS_TCP`).
     pub modbus: Modbus,
+    /// Every path the section's keys name ([`Kind::Path`]), for
+    /// [`Config::own_paths`].
+    pub paths: Vec<ConfiguredPath>,
 }
 
 /// An address or CIDR network of `ALLOW`.
@@ -576,7 +659,7 @@ fn fill<T: Settings>(
                 }
             });
         if let Some(value) = given.or_else(|| key.default_value()) {
-            key.set(target, value);
+            key.set_recording_path(target, value);
         }
     }
 }
@@ -687,6 +770,7 @@ fn section_defaults(name: &str) -> Section {
         history: History::default(),
         mqtt: MqttSection::default(),
         modbus: Modbus::default(),
+        paths: Vec::new(),
     })
 }
 

@@ -130,6 +130,15 @@ fn vendor_file_loads_unchanged() {
     for section in &mut sections {
         assert_eq!(section.serial_device_cfg, config.global.serial_device_cfg);
         section.serial_device_cfg = None;
+        // The path keys are noted as written, for Config::own_paths.
+        let noted: Vec<_> = section.paths.drain(..).map(|p| (p.key, p.text)).collect();
+        assert_eq!(
+            noted,
+            [
+                ("PUBFILE", "//VARLIST.PUB".to_string()),
+                ("PUBFILE_FIXED", "FIXED_Foxtrot.pub".to_string())
+            ]
+        );
     }
     assert_eq!(
         sections,
@@ -938,7 +947,7 @@ fn sample(key: &Key) -> Option<String> {
         Kind::Ipv4 => "10.0.0.1".into(),
         Kind::IpAddr => "::1".into(),
         Kind::Text if key.name == "SERIAL_DEVICE_CFG" => "/dev/ttyS0 17".into(),
-        Kind::Text => "x".into(),
+        Kind::Text | Kind::Path(_) => "x".into(),
         Kind::Networks => "10.0.0.0/8".into(),
         Kind::Choice { choices, .. } => choices
             .iter()
@@ -1231,7 +1240,11 @@ fn setconf_section_keys_parse_as_the_ini_keys() {
         ("epsport", "0", "is out of range (allowed 1-65535)"),
         ("epsport", "65536", "is out of range (allowed 1-65535)"),
         ("epsport", "+5", "is not a number (allowed 1-65535)"),
-        ("serial_device", "", "is empty (allowed any non-empty text)"),
+        (
+            "serial_device",
+            "",
+            "is empty (allowed a file or folder name)",
+        ),
         (
             "serial_speed",
             "0",
@@ -1247,7 +1260,7 @@ fn setconf_section_keys_parse_as_the_ini_keys() {
             "fast",
             "is not a number (allowed 1-4294967295 baud)",
         ),
-        ("pubfile", "", "is empty (allowed any non-empty text)"),
+        ("pubfile", "", "is empty (allowed a file or folder name)"),
     ];
     for (name, value, problem) in bad {
         let mut section = base.clone();
@@ -1291,4 +1304,70 @@ fn the_example_documents_every_key() {
     // And it loads cleanly: it is the built-in configuration.
     let loaded = ok(text);
     assert!(loaded.diagnostics.is_empty(), "{:?}", messages(&loaded));
+}
+
+/// A key that names a file or folder must be a `Kind::Path` row, so that the
+/// server guards the file from clients (`Config::own_paths`). Every text key
+/// is either listed here as not a path, or fails this test until it is
+/// classified.
+#[test]
+fn every_key_naming_a_file_is_a_path_key() {
+    const NOT_PATHS: &[&str] = &[
+        "SERIAL_DEVICE_CFG", // devices and pins, each device also SERIAL_DEVICE
+        "HTTP_TOKEN",
+        "MQTT_URL",
+        "MQTT_USER",
+        "MQTT_PASSWORD",
+        "MQTT_CLIENT_ID",
+        "MQTT_PREFIX",
+        "HISTORY_TRIGGER",
+        "MQTT_PUBLISH",
+        "MQTT_WRITE",
+        "MQTT_DELTA",
+    ];
+    for key in keys() {
+        if key.kind == Kind::Text {
+            assert!(
+                NOT_PATHS.contains(&key.name),
+                "{} is a text key: make it Kind::Path if it names a file or folder, else list it here",
+                key.name
+            );
+        }
+    }
+}
+
+#[test]
+fn own_paths_resolve_as_their_consumers_do() {
+    let ini = "[*]\nHTTP_KEY = tls/key.pem\nMQTT_PASSWORD_FILE = /etc/secret/mqtt.pass\nFILES_ROOT = files\n\
+               [P]\nSERVER_PORT = 5010\nPUBFILE = //user.pub\nPUBFILE_WRITE = Yes\nSHM_NAME = ./libplant.so\n";
+    let config = parse(Path::new("/etc/plccoms/PLCComS.ini"), ini)
+        .unwrap()
+        .config;
+    let own = config.own_paths();
+    let find = |key: &str| {
+        own.iter()
+            .find(|o| o.key == key)
+            .unwrap_or_else(|| panic!("{key} not among {own:?}"))
+    };
+    assert_eq!(find("HTTP_KEY").path, Path::new("/etc/plccoms/tls/key.pem"));
+    assert_eq!(find("HTTP_KEY").used, PathUse::Secret);
+    assert_eq!(
+        find("MQTT_PASSWORD_FILE").path,
+        Path::new("/etc/secret/mqtt.pass")
+    );
+    assert_eq!(find("PUBFILE").path, Path::new("/etc/plccoms/P/user.pub"));
+    assert_eq!(find("PUBFILE").section.as_deref(), Some("P"));
+    assert_eq!(
+        find("SHM_NAME").path,
+        Path::new("/etc/plccoms/./libplant.so")
+    );
+    // Defaults count: the queue folder and the history folder.
+    assert_eq!(
+        find("MQTT_SPOOL").path,
+        Path::new("/etc/plccoms/mqtt-spool")
+    );
+    assert_eq!(find("MQTT_SPOOL").used, PathUse::State);
+    assert_eq!(find("HISTORY_DIR").path, Path::new("/etc/plccoms/history"));
+    // The clients' own folder is theirs.
+    assert!(own.iter().all(|o| o.key != "FILES_ROOT"));
 }

@@ -59,8 +59,7 @@ pub const MAX_QUEUED: u64 = 500_000;
 /// The folder of the history files: HISTORY_DIR, relative to the
 /// configuration file's folder, by default `history` there.
 pub fn history_dir(config_path: &Path, global: &Global) -> PathBuf {
-    let base = crate::startup::config_dir(config_path);
-    base.join(global.history_dir.as_deref().unwrap_or("history"))
+    global.history_dir(&crate::config::config_dir(config_path))
 }
 
 /// Whether the historian writes.

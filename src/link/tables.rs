@@ -307,15 +307,7 @@ fn read_bounded(path: &Path) -> std::io::Result<Vec<u8>> {
 /// in the root folder (`dir`, the configuration's, or the section's
 /// subfolder with PUBFILE_WRITE), anything else relative to `dir`.
 pub fn local_path(dir: &Path, section: &Section, name: &str) -> PathBuf {
-    let root = if section.pubfile_write {
-        dir.join(&section.name)
-    } else {
-        dir.to_path_buf()
-    };
-    match name.strip_prefix("//") {
-        Some(rest) => root.join(rest),
-        None => dir.join(name),
-    }
+    section.path_of(dir, name)
 }
 
 /// The CRC that `__PF_CRC` must match for `user` (PUBFILE_CRC): a public

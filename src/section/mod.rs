@@ -119,18 +119,10 @@ impl Section {
     /// written by clients.
     pub fn public_files(&self) -> Vec<PathBuf> {
         let config = self.state.borrow().config.clone();
-        let pub_root = if config.pubfile_write {
-            self.config_dir.join(&config.name)
-        } else {
-            self.config_dir.clone()
-        };
         [&config.pubfile, &config.pubfile_fixed]
             .into_iter()
             .flatten()
-            .map(|name| match name.strip_prefix("//") {
-                Some(rest) => pub_root.join(rest),
-                None => self.config_dir.join(name),
-            })
+            .map(|name| config.path_of(&self.config_dir, name))
             .collect()
     }
 

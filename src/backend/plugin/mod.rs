@@ -108,6 +108,54 @@ impl PluginConfig {
     }
 }
 
+/// Refuses a library file that someone other than its installer could
+/// replace, as ssh refuses loose key files: writable by group or others, in
+/// a folder writable by group or others (without the sticky bit), or
+/// writable by the server's own user (a process running as the server, or a
+/// client of a path the server forgot to guard, could then put its code in
+/// the server). Root can write every file, so for a server running as root
+/// only the group and others bits count.
+fn check_library_file(path: &Path) -> Result<(), String> {
+    use std::os::unix::fs::MetadataExt;
+    // SAFETY: geteuid cannot fail and touches no memory.
+    let euid = unsafe { libc::geteuid() };
+    let file = std::fs::metadata(path).map_err(|e| format!("{e}"))?;
+    if let Some(why) = loose_library(file.mode(), file.uid(), euid) {
+        return Err(format!(
+            "the library is {why} (mode {:04o}, owner uid {}); make it read-only for all but its owner (chmod go-w,u-w) or owned by another user than the server's",
+            file.mode() & 0o7777,
+            file.uid()
+        ));
+    }
+    let folder = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    let folder_meta =
+        std::fs::metadata(folder).map_err(|e| format!("{}: {e}", folder.display()))?;
+    let mode = folder_meta.mode();
+    if mode & 0o022 != 0 && mode & 0o1000 == 0 {
+        return Err(format!(
+            "its folder {} is writable by group or others (mode {:04o}): anyone in them could replace the library",
+            folder.display(),
+            mode & 0o7777
+        ));
+    }
+    Ok(())
+}
+
+/// Why a library file of `mode` owned by `owner` is loose for a server
+/// running as `euid`, if it is.
+fn loose_library(mode: u32, owner: u32, euid: u32) -> Option<&'static str> {
+    if mode & 0o022 != 0 {
+        Some("writable by group or others")
+    } else if euid != 0 && owner == euid && mode & 0o200 != 0 {
+        Some("writable by the server's own user")
+    } else {
+        None
+    }
+}
+
 /// A loaded plugin and its handle, owned by the worker thread.
 struct Loaded {
     api: abi::PluginApi,
@@ -125,6 +173,11 @@ impl Loaded {
     fn load(library: &str, note: String) -> Result<Loaded, PlcError> {
         let bad = |what: String| PlcError::Protocol(format!("plugin {library}: {what}"));
         let path = Path::new(library);
+        if path.components().count() > 1 {
+            check_library_file(path).map_err(|why| {
+                PlcError::Io(std::io::Error::other(format!("refused {library}: {why}")))
+            })?;
+        }
         // SAFETY: loading runs the library's initialisers, which we must
         // trust as we trust its calls (see the module doc).
         let lib = crash::inside(format!("{note}: load").as_bytes(), || unsafe {
@@ -935,6 +988,27 @@ impl PlcBackend for PluginBackend {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn loose_libraries_are_named() {
+        use super::loose_library;
+        assert_eq!(
+            loose_library(0o100664, 0, 0),
+            Some("writable by group or others")
+        );
+        assert_eq!(
+            loose_library(0o100646, 1000, 1000),
+            Some("writable by group or others")
+        );
+        assert_eq!(
+            loose_library(0o100644, 1000, 1000),
+            Some("writable by the server's own user")
+        );
+        assert_eq!(loose_library(0o100444, 1000, 1000), None);
+        assert_eq!(loose_library(0o100644, 0, 1000), None);
+        // Root writes everything: only group and others count.
+        assert_eq!(loose_library(0o100755, 0, 0), None);
+    }
+
     use super::*;
 
     #[test]
