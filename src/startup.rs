@@ -105,8 +105,10 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     for own in config.own_paths() {
         crate::localfs::protect(&own.path, own.used != crate::config::PathUse::Input);
     }
-    let global = Arc::new(config.global.clone());
     let dir = config_dir(&config.path);
+    let mut global = config.global.clone();
+    global.files_root = Some(files_root(&global, &dir)?);
+    let global = Arc::new(global);
     let mut server = Server {
         sections: Vec::new(),
         metrics: Arc::default(),
@@ -184,6 +186,28 @@ pub async fn start(config: &Config) -> Result<Server, String> {
 }
 
 pub use crate::config::config_dir;
+
+/// The folder of clients' own files (names beginning with `.`), created if
+/// missing, relative to `dir`: FILES_ROOT; else,
+/// under systemd (`StateDirectory=`, as the shipped unit sets it), `files`
+/// in `$STATE_DIRECTORY`, a folder of their own apart from the server's
+/// files; else `dir` itself (empty), the configuration's folder, as the
+/// vendor's server.
+fn files_root(global: &crate::config::Global, dir: &Path) -> Result<PathBuf, String> {
+    let state = std::env::var_os("STATE_DIRECTORY")
+        .and_then(|dirs| std::env::split_paths(&dirs).next())
+        .filter(|d| d.is_absolute());
+    // As given (relative: from `dir`, which the sections join).
+    let root = match (&global.files_root, state) {
+        (Some(root), _) => root.clone(),
+        (None, Some(state)) => state.join("files"),
+        (None, None) => return Ok(PathBuf::new()),
+    };
+    let on_disk = dir.join(&root);
+    std::fs::create_dir_all(&on_disk)
+        .map_err(|e| format!("FILES_ROOT {}: {e}", on_disk.display()))?;
+    Ok(root)
+}
 
 async fn start_one(
     global: &Arc<Global>,

@@ -170,3 +170,53 @@ async fn a_plugin_library_others_could_replace_is_refused_with_a_clear_line() {
     .await;
     server.shutdown().await;
 }
+
+/// Under systemd (`StateDirectory=`, as the shipped unit), clients' files
+/// go to a folder of their own in the state directory, not beside the
+/// configuration.
+#[tokio::test]
+async fn clients_files_default_to_a_folder_of_their_own_in_the_state_directory() {
+    use common::process::{ChildGuard, PLCCOMS};
+    let conf = tempfile::tempdir().unwrap();
+    let state = tempfile::tempdir().unwrap();
+    let port = free_port();
+    std::fs::write(
+        conf.path().join("PLCComS.ini"),
+        format!("[*]\n[PLC]\nSERVER_PORT = {port}\nSIMULATOR = Yes\nIPADDR_LOCAL = 127.0.0.1\n"),
+    )
+    .unwrap();
+    let _server = ChildGuard::spawn(
+        "plccoms",
+        std::process::Command::new(PLCCOMS)
+            .arg("-c")
+            .arg(conf.path().join("PLCComS.ini"))
+            .current_dir(conf.path())
+            .env("STATE_DIRECTORY", state.path())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null()),
+    );
+    let addr = std::net::SocketAddr::from(([127, 0, 0, 1], port));
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+    while tokio::net::TcpStream::connect(addr).await.is_err() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the server never listened"
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    }
+    let mut c = Client::connect(addr).await;
+    assert_eq!(
+        writefile(&mut c, "./note.txt", b"hello").await,
+        "WRITEFILE:./note.txt OK\r\n"
+    );
+    assert_eq!(
+        std::fs::read(state.path().join("files/note.txt")).unwrap(),
+        b"hello"
+    );
+    assert!(!conf.path().join("note.txt").exists());
+    c.ask(
+        "GETFILE:./PLCComS.ini\n",
+        "ERROR:41 Unable to get file: './PLCComS.ini'\r\n",
+    )
+    .await;
+}

@@ -110,7 +110,8 @@ async fn clients_cannot_rewrite_touch_or_read_the_servers_own_files() {
 #[tokio::test]
 async fn files_root_gives_pc_files_a_folder_of_their_own() {
     let (_server, addr, dir) = server("FILES_ROOT = files", "", None).await;
-    std::fs::create_dir(dir.path().join("files")).unwrap();
+    // Created at start.
+    assert!(dir.path().join("files").is_dir());
     let mut c = Client::connect(addr).await;
     assert_eq!(
         writefile(&mut c, "./a.txt", b"abc").await,

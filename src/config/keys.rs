@@ -606,7 +606,7 @@ static KEYS: &[Key] = &[
         Setter::Global(|g, v| g.output_soft_timeout = v.secs())),
     row("FILES_ROOT", None, Kind::Path(PathUse::ClientFiles),
         "folder of the PC files clients read and write (names beginning with .); \
-         default: the configuration's folder",
+         default: files in $STATE_DIRECTORY under systemd, else the configuration's folder",
         Setter::Global(|g, v| g.files_root = Some(v.text().into()))),
     // The built-in web page, /metrics and the JSON API (src/web).
     row("HTTP_PORT", None, number(1, 65535, ""), "TCP port of the web page and API (unset = off)",
