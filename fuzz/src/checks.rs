@@ -150,6 +150,16 @@ fn is_exact(ty: IecType) -> bool {
 /// is exact).
 fn values(text: &[u8]) {
     for ty in all_types() {
+        // `text` as the PLC's memory: whatever a PLC program left there
+        // prints on one line (no byte of it ends or forges a line).
+        if text.len() >= ty.size() {
+            let mut printed = Vec::new();
+            Value::decode(ty, &text[..ty.size()]).format(ty, &OPTIONS[0], &mut printed);
+            assert!(
+                !printed.iter().any(|&b| b == b'\r' || b == b'\n' || b == 0),
+                "{ty}: a line end or NUL in a printed value read from memory"
+            );
+        }
         for opts in &OPTIONS {
             let Ok(v) = Value::parse(ty, text, opts) else {
                 continue;
@@ -161,6 +171,10 @@ fn values(text: &[u8]) {
             let mut printed = Vec::new();
             stored.format(ty, opts, &mut printed);
             assert!(!printed.contains(&0), "{ty}: NUL in printed value");
+            assert!(
+                !printed.iter().any(|&b| b == b'\r' || b == b'\n'),
+                "{ty}: a line end in a printed value"
+            );
             match Value::parse(ty, &printed, opts) {
                 Ok(again) if is_exact(ty) => assert_eq!(again, stored, "{ty}: print/parse"),
                 Ok(_) => {}

@@ -95,6 +95,24 @@ fn quote_text(text: &[u8]) -> String {
     }
 }
 
+/// A byte no STRING value may carry as it is on a line: C0 controls and DEL.
+fn is_control(b: u8) -> bool {
+    b < 0x20 || b == 0x7F
+}
+
+/// A string read from the PLC as a line may carry it: each control byte
+/// (which a SET never writes, but a PLC program may) as `\xHH`, so that no
+/// byte of a value can end or forge a line. Other bytes as they are.
+fn write_printable(bytes: &[u8], out: &mut Vec<u8>) {
+    let mut rest = bytes;
+    while let Some(at) = rest.iter().position(|&b| is_control(b)) {
+        out.extend_from_slice(&rest[..at]);
+        let _ = write!(out, "\\x{:02X}", rest[at]);
+        rest = &rest[at + 1..];
+    }
+    out.extend_from_slice(rest);
+}
+
 /// Inclusive range of an integer type, `None` for non-integers.
 fn int_range(ty: IecType) -> Option<(i128, i128)> {
     Some(match ty {
@@ -394,9 +412,14 @@ impl Value {
                     [b'"', inner @ .., b'"'] => inner,
                     _ => text,
                 };
-                if inner.contains(&0) {
+                // A CR or LF would end the line of every client the value
+                // is printed to (forged DIFF lines); no control character
+                // has a place in a PLC string.
+                if let Some(at) = inner.iter().position(|&b| is_control(b)) {
                     return Err(ValueError::new(format!(
-                        "string for {ty} contains a NUL byte"
+                        "string for {ty} contains the control character 0x{:02X} at position {}",
+                        inner[at],
+                        at + 1
                     )));
                 }
                 if inner.len() > usize::from(cap) {
@@ -445,7 +468,7 @@ impl Value {
             IecType::String(_) => {
                 out.push(b'"');
                 if let Value::Str(bytes) = self {
-                    out.extend_from_slice(bytes);
+                    write_printable(bytes, out);
                 }
                 out.push(b'"');
             }
@@ -849,6 +872,18 @@ mod tests {
             "string of 90 characters exceeds STRING[80]"
         );
         assert!(parse(IecType::String(3), "\"abcd\"").is_err());
+        // Control characters are refused, whoever writes: a CR/LF would
+        // forge lines for every client the value is printed to.
+        let forged = parse(ty, "\"0\r\nDIFF:SETPOINT,99.000000\"").unwrap_err();
+        assert_eq!(
+            forged.message(),
+            "string for STRING[80] contains the control character 0x0D at position 2"
+        );
+        assert!(parse(ty, "\"a\tb\"").is_err());
+        assert!(parse(ty, "\"a\x7Fb\"").is_err());
+        // Read from a PLC, they print escaped: nothing ends the line.
+        let from_plc = Value::Str(b"0\r\nDIFF:X,1\x07".to_vec());
+        assert_eq!(fmt_default(&from_plc, ty), "\"0\\x0D\\x0ADIFF:X,1\\x07\"");
         assert!(parse(ty, "a\0b").is_err());
         // cp1250 passes unchanged and is not case-folded.
         let czech = cp1250::encode("\"Příliš žluťoučký\"");

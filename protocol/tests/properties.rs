@@ -232,7 +232,18 @@ proptest! {
         let ty = IecType::String(cap);
         let v = Value::Str(bytes.clone());
         let text = format(&v, ty, &opts);
-        prop_assert_eq!(Value::parse(ty, &text, &opts), Ok(v.clone()));
+        // No byte of a printed value ends a line.
+        prop_assert!(!text.contains(&b'\r') && !text.contains(&b'\n'));
+        let control = bytes.iter().any(|&b| b < 0x20 || b == 0x7F);
+        if control {
+            // Printed escaped; a SET of such a string is refused.
+            prop_assert!(Value::parse(ty, &text[1..text.len() - 1], &opts)
+                .map_or(true, |parsed| parsed != v));
+            let raw_set = [&b"\""[..], &bytes, b"\""].concat();
+            prop_assert!(Value::parse(ty, &raw_set, &opts).is_err());
+        } else {
+            prop_assert_eq!(Value::parse(ty, &text, &opts), Ok(v.clone()));
+        }
         let mut raw = Vec::new();
         v.encode(ty, &mut raw);
         prop_assert_eq!(raw.len(), usize::from(cap) + 1);
