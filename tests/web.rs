@@ -564,7 +564,7 @@ fn the_api_lists_sections_clients_variables_and_values_and_streams_live_values()
     // Live: SINUS changes every poll.
     let mut stream = TcpStream::connect(http).unwrap();
     stream
-        .write_all(b"GET /api/sections/Demo/live?vars=sinus HTTP/1.1\r\nHost: x\r\n\r\n")
+        .write_all(b"GET /api/sections/Demo/live?vars=sinus HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
         .unwrap();
     stream
         .set_read_timeout(Some(Duration::from_secs(5)))
@@ -687,4 +687,321 @@ fn https_with_the_configured_certificate() {
     assert_eq!(json(&output.stdout)[0]["name"], "Demo");
     // Plain HTTP on the TLS port gets no page.
     assert_ne!(request(web.http, "GET", "/api/sections", &[], None).0, 200);
+}
+
+/// A TCP connection to `to` from the loopback address `from` (any of
+/// 127.0.0.0/8 is this machine): the server sees as many clients as the
+/// test has source addresses.
+fn connect_from(from: [u8; 4], to: SocketAddr) -> std::io::Result<TcpStream> {
+    let socket = socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::STREAM, None)?;
+    socket.bind(&SocketAddr::from((from, 0)).into())?;
+    socket.connect_timeout(&to.into(), Duration::from_secs(5))?;
+    Ok(socket.into())
+}
+
+/// Descriptors the server process holds open.
+fn server_fds(server: &mut ServerProcess) -> usize {
+    let pid = server.child.child().id();
+    std::fs::read_dir(format!("/proc/{pid}/fd"))
+        .unwrap()
+        .count()
+}
+
+/// The line protocol answers a GET on `port`.
+fn line_client_is_served(port: u16) -> Result<(), String> {
+    let mut client = TcpStream::connect(("127.0.0.1", port)).map_err(|e| e.to_string())?;
+    client
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
+    client
+        .write_all(b"GET:__PLC_RUN\r\n")
+        .map_err(|e| e.to_string())?;
+    let mut answer = [0u8; 64];
+    let n = client.read(&mut answer).map_err(|e| e.to_string())?;
+    if answer[..n].starts_with(b"GET:__PLC_RUN,") {
+        Ok(())
+    } else {
+        Err(String::from_utf8_lossy(&answer[..n]).into_owned())
+    }
+}
+
+#[test]
+fn half_sent_requests_cannot_take_the_descriptors_the_line_protocol_needs() {
+    let mut web = start("", "");
+    // A server under a small descriptor limit, as a service manager may set.
+    let pid = web.server.child.child().id();
+    let limited = Command::new("prlimit")
+        .args([&format!("--pid={pid}"), "--nofile=384:384"])
+        .status()
+        .expect("prlimit runs");
+    assert!(limited.success());
+    // 400 requests from 10 addresses, each stopping in its headers.
+    let mut flood = Vec::new();
+    for host in 2..12u8 {
+        for _ in 0..40 {
+            if let Ok(mut stream) = connect_from([127, 0, 0, host], web.http) {
+                let _ = stream.write_all(b"GET /api/sections HTTP/1.1\r\nHost: 127.0.0.1\r\n");
+                flood.push(stream);
+            }
+        }
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let fds = server_fds(&mut web.server);
+    assert!(
+        fds < 384 - 64,
+        "the web side holds {fds} of 384 descriptors"
+    );
+    line_client_is_served(web.server.port()).expect("a line client is served during the flood");
+    let log = web.server.log();
+    assert!(!log.contains("Too many open files"), "{log}");
+    // The page still answers an address that is not flooding.
+    wait_until("the page answers", || {
+        let (status, _) = request(web.http, "GET", "/api/session", &[], None);
+        status == 200
+    });
+    drop(flood);
+}
+
+#[test]
+fn a_connection_that_stops_in_its_headers_or_sends_nothing_is_closed() {
+    let web = start("", "");
+    let mut silent = TcpStream::connect(web.http).unwrap();
+    let mut half = TcpStream::connect(web.http).unwrap();
+    half.write_all(b"GET /api/sections HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+        .unwrap();
+    for stream in [&mut silent, &mut half] {
+        stream
+            .set_read_timeout(Some(Duration::from_secs(40)))
+            .unwrap();
+        let mut buf = [0u8; 256];
+        let closed = loop {
+            match stream.read(&mut buf) {
+                Ok(0) => break true,
+                Ok(_) => continue,
+                Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => break true,
+                Err(_) => break false,
+            }
+        };
+        assert!(closed, "the server kept an idle connection open for 40 s");
+    }
+}
+
+/// Opens a live stream from `from`: the status line's code, and the stream.
+fn open_live(from: [u8; 4], http: SocketAddr) -> (u16, TcpStream) {
+    let mut stream = connect_from(from, http).expect("connect");
+    stream
+        .write_all(
+            format!("GET /api/sections/Demo/live?vars=sinus HTTP/1.1\r\nHost: {http}\r\n\r\n")
+                .as_bytes(),
+        )
+        .unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
+    let mut head = Vec::new();
+    let mut byte = [0u8; 1];
+    while !head.ends_with(b"\r\n\r\n") && stream.read(&mut byte).unwrap_or(0) == 1 {
+        head.push(byte[0]);
+    }
+    let status = String::from_utf8_lossy(&head)
+        .split(' ')
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(0);
+    (status, stream)
+}
+
+fn live_streams_gauge(http: SocketAddr) -> u64 {
+    let (_, body) = request(http, "GET", "/metrics", &[], None);
+    String::from_utf8_lossy(&body)
+        .lines()
+        .find_map(|l| l.strip_prefix("plccoms_web_live_streams "))
+        .and_then(|v| v.trim().parse().ok())
+        .expect("plccoms_web_live_streams")
+}
+
+#[test]
+fn live_streams_are_capped_per_address_and_in_all_and_freed_when_closed() {
+    let web = start("", "");
+    let mut open = Vec::new();
+    let mut refused = 0;
+    for _ in 0..24 {
+        match open_live([127, 0, 0, 1], web.http) {
+            (200, stream) => open.push(stream),
+            (503, _) => refused += 1,
+            (other, _) => panic!("live stream answered {other}"),
+        }
+    }
+    assert!(
+        open.len() <= 16 && refused > 0,
+        "one address opened {} live streams",
+        open.len()
+    );
+    // Many addresses together meet the global cap.
+    for host in 2..20u8 {
+        for _ in 0..8 {
+            match open_live([127, 0, 0, host], web.http) {
+                (200, stream) => open.push(stream),
+                (503, _) => refused += 1,
+                (other, _) => panic!("live stream answered {other}"),
+            }
+        }
+    }
+    assert!(
+        open.len() <= 64 && refused >= 24 + 18 * 8 - 64,
+        "{} live streams open",
+        open.len()
+    );
+    assert_eq!(live_streams_gauge(web.http), open.len() as u64);
+    drop(open);
+    wait_until("closed streams are freed", || {
+        live_streams_gauge(web.http) == 0
+    });
+    // And their places are free again.
+    assert_eq!(open_live([127, 0, 0, 1], web.http).0, 200);
+}
+
+/// The first SETTINGS frame the server sends on an HTTP/2 connection (h2c
+/// with prior knowledge): its (identifier, value) pairs.
+fn http2_server_settings(http: SocketAddr) -> Vec<(u16, u32)> {
+    let mut stream = TcpStream::connect(http).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
+    stream
+        .write_all(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n\x00\x00\x00\x04\x00\x00\x00\x00\x00")
+        .unwrap();
+    loop {
+        let mut head = [0u8; 9];
+        stream.read_exact(&mut head).expect("an HTTP/2 frame");
+        let len = u32::from_be_bytes([0, head[0], head[1], head[2]]) as usize;
+        let mut payload = vec![0u8; len];
+        stream.read_exact(&mut payload).unwrap();
+        if head[3] == 4 && head[4] & 1 == 0 {
+            return payload
+                .chunks(6)
+                .map(|c| {
+                    (
+                        u16::from_be_bytes([c[0], c[1]]),
+                        u32::from_be_bytes([c[2], c[3], c[4], c[5]]),
+                    )
+                })
+                .collect();
+        }
+    }
+}
+
+#[test]
+fn http2_connections_allow_few_streams_at_once() {
+    let web = start("", "");
+    let settings = http2_server_settings(web.http);
+    const MAX_CONCURRENT_STREAMS: u16 = 3;
+    let max = settings
+        .iter()
+        .find(|(id, _)| *id == MAX_CONCURRENT_STREAMS)
+        .map(|(_, v)| *v);
+    assert!(
+        max.is_some_and(|m| m <= 16),
+        "SETTINGS_MAX_CONCURRENT_STREAMS {max:?}"
+    );
+}
+
+#[test]
+fn a_rebound_name_reads_nothing_and_other_sites_cannot_post() {
+    let web = start(
+        &format!("HTTP_TOKEN = {TOKEN}\nHTTP_HOSTS = plc.example, Other.Example:8080"),
+        "",
+    );
+    let http = web.http;
+    // `exchange` sends Host itself; a second Host header is refused too, so
+    // these requests are written by hand.
+    let get_with_host = |name: &str, path: &str| -> (u16, Vec<u8>) {
+        let mut stream = TcpStream::connect(http).unwrap();
+        stream
+            .set_read_timeout(Some(Duration::from_secs(10)))
+            .unwrap();
+        write!(
+            stream,
+            "GET {path} HTTP/1.1\r\nHost: {name}\r\nConnection: close\r\n\r\n"
+        )
+        .unwrap();
+        let mut raw = Vec::new();
+        let _ = stream.read_to_end(&mut raw);
+        let text = String::from_utf8_lossy(&raw).into_owned();
+        let status = text
+            .split(' ')
+            .nth(1)
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(0);
+        let body = text
+            .split_once("\r\n\r\n")
+            .map(|(_, b)| b.as_bytes().to_vec())
+            .unwrap_or_default();
+        (status, body)
+    };
+    for path in ["/api/sections/Demo/values", "/api/log", "/metrics", "/"] {
+        let (status, body) = get_with_host(&format!("attacker.example:{}", http.port()), path);
+        assert_eq!(status, 421, "{path}: {}", String::from_utf8_lossy(&body));
+        assert!(
+            String::from_utf8_lossy(&body).contains("HTTP_HOSTS"),
+            "{}",
+            String::from_utf8_lossy(&body)
+        );
+    }
+    for name in [
+        format!("127.0.0.1:{}", http.port()),
+        "127.0.0.1".to_string(),
+        format!("localhost:{}", http.port()),
+        "PLC.example".to_string(),
+        "other.example:8080".to_string(),
+    ] {
+        assert_eq!(get_with_host(&name, "/api/sections").0, 200, "Host: {name}");
+    }
+    // A page of another site posts with its own Origin: refused, logged in
+    // or not.
+    let login = format!("{{\"token\": \"{TOKEN}\"}}");
+    for path in ["/api/logout", "/api/login", "/api/sections/Demo/set"] {
+        let (status, body) = request(
+            http,
+            "POST",
+            path,
+            &[("Origin", "http://attacker.example".to_string())],
+            Some(&login),
+        );
+        assert_eq!(status, 403, "{path}: {}", String::from_utf8_lossy(&body));
+        let (status, _) = request(
+            http,
+            "POST",
+            path,
+            &[("Sec-Fetch-Site", "cross-site".to_string())],
+            Some(&login),
+        );
+        assert_eq!(status, 403, "{path} with Sec-Fetch-Site: cross-site");
+    }
+    // The page's own origin may.
+    let (status, _) = request(
+        http,
+        "POST",
+        "/api/login",
+        &[("Origin", format!("http://{http}"))],
+        Some(&login),
+    );
+    assert_eq!(status, 204);
+}
+
+#[test]
+fn history_parameters_out_of_range_or_naming_no_section_are_refused() {
+    let web = start("HISTORY_SYNC = 1", "HISTORY = SINUS");
+    for (query, status_wanted, names) in [
+        ("section=Demo&from=-9223372036854775808", 400, "from"),
+        ("section=Demo&to=9223372036854775807", 400, "to"),
+        ("section=..&from=0", 404, "section"),
+        ("section=../../etc&from=0", 404, "section"),
+        ("section=Nope", 404, "section"),
+    ] {
+        let (status, body) = request(web.http, "GET", &format!("/api/history?{query}"), &[], None);
+        let error = json(&body)["error"].as_str().unwrap_or("").to_string();
+        assert_eq!(status, status_wanted, "{query}: {error}");
+        assert!(error.contains(names), "{query}: {error}");
+    }
 }

@@ -616,6 +616,13 @@ static KEYS: &[Key] = &[
     row("HTTP_TOKEN", None, Kind::Text,
         "token for writes, and for everything when HTTP_BIND is not a loopback address",
         Setter::Global(|g, v| g.http_token = Some(v.text()))),
+    row("HTTP_HOSTS", None, Kind::Text,
+        "host names (name or name:port, comma-separated) the web page answers to besides \
+         its address and, on loopback, localhost; * for any",
+        Setter::Global(|g, v| {
+            g.http_hosts = v.text().split(',').map(|h| h.trim().to_ascii_lowercase())
+                .filter(|h| !h.is_empty()).collect()
+        })),
     row("HTTP_CERT", None, Kind::Path(PathUse::Input), "TLS certificate chain (PEM) of the web page",
         Setter::Global(|g, v| g.http_cert = Some(v.text()))),
     row("HTTP_KEY", None, Kind::Path(PathUse::Secret), "TLS private key (PEM) of the web page",

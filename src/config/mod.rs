@@ -170,6 +170,8 @@ pub struct Global {
     pub http_port: Option<u16>,
     pub http_bind: IpAddr,
     pub http_token: Option<String>,
+    /// HTTP_HOSTS: more names the page answers to (lower case).
+    pub http_hosts: Vec<String>,
     pub http_cert: Option<String>,
     pub http_key: Option<String>,
     /// HISTORY_DIR as written; `None`: `history` beside the configuration.
@@ -215,6 +217,7 @@ impl Default for Global {
             http_port: None,
             http_bind: IpAddr::V4(Ipv4Addr::LOCALHOST),
             http_token: None,
+            http_hosts: Vec::new(),
             http_cert: None,
             http_key: None,
             history_dir: None,

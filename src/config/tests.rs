@@ -1315,6 +1315,7 @@ fn every_key_naming_a_file_is_a_path_key() {
     const NOT_PATHS: &[&str] = &[
         "SERIAL_DEVICE_CFG", // devices and pins, each device also SERIAL_DEVICE
         "HTTP_TOKEN",
+        "HTTP_HOSTS",
         "MQTT_URL",
         "MQTT_USER",
         "MQTT_PASSWORD",

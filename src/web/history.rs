@@ -98,11 +98,22 @@ const CHUNK: usize = 16 * 1024;
 /// (`now`, `-1h`, `-7d`, ISO 8601 / RFC 3339, a date).
 pub fn parse_time(name: &str, text: &str, now_ms: i64) -> Result<i64, String> {
     let text = text.trim();
-    if let Ok(ms) = text.parse::<i64>() {
-        return Ok(ms);
+    let ms = match text.parse::<i64>() {
+        Ok(ms) => ms,
+        Err(_) => crate::historian::time::parse(text, now_ms)
+            .map_err(|e| format!("{name}={text}: {e}"))?,
+    };
+    // Arithmetic on times far out would wrap.
+    if !(0..=LATEST_MS).contains(&ms) {
+        return Err(format!(
+            "{name}={text}: out of range (0 to {LATEST_MS}: 1970 to the year 9999)"
+        ));
     }
-    crate::historian::time::parse(text, now_ms).map_err(|e| format!("{name}={text}: {e}"))
+    Ok(ms)
 }
+
+/// 9999-12-31T23:59:59.999Z.
+const LATEST_MS: i64 = 253_402_300_799_999;
 
 /// The query the parameters ask for, or what is wrong with them.
 pub fn parse_params(params: &HistoryParams, now_ms: i64) -> Result<(HistoryQuery, Format), String> {
@@ -163,6 +174,14 @@ pub(super) async fn history(state: State, Query(params): Query<HistoryParams>) -
         Ok(parsed) => parsed,
         Err(message) => return error(StatusCode::BAD_REQUEST, message),
     };
+    // The name becomes part of a file path in the historian: only the
+    // configured sections' names get there.
+    if state.0.section(&query.section).is_none() {
+        return error(
+            StatusCode::NOT_FOUND,
+            format!("section={}: no section named so", query.section),
+        );
+    }
     respond(source.as_ref(), query, format)
 }
 

@@ -20,8 +20,10 @@ use std::convert::Infallible;
 use std::sync::Arc;
 use std::time::Duration;
 
-use axum::extract::{Path, Query};
-use axum::http::StatusCode;
+use std::net::SocketAddr;
+
+use axum::extract::{ConnectInfo, Path, Query};
+use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use plccoms_protocol::cp1250;
@@ -29,6 +31,7 @@ use serde::{Deserialize, Serialize};
 use tokio_util::sync::CancellationToken;
 
 use super::api::{error, find, parse_masks};
+use super::limits::{Permit, MAX_LIVE_STREAMS};
 use super::metrics::{StreamGuard, WebMetrics};
 use super::State;
 use crate::changes::{ChangeBatch, LinkEvent, Subscription};
@@ -44,6 +47,7 @@ pub struct LiveQuery {
 
 pub async fn live(
     state: State,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
     Path(name): Path<String>,
     Query(query): Query<LiveQuery>,
 ) -> Response {
@@ -61,7 +65,24 @@ pub async fn live(
             ),
         );
     }
+    let permit = match state.0.live_streams.acquire(peer.ip(), MAX_LIVE_STREAMS) {
+        Ok(permit) => permit,
+        Err(refused) => {
+            let mut response = error(
+                StatusCode::SERVICE_UNAVAILABLE,
+                format!(
+                    "{}: close another page or try later",
+                    refused.describe(state.0.live_streams.what())
+                ),
+            );
+            response
+                .headers_mut()
+                .insert(header::RETRY_AFTER, HeaderValue::from_static("10"));
+            return response;
+        }
+    };
     let stream = Stream {
+        _permit: permit,
         subscription: section.changes.subscribe(&masks),
         stop: state.0.stop.clone(),
         _guard: StreamGuard::new(state.0.web_metrics.clone()),
@@ -86,6 +107,7 @@ pub async fn live(
 }
 
 struct Stream {
+    _permit: Permit,
     subscription: Subscription,
     stop: CancellationToken,
     metrics: Arc<WebMetrics>,

@@ -19,8 +19,10 @@ mod api;
 mod assets;
 mod auth;
 pub mod history;
+mod limits;
 mod live;
 mod metrics;
+mod origin;
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -41,6 +43,8 @@ pub use history::HistorySource;
 pub struct WebConfig {
     pub bind: SocketAddr,
     pub token: Option<String>,
+    /// HTTP_HOSTS.
+    pub hosts: Vec<String>,
     /// Certificate chain and private key (PEM), for HTTPS.
     pub tls: Option<(PathBuf, PathBuf)>,
 }
@@ -57,6 +61,7 @@ impl WebConfig {
         Some(WebConfig {
             bind: SocketAddr::new(global.http_bind, port),
             token: global.http_token.clone(),
+            hosts: global.http_hosts.clone(),
             tls,
         })
     }
@@ -71,6 +76,10 @@ pub(crate) struct Shared {
     /// Cancelled at shutdown: live streams end.
     pub stop: CancellationToken,
     pub web_metrics: Arc<metrics::WebMetrics>,
+    /// The names the page answers to.
+    pub hosts: origin::Hosts,
+    /// Live-value streams open, in all and per address.
+    pub live_streams: Arc<limits::Limiter>,
 }
 
 impl Shared {
@@ -125,8 +134,10 @@ pub fn start(
         ),
         stop: stop.clone(),
         web_metrics,
+        hosts: origin::Hosts::new(config.bind.ip(), config.hosts.clone()),
+        live_streams: limits::Limiter::new("live streams", limits::MAX_LIVE_STREAMS_PER_ADDRESS),
     });
-    let app = router(shared).into_make_service();
+    let app = router(shared).into_make_service_with_connect_info::<SocketAddr>();
     let handle = axum_server::Handle::new();
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -139,16 +150,27 @@ pub fn start(
         .spawn(move || {
             lower_priority();
             runtime.block_on(async move {
+                let guarded = limits::GuardedAcceptor::new();
                 let served = match tls {
                     Some(tls) => {
                         let config = axum_server::tls_rustls::RustlsConfig::from_config(tls);
                         match axum_server::tls_rustls::from_tcp_rustls(listener, config) {
-                            Ok(server) => server.handle(server_handle).serve(app).await,
+                            Ok(server) => {
+                                bounded(server.map(|tls| tls.acceptor(guarded)))
+                                    .handle(server_handle)
+                                    .serve(app)
+                                    .await
+                            }
                             Err(e) => Err(e),
                         }
                     }
                     None => match axum_server::from_tcp(listener) {
-                        Ok(server) => server.handle(server_handle).serve(app).await,
+                        Ok(server) => {
+                            bounded(server.acceptor(guarded))
+                                .handle(server_handle)
+                                .serve(app)
+                                .await
+                        }
                         Err(e) => Err(e),
                     },
                 };
@@ -183,6 +205,26 @@ impl WebServer {
     }
 }
 
+/// HTTP settings that bound what one connection may hold (see `limits`).
+fn bounded<Acc>(
+    mut server: axum_server::Server<SocketAddr, Acc>,
+) -> axum_server::Server<SocketAddr, Acc> {
+    const BUFFER: usize = 64 * 1024;
+    let builder = server.http_builder();
+    builder
+        .http1()
+        .header_read_timeout(limits::HEADER_TIMEOUT)
+        .max_buf_size(BUFFER);
+    builder
+        .http2()
+        .max_concurrent_streams(limits::MAX_HTTP2_STREAMS)
+        .max_send_buf_size(BUFFER)
+        .initial_stream_window_size(BUFFER as u32)
+        .initial_connection_window_size(4 * BUFFER as u32)
+        .max_header_list_size(BUFFER as u32);
+    server.first_request_timeout(limits::HEADER_TIMEOUT)
+}
+
 fn router(shared: Arc<Shared>) -> Router {
     let api = Router::new()
         .route("/sections", get(api::sections))
@@ -214,6 +256,10 @@ fn router(shared: Arc<Shared>) -> Router {
         )
         .nest("/api", api)
         .fallback(api::not_found)
+        .layer(axum::middleware::from_fn_with_state(
+            shared.clone(),
+            origin::check,
+        ))
         .with_state(shared)
 }
 
