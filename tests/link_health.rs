@@ -324,3 +324,90 @@ async fn a_plc_off_at_start_up_with_a_local_public_file() {
     );
     assert!(resumed < Duration::from_secs(2) + SLACK, "{resumed:?}");
 }
+
+/// The web page's `/values` quality of `var`, over real HTTP.
+fn web_quality(http: SocketAddr, var: &str) -> String {
+    use std::io::{Read, Write};
+    let mut stream = std::net::TcpStream::connect(http).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
+    write!(
+        stream,
+        "GET /api/sections/PLC/values?vars={var} HTTP/1.1\r\nHost: {http}\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut raw = String::new();
+    let _ = stream.read_to_string(&mut raw);
+    let body = raw.split_once("\r\n\r\n").map(|(_, b)| b).unwrap_or("");
+    let value: serde_json::Value = serde_json::from_str(body).unwrap_or_default();
+    value["values"][0]["quality"]
+        .as_str()
+        .unwrap_or("none")
+        .to_string()
+}
+
+#[tokio::test]
+async fn the_web_page_calls_a_value_good_only_while_get_serves_it() {
+    let files = tempfile::tempdir().unwrap();
+    std::fs::write(files.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
+    let sim = spawn_sim("127.0.0.1:0".parse().unwrap(), files.path()).await;
+    let plc = sim.local_addr();
+    poke(&sim, SETPOINT, &1.5f32.to_le_bytes());
+    let http_port = common::process::free_port();
+    let (_server, port, _conf) = common::start_on_free_port(|port| {
+        format!(
+            "[*]\nHTTP_PORT = {http_port}\n{}",
+            section("PLC", port, plc, "")
+        )
+    })
+    .await;
+    let http = SocketAddr::from(([127, 0, 0, 1], http_port));
+    let mut c = Client::connect(SocketAddr::from(([127, 0, 0, 1], port))).await;
+    c.ask(
+        "EN:setpoint\n",
+        "WARNING:252 Changed active variables in public file: '[3/29]'\r\n",
+    )
+    .await;
+    c.expect(b"DIFF:SETPOINT,1.500000\r\n").await;
+    let quality = || tokio::task::spawn_blocking(move || web_quality(http, "setpoint"));
+    assert_eq!(quality().await.unwrap(), "good");
+
+    sim.stop().await;
+    let killed = Instant::now();
+    // The page is asked all along, apart from the GETs.
+    let sampler = std::thread::spawn(move || {
+        let mut samples = Vec::new();
+        while killed.elapsed() < LOSS + SLACK {
+            let asked = killed.elapsed();
+            samples.push((asked, web_quality(http, "setpoint")));
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        samples
+    });
+    // When the first GET was sent that was not served the polled value.
+    let mut first_refused = None;
+    while killed.elapsed() < LOSS + SLACK && first_refused.is_none() {
+        let sent = killed.elapsed();
+        let (line, _) = answer(&mut c, "GET:setpoint\n").await;
+        if line != "GET:SETPOINT,1.500000\r\n" {
+            first_refused = Some(sent);
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let first_refused = first_refused.expect("GET stopped serving the polled value");
+    let samples = tokio::task::spawn_blocking(move || sampler.join().unwrap())
+        .await
+        .unwrap();
+    let good_after: Vec<_> = samples
+        .iter()
+        .filter(|(asked, quality)| *asked > first_refused && quality == "good")
+        .map(|(asked, _)| *asked)
+        .collect();
+    assert!(
+        good_after.is_empty(),
+        "GET stopped serving the value at {first_refused:?} after the kill, \
+         the page said good at {good_after:?}"
+    );
+    assert_eq!(quality().await.unwrap(), "link_lost");
+}

@@ -204,6 +204,18 @@ impl Snapshot {
         self.current(id)
     }
 
+    /// The quality at `now`, for a face that reads the snapshot later than
+    /// its publish (the web page): `Good` only while GET would serve the
+    /// value from this poll ([`Snapshot::fresh`]); past that, with the link
+    /// not yet declared lost, `Stale`.
+    pub fn quality_at(&self, id: VarId, now: Instant) -> Quality {
+        match self.quality(id) {
+            Quality::Good if self.fresh(id, now).is_none() => Quality::Stale,
+            quality => quality,
+        }
+    }
+
+    /// The quality as published (fresh by construction).
     pub fn quality(&self, id: VarId) -> Quality {
         if !self.online {
             Quality::LinkLost

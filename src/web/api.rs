@@ -290,14 +290,15 @@ pub struct ValueList {
     pub values: Vec<ValueView>,
 }
 
-pub fn value_view(snapshot: &Snapshot, id: VarId) -> ValueView {
+/// `now`: the quality is the one GET would act on at that instant.
+pub fn value_view(snapshot: &Snapshot, id: VarId, now: tokio::time::Instant) -> ValueView {
     let var = snapshot.table.var(id);
     let slot = snapshot.slot(id);
     ValueView {
         name: cp1250::decode(&var.name).into_owned(),
         ty: var.ty.to_string(),
         value: slot.text().map(|t| cp1250::decode(t).into_owned()),
-        quality: snapshot.quality(id).as_str(),
+        quality: snapshot.quality_at(id, now).as_str(),
         changed_ms: slot.text().map(|_| slot.changed_ms),
     }
 }
@@ -311,10 +312,11 @@ pub async fn values(
     Query(query): Query<VarsQuery>,
 ) -> Result<Json<ValueList>, ApiError> {
     let (snapshot, ids) = query.select(&state, &name)?;
+    let now = tokio::time::Instant::now();
     let values = ids
         .iter()
         .take(query.limit())
-        .map(|&id| value_view(&snapshot, id))
+        .map(|&id| value_view(&snapshot, id, now))
         .collect();
     Ok(Json(ValueList {
         total: ids.len(),
