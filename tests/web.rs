@@ -1005,3 +1005,108 @@ fn history_parameters_out_of_range_or_naming_no_section_are_refused() {
         assert!(error.contains(names), "{query}: {error}");
     }
 }
+
+/// The cookie a login sets (`name=value`), and its Set-Cookie line.
+fn login_cookie(http: SocketAddr) -> (String, String) {
+    let login = serde_json::json!({ "token": TOKEN }).to_string();
+    let (status, head, _) = exchange(http, "POST", "/api/login", &[], Some(&login));
+    assert_eq!(status, 204, "{head}");
+    let line = head
+        .lines()
+        .find(|l| l.to_ascii_lowercase().starts_with("set-cookie:"))
+        .expect("a cookie")
+        .to_string();
+    let pair = line["set-cookie:".len()..]
+        .split(';')
+        .next()
+        .unwrap()
+        .trim()
+        .to_string();
+    (pair, line)
+}
+
+#[test]
+fn sessions_expire_and_logout_ends_them_and_the_scheme_is_any_case() {
+    let web = start_server(&format!("HTTP_BIND = 127.0.0.1\nHTTP_TOKEN = {TOKEN}"), "");
+    let http = web.http;
+    wait_until("the page answers", || {
+        request(http, "GET", "/api/session", &[], None).0 == 200
+    });
+    let set = r#"{"name": "SETPOINT", "value": "1"}"#;
+    let with = |name: &'static str, value: String| vec![(name, value)];
+    // RFC 7235: the scheme is case-insensitive.
+    let (status, _) = request(
+        http,
+        "POST",
+        "/api/sections/Demo/set",
+        &with("Authorization", format!("bearer {TOKEN}")),
+        Some(set),
+    );
+    assert_ne!(status, 401, "lower-case bearer refused");
+    let (cookie, line) = login_cookie(http);
+    assert!(line.contains("Max-Age="), "{line}");
+    assert!(
+        !cookie.contains(&hex(TOKEN)),
+        "the cookie is the token: {line}"
+    );
+    let (status, _) = request(
+        http,
+        "POST",
+        "/api/sections/Demo/set",
+        &with("Cookie", cookie.clone()),
+        Some(set),
+    );
+    assert_ne!(status, 401);
+    let (status, _) = request(
+        http,
+        "POST",
+        "/api/logout",
+        &with("Cookie", cookie.clone()),
+        None,
+    );
+    assert_eq!(status, 204);
+    let (status, _) = request(
+        http,
+        "POST",
+        "/api/sections/Demo/set",
+        &with("Cookie", cookie),
+        Some(set),
+    );
+    assert_eq!(status, 401, "the session outlived its logout");
+}
+
+fn hex(text: &str) -> String {
+    text.bytes().map(|b| format!("{b:02x}")).collect()
+}
+
+#[test]
+fn token_guesses_are_throttled_even_in_parallel() {
+    let web = start_server(&format!("HTTP_TOKEN = {TOKEN}"), "");
+    let http = web.http;
+    wait_until("the page answers", || {
+        request(http, "GET", "/api/session", &[], None).0 == 200
+    });
+    let guesses: Vec<_> = (0..24)
+        .map(|i| {
+            std::thread::spawn(move || {
+                let login = serde_json::json!({ "token": format!("guess {i}") }).to_string();
+                request(http, "POST", "/api/login", &[], Some(&login)).0
+            })
+        })
+        .collect();
+    let statuses: Vec<u16> = guesses.into_iter().map(|g| g.join().unwrap()).collect();
+    let compared = statuses.iter().filter(|s| **s == 401).count();
+    assert!(
+        compared <= 10 && statuses.iter().all(|s| *s == 401 || *s == 429),
+        "{statuses:?}"
+    );
+    // Bearer guesses draw on the same budget.
+    let (status, body) = request(
+        http,
+        "POST",
+        "/api/sections/Demo/set",
+        &[("Authorization", "Bearer guess".to_string())],
+        Some(r#"{"name": "SETPOINT", "value": "1"}"#),
+    );
+    assert_eq!(status, 429, "{}", String::from_utf8_lossy(&body));
+}

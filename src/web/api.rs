@@ -351,11 +351,12 @@ struct WriteFailed {
 /// the value read back. Needs the token.
 pub async fn set(
     state: State,
+    axum::extract::ConnectInfo(peer): axum::extract::ConnectInfo<std::net::SocketAddr>,
     Path(name): Path<String>,
     headers: HeaderMap,
     Json(write): Json<Write>,
 ) -> Response {
-    if let Err(refusal) = state.0.auth.may_write(&headers) {
+    if let Err(refusal) = state.0.auth.may_write(&headers, peer.ip()) {
         return refusal.response();
     }
     let section = match find(&state, &name) {
