@@ -10,7 +10,15 @@
 //!   looks for its return, [`PROBE_MIN`] doubling to [`PROBE_MAX`] apart
 //!   (the backend may choose other bounds: a Modbus device 1 s to 30 s);
 //! - a failed first connection is logged once too, then retried the same
-//!   way; the return is logged with the outage's length.
+//!   way; the return is logged with the outage's length;
+//! - a link lost before [`STEADY_POLLS`] good polls since it connected,
+//!   twice in a row, flaps (a device that connects but fails its reads):
+//!   the second loss is logged, the next reconnections wait a pause that
+//!   doubles from the backend's first one to [`FLAP_MAX`] and stay quiet,
+//!   and a count of them is logged at most every [`FLAP_REPORT`]. The pause
+//!   is kept until a run of [`STEADY_POLLS`] good polls; a PLC that is really
+//!   away meanwhile (its probes fail) is probed as in any outage, so it is
+//!   polled again within [`PROBE_MAX`] of its return.
 
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::Arc;
@@ -23,6 +31,14 @@ pub const PROBE_MIN: Duration = Duration::from_millis(100);
 /// Longest pause between probes: with a probe taking at most EPSTOUT plus a
 /// retry, a PLC that returns is found again within about a second.
 pub const PROBE_MAX: Duration = Duration::from_secs(1);
+/// Good polls in a row after a connection before the link counts as steady
+/// again (at COMM_LOOP_DELAY 100 ms, one second).
+pub const STEADY_POLLS: u32 = 10;
+/// Longest pause before reconnecting a link that keeps failing right after
+/// it connects.
+pub const FLAP_MAX: Duration = Duration::from_secs(30);
+/// Flaps are logged as a count at most this often.
+pub const FLAP_REPORT: Duration = Duration::from_secs(60);
 
 /// The state of a section's link to its PLC.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -90,6 +106,42 @@ pub enum Failure {
     Unreachable,
     /// One more failed probe of a known outage (stay quiet).
     StillDown,
+    /// The link failed before a run of good polls since it connected: it
+    /// flaps from now on (log it).
+    Unsteady,
+    /// One more failure of a flapping link (stay quiet; counted).
+    Flapped,
+}
+
+/// What a successful connection means.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Connected {
+    /// The first connection (log it).
+    First,
+    /// Back after an outage of this length (log it).
+    Again(Duration),
+    /// A flapping link connected once more (stay quiet).
+    Retrial,
+}
+
+/// A link that keeps failing soon after it connects.
+#[derive(Debug, Clone, Copy)]
+struct Flapping {
+    /// Flaps since the link was last steady.
+    count: u32,
+    /// Flaps not logged yet, and when the count was last logged.
+    unreported: u32,
+    reported: Instant,
+    /// The pause before the next reconnection after a flap.
+    pause: Duration,
+}
+
+/// A flapping link held [`STEADY_POLLS`] good polls.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Steady {
+    pub flaps: u32,
+    /// Since the first failure of the flapping.
+    pub unsteady_for: Duration,
 }
 
 #[derive(Debug)]
@@ -102,6 +154,12 @@ pub struct Health {
     next_probe: Instant,
     /// Since when the PLC has not answered.
     down_since: Option<Instant>,
+    /// Good polls since the link last connected.
+    good_polls: u32,
+    /// The last loss came before a run of good polls: another one like it
+    /// is a flap.
+    lost_unsteady: bool,
+    flapping: Option<Flapping>,
 }
 
 impl Health {
@@ -118,6 +176,9 @@ impl Health {
             backoff: (PROBE_MIN, PROBE_MAX),
             next_probe: now,
             down_since: None,
+            good_polls: 0,
+            lost_unsteady: false,
+            flapping: None,
         }
     }
 
@@ -146,37 +207,102 @@ impl Health {
         matches!(self.state, LinkState::Connecting | LinkState::Lost) && now >= self.next_probe
     }
 
-    /// The PLC answered a connection attempt. Returns how long it had been
-    /// away (`None` at the first connection).
-    pub fn connected(&mut self, now: Instant) -> Option<Duration> {
+    /// The PLC answered a connection attempt.
+    pub fn connected(&mut self, now: Instant) -> Connected {
         self.set(LinkState::Online);
         self.pause = self.backoff.0;
-        self.down_since.take().map(|since| now - since)
+        self.good_polls = 0;
+        if self.flapping.is_some() {
+            return Connected::Retrial;
+        }
+        match self.down_since.take() {
+            Some(since) => Connected::Again(now - since),
+            None => Connected::First,
+        }
+    }
+
+    /// A poll succeeded. Returns the end of a flapping, once.
+    pub fn polled(&mut self, now: Instant) -> Option<Steady> {
+        self.good_polls = self.good_polls.saturating_add(1);
+        if self.good_polls != STEADY_POLLS {
+            return None;
+        }
+        self.lost_unsteady = false;
+        let flapping = self.flapping.take()?;
+        let since = self.down_since.take().unwrap_or(now);
+        Some(Steady {
+            flaps: flapping.count,
+            unsteady_for: now - since,
+        })
     }
 
     /// An exchange or a connection attempt failed at `now`.
     pub fn failed(&mut self, now: Instant) -> Failure {
+        let steady = self.good_polls >= STEADY_POLLS;
         let failure = match self.state {
+            LinkState::Online if steady => Failure::Lost,
+            LinkState::Online if self.flapping.is_some() => Failure::Flapped,
+            LinkState::Online if self.lost_unsteady => Failure::Unsteady,
             LinkState::Online => Failure::Lost,
             LinkState::Connecting => Failure::Unreachable,
             LinkState::Lost | LinkState::NoPlc => Failure::StillDown,
         };
-        if failure != Failure::StillDown {
+        if matches!(failure, Failure::Lost | Failure::Unreachable) {
             self.down_since = Some(now);
+        }
+        if failure == Failure::Unsteady {
+            self.down_since.get_or_insert(now);
         }
         if self.state != LinkState::NoPlc {
             self.set(LinkState::Lost);
         }
-        // A loss is probed again at once (it may have been one lost
-        // datagram pair); a failed probe waits, longer each time.
-        if failure == Failure::Lost {
-            self.pause = self.backoff.0;
-            self.next_probe = now;
-        } else {
-            self.next_probe = now + self.pause;
-            self.pause = (self.pause * 2).min(self.backoff.1);
+        self.good_polls = 0;
+        match failure {
+            // A loss is probed again at once (it may have been one lost
+            // datagram pair).
+            Failure::Lost => {
+                self.lost_unsteady = !steady;
+                self.pause = self.backoff.0;
+                self.next_probe = now;
+            }
+            // A link that failed again soon after connecting waits its own
+            // pause, kept until a run of good polls.
+            Failure::Unsteady | Failure::Flapped => {
+                let flapping = self.flapping.get_or_insert(Flapping {
+                    count: 0,
+                    unreported: 0,
+                    reported: now,
+                    pause: self.backoff.0,
+                });
+                flapping.count = flapping.count.saturating_add(1);
+                if failure == Failure::Flapped {
+                    flapping.unreported = flapping.unreported.saturating_add(1);
+                }
+                self.next_probe = now + flapping.pause;
+                flapping.pause = (flapping.pause * 2).min(FLAP_MAX.max(self.backoff.1));
+            }
+            // A failed probe waits, longer each time.
+            Failure::Unreachable | Failure::StillDown => {
+                self.next_probe = now + self.pause;
+                self.pause = (self.pause * 2).min(self.backoff.1);
+            }
         }
         failure
+    }
+
+    /// The flaps not logged yet, when the last count is [`FLAP_REPORT`] old.
+    pub fn flap_report(&mut self, now: Instant) -> Option<u32> {
+        let flapping = self.flapping.as_mut()?;
+        if flapping.unreported == 0 || now - flapping.reported < FLAP_REPORT {
+            return None;
+        }
+        flapping.reported = now;
+        Some(std::mem::take(&mut flapping.unreported))
+    }
+
+    /// The pause before the next reconnection of a flapping link.
+    pub fn next_probe_in(&self, now: Instant) -> Duration {
+        self.next_probe.saturating_duration_since(now)
     }
 
     /// A new link (SETCONF): connect to it at once.
@@ -189,12 +315,90 @@ impl Health {
         self.pause = self.backoff.0;
         self.next_probe = now;
         self.down_since = None;
+        self.good_polls = 0;
+        self.lost_unsteady = false;
+        self.flapping = None;
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A run of good polls at `now`.
+    fn steady(health: &mut Health, now: Instant) -> Option<Steady> {
+        (0..STEADY_POLLS).filter_map(|_| health.polled(now)).last()
+    }
+
+    /// The pause until the next probe is due after `now`.
+    fn pause(health: &Health, now: Instant) -> Duration {
+        let mut wait = Duration::ZERO;
+        while !health.probe_due(now + wait) {
+            wait += Duration::from_millis(50);
+        }
+        wait
+    }
+
+    #[test]
+    fn a_link_that_fails_soon_after_connecting_backs_off_until_steady() {
+        let t0 = Instant::now();
+        let mut health = Health::new(true, t0);
+        assert_eq!(health.connected(t0), Connected::First);
+        // Lost before a run of good polls: maybe a PLC switched off, or one
+        // lost datagram pair; probed at once as any loss.
+        assert_eq!(health.failed(t0), Failure::Lost);
+        assert!(health.probe_due(t0));
+        assert_eq!(health.connected(t0), Connected::Again(Duration::ZERO));
+        // Lost again so soon: it flaps.
+        assert_eq!(health.failed(t0), Failure::Unsteady);
+        let mut now = t0;
+        let mut pauses = Vec::new();
+        for _ in 0..12 {
+            let wait = pause(&health, now);
+            pauses.push(wait.as_millis());
+            now += wait;
+            assert_eq!(health.connected(now), Connected::Retrial);
+            // A few good polls are not a run of them.
+            for _ in 0..STEADY_POLLS - 1 {
+                assert_eq!(health.polled(now), None);
+            }
+            assert_eq!(health.failed(now), Failure::Flapped);
+        }
+        assert_eq!(
+            pauses,
+            [100, 200, 400, 800, 1600, 3200, 6400, 12800, 25600, 30000, 30000, 30000]
+        );
+        // The count is logged at most once a minute.
+        let reported = health.flap_report(now);
+        assert_eq!(reported, Some(12));
+        assert_eq!(health.flap_report(now), None);
+        let reported_at = now;
+        now += pause(&health, now);
+        health.connected(now);
+        health.failed(now);
+        let soon = reported_at + FLAP_REPORT - Duration::from_millis(1);
+        assert_eq!(health.flap_report(soon), None);
+        assert_eq!(health.flap_report(reported_at + FLAP_REPORT), Some(1));
+
+        // Away for real meanwhile: probed as in any outage, not at the
+        // flapping pace, so its return is found within PROBE_MAX.
+        now += pause(&health, now);
+        for _ in 0..6 {
+            assert_eq!(health.failed(now), Failure::StillDown);
+            assert!(pause(&health, now) <= PROBE_MAX);
+            now += pause(&health, now);
+        }
+        assert_eq!(health.connected(now), Connected::Retrial);
+        // A run of good polls ends the flapping, once; the next loss is a
+        // plain one again, probed at once.
+        let end = steady(&mut health, now).expect("steady again");
+        assert_eq!(end.flaps, 14);
+        assert_eq!(end.unsteady_for, now - t0);
+        assert_eq!(health.polled(now), None);
+        assert_eq!(health.failed(now), Failure::Lost);
+        assert!(health.probe_due(now));
+        assert_eq!(health.connected(now), Connected::Again(Duration::ZERO));
+    }
 
     #[test]
     fn a_lost_link_is_probed_at_once_then_with_growing_pauses() {
@@ -203,9 +407,10 @@ mod tests {
         let shared = health.shared();
         assert_eq!(shared.get(), LinkState::Connecting);
         assert!(health.probe_due(t0));
-        assert_eq!(health.connected(t0), None);
+        assert_eq!(health.connected(t0), Connected::First);
         assert_eq!(shared.get(), LinkState::Online);
         assert!(!health.probe_due(t0), "online: no probes");
+        steady(&mut health, t0);
 
         let t1 = t0 + Duration::from_secs(10);
         assert_eq!(health.failed(t1), Failure::Lost);
@@ -228,7 +433,7 @@ mod tests {
         }
         assert_eq!(pauses, [200, 400, 800, 1000, 1000, 1000]);
         let back = now + Duration::from_millis(10);
-        assert_eq!(health.connected(back), Some(back - t1));
+        assert_eq!(health.connected(back), Connected::Again(back - t1));
         assert_eq!(shared.get(), LinkState::Online);
     }
 
@@ -238,6 +443,7 @@ mod tests {
         let mut health = Health::new(true, t0);
         health.set_backoff((Duration::from_secs(1), Duration::from_secs(30)));
         health.connected(t0);
+        steady(&mut health, t0);
         assert_eq!(health.failed(t0), Failure::Lost);
         let mut now = t0;
         let mut pauses = Vec::new();

@@ -45,7 +45,7 @@ use crate::section::state::{LinkStatus, SectionState};
 use cycle::Cycle;
 use files::{FileJob, FileReply, Files};
 pub use health::LinkState;
-use health::{Failure, Health, SharedState};
+use health::{Connected, Failure, Health, SharedState};
 pub use jobs::SetItem;
 pub use reconf::ConfChange;
 use tables::{LoadError, NamedBy, PubSource, UserFile};
@@ -470,10 +470,15 @@ impl Link {
         let describe = backend.describe();
         let source_address = backend.source_address();
         match away {
-            Some(away) => {
+            Connected::Again(away) => {
                 info!(section = %self.name, plc = %describe, ident = %ident, "PLC connected again after {:.1} s", away.as_secs_f64())
             }
-            None => info!(section = %self.name, plc = %describe, ident = %ident, "PLC connected"),
+            Connected::First => {
+                info!(section = %self.name, plc = %describe, ident = %ident, "PLC connected")
+            }
+            Connected::Retrial => {
+                debug!(section = %self.name, "flapping PLC connected once more")
+            }
         }
         if self.tables.as_ref().is_some_and(|t| t.pending_fetch) {
             if let Err(err) = self.reload(NamedBy::Configuration).await {
@@ -499,12 +504,31 @@ impl Link {
                 warn!(section = %self.name, plc = %describe, "cannot reach PLC: {err}; retrying")
             }
             Failure::StillDown => debug!(section = %self.name, "PLC still not answering: {err}"),
+            Failure::Unsteady => {
+                let pause = self.health.next_probe_in(Instant::now());
+                warn!(section = %self.name, plc = %describe, "PLC fails soon after connecting: {err}; reconnecting in {:.1} s, longer each time it fails again, counted in the log once a minute", pause.as_secs_f64())
+            }
+            Failure::Flapped => {
+                debug!(section = %self.name, "flapping PLC failed again: {err}");
+                if let Some(flaps) = self.health.flap_report(Instant::now()) {
+                    let pause = self.health.next_probe_in(Instant::now());
+                    warn!(section = %self.name, plc = %describe, "PLC failed soon after connecting {flaps} more times in the last minute, last: {err}; next try in {:.1} s", pause.as_secs_f64())
+                }
+            }
         }
         self.cycle.link_lost();
         if self.publisher.online() {
             self.publisher.publish_offline();
         }
         self.publish_status(|_| {});
+    }
+
+    /// A poll succeeded: a flapping link may be steady again.
+    fn good_poll(&mut self) {
+        if let Some(steady) = self.health.polled(Instant::now()) {
+            let describe = describe(self.backend.as_deref());
+            info!(section = %self.name, plc = %describe, "PLC connected again and steady after {} failures soon after connecting in {:.1} s", steady.flaps, steady.unsteady_for.as_secs_f64());
+        }
     }
 
     /// A failed exchange with a link error means the PLC is lost; a garbled
@@ -539,6 +563,7 @@ impl Link {
         if let Err(err) = polled {
             return self.failed(&err);
         }
+        self.good_poll();
         let events = self.cycle.take_events();
         if events.halt_to_run {
             // After HALT -> RUN the PLC expects its clients to start anew.
@@ -753,8 +778,9 @@ impl Link {
                     let started = Instant::now();
                     let polled = self.cycle.poll(backend, &mut self.publisher).await;
                     self.metrics.poll_cycle.observe(started.elapsed());
-                    if let Err(err) = polled {
-                        self.failed(&err);
+                    match polled {
+                        Ok(()) => self.good_poll(),
+                        Err(err) => self.failed(&err),
                     }
                     (self.deadline, _) = next_deadline(self.deadline, self.loop_delay, Instant::now());
                 }
