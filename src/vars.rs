@@ -11,7 +11,7 @@ use plccoms_protocol::{cp1250, Area, IecType, Mask};
 
 use plccoms_plc::memory::WriteData;
 use plccoms_plc::modbus::tags::TagFile;
-use plccoms_plc::pubfile::PubFile;
+use plccoms_plc::pubfile::{self, PubFile};
 pub use plccoms_plc::value_codec::{Codec, EncodeError};
 use plccoms_plc::MemoryMap;
 
@@ -84,6 +84,9 @@ pub struct VarFile {
     pub warnings: Vec<String>,
     /// Problems beyond `warnings`, counted only.
     pub more_warnings: usize,
+    /// The line of the first variable past [`pubfile::MAX_VARS`]: the file
+    /// is refused.
+    pub too_many: Option<usize>,
 }
 
 impl From<&PubFile> for VarFile {
@@ -105,6 +108,7 @@ impl From<&PubFile> for VarFile {
                 .collect(),
             warnings: file.warnings.iter().map(|w| w.to_string()).collect(),
             more_warnings: file.more_warnings,
+            too_many: file.too_many,
         }
     }
 }
@@ -131,6 +135,7 @@ impl From<&TagFile> for VarFile {
                 .collect(),
             warnings: file.warnings.iter().map(|w| w.to_string()).collect(),
             more_warnings: file.more_warnings,
+            too_many: file.too_many,
         }
     }
 }
@@ -139,6 +144,8 @@ impl From<&TagFile> for VarFile {
 pub enum TableError {
     #[error("fixed public file '{file}' does not define {name}")]
     MissingFixed { file: String, name: &'static str },
+    #[error("'{file}' line {line}: more than {max} variables, the most a file may define; the file is refused", max = pubfile::MAX_VARS)]
+    TooManyVars { file: String, line: usize },
 }
 
 #[derive(Debug, Default)]
@@ -204,6 +211,14 @@ impl VarTable {
         map: &MemoryMap,
         warnings: &mut Vec<String>,
     ) -> Result<VarTable, TableError> {
+        for (name, file) in [(fixed_file, fixed)].into_iter().chain(user) {
+            if let Some(line) = file.too_many {
+                return Err(TableError::TooManyVars {
+                    file: name.to_string(),
+                    line,
+                });
+            }
+        }
         let mut table = VarTable {
             fixed_file: fixed_file.to_string(),
             user_file: user.map(|(name, _)| name.to_string()),
@@ -344,6 +359,22 @@ impl VarTable {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+
+    #[test]
+    fn a_file_past_the_variable_bound_is_refused_naming_file_and_line() {
+        let mut text = Vec::new();
+        for i in 0..=pubfile::MAX_VARS {
+            text.extend_from_slice(format!(" V{i} R B {} BYTE\r\n", i % 1000).as_bytes());
+        }
+        let err = VarTable::from_public_text("big.pub", &text).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "'big.pub' line 100001: more than 100000 variables, the most a file may define; the file is refused"
+        );
+        text.truncate(text.len() - b" V100000 R B 0 BYTE\r\n".len());
+        let table = VarTable::from_public_text("big.pub", &text).expect("at the bound");
+        assert_eq!(table.len(), pubfile::MAX_VARS + 2);
+    }
 
     /// A table of the standard fixed file and user variables of the given
     /// names and types, laid out one after another in R.

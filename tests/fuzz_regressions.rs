@@ -28,6 +28,11 @@ fn every_target_runs_on_ordinary_input() {
     checks::input_decoder(b"\x10\x02\x07GET:x\r\nWRITEFILE:a[3]=abc\r\n\xff\xfb\x18\x04");
     checks::ini(include_bytes!("data/vendor/PLCComS.ini"));
     checks::pubfile(include_bytes!("../conf/demo.pub"));
+    // Fields of megabytes: names past MAX_NAME, quoted short in warnings.
+    let long = "N".repeat(1 << 20);
+    checks::pubfile(
+        format!(" {long} R B 0 BYTE\r\n x {long} B 0 BYTE\r\n;* crc=\"{long}\"").as_bytes(),
+    );
     for name in [
         &b"./a.txt"[..],
         b"./d/../a.txt",

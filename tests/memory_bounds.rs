@@ -95,3 +95,55 @@ async fn unfinished_uploads_to_the_plc_hold_disk_not_memory() {
     assert!(during < before + 48 * 1024, "{during} KiB from {before}");
     drop(clients);
 }
+
+/// A public file of `vars` variables named with `name_len` bytes each, all
+/// inside the PLC's memory.
+fn wide_pub(vars: usize, name_len: usize) -> Vec<u8> {
+    let mut text = Vec::with_capacity(vars * (name_len + 30));
+    for i in 0..vars {
+        let name = format!("V{i:0>width$}", width = name_len - 1);
+        let offset = (i % 100_000) * 4;
+        text.extend_from_slice(format!(" {name} R B {offset} DINT\r\n").as_bytes());
+    }
+    text
+}
+
+#[tokio::test]
+async fn public_files_are_bounded_in_variables_and_the_bound_fits_in_memory() {
+    let _alone = ALONE.lock().await;
+    let (_server, addr, dir) = server("", "", None).await;
+    let bound = plccoms_plc::pubfile::MAX_VARS;
+    let longest = plccoms_plc::pubfile::MAX_NAME;
+    let mut c = Client::connect(addr).await;
+
+    // At the bound, every name as long as accepted (a 27 MB file): taken,
+    // and what it costs per variable is measured.
+    std::fs::write(dir.path().join("at.pub"), wide_pub(bound, longest)).unwrap();
+    let before = rss_kib();
+    c.ask(
+        "SETCONF:pubfile,//at.pub\n",
+        "WARNING:250 Changed public file: 'at.pub'\r\n",
+    )
+    .await;
+    let after = rss_kib();
+    let per_var = (after.saturating_sub(before) * 1024) as usize / bound;
+    println!(
+        "RSS {before} KiB before, {after} KiB with {bound} variables of {longest}-byte names: \
+         {per_var} bytes a variable"
+    );
+    assert!(after < before + 200 * 1024, "{after} KiB from {before}");
+
+    // One variable past the bound, with short names (a 2 MB file): refused,
+    // the table stays.
+    std::fs::write(
+        dir.path().join("over.pub"),
+        plcsim::genpub::plain(bound + 1),
+    )
+    .unwrap();
+    c.ask(
+        "SETCONF:pubfile,//over.pub\n",
+        "ERROR:35 Wrong parameter value in request: 'SETCONF:pubfile,//over.pub'\r\n",
+    )
+    .await;
+    c.ask("GET:__plc_run\n", "GET:__PLC_RUN,1\r\n").await;
+}

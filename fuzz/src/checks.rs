@@ -487,8 +487,10 @@ pub fn pubfile(data: &[u8]) {
     let _ = plccoms_plc::pubfile::crc_of(plccoms_plc::pubfile::crc_content(data));
     let lines = data.split(|&b| b == b'\n').count();
     let mut names = HashSet::new();
+    assert!(parsed.vars.len() <= plccoms_plc::pubfile::MAX_VARS);
     for v in &parsed.vars {
         assert!(!v.name.is_empty());
+        assert!(v.name.len() <= plccoms_plc::pubfile::MAX_NAME, "{v:?}");
         assert!(v.line >= 1 && v.line <= lines, "line {} of {lines}", v.line);
         assert_eq!(v.bit.is_some(), v.ty == IecType::Bool, "{v:?}");
         assert!(!matches!(v.bit, Some(b) if b >= 8));
@@ -498,20 +500,25 @@ pub fn pubfile(data: &[u8]) {
         );
     }
     for w in &parsed.warnings {
-        let _ = w.to_string();
+        // A warning quotes the start of a field, never all of it.
+        assert!(w.message.len() <= 1024, "{} bytes", w.message.len());
     }
 
     let map = MemoryMap::FOXTROT;
     let fixed = plccoms_plc::pubfile::parse(FIXED_PUB);
     let mut warnings = Vec::new();
-    let table = VarTable::build(
+    let built = VarTable::build(
         "FIXED.pub",
         &fixed,
         Some(("fuzz.pub", &parsed)),
         &map,
         &mut warnings,
-    )
-    .expect("the shipped fixed file defines __PLC_RUN and __PF_CRC");
+    );
+    if parsed.too_many.is_some() {
+        assert!(built.is_err(), "a file past the variable bound is refused");
+        return;
+    }
+    let table = built.expect("the shipped fixed file defines __PLC_RUN and __PF_CRC");
     assert!(table.len() <= fixed.vars.len() + parsed.vars.len());
     for (id, var) in table.vars().iter().enumerate() {
         assert!(map.contains(var.area, var.offset, var.byte_len()));
@@ -899,6 +906,7 @@ pub fn modbus_tags(data: &[u8]) {
     use plccoms_plc::modbus::{tags, MAP};
 
     let file = tags::parse(data);
+    assert!(file.tags.len() <= plccoms_plc::pubfile::MAX_VARS);
     for tag in &file.tags {
         let (area, offset, bit) = tag.place();
         assert!(

@@ -64,10 +64,24 @@ pub struct PubFile {
     /// Problems beyond [`MAX_WARNINGS`], counted only (a file of garbage
     /// must not become megabytes of messages).
     pub more_warnings: usize,
+    /// The line of the first variable past [`MAX_VARS`]: the file is too
+    /// large, and its parse stopped there.
+    pub too_many: Option<usize>,
 }
 
 /// Warnings a parsed file keeps; the rest are counted.
 pub const MAX_WARNINGS: usize = 100;
+
+/// Most variables a file (and a section's table) takes: real public files
+/// have tens of thousands. A table costs about 1.3 KiB a variable at names of
+/// [`MAX_NAME`] bytes (RSS growth, `tests/memory_bounds.rs`), so 130 MB at
+/// most. A file with more is refused whole: the parse stops at the first
+/// variable past the bound ([`PubFile::too_many`]).
+pub const MAX_VARS: usize = 100_000;
+
+/// Longest name accepted, in bytes (as a Modbus tag file's); a line with a
+/// longer one is skipped with a warning.
+pub const MAX_NAME: usize = 255;
 
 impl PubFile {
     fn warn(&mut self, line: usize, message: String) {
@@ -183,6 +197,9 @@ pub fn parse(bytes: &[u8]) -> PubFile {
                             show(name)
                         ),
                     );
+                } else if file.vars.len() == MAX_VARS {
+                    file.too_many = Some(line_no);
+                    break;
                 } else {
                     seen.insert(FoldedName(name), line_no);
                     file.vars.push(var);
@@ -206,6 +223,13 @@ fn parse_var(fields: &[&[u8]], line: usize) -> Result<PubVar, String> {
         ));
     }
     let name = fields[0];
+    if name.len() > MAX_NAME {
+        return Err(format!(
+            "name of {} bytes '{}' is longer than the {MAX_NAME} accepted",
+            name.len(),
+            show(name)
+        ));
+    }
     if let Some(&bad) = name
         .iter()
         .find(|&&b| b < 0x20 || b == 0x7f || matches!(b, b',' | b':' | b'*' | b'"'))
@@ -389,8 +413,14 @@ fn trim_end(bytes: &[u8]) -> &[u8] {
 
 /// Bytes for a message: printable ASCII as is, everything else as `\xNN`
 /// (names are cp1250, messages are UTF-8).
+/// `bytes` for a message: printable ASCII, the rest escaped, cut after
+/// [`SHOWN`] bytes (a warning quotes a field, and a field may be megabytes).
 fn show(bytes: &[u8]) -> String {
-    let mut out = String::with_capacity(bytes.len());
+    let (bytes, cut) = match bytes.get(..SHOWN) {
+        Some(head) if bytes.len() > SHOWN => (head, true),
+        _ => (bytes, false),
+    };
+    let mut out = String::with_capacity(bytes.len() + 3);
     for &b in bytes {
         if (0x20..0x7f).contains(&b) {
             out.push(b as char);
@@ -398,8 +428,14 @@ fn show(bytes: &[u8]) -> String {
             out.push_str(&format!("\\x{b:02X}"));
         }
     }
+    if cut {
+        out.push_str("...");
+    }
     out
 }
+
+/// Bytes of a field a message quotes.
+const SHOWN: usize = 64;
 
 use plccoms_protocol::cp1250::upper as cp1250_upper;
 
@@ -698,6 +734,32 @@ mod tests {
         assert_eq!(file.crc, Some(crc));
         assert_eq!(crc_of(crc_content(&text)), crc);
         assert_eq!(file.vars[50_001].line, 50_003);
+    }
+
+    #[test]
+    fn a_file_past_the_variable_bound_stops_at_its_line_and_long_names_are_skipped() {
+        let mut text = b" ; a comment line\r\n".to_vec();
+        for i in 0..=MAX_VARS {
+            text.extend_from_slice(format!(" V{i} R B {} BYTE\r\n", i % 1000).as_bytes());
+        }
+        let file = parse(&text);
+        assert_eq!(file.vars.len(), MAX_VARS);
+        assert_eq!(file.too_many, Some(MAX_VARS + 2));
+        text.truncate(text.len() - b" V100000 R B 0 BYTE\r\n".len());
+        assert_eq!(parse(&text).too_many, None);
+
+        let long = "N".repeat(MAX_NAME + 1);
+        let file =
+            parse(format!(" {long} R B 0 BYTE\r\n {} R B 0 BYTE\r\n", &long[1..]).as_bytes());
+        assert_eq!(file.vars.len(), 1);
+        assert_eq!(file.vars[0].name.len(), MAX_NAME);
+        let warning = file.warnings[0].to_string();
+        assert!(
+            warning.starts_with("line 1: name of 256 bytes 'NNN"),
+            "{warning}"
+        );
+        // The message quotes the start of the name only.
+        assert!(warning.len() < 150, "{warning}");
     }
 
     #[test]

@@ -110,6 +110,9 @@ pub struct TagFile {
     /// Problems beyond those, counted only (a file of garbage must not
     /// become megabytes of messages).
     pub more_warnings: usize,
+    /// The line of the first tag past [`crate::pubfile::MAX_VARS`]: the file
+    /// is too large, and its parse stopped there.
+    pub too_many: Option<usize>,
 }
 
 impl TagFile {
@@ -154,8 +157,8 @@ const COLUMNS: [(&str, Column); 11] = [
 
 const REQUIRED: [Column; 4] = [Column::Name, Column::Type, Column::Table, Column::Address];
 
-/// Longest name accepted (a public file's names are far shorter).
-const MAX_NAME: usize = 255;
+/// Longest name accepted, as in a public file.
+const MAX_NAME: usize = crate::pubfile::MAX_NAME;
 
 /// Parses a tag file. Never fails: bad lines become warnings.
 pub fn parse(bytes: &[u8]) -> TagFile {
@@ -233,6 +236,9 @@ pub fn parse(bytes: &[u8]) -> TagFile {
                             cp1250::decode(&tag.name)
                         ),
                     });
+                } else if file.tags.len() == crate::pubfile::MAX_VARS {
+                    file.too_many = Some(line);
+                    break;
                 } else {
                     seen.insert(folded, line);
                     file.tags.push(tag);
@@ -653,6 +659,18 @@ good3,INT,holding,6,,,\n";
             shown[6],
             "line 12, column 6: 'CDAB' is under no column (the header names 5); line skipped"
         );
+    }
+
+    #[test]
+    fn a_file_past_the_variable_bound_stops_at_its_line() {
+        let bound = crate::pubfile::MAX_VARS;
+        let mut text = b"name,type,table,address\n".to_vec();
+        for i in 0..=bound {
+            text.extend_from_slice(format!("t{i},INT,holding,{}\n", i % 1000).as_bytes());
+        }
+        let file = parse(&text);
+        assert_eq!(file.tags.len(), bound);
+        assert_eq!(file.too_many, Some(bound + 2));
     }
 
     #[test]
