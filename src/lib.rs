@@ -31,6 +31,7 @@ pub mod cmd;
 pub mod config;
 pub mod daemon;
 pub mod demo;
+pub mod files_quota;
 pub mod historian;
 pub mod link;
 pub mod localfs;

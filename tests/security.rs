@@ -135,6 +135,44 @@ async fn files_root_gives_pc_files_a_folder_of_their_own() {
 }
 
 #[tokio::test]
+async fn writefile_to_the_files_root_is_bounded_by_its_quota() {
+    let (_server, addr, dir) = server("FILES_ROOT = files\nFILES_QUOTA = 100000", "", None).await;
+    let root = dir.path().join("files");
+    std::fs::create_dir_all(root.join("old")).unwrap();
+    // What is in the root already counts, in subfolders too.
+    std::fs::write(root.join("old/log.bin"), vec![0u8; 50_000]).unwrap();
+    let mut c = Client::connect(addr).await;
+    assert_eq!(
+        writefile(&mut c, "./a.bin", &[1; 30_000]).await,
+        "WRITEFILE:./a.bin OK\r\n"
+    );
+    // 80,000 bytes in the root, 30,000 more would pass 100,000.
+    assert_eq!(
+        writefile(&mut c, "./b.bin", &[2; 30_000]).await,
+        "ERROR:42 Unable to write file: './b.bin'\r\n"
+    );
+    assert!(!root.join("b.bin").exists());
+    // Room is made by deleting: the root is measured again.
+    std::fs::remove_file(root.join("old/log.bin")).unwrap();
+    let start = Instant::now();
+    loop {
+        let answer = writefile(&mut c, "./b.bin", &[2; 30_000]).await;
+        if answer == "WRITEFILE:./b.bin OK\r\n" {
+            break;
+        }
+        assert!(start.elapsed() < Duration::from_secs(10), "{answer}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    assert_eq!(std::fs::read(root.join("b.bin")).unwrap().len(), 30_000);
+    // Nothing of the refused uploads is left behind.
+    let names: Vec<_> = std::fs::read_dir(&root)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    assert_eq!(names.len(), 3, "{names:?}");
+}
+
+#[tokio::test]
 async fn setconf_pubfile_stays_in_its_folder_and_answers_alike() {
     let (_server, addr, dir) = server("", "PUBFILE_CRC = No", None).await;
     let outside = tempfile::tempdir().unwrap();

@@ -10,7 +10,9 @@
 //! temporary file (at most [`MAX_PLC_FILE`], so many uploads at once hold
 //! disk, not memory) and handed to the link whole, which writes it in the
 //! backend's blocks with only the last one committing it. Blocks get no
-//! answer of their own: failures are answered at the zero block (ERROR 42).
+//! answer of their own: failures are answered at the zero block (ERROR 42),
+//! a local file's block past the files root's quota included
+//! ([`crate::files_quota`], FILES_QUOTA).
 //!
 //! A block for another name while a transfer is open ends the open one with
 //! ERROR 44 (unterminated). A gap longer than FFILE_TIMEOUT_WR between blocks
@@ -27,10 +29,13 @@
 use plccoms_protocol::answer::ErrorCode;
 use plccoms_protocol::request::{classify, parse_block, Command, Line};
 use tokio::time::Instant;
+use tracing::warn;
 
 use super::{error, is_local, local_path, ok_line, Cx, FileThen, Reply};
+use crate::files_quota;
 use crate::link::files::{FileJob, Spool};
 use crate::localfs::{self, Access, Staging};
+use crate::ratelimit::{more, RateLimited};
 
 /// Largest PLC file taken by WRITEFILE.
 pub const MAX_PLC_FILE: usize = 16 * 1024 * 1024;
@@ -108,7 +113,7 @@ fn write_block(cx: &mut Cx<'_>, name: Vec<u8>, data: Vec<u8>, out: &mut Vec<u8>)
     let mut upload = Upload { deadline, ..upload };
     match &mut upload.target {
         Target::Local(staging) => {
-            if staging.write(&data).is_err() {
+            if !within_quota(cx, &upload.name, data.len()) || staging.write(&data).is_err() {
                 upload.target = Target::Failed;
             }
         }
@@ -122,6 +127,28 @@ fn write_block(cx: &mut Cx<'_>, name: Vec<u8>, data: Vec<u8>, out: &mut Vec<u8>)
     }
     cx.client.upload = Some(upload);
     Reply::Done
+}
+
+/// Whether `len` more bytes fit in the files root's quota; a refusal is
+/// logged, rate-limited (a client can cause it at will).
+fn within_quota(cx: &Cx<'_>, name: &[u8], len: usize) -> bool {
+    static REFUSED: RateLimited = RateLimited::new(std::time::Duration::from_secs(1));
+    let quota = cx.section.global.files_quota;
+    match files_quota::admit(&cx.section.root, quota, len as u64) {
+        Ok(()) => true,
+        Err(over) => {
+            if let Some(quiet) = REFUSED.admit() {
+                warn!(
+                    section = %cx.section.name,
+                    client = %cx.client.peer,
+                    name = %String::from_utf8_lossy(name),
+                    "WRITEFILE refused: {over}{}",
+                    more(quiet)
+                );
+            }
+            false
+        }
+    }
 }
 
 fn start(cx: &Cx<'_>, name: &[u8]) -> Target {

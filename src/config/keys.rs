@@ -608,6 +608,10 @@ static KEYS: &[Key] = &[
         "folder of the PC files clients read and write (names beginning with .); \
          default: files in $STATE_DIRECTORY under systemd, else the configuration's folder",
         Setter::Global(|g, v| g.files_root = Some(v.text().into()))),
+    row("FILES_QUOTA", None, number(0, u64::MAX, "bytes"),
+        "bytes the files root may hold for WRITEFILE to add to it; \
+         default: the smaller of 1 GiB and a tenth of the free space",
+        Setter::Global(|g, v| g.files_quota = Some(v.number()))),
     // The built-in web page, /metrics and the JSON API (src/web).
     row("HTTP_PORT", None, number(1, 65535, ""), "TCP port of the web page and API (unset = off)",
         Setter::Global(|g, v| g.http_port = Some(v.number() as u16))),

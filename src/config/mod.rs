@@ -164,6 +164,9 @@ pub struct Global {
     /// FILES_ROOT: the folder of PC files (relative to the configuration's
     /// folder); `None`: the configuration's folder, as PLCComS.
     pub files_root: Option<PathBuf>,
+    /// FILES_QUOTA: bytes clients may fill the files root to with WRITEFILE
+    /// (`None`: see [`crate::files_quota::default_quota`]).
+    pub files_quota: Option<u64>,
     /// The built-in web page (src/web): HTTP_PORT (`None` = off),
     /// HTTP_BIND, HTTP_TOKEN, and TLS with HTTP_CERT and HTTP_KEY (paths
     /// relative to the configuration's folder).
@@ -214,6 +217,7 @@ impl Default for Global {
             output_soft_limit: 0,
             output_soft_timeout: Duration::ZERO,
             files_root: None,
+            files_quota: None,
             http_port: None,
             http_bind: IpAddr::V4(Ipv4Addr::LOCALHOST),
             http_token: None,
