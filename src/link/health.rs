@@ -12,13 +12,16 @@
 //! - a failed first connection is logged once too, then retried the same
 //!   way; the return is logged with the outage's length;
 //! - a link lost before [`STEADY_POLLS`] good polls since it connected,
-//!   twice in a row, flaps (a device that connects but fails its reads):
-//!   the second loss is logged, the next reconnections wait a pause that
-//!   doubles from the backend's first one to [`FLAP_MAX`] and stay quiet,
-//!   and a count of them is logged at most every [`FLAP_REPORT`]. The pause
-//!   is kept until a run of [`STEADY_POLLS`] good polls; a PLC that is really
-//!   away meanwhile (its probes fail) is probed as in any outage, so it is
-//!   polled again within [`PROBE_MAX`] of its return.
+//!   twice in a row, is unsteady (a device that connects but fails its
+//!   reads, or a lossy line): the second loss is logged, later losses and
+//!   reconnections stay quiet and a count of them is logged at most every
+//!   [`FLAP_REPORT`], until a run of [`STEADY_POLLS`] good polls. A loss
+//!   with no good poll at all since connecting is a flap: the reconnection
+//!   waits a pause that doubles from the backend's first one to
+//!   [`FLAP_MAX`], reset by a good poll (a lossy line that polls between its
+//!   losses is not slowed down). A PLC that is really away meanwhile (its
+//!   probes fail) is probed as in any outage, so it is polled again within
+//!   [`PROBE_MAX`] of its return.
 
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::Arc;
@@ -239,6 +242,7 @@ impl Health {
     /// An exchange or a connection attempt failed at `now`.
     pub fn failed(&mut self, now: Instant) -> Failure {
         let steady = self.good_polls >= STEADY_POLLS;
+        let polled_meanwhile = self.good_polls > 0;
         let failure = match self.state {
             LinkState::Online if steady => Failure::Lost,
             LinkState::Online if self.flapping.is_some() => Failure::Flapped,
@@ -265,8 +269,9 @@ impl Health {
                 self.pause = self.backoff.0;
                 self.next_probe = now;
             }
-            // A link that failed again soon after connecting waits its own
-            // pause, kept until a run of good polls.
+            // A link that failed before a single good poll waits a pause
+            // of its own, longer each time; one that polled meanwhile is
+            // probed at once again.
             Failure::Unsteady | Failure::Flapped => {
                 let flapping = self.flapping.get_or_insert(Flapping {
                     count: 0,
@@ -278,8 +283,13 @@ impl Health {
                 if failure == Failure::Flapped {
                     flapping.unreported = flapping.unreported.saturating_add(1);
                 }
-                self.next_probe = now + flapping.pause;
-                flapping.pause = (flapping.pause * 2).min(FLAP_MAX.max(self.backoff.1));
+                if polled_meanwhile {
+                    flapping.pause = self.backoff.0;
+                    self.next_probe = now;
+                } else {
+                    self.next_probe = now + flapping.pause;
+                    flapping.pause = (flapping.pause * 2).min(FLAP_MAX.max(self.backoff.1));
+                }
             }
             // A failed probe waits, longer each time.
             Failure::Unreachable | Failure::StillDown => {
@@ -358,10 +368,6 @@ mod tests {
             pauses.push(wait.as_millis());
             now += wait;
             assert_eq!(health.connected(now), Connected::Retrial);
-            // A few good polls are not a run of them.
-            for _ in 0..STEADY_POLLS - 1 {
-                assert_eq!(health.polled(now), None);
-            }
             assert_eq!(health.failed(now), Failure::Flapped);
         }
         assert_eq!(
@@ -380,6 +386,19 @@ mod tests {
         assert_eq!(health.flap_report(soon), None);
         assert_eq!(health.flap_report(reported_at + FLAP_REPORT), Some(1));
 
+        // A lossy line: a few good polls between losses are not a run of
+        // them (still quiet), but they end the pauses.
+        now += pause(&health, now);
+        assert_eq!(health.connected(now), Connected::Retrial);
+        for _ in 0..STEADY_POLLS - 1 {
+            assert_eq!(health.polled(now), None);
+        }
+        assert_eq!(health.failed(now), Failure::Flapped);
+        assert!(health.probe_due(now));
+        assert_eq!(health.connected(now), Connected::Retrial);
+        assert_eq!(health.failed(now), Failure::Flapped);
+        assert_eq!(pause(&health, now).as_millis(), 100);
+
         // Away for real meanwhile: probed as in any outage, not at the
         // flapping pace, so its return is found within PROBE_MAX.
         now += pause(&health, now);
@@ -392,7 +411,7 @@ mod tests {
         // A run of good polls ends the flapping, once; the next loss is a
         // plain one again, probed at once.
         let end = steady(&mut health, now).expect("steady again");
-        assert_eq!(end.flaps, 14);
+        assert_eq!(end.flaps, 16);
         assert_eq!(end.unsteady_for, now - t0);
         assert_eq!(health.polled(now), None);
         assert_eq!(health.failed(now), Failure::Lost);
