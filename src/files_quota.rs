@@ -87,12 +87,15 @@ pub fn admit(root: &Path, configured: Option<u64>, len: u64) -> Result<(), OverQ
     Ok(())
 }
 
-/// Bytes of the files under `root` (links not followed); `u64::MAX` past
-/// [`MAX_ENTRIES`] entries.
+/// Bytes of the clients' files under `root` (links not followed); the
+/// server's own files and folders there (the history, the MQTT queue, the
+/// configuration when the root is its folder) are not the clients' and do
+/// not count. `u64::MAX` past [`MAX_ENTRIES`] entries.
 fn measure(root: &Path) -> u64 {
     let mut total = 0u64;
     let mut entries = 0usize;
-    let mut folders = vec![root.to_path_buf()];
+    let root = std::fs::canonicalize(root).unwrap_or_else(|_| root.to_path_buf());
+    let mut folders = vec![root];
     while let Some(folder) = folders.pop() {
         let Ok(list) = std::fs::read_dir(&folder) else {
             continue;
@@ -105,6 +108,9 @@ fn measure(root: &Path) -> u64 {
             let Ok(meta) = entry.metadata() else {
                 continue;
             };
+            if crate::localfs::is_own(&entry.path(), crate::localfs::Access::Write, &[]) {
+                continue;
+            }
             if meta.is_dir() {
                 folders.push(entry.path());
             } else if meta.is_file() {

@@ -172,6 +172,21 @@ async fn writefile_to_the_files_root_is_bounded_by_its_quota() {
     assert_eq!(names.len(), 3, "{names:?}");
 }
 
+/// The server's own files in the root (the history, the queues, when the
+/// root is the configuration's folder) are not the clients' and do not
+/// count towards their quota.
+#[tokio::test]
+async fn the_servers_own_files_in_the_root_do_not_count_towards_the_quota() {
+    let (_server, addr, dir) = server("FILES_QUOTA = 100000\nHISTORY_DIR = hist", "", None).await;
+    std::fs::create_dir_all(dir.path().join("hist")).unwrap();
+    std::fs::write(dir.path().join("hist/big.db"), vec![0u8; 200_000]).unwrap();
+    let mut c = Client::connect(addr).await;
+    assert_eq!(
+        writefile(&mut c, "./a.bin", &[1; 30_000]).await,
+        "WRITEFILE:./a.bin OK\r\n"
+    );
+}
+
 #[tokio::test]
 async fn setconf_pubfile_stays_in_its_folder_and_answers_alike() {
     let (_server, addr, dir) = server("", "PUBFILE_CRC = No", None).await;
