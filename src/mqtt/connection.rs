@@ -56,6 +56,13 @@ const RETRY_MAX: Duration = Duration::from_secs(5);
 /// How long a clean stop waits for `offline` and DISCONNECT to go out.
 const STOP_WAIT: Duration = Duration::from_secs(2);
 
+/// An announcement under way: the next of `wanted` to announce, and the
+/// config topics left to clear.
+struct Announcement {
+    next: usize,
+    gone: Vec<String>,
+}
+
 /// A connection attempt: the client, and the event loop's events.
 struct Link {
     client: AsyncClient,
@@ -109,6 +116,9 @@ pub(super) struct State {
     last: Vec<Option<Value>>,
     plc_online: Option<bool>,
     announced: BTreeSet<String>,
+    /// The discovery announcement under way: one at a time, however many
+    /// `online`s come while it is pending or running.
+    announcing: Option<Announcement>,
     /// Messages dropped over MQTT_BUFFER since the queue was last empty.
     dropping: u64,
     spool_failing: bool,
@@ -294,6 +304,7 @@ impl Task {
         state.link = None;
         state.connected = false;
         state.direct.clear();
+        state.announcing = None;
         state.submitted.clear();
         state.inflight.clear();
         state.outstanding = 0;
@@ -328,7 +339,11 @@ impl Task {
             return;
         }
         while self.state.outstanding < WINDOW {
-            let (message, seq) = match self.state.direct.pop_front() {
+            let state_message = match self.state.direct.pop_front() {
+                Some(message) => Some(message),
+                None => self.next_announcement(),
+            };
+            let (message, seq) = match state_message {
                 Some(message) => (message, None),
                 None => match self.spool.next_unsent() {
                     Ok(Some((seq, message))) => (message, Some(seq)),
@@ -520,7 +535,10 @@ impl Task {
 
     fn on_message(&mut self, topic: &str, payload: &[u8], retained: bool) {
         if topic == discovery::HA_STATUS {
-            if payload == b"online" && self.rules.ha_discovery && !retained {
+            // Coalesced: an announcement pending or running already
+            // sends every config.
+            let pending = self.state.announcing.is_some();
+            if payload == b"online" && self.rules.ha_discovery && !retained && !pending {
                 self.announce();
             }
             return;
@@ -581,51 +599,78 @@ impl Task {
 
     // ------------------------------------------------------------ discovery
 
-    /// Sends the discovery configs of the published variables and clears
-    /// those announced before and gone now (all of them with discovery off).
+    /// Starts (or starts over) sending the discovery configs of the
+    /// published variables and clearing those announced before and gone now
+    /// (all of them with discovery off). The configs are made one at a time
+    /// as the window has room ([`Task::next_announcement`]), so an
+    /// announcement holds a cursor and the topics to clear, never the
+    /// messages.
     fn announce(&mut self) {
         if !self.state.connected {
             return;
         }
         let mut current = BTreeSet::new();
-        if self.rules.ha_discovery {
-            if let Some(table) = self.state.table.clone() {
-                let read_only = self.section.read_only();
-                let device = Device {
-                    prefix: &self.settings.prefix,
-                    section: &self.section.name,
-                    topics: &self.topics,
-                    format: self.rules.format,
-                    qos: self.rules.qos,
-                };
-                for &id in &self.state.wanted {
-                    let var = table.var(id);
-                    let writable = !read_only && self.rules.writable(&var.name);
-                    let (topic, payload) = discovery::config(&device, var, writable);
-                    current.insert(topic.clone());
-                    self.state.direct.push_back(Message {
-                        topic,
-                        payload,
-                        qos: 1,
-                        retain: true,
-                    });
-                }
+        for index in 0..self.state.wanted.len() {
+            if let Some(topic) = self.discovery_config(index, true) {
+                current.insert(topic.0);
             }
         }
-        for gone in self.state.announced.difference(&current) {
-            self.state.direct.push_back(Message {
-                topic: gone.clone(),
-                payload: Vec::new(),
-                qos: 1,
-                retain: true,
-            });
-        }
+        let gone = self.state.announced.difference(&current).cloned().collect();
         if current != self.state.announced {
             if let Err(e) = discovery::save_announced(&self.spool_dir, &current) {
                 warn!(section = %self.section.name, "MQTT: cannot save the discovery topics in {}: {e}", self.spool_dir.display());
             }
             self.state.announced = current;
         }
+        self.state.announcing = Some(Announcement { next: 0, gone });
+    }
+
+    /// The discovery config topic and, unless `topic_only`, payload of the
+    /// `index`th published variable (discovery on, a table).
+    fn discovery_config(&self, index: usize, topic_only: bool) -> Option<(String, Vec<u8>)> {
+        let table = self
+            .state
+            .table
+            .as_ref()
+            .filter(|_| self.rules.ha_discovery)?;
+        let var = table.var(*self.state.wanted.get(index)?);
+        let device = Device {
+            prefix: &self.settings.prefix,
+            section: &self.section.name,
+            topics: &self.topics,
+            format: self.rules.format,
+            qos: self.rules.qos,
+        };
+        let writable = !self.section.read_only() && self.rules.writable(&var.name);
+        Some(if topic_only {
+            (discovery::config_topic(&device, var, writable), Vec::new())
+        } else {
+            discovery::config(&device, var, writable)
+        })
+    }
+
+    /// The next message of the announcement under way, if any: the clears,
+    /// then a config per published variable.
+    fn next_announcement(&mut self) -> Option<Message> {
+        let mut announcement = self.state.announcing.take()?;
+        if let Some(topic) = announcement.gone.pop() {
+            self.state.announcing = Some(announcement);
+            return Some(Message {
+                topic,
+                payload: Vec::new(),
+                qos: 1,
+                retain: true,
+            });
+        }
+        let (topic, payload) = self.discovery_config(announcement.next, false)?;
+        announcement.next += 1;
+        self.state.announcing = Some(announcement);
+        Some(Message {
+            topic,
+            payload,
+            qos: 1,
+            retain: true,
+        })
     }
 
     // -------------------------------------------------------------- upkeep

@@ -70,22 +70,41 @@ pub fn object_id(text: &str) -> String {
     }
 }
 
+fn is_numeric(ty: IecType) -> bool {
+    !matches!(
+        ty,
+        IecType::Bool | IecType::String(_) | IecType::Date | IecType::Dt
+    )
+}
+
+fn component(var: &Var, writable: bool) -> &'static str {
+    match (var.ty, writable) {
+        (IecType::Bool, true) => "switch",
+        (IecType::Bool, false) => "binary_sensor",
+        (ty, true) if is_numeric(ty) => "number",
+        (_, true) => "text",
+        (_, false) => "sensor",
+    }
+}
+
+fn entity_id(device: &Device<'_>, name: &str) -> String {
+    object_id(&format!("{}_{}_{}", device.prefix, device.section, name))
+}
+
+/// The topic of a variable's config (what [`config`] makes, without the
+/// payload).
+pub fn config_topic(device: &Device<'_>, var: &Var, writable: bool) -> String {
+    let id = entity_id(device, &cp1250::decode(&var.name));
+    format!("{PREFIX}/{}/{id}/config", component(var, writable))
+}
+
 /// The topic and payload of a variable's config.
 pub fn config(device: &Device<'_>, var: &Var, writable: bool) -> (String, Vec<u8>) {
     let name = cp1250::decode(&var.name).into_owned();
-    let id = object_id(&format!("{}_{}_{}", device.prefix, device.section, name));
+    let id = entity_id(device, &name);
     let state = device.topics.value(&var.name);
-    let numeric = !matches!(
-        var.ty,
-        IecType::Bool | IecType::String(_) | IecType::Date | IecType::Dt
-    );
-    let component = match (var.ty, writable) {
-        (IecType::Bool, true) => "switch",
-        (IecType::Bool, false) => "binary_sensor",
-        (_, true) if numeric => "number",
-        (_, true) => "text",
-        (_, false) => "sensor",
-    };
+    let numeric = is_numeric(var.ty);
+    let component = component(var, writable);
     let mut c = Map::new();
     c.insert("name".into(), json!(name));
     c.insert("unique_id".into(), json!(id));
@@ -160,7 +179,7 @@ pub fn config(device: &Device<'_>, var: &Var, writable: bool) -> (String, Vec<u8
         "origin".into(),
         json!({"name": "plccoms", "sw_version": env!("CARGO_PKG_VERSION")}),
     );
-    let topic = format!("{PREFIX}/{component}/{id}/config");
+    let topic = config_topic(device, var, writable);
     (topic, Value::Object(c).to_string().into_bytes())
 }
 
@@ -242,6 +261,7 @@ mod tests {
             .starts_with("plccoms_Hala_1_SW_"));
         let (topic, _) = config(&device, var(b"SW"), false);
         assert!(topic.starts_with("homeassistant/binary_sensor/"));
+        assert_eq!(config_topic(&device, var(b"SW"), false), topic);
         let c = parse(&config(&device, var(b"N"), true).1);
         assert_eq!(
             (c["min"].as_f64(), c["max"].as_f64()),
