@@ -164,7 +164,7 @@ async fn an_oversized_retained_set_keeps_the_connection() {
     let _serial = SERIAL.lock().await;
     logs();
     let broker = Broker::anonymous();
-    let (server, _addr, _dir) = simulated(
+    let (server, addr, _dir) = simulated(
         &format!("MQTT_URL = {}", broker.url()),
         "MQTT_PUBLISH = counter\nMQTT_WRITE = counter, note",
         None,
@@ -190,8 +190,9 @@ async fn an_oversized_retained_set_keeps_the_connection() {
     let log = log_since(start);
     assert!(log.lines().count() <= 3, "{log}");
 
-    // A later change arrives exactly once.
-    broker.publish("plccoms/PLC/COUNTER/set", "4321", false);
+    // A later change (a line-protocol client's SET) arrives exactly once.
+    let mut client = common::Client::connect(addr).await;
+    client.send(b"SET:counter,4321\n").await;
     sub.wait_payload("plccoms/PLC/COUNTER", "4321");
     std::thread::sleep(Duration::from_secs(3));
     let seen = sub

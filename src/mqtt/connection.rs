@@ -26,7 +26,7 @@ use plccoms_protocol::cp1250;
 use plccoms_protocol::value::Value;
 use rumqttc::{
     AsyncClient, ConnectReturnCode, ConnectionError, Event, LastWill, MqttOptions, Outgoing,
-    Packet, QoS, SubscribeReasonCode, TlsConfiguration, Transport,
+    Packet, QoS, StateError, SubscribeReasonCode, TlsConfiguration, Transport,
 };
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
@@ -48,11 +48,22 @@ use crate::vars::{VarId, VarTable};
 /// Publishes handed to rumqttc and not yet acknowledged (or, QoS 0,
 /// written), at most.
 const WINDOW: usize = 256;
-/// The largest message either way.
+/// The largest message sent.
 const MAX_PACKET: usize = 1 << 20;
+/// The largest message taken from the broker. rumqttc cannot skip a bigger
+/// one: it drops the connection, and a retained one comes back at every
+/// subscription. So it is generous, far above any write (`/set` values of
+/// more than [`writes::MAX_VALUE`] bytes are refused), and still a bound on
+/// what one message can make this process hold. Beyond it the broker's own
+/// `max_packet_size` is the remedy (the log line says so).
+const MAX_INCOMING: usize = 16 << 20;
 const KEEP_ALIVE: Duration = Duration::from_secs(15);
 const RETRY_FIRST: Duration = Duration::from_millis(250);
 const RETRY_MAX: Duration = Duration::from_secs(5);
+/// A connection up this long is a healthy one: the retry delay starts
+/// again from [`RETRY_FIRST`] and the next problem is logged. One that
+/// fails sooner (at its subscriptions, say) keeps backing off quietly.
+const STABLE: Duration = Duration::from_secs(30);
 /// How long a clean stop waits for `offline` and DISCONNECT to go out.
 const STOP_WAIT: Duration = Duration::from_secs(2);
 
@@ -98,8 +109,13 @@ pub(super) struct State {
     connected: bool,
     retry_at: Option<Instant>,
     backoff: Duration,
-    /// The last connection problem logged (each logged once per outage).
+    /// The last connection problem logged (each logged once per outage;
+    /// an outage ends when a connection stayed up [`STABLE`]).
     logged: Option<String>,
+    /// "Connected again" was logged in this outage.
+    reconnect_logged: bool,
+    /// When the current connection was made.
+    connected_at: Option<Instant>,
     /// State messages for this connection, sent before the queue.
     direct: VecDeque<Message>,
     /// Per publish handed to rumqttc, in order: its spool sequence number,
@@ -169,7 +185,7 @@ impl Task {
             .set_keep_alive(KEEP_ALIVE)
             .set_clean_session(true)
             .set_inflight((WINDOW + 8) as u16)
-            .set_max_packet_size(MAX_PACKET, MAX_PACKET)
+            .set_max_packet_size(MAX_INCOMING, MAX_PACKET)
             .set_last_will(LastWill::new(
                 self.topics.status(),
                 "offline",
@@ -250,17 +266,22 @@ impl Task {
     fn on_connected(&mut self) {
         let broker = &self.settings.broker;
         let queued = self.spool.len();
-        match self.state.logged.take() {
-            Some(_) => {
-                info!(section = %self.section.name, "MQTT: connected to {}:{} again as {}; sending {queued} queued messages", broker.host, broker.port, self.client_id)
-            }
-            None => {
+        match (&self.state.logged, self.state.reconnect_logged) {
+            (None, _) => {
                 info!(section = %self.section.name, "MQTT: connected to {}:{} as {} ({queued} queued messages)", broker.host, broker.port, self.client_id)
+            }
+            (Some(_), false) => {
+                info!(section = %self.section.name, "MQTT: connected to {}:{} again as {}; sending {queued} queued messages", broker.host, broker.port, self.client_id);
+                self.state.reconnect_logged = true;
+            }
+            // Connections that fail at once, again and again: quiet.
+            (Some(_), true) => {
+                debug!(section = %self.section.name, "MQTT: connected again ({queued} queued messages)")
             }
         }
         let state = &mut self.state;
         state.connected = true;
-        state.backoff = Duration::ZERO;
+        state.connected_at = Some(Instant::now());
         state.submitted.clear();
         state.inflight.clear();
         state.outstanding = 0;
@@ -300,9 +321,11 @@ impl Task {
 
     fn on_disconnected(&mut self, e: ConnectionError) {
         let was_connected = self.state.connected;
+        self.settle();
         let state = &mut self.state;
         state.link = None;
         state.connected = false;
+        state.connected_at = None;
         state.direct.clear();
         state.announcing = None;
         state.submitted.clear();
@@ -675,9 +698,21 @@ impl Task {
 
     // -------------------------------------------------------------- upkeep
 
+    /// Once a connection has stayed up [`STABLE`]: the outage is over (the
+    /// next problem is logged) and retries start quick again.
+    fn settle(&mut self) {
+        let state = &mut self.state;
+        if state.connected_at.is_some_and(|at| at.elapsed() >= STABLE) {
+            state.logged = None;
+            state.reconnect_logged = false;
+            state.backoff = Duration::ZERO;
+        }
+    }
+
     /// Once a second: `head` saved, the queue synced while it is not being
     /// emptied at once, gauges, and the end of an episode of drops.
     fn checkpoint(&mut self) {
+        self.settle();
         let durable = !self.state.connected || self.spool.len() > WINDOW as u64;
         if let Err(e) = self.spool.checkpoint(durable) {
             if !self.state.spool_failing {
@@ -756,6 +791,12 @@ fn describe(e: &ConnectionError) -> String {
             other => format!("{other:?}"),
         },
         ConnectionError::Tls(e) => format!("TLS: {e} (check MQTT_CA, MQTT_CERT, MQTT_KEY)"),
+        ConnectionError::MqttState(StateError::Deserialization(
+            rumqttc::Error::PayloadSizeLimitExceeded(size),
+        )) => format!(
+            "the broker sent a message of {size} bytes, over the limit of {MAX_INCOMING} bytes (a retained one on a /set topic or on {}? clear it; the broker's max_packet_size keeps such messages out)",
+            discovery::HA_STATUS
+        ),
         other => other.to_string(),
     }
 }
