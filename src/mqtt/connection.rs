@@ -17,7 +17,7 @@
 //! State messages (`status`, `plc`, discovery configs) are not queued: they
 //! are sent again on every connection.
 
-use std::collections::{BTreeSet, HashMap, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
@@ -42,6 +42,7 @@ use super::writes::{self, Refused};
 use super::Metrics;
 use crate::changes::{ChangeBatch, Quality, Subscription};
 use crate::config::MqttFormat;
+use crate::ratelimit::{self, RateLimited};
 use crate::section::Section;
 use crate::vars::{VarId, VarTable};
 
@@ -64,6 +65,8 @@ const RETRY_MAX: Duration = Duration::from_secs(5);
 /// again from [`RETRY_FIRST`] and the next problem is logged. One that
 /// fails sooner (at its subscriptions, say) keeps backing off quietly.
 const STABLE: Duration = Duration::from_secs(30);
+/// Refused writes of one error code are logged at most this often.
+const REFUSAL_LOG_INTERVAL: Duration = Duration::from_secs(1);
 /// How long a clean stop waits for `offline` and DISCONNECT to go out.
 const STOP_WAIT: Duration = Duration::from_secs(2);
 
@@ -99,6 +102,10 @@ pub(super) struct Task {
     pub shutdown: CancellationToken,
     pub writes: mpsc::Sender<writes::Request>,
     pub outcomes: mpsc::Receiver<writes::Outcome>,
+    /// Any client of the broker can have writes refused at will: logged at
+    /// most once a second per error code (each one counted and published
+    /// on its `error` topic). The codes are SET's few, so the map is small.
+    pub refusal_logs: BTreeMap<u16, RateLimited>,
     pub state: State,
 }
 
@@ -610,7 +617,13 @@ impl Task {
 
     fn refuse(&mut self, level: String, refused: Refused) {
         self.metrics.write_refusals.inc();
-        warn!(section = %self.section.name, "MQTT: write refused: {}", refused.line);
+        let log = self
+            .refusal_logs
+            .entry(refused.code)
+            .or_insert_with(|| RateLimited::new(REFUSAL_LOG_INTERVAL));
+        if let Some(quiet) = log.admit() {
+            warn!(section = %self.section.name, "MQTT: write refused: {}{}", refused.line, ratelimit::more(quiet));
+        }
         let now = crate::changes::unix_ms(std::time::SystemTime::now());
         self.queue(vec![Message {
             topic: self.topics.error_of_level(&level),

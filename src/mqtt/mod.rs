@@ -245,6 +245,7 @@ pub fn start(settings: Settings, sections: &[RunningSection]) -> Result<Mqtt, St
             shutdown: stop.clone(),
             writes: write_tx,
             outcomes: outcome_rx,
+            refusal_logs: Default::default(),
             state: Default::default(),
         };
         tasks.push(tokio::spawn(task.run(changes)));
