@@ -13,9 +13,12 @@
 //! head                    the first unacknowledged sequence number
 //! ```
 //!
-//! A record is `len: u32 LE | crc32c(body): u32 LE | body`, the body
-//! `seq: u64 LE | flags: u8 (bits 0-1 QoS, bit 2 retain) | topic length:
-//! u16 LE | topic (UTF-8) | payload`.
+//! A record is `sync | len: u32 LE | crc32c(len, body): u32 LE | body`,
+//! the body `seq: u64 LE | flags: u8 (bits 0-1 QoS, bit 2 retain) | topic
+//! length: u16 LE | topic (UTF-8) | payload`. The sync marker ([`SYNC`])
+//! lets the records after a damaged one be found again. Segments written
+//! before it (records `len | crc32c(body) | body`, no marker) are still
+//! read; damage in them still ends their segment.
 //!
 //! What survives what:
 //! - the server stopping (SIGTERM) or crashing, kill -9 included: every
@@ -27,9 +30,11 @@
 //!   each second while the broker is away (or behind), not while every
 //!   message is acknowledged at once;
 //! - a record torn by a crash in the middle of a write, or damaged on disk:
-//!   found by its length and checksum when the folder is opened; the segment
-//!   is cut there (logged), the records before it and the later segments
-//!   stay.
+//!   found by its length and checksum when the folder is opened (logged);
+//!   reading goes on at the next sync marker that starts a whole record
+//!   with a later sequence number (the segment is rewritten without the
+//!   damaged bytes), else the segment is cut there. The other records of
+//!   the segment and the other segments stay.
 //!
 //! Segments that are wholly acknowledged are deleted; when everything is
 //! acknowledged the current one is deleted too once it holds 64 KiB, so
@@ -53,7 +58,13 @@ pub struct Message {
     pub retain: bool,
 }
 
-const HEADER: usize = 8;
+/// Starts every record. As a length (the first field of a record written
+/// before it) it is out of range, so the two formats never mix up.
+const SYNC: [u8; 4] = [0xf1, 0x5a, 0x51, 0xa7];
+/// `sync | len | crc`.
+const HEADER: usize = 12;
+/// `len | crc` (records without the sync marker).
+const OLD_HEADER: usize = 8;
 /// Body bytes before the topic: seq, flags, topic length.
 const BODY_HEAD: usize = 11;
 /// The largest body a record may have (far beyond any message here).
@@ -71,6 +82,7 @@ pub fn encode_record(seq: u64, message: &Message, out: &mut Vec<u8>) {
     let topic = &topic[..usize::from(topic_len)];
     let body_len = BODY_HEAD + topic.len() + message.payload.len();
     let start = out.len();
+    out.extend_from_slice(&SYNC);
     out.extend_from_slice(&(body_len as u32).to_le_bytes());
     out.extend_from_slice(&[0; 4]);
     out.extend_from_slice(&seq.to_le_bytes());
@@ -78,8 +90,16 @@ pub fn encode_record(seq: u64, message: &Message, out: &mut Vec<u8>) {
     out.extend_from_slice(&topic_len.to_le_bytes());
     out.extend_from_slice(topic);
     out.extend_from_slice(&message.payload);
-    let crc = CRC32C.checksum(&out[start + HEADER..]);
-    out[start + 4..start + 8].copy_from_slice(&crc.to_le_bytes());
+    let crc = record_crc(&out[start + 4..start + 8], &out[start + HEADER..]);
+    out[start + 8..start + 12].copy_from_slice(&crc.to_le_bytes());
+}
+
+/// The checksum of a record with the sync marker: its length and body.
+fn record_crc(len: &[u8], body: &[u8]) -> u32 {
+    let mut digest = CRC32C.digest();
+    digest.update(len);
+    digest.update(body);
+    digest.finalize()
 }
 
 /// Why bytes are not a record.
@@ -100,7 +120,13 @@ pub enum RecordError {
 /// The record at the start of `bytes`: `Ok(None)` when `bytes` ends before
 /// it does, else the sequence number, the message and the bytes it took.
 pub fn decode_record(bytes: &[u8]) -> Result<Option<(u64, Message, usize)>, RecordError> {
-    let Some(header) = bytes.get(..HEADER) else {
+    let synced = bytes.starts_with(&SYNC);
+    if !synced && SYNC.starts_with(&bytes[..bytes.len().min(4)]) {
+        // The start of a marker, or nothing.
+        return Ok(None);
+    }
+    let (at, header_len) = if synced { (4, HEADER) } else { (0, OLD_HEADER) };
+    let Some(header) = bytes.get(at..header_len) else {
         return Ok(None);
     };
     let len = u32::from_le_bytes(header[..4].try_into().unwrap_or_default());
@@ -108,11 +134,16 @@ pub fn decode_record(bytes: &[u8]) -> Result<Option<(u64, Message, usize)>, Reco
     if !(BODY_HEAD..=MAX_BODY).contains(&body_len) {
         return Err(RecordError::Length(len));
     }
-    let Some(body) = bytes.get(HEADER..HEADER + body_len) else {
+    let Some(body) = bytes.get(header_len..header_len + body_len) else {
         return Ok(None);
     };
     let crc = u32::from_le_bytes(header[4..8].try_into().unwrap_or_default());
-    if CRC32C.checksum(body) != crc {
+    let computed = if synced {
+        record_crc(&header[..4], body)
+    } else {
+        CRC32C.checksum(body)
+    };
+    if computed != crc {
         return Err(RecordError::Checksum);
     }
     let seq = u64::from_le_bytes(body[..8].try_into().unwrap_or_default());
@@ -132,7 +163,23 @@ pub fn decode_record(bytes: &[u8]) -> Result<Option<(u64, Message, usize)>, Reco
         qos: flags & 3,
         retain: flags & 4 != 0,
     };
-    Ok(Some((seq, message, HEADER + body_len)))
+    Ok(Some((seq, message, header_len + body_len)))
+}
+
+/// Where the next record after the damaged one at `from` starts: a sync
+/// marker opening a whole record numbered `next` or later.
+fn resync(bytes: &[u8], from: usize, next: u64) -> Option<usize> {
+    let mut at = from + 1;
+    while let Some(found) = bytes.get(at..)?.windows(SYNC.len()).position(|w| w == SYNC) {
+        at += found;
+        if let Ok(Some((seq, _, _))) = decode_record(&bytes[at..]) {
+            if seq >= next {
+                return Some(at);
+            }
+        }
+        at += 1;
+    }
+    None
 }
 
 /// What opening a folder found.
@@ -160,6 +207,8 @@ struct Reader {
     next: u64,
     /// Index-free identity of the segment: its first sequence number.
     segment: u64,
+    /// A record read while seeking the cursor, returned next.
+    pending: Option<(u64, Message)>,
 }
 
 pub struct Spool {
@@ -400,14 +449,24 @@ impl Spool {
             file: BufReader::with_capacity(64 << 10, File::open(&segment.path)?),
             next: segment.first,
             segment: segment.first,
+            pending: None,
         };
+        // By sequence number: a segment may have gaps (damage skipped).
         let target = self.cursor;
-        let mut body = Vec::new();
+        let mut raw = Vec::new();
         while reader.next < target {
-            if read_raw(&mut reader.file, &mut body)?.is_none() {
+            if read_raw(&mut reader.file, &mut raw)?.is_none() {
                 break;
             }
-            reader.next += 1;
+            match decode_record(&raw) {
+                Ok(Some((seq, message, _))) if seq >= target => {
+                    reader.pending = Some((seq, message));
+                    break;
+                }
+                Ok(Some((seq, _, _))) => reader.next = seq + 1,
+                // Damage: reading at the cursor meets what follows it.
+                _ => break,
+            }
         }
         Ok(Some(reader))
     }
@@ -415,9 +474,12 @@ impl Spool {
     /// Reads the record at the reader.
     fn read_record(&mut self, mut reader: Reader) -> io::Result<Step> {
         let mut raw = Vec::new();
-        let decoded = match read_raw(&mut reader.file, &mut raw)? {
-            Some(()) => decode_record(&raw),
-            None => Ok(None),
+        let decoded = match reader.pending.take() {
+            Some((seq, message)) => Ok(Some((seq, message, 0))),
+            None => match read_raw(&mut reader.file, &mut raw)? {
+                Some(()) => decode_record(&raw),
+                None => Ok(None),
+            },
         };
         let later = self
             .segments
@@ -526,17 +588,27 @@ enum Step {
 /// of the file or of what was written whole.
 fn read_raw(file: &mut impl Read, out: &mut Vec<u8>) -> io::Result<Option<()>> {
     out.clear();
-    out.resize(HEADER, 0);
+    out.resize(OLD_HEADER, 0);
     if !read_full(file, &mut out[..])? {
         return Ok(None);
     }
-    let len = u32::from_le_bytes([out[0], out[1], out[2], out[3]]) as usize;
+    let header_len = if out.starts_with(&SYNC) {
+        out.resize(HEADER, 0);
+        if !read_full(file, &mut out[OLD_HEADER..])? {
+            return Ok(None);
+        }
+        HEADER
+    } else {
+        OLD_HEADER
+    };
+    let at = header_len - OLD_HEADER;
+    let len = u32::from_le_bytes([out[at], out[at + 1], out[at + 2], out[at + 3]]) as usize;
     if !(BODY_HEAD..=MAX_BODY).contains(&len) {
         // Let the decoder name the problem.
         return Ok(Some(()));
     }
-    out.resize(HEADER + len, 0);
-    if !read_full(file, &mut out[HEADER..])? {
+    out.resize(header_len + len, 0);
+    if !read_full(file, &mut out[header_len..])? {
         return Ok(None);
     }
     Ok(Some(()))
@@ -556,46 +628,72 @@ fn read_full(file: &mut impl Read, buf: &mut [u8]) -> io::Result<bool> {
     Ok(true)
 }
 
-/// Checks a segment's records; cuts it at the first damaged or torn one.
+/// Checks a segment's records. Damaged bytes are skipped up to the next
+/// record found again ([`resync`]), the segment rewritten without them;
+/// with no record after them, it is cut there.
 fn recover_segment(first: u64, path: PathBuf, recovered: &mut Recovered) -> io::Result<Segment> {
     let bytes = fs::read(&path)?;
+    let mut kept: Vec<std::ops::Range<usize>> = Vec::new();
     let mut at = 0;
     let mut next = first;
-    let mut problem = None;
+    let mut problems = Vec::new();
     while at < bytes.len() {
-        match decode_record(&bytes[at..]) {
-            Ok(Some((seq, _, used))) if seq == next => {
+        let problem = match decode_record(&bytes[at..]) {
+            // Past a skip, or in a segment with gaps, numbers may jump.
+            Ok(Some((seq, _, used)))
+                if seq == next || (seq > next && bytes[at..].starts_with(&SYNC)) =>
+            {
+                kept.push(at..at + used);
                 at += used;
-                next += 1;
+                next = seq + 1;
+                continue;
             }
-            Ok(Some((seq, _, _))) => {
-                problem = Some(format!("sequence {seq} where {next} was due"));
-                break;
+            Ok(Some((seq, _, _))) => format!("sequence {seq} where {next} was due"),
+            Ok(None) => "a record torn at the end".to_string(),
+            Err(e) => e.to_string(),
+        };
+        match resync(&bytes, at, next) {
+            Some(found) => {
+                problems.push(format!("bytes {at}-{found} skipped ({problem})"));
+                at = found;
             }
-            Ok(None) => {
-                problem = Some("a record torn at the end".to_string());
-                break;
-            }
-            Err(e) => {
-                problem = Some(e.to_string());
+            None => {
+                problems.push(format!("cut at byte {at} ({problem})"));
                 break;
             }
         }
     }
-    if let Some(problem) = problem {
+    let size: usize = kept.iter().map(|r| r.len()).sum();
+    if !problems.is_empty() {
         recovered.cut.push(format!(
-            "{} cut at byte {at} of {} ({problem})",
+            "{} ({} bytes): {}; {size} bytes of whole records kept",
             path.display(),
-            bytes.len()
+            bytes.len(),
+            problems.join(", ")
         ));
-        let file = OpenOptions::new().write(true).open(&path)?;
-        file.set_len(at as u64)?;
-        file.sync_all()?;
+        let contiguous = kept.last().is_none_or(|r| r.end == size);
+        if contiguous {
+            let file = OpenOptions::new().write(true).open(&path)?;
+            file.set_len(size as u64)?;
+            file.sync_all()?;
+        } else {
+            // Written whole under another name, then renamed over it: a
+            // crash leaves either the old segment or the new one.
+            let tmp = path.with_extension("tmp");
+            let mut out = Vec::with_capacity(size);
+            for range in &kept {
+                out.extend_from_slice(&bytes[range.clone()]);
+            }
+            let mut file = File::create(&tmp)?;
+            file.write_all(&out)?;
+            file.sync_all()?;
+            fs::rename(&tmp, &path)?;
+        }
     }
     Ok(Segment {
         first,
         next,
-        bytes: at as u64,
+        bytes: size as u64,
         path,
     })
 }
@@ -741,5 +839,114 @@ mod tests {
         let files = fs::read_dir(dir.path()).unwrap().count();
         assert!(files <= 3, "{files} files left");
         assert!(spool.bytes() < ROTATE_EMPTY + (64 << 10));
+    }
+
+    /// Fills a queue of several segments (4 KiB each) with messages
+    /// 1..=300, none acknowledged, and closes it.
+    fn three_hundred(dir: &Path) -> Vec<PathBuf> {
+        let (mut spool, _) = Spool::open(dir, 64 << 10).unwrap();
+        for chunk in (1..=300).collect::<Vec<u64>>().chunks(10) {
+            let batch: Vec<Message> = chunk.iter().map(|&i| message(i)).collect();
+            spool.push(&batch).unwrap();
+        }
+        spool.checkpoint(true).unwrap();
+        drop(spool);
+        let mut segments: Vec<PathBuf> = fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|e| e == "seg"))
+            .collect();
+        segments.sort();
+        segments
+    }
+
+    #[test]
+    fn a_flipped_bit_loses_one_record_not_the_rest_of_its_segment() {
+        let dir = tempfile::tempdir().unwrap();
+        let segments = three_hundred(dir.path());
+        assert!(segments.len() >= 3, "{segments:?}");
+        // One bit in the first segment's third record, and one in the
+        // length of the second segment's first record.
+        for (segment, at) in [(&segments[0], 2 * 30 + 20), (&segments[1], 1)] {
+            let mut bytes = fs::read(segment).unwrap();
+            bytes[at] ^= 0x10;
+            fs::write(segment, bytes).unwrap();
+        }
+        let (mut spool, recovered) = Spool::open(dir.path(), 64 << 10).unwrap();
+        assert_eq!(recovered.cut.len(), 2, "{:?}", recovered.cut);
+        let seen = drain(&mut spool);
+        assert!(seen.len() >= 296, "{} of 300 left", seen.len());
+        assert!(seen.windows(2).all(|w| w[1] > w[0]));
+        assert_eq!(seen.last(), Some(&300));
+        // And once more: what was rewritten reads back the same.
+        drop(spool);
+        let (mut spool, recovered) = Spool::open(dir.path(), 64 << 10).unwrap();
+        assert!(recovered.cut.is_empty(), "{:?}", recovered.cut);
+        assert_eq!(drain(&mut spool), seen);
+    }
+
+    #[test]
+    fn empty_truncated_or_foreign_segments_leave_the_others() {
+        for case in [
+            "empty",
+            "truncated",
+            "foreign",
+            "empty-last",
+            "foreign-last",
+        ] {
+            let dir = tempfile::tempdir().unwrap();
+            let segments = three_hundred(dir.path());
+            let middle = &segments[1];
+            let last = dir.path().join(format!("{:020}.seg", 1_000_000));
+            match case {
+                "empty" => fs::write(middle, b"").unwrap(),
+                "truncated" => {
+                    let len = fs::metadata(middle).unwrap().len();
+                    OpenOptions::new()
+                        .write(true)
+                        .open(middle)
+                        .unwrap()
+                        .set_len(len / 2)
+                        .unwrap()
+                }
+                "foreign" => fs::write(middle, vec![0x5a; 3000]).unwrap(),
+                "empty-last" => fs::write(&last, b"").unwrap(),
+                _ => fs::write(&last, vec![0x5a; 3000]).unwrap(),
+            }
+            let (mut spool, _) = Spool::open(dir.path(), 64 << 10).unwrap();
+            let seen = drain(&mut spool);
+            let first_of_third: u64 = segments[2]
+                .file_stem()
+                .unwrap()
+                .to_str()
+                .unwrap()
+                .parse()
+                .unwrap();
+            assert!(seen.contains(&1), "{case}: {seen:?}");
+            assert!(seen.contains(&first_of_third), "{case}: {seen:?}");
+            assert_eq!(seen.last(), Some(&300), "{case}");
+            // New messages follow the old ones.
+            spool.push(&[message(1_000_001)]).unwrap_or_default();
+        }
+    }
+
+    #[test]
+    fn segments_written_before_the_sync_marker_are_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut old = Vec::new();
+        for seq in 1..=5 {
+            let mut record = Vec::new();
+            encode_record(seq, &message(seq), &mut record);
+            // The same record without the marker, its checksum over the body.
+            let body = &record[HEADER..];
+            old.extend_from_slice(&record[4..8]);
+            old.extend_from_slice(&CRC32C.checksum(body).to_le_bytes());
+            old.extend_from_slice(body);
+        }
+        fs::write(dir.path().join(format!("{:020}.seg", 1)), &old).unwrap();
+        let (mut spool, recovered) = Spool::open(dir.path(), 1 << 20).unwrap();
+        assert_eq!((recovered.messages, recovered.cut.len()), (5, 0));
+        spool.push(&[message(6)]).unwrap();
+        assert_eq!(drain(&mut spool), (1..=6).collect::<Vec<_>>());
     }
 }
