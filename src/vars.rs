@@ -331,6 +331,18 @@ impl VarTable {
             .collect()
     }
 
+    /// Like [`VarTable::matching`], but system variables (`__...`) only
+    /// for masks that begin with `__` ([`Mask::matches_name`]).
+    pub fn matching_names<M: AsRef<[u8]>>(&self, masks: &[M]) -> Vec<VarId> {
+        let masks: Vec<Mask> = masks.iter().map(|m| Mask::new(m.as_ref())).collect();
+        self.vars
+            .iter()
+            .enumerate()
+            .filter(|(_, var)| masks.iter().any(|m| m.matches_name(&var.name)))
+            .map(|(id, _)| id as VarId)
+            .collect()
+    }
+
     pub fn vars(&self) -> &[Var] {
         &self.vars
     }

@@ -266,3 +266,38 @@ async fn refused_writes_are_counted_but_their_log_is_rate_limited() {
     assert!(log.contains("SET:SINUS,1"), "{log}");
     server.shutdown().await;
 }
+
+/// `*` in MQTT_PUBLISH and MQTT_WRITE means the project's variables: no
+/// system variable (`__...`) is published or written, and no direct
+/// address (`%...`) written, unless a mask begins with `__` or `%`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_star_means_the_project_s_variables() {
+    let _serial = SERIAL.lock().await;
+    logs();
+    let broker = Broker::anonymous();
+    let (server, _addr, _dir) = simulated(
+        &format!("MQTT_URL = {}", broker.url()),
+        "MQTT_PUBLISH = *\nMQTT_WRITE = *",
+        None,
+    )
+    .await;
+    let sub = broker.subscribe(&["plccoms/PLC/#"]);
+    sub.wait_payload("plccoms/PLC/COUNTER", "0");
+    broker.publish("plccoms/PLC/%25R0/set", "1", false);
+    broker.publish("plccoms/PLC/__PLC_RUN/set", "0", false);
+    for level in ["%25R0", "__PLC_RUN"] {
+        sub.wait(&format!("plccoms/PLC/{level}/error"), |m| {
+            m.payload.contains("not writable over MQTT")
+        });
+    }
+    let system: Vec<String> = sub
+        .messages()
+        .into_iter()
+        .map(|m| m.topic)
+        .filter(|t| {
+            t.starts_with("plccoms/PLC/__") && !t.ends_with("/error") && !t.ends_with("/set")
+        })
+        .collect();
+    assert!(system.is_empty(), "{system:?}");
+    server.shutdown().await;
+}

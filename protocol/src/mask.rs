@@ -70,6 +70,19 @@ impl Mask {
         }
         p[pi..].iter().all(|&b| b == b'*')
     }
+
+    /// Like [`Mask::matches`], for masks that mean the project's variables
+    /// (MQTT_PUBLISH, MQTT_WRITE): a system variable (`__...`) or a direct
+    /// address (`%...`) is matched only by a mask that begins the same way
+    /// (`__*`, `%R*`), never by `*` or `*RUN`.
+    pub fn matches_name(&self, upper_name: &[u8]) -> bool {
+        for special in [&b"__"[..], b"%"] {
+            if upper_name.starts_with(special) && !self.pattern.starts_with(special) {
+                return false;
+            }
+        }
+        self.matches(upper_name)
+    }
 }
 
 #[cfg(test)]
@@ -78,6 +91,24 @@ mod tests {
 
     fn m(pattern: &str, name: &str) -> bool {
         Mask::new(pattern.as_bytes()).matches(&cp1250::to_upper(name.as_bytes()))
+    }
+
+    #[test]
+    fn names_of_the_project_only_unless_the_mask_says_otherwise() {
+        let n =
+            |pattern: &str, name: &str| Mask::new(pattern.as_bytes()).matches_name(name.as_bytes());
+        assert!(n("*", "COUNTER"));
+        assert!(!n("*", "__PLC_RUN"));
+        assert!(!n("*RUN", "__PLC_RUN"));
+        assert!(!n("*", "%R100"));
+        assert!(!n("*R100", "%R100"));
+        assert!(n("__*", "__PLC_RUN"));
+        assert!(n("__PLC_RUN", "__PLC_RUN"));
+        assert!(n("%R*", "%R100"));
+        assert!(!n("_*", "__PLC_RUN"));
+        assert!(n("_*", "_LOCAL"));
+        // The line protocol's masks are unchanged.
+        assert!(m("*", "__PLC_RUN"));
     }
 
     #[test]

@@ -273,7 +273,14 @@ impl ChangeStream {
     /// The changes of the variables matching `masks` (`*` wildcards, case
     /// insensitive), polled for as long as the subscription lives.
     pub fn subscribe<M: AsRef<[u8]>>(&self, masks: &[M]) -> Subscription {
-        Subscription::new(self.rx.clone(), masks)
+        Subscription::new(self.rx.clone(), masks, false)
+    }
+
+    /// Like [`Changes::subscribe`], with masks that mean the project's
+    /// variables: system variables only for masks beginning with `__`
+    /// (`Mask::matches_name`).
+    pub fn subscribe_names<M: AsRef<[u8]>>(&self, masks: &[M]) -> Subscription {
+        Subscription::new(self.rx.clone(), masks, true)
     }
 }
 

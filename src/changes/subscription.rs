@@ -46,6 +46,8 @@ pub struct ChangeBatch {
 pub struct Subscription {
     rx: watch::Receiver<Arc<Snapshot>>,
     masks: Vec<Vec<u8>>,
+    /// `masks` match names of the project only (`VarTable::matching_names`).
+    names_only: bool,
     table: Arc<VarTable>,
     interest: Arc<Interest>,
     /// Subscribed variables of `table`, ascending.
@@ -63,11 +65,13 @@ impl Subscription {
     pub(super) fn new<M: AsRef<[u8]>>(
         mut rx: watch::Receiver<Arc<Snapshot>>,
         masks: &[M],
+        names_only: bool,
     ) -> Subscription {
         let snapshot = rx.borrow_and_update().clone();
         let mut subscription = Subscription {
             rx,
             masks: masks.iter().map(|m| m.as_ref().to_vec()).collect(),
+            names_only,
             table: snapshot.table.clone(),
             interest: snapshot.interest.clone(),
             wanted: Vec::new(),
@@ -110,7 +114,11 @@ impl Subscription {
         self.release();
         self.table = snapshot.table.clone();
         self.interest = snapshot.interest.clone();
-        self.wanted = self.table.matching(&self.masks);
+        self.wanted = if self.names_only {
+            self.table.matching_names(&self.masks)
+        } else {
+            self.table.matching(&self.masks)
+        };
         for &id in &self.wanted {
             if !self.table.is_fixed(id) {
                 self.interest.add(id);

@@ -763,9 +763,9 @@ static KEYS: &[Key] = &[
         "VALUE_VAR:STAMP_VAR pairs: samples carry the PLC's time from a DT or LINT/ULINT/LWORD (ms) variable",
         Setter::Section(|s, v| s.history.stamps = history::parse_stamps(&v.text()).unwrap_or_default())),
     // MQTT (src/mqtt/): what the section publishes and what may be written.
-    row("MQTT_PUBLISH", None, Kind::Text, "masks of the variables published (default none)",
+    row("MQTT_PUBLISH", None, Kind::Text, "masks of the variables published (default none); __ and % names only by masks beginning so",
         Setter::Section(|s, v| s.mqtt.publish = split_masks(&v.text()))),
-    row("MQTT_WRITE", None, Kind::Text, "masks of the variables <var>/set may write (default none)",
+    row("MQTT_WRITE", None, Kind::Text, "masks of the variables <var>/set may write (default none); __ and % names only by masks beginning so",
         Setter::Section(|s, v| s.mqtt.write = split_masks(&v.text()))),
     row("MQTT_QOS", Some("1"), number(0, 1, ""), "QoS of value messages; 1 = kept on disk while the broker is away",
         Setter::Section(|s, v| s.mqtt.qos = v.number() as u8)),

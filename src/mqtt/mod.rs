@@ -225,7 +225,7 @@ pub fn start(settings: Settings, sections: &[RunningSection]) -> Result<Mqtt, St
             .push((section.name.clone(), metrics.clone()));
         metrics.queued.set(spool.len());
         metrics.queued_bytes.set(spool.bytes());
-        let changes = section.changes.subscribe(&rules.publish);
+        let changes = section.changes.subscribe_names(&rules.publish);
         let (write_tx, write_rx) = mpsc::channel(writes::QUEUE);
         let (outcome_tx, outcome_rx) = mpsc::channel(writes::QUEUE);
         writers.push(tokio::spawn(writes::worker(

@@ -297,9 +297,11 @@ impl SectionRules {
         })
     }
 
-    /// Whether `/set` may write `upper_name` (MQTT_WRITE).
+    /// Whether `/set` may write `upper_name` (MQTT_WRITE): system
+    /// variables and direct addresses only by a mask that begins with `__`
+    /// or `%` ([`Mask::matches_name`]).
     pub fn writable(&self, upper_name: &[u8]) -> bool {
-        self.write.iter().any(|m| m.matches(upper_name))
+        self.write.iter().any(|m| m.matches_name(upper_name))
     }
 }
 
@@ -336,6 +338,25 @@ mod tests {
             let problem = BrokerUrl::parse(bad).unwrap_err();
             assert!(problem.contains(says), "{bad}: {problem}");
         }
+    }
+
+    #[test]
+    fn a_star_writes_the_project_s_variables_only() {
+        let rules = |write: &[&str]| {
+            SectionRules::new(&config::MqttSection {
+                write: write.iter().map(|s| s.to_string()).collect(),
+                ..config::MqttSection::default()
+            })
+            .unwrap()
+        };
+        let star = rules(&["*"]);
+        assert!(star.writable(b"COUNTER"));
+        assert!(!star.writable(b"__PLC_RUN"));
+        assert!(!star.writable(b"%R100"));
+        let explicit = rules(&["__*", "%R1*"]);
+        assert!(explicit.writable(b"__PLC_RUN"));
+        assert!(explicit.writable(b"%R100"));
+        assert!(!explicit.writable(b"COUNTER"));
     }
 
     #[test]
