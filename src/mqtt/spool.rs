@@ -253,22 +253,38 @@ impl Spool {
             )
         })?;
         let mut recovered = Recovered::default();
-        let mut names: Vec<(u64, PathBuf)> = fs::read_dir(dir)?
-            .filter_map(|entry| {
-                let path = entry.ok()?.path();
-                let first = path
-                    .file_name()?
-                    .to_str()?
-                    .strip_suffix(".seg")?
-                    .parse()
-                    .ok()?;
-                Some((first, path))
-            })
-            .collect();
+        let mut names: Vec<(u64, PathBuf)> = Vec::new();
+        for entry in fs::read_dir(dir)? {
+            let path = entry?.path();
+            let Some(name) = path.file_name().and_then(|n| n.to_str()) else {
+                continue;
+            };
+            if let Some(first) = name.strip_suffix(".seg").and_then(|n| n.parse().ok()) {
+                names.push((first, path));
+            } else if name
+                .strip_suffix(".tmp")
+                .is_some_and(|n| n.parse::<u64>().is_ok())
+            {
+                // A segment's rewrite that a crash interrupted: the segment
+                // itself is still there, whole.
+                let _ = fs::remove_file(&path);
+            }
+        }
         names.sort();
         let mut segments = VecDeque::new();
         for (first, path) in names {
-            let segment = recover_segment(first, path, &mut recovered)?;
+            // One segment that cannot be read (a folder of that name, say)
+            // is left alone; the others are the queue.
+            let segment = match recover_segment(first, path.clone(), &mut recovered) {
+                Ok(segment) => segment,
+                Err(e) => {
+                    recovered.cut.push(format!(
+                        "{} cannot be read ({e}): left as it is, its messages not sent",
+                        path.display()
+                    ));
+                    continue;
+                }
+            };
             if segment.next > segment.first {
                 segments.push_back(segment);
             } else {
@@ -893,6 +909,7 @@ mod tests {
             "foreign",
             "empty-last",
             "foreign-last",
+            "folder",
         ] {
             let dir = tempfile::tempdir().unwrap();
             let segments = three_hundred(dir.path());
@@ -911,6 +928,7 @@ mod tests {
                 }
                 "foreign" => fs::write(middle, vec![0x5a; 3000]).unwrap(),
                 "empty-last" => fs::write(&last, b"").unwrap(),
+                "folder" => fs::create_dir(&last).unwrap(),
                 _ => fs::write(&last, vec![0x5a; 3000]).unwrap(),
             }
             let (mut spool, _) = Spool::open(dir.path(), 64 << 10).unwrap();
