@@ -34,13 +34,14 @@
 //!   reading goes on at the next sync marker that starts a whole record
 //!   with a later sequence number (the segment is rewritten without the
 //!   damaged bytes), else the segment is cut there. The other records of
-//!   the segment and the other segments stay.
+//!   the segment and the other segments stay; the sequence numbers lost are
+//!   passed by when reading meets them, not waited for.
 //!
 //! Segments that are wholly acknowledged are deleted; when everything is
 //! acknowledged the current one is deleted too once it holds 64 KiB, so
 //! while the broker keeps up the files stay small and short-lived.
 
-use std::collections::{BTreeSet, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::fs::{self, File, OpenOptions};
 use std::io::{self, BufReader, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
@@ -223,6 +224,10 @@ pub struct Spool {
     head: u64,
     /// Acknowledged sequence numbers above `head`.
     acked: BTreeSet<u64>,
+    /// Sequence numbers found missing while reading (damage skipped,
+    /// segments cut), start -> end (exclusive), at or above `head`: nothing
+    /// will acknowledge them, so `head` passes them by.
+    gaps: BTreeMap<u64, u64>,
     /// The next sequence number to send.
     cursor: u64,
     reader: Option<Reader>,
@@ -310,6 +315,7 @@ impl Spool {
             next_seq,
             head,
             acked: BTreeSet::new(),
+            gaps: BTreeMap::new(),
             cursor: head,
             reader: None,
             bytes,
@@ -323,7 +329,8 @@ impl Spool {
 
     /// Unacknowledged messages.
     pub fn len(&self) -> u64 {
-        self.next_seq - self.head - self.acked.len() as u64
+        let missing: u64 = self.gaps.iter().map(|(start, end)| end - start).sum();
+        (self.next_seq - self.head - self.acked.len() as u64).saturating_sub(missing)
     }
 
     pub fn is_empty(&self) -> bool {
@@ -419,8 +426,22 @@ impl Spool {
             self.head = head;
             self.acked = self.acked.split_off(&head);
         }
-        while self.acked.remove(&self.head) {
-            self.head += 1;
+        loop {
+            if self.acked.remove(&self.head) {
+                self.head += 1;
+            } else if let Some(&end) = self.gaps.get(&self.head) {
+                self.head = end;
+            } else {
+                break;
+            }
+        }
+        if self
+            .gaps
+            .keys()
+            .next()
+            .is_some_and(|&start| start < self.head)
+        {
+            self.gaps = self.gaps.split_off(&self.head);
         }
         if self.cursor < self.head {
             self.cursor = self.head;
@@ -455,16 +476,19 @@ impl Spool {
             .rev()
             .find(|s| s.first <= self.cursor)
             .or_else(|| self.segments.front())
+            .map(|s| (s.first, s.path.clone()))
         else {
             return Ok(None);
         };
-        if self.cursor < segment.first {
-            self.cursor = segment.first;
+        let (first, path) = segment;
+        if self.cursor < first {
+            self.missing(self.cursor, first);
+            self.cursor = first;
         }
         let mut reader = Reader {
-            file: BufReader::with_capacity(64 << 10, File::open(&segment.path)?),
-            next: segment.first,
-            segment: segment.first,
+            file: BufReader::with_capacity(64 << 10, File::open(&path)?),
+            next: first,
+            segment: first,
             pending: None,
         };
         // By sequence number: a segment may have gaps (damage skipped).
@@ -504,6 +528,7 @@ impl Spool {
             .map(|s| s.first);
         match decoded {
             Ok(Some((seq, message, _))) if seq >= self.cursor => {
+                self.missing(self.cursor, seq);
                 self.cursor = seq + 1;
                 reader.next = seq + 1;
                 self.reader = Some(reader);
@@ -513,6 +538,7 @@ impl Spool {
             // next segment.
             Ok(None) => match later {
                 Some(first) => {
+                    self.missing(self.cursor, first);
                     self.cursor = self.cursor.max(first);
                     Ok(Step::Next)
                 }
@@ -527,9 +553,27 @@ impl Spool {
                     _ => "a sequence number out of order".to_string(),
                 };
                 warn!(spool = %self.dir.display(), "damaged record at {}: {problem}; skipping the rest of its segment", self.cursor);
-                self.cursor = later.unwrap_or(self.next_seq).max(self.cursor);
+                let resume = later.unwrap_or(self.next_seq).max(self.cursor);
+                self.missing(self.cursor, resume);
+                self.cursor = resume;
                 Ok(Step::Next)
             }
+        }
+    }
+
+    /// Notes `from..to` as missing (read past) and moves `head` past them
+    /// if it reached them.
+    fn missing(&mut self, from: u64, to: u64) {
+        let from = from.max(self.head);
+        if from < to {
+            let end = self.gaps.entry(from).or_insert(to);
+            *end = (*end).max(to);
+            // Counted once, as missing.
+            let inside: Vec<u64> = self.acked.range(from..to).copied().collect();
+            for seq in inside {
+                self.acked.remove(&seq);
+            }
+            self.set_head(self.head);
         }
     }
 
@@ -899,6 +943,16 @@ mod tests {
         let (mut spool, recovered) = Spool::open(dir.path(), 64 << 10).unwrap();
         assert!(recovered.cut.is_empty(), "{:?}", recovered.cut);
         assert_eq!(drain(&mut spool), seen);
+        // The lost ones are not waited for: acknowledging what was sent
+        // empties the queue, and its files go.
+        assert_eq!(spool.len(), seen.len() as u64);
+        for &seq in &seen {
+            spool.ack(seq);
+        }
+        assert!(spool.is_empty(), "{} left", spool.len());
+        spool.push(&[message(301)]).unwrap();
+        spool.rewind();
+        assert_eq!(drain(&mut spool), [301]);
     }
 
     #[test]
