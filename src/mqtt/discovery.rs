@@ -18,6 +18,11 @@
 //! settings. Entities are available while both the section's `status` and
 //! its `plc` topic say `online`.
 //!
+//! The configs are sent on each connection, on a new table, and when Home
+//! Assistant says `online` on [`HA_STATUS`] (any client of the broker can):
+//! one announcement at a time, made config by config as the connection has
+//! room, and an `online` while one is pending or running is absorbed by it.
+//!
 //! The config topics announced are remembered in the spool folder
 //! (`discovery`), so a variable that is gone — from a new public file, a
 //! new MQTT_PUBLISH, or discovery turned off — has its config cleared (an

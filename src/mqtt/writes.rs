@@ -9,8 +9,9 @@
 //! Writes of a section are made one at a time, in the order they arrive.
 //!
 //! A confirmed write is published on the value topic (the value read back
-//! from the PLC). A refused one is published on `<VAR>/error` (not retained)
-//! and logged. Nothing is ever written later: a write that arrives while the
+//! from the PLC). A refused one is published on `<VAR>/error` (not retained),
+//! counted, and logged (at most once a second per error code: any client of
+//! the broker can cause refusals). Nothing is ever written later: a write that arrives while the
 //! PLC is unreachable is refused at once (ERROR:10), and the client's
 //! session is clean, so the broker keeps no writes for it while it is away.
 //! A refusal made while the broker is away (the connection dropped during
