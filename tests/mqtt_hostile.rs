@@ -301,3 +301,41 @@ async fn a_star_means_the_project_s_variables() {
     assert!(system.is_empty(), "{system:?}");
     server.shutdown().await;
 }
+
+/// A STRING with CR/LF written over MQTT is refused like any bad value: the
+/// line clients that enabled the variable see no forged DIFF line.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_string_with_line_ends_over_mqtt_forges_no_line() {
+    let _serial = SERIAL.lock().await;
+    logs();
+    let broker = Broker::anonymous();
+    let (server, addr, _dir) = simulated(
+        &format!("MQTT_URL = {}", broker.url()),
+        "MQTT_PUBLISH = note\nMQTT_WRITE = note",
+        None,
+    )
+    .await;
+    let mut watcher = common::Client::connect(addr).await;
+    watcher.send(b"EN:setpoint\nEN:note\n").await;
+    watcher.wait_for_line(b"DIFF:NOTE,\"\"\r\n", DEADLINE).await;
+    let sub = broker.subscribe(&["plccoms/PLC/#"]);
+    sub.wait_payload("plccoms/PLC/NOTE", "\"\"");
+    let mut child = Command::new("mosquitto_pub")
+        .args(["-h", "127.0.0.1", "-p", &broker.port.to_string()])
+        .args(["-q", "1", "-t", "plccoms/PLC/NOTE/set", "-s"])
+        .stdin(Stdio::piped())
+        .spawn()
+        .expect("run mosquitto_pub");
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(b"0\r\nDIFF:SETPOINT,99.000000")
+        .unwrap();
+    assert!(child.wait().unwrap().success());
+    sub.wait("plccoms/PLC/NOTE/error", |m| m.payload.contains("ERROR:35"));
+    watcher.silent(300).await;
+    watcher.ask("GET:note\n", "GET:NOTE,\"\"\r\n").await;
+    drop(watcher);
+    server.shutdown().await;
+}
