@@ -173,6 +173,7 @@ pub async fn start(config: &Config) -> Result<Server, String> {
         let history = server.historian.as_ref().map(|_| {
             Arc::new(crate::historian::web::Source::new(
                 crate::historian::history_dir(&config.path, &global),
+                global.history_query_timeout,
             )) as Arc<dyn crate::web::history::HistorySource>
         });
         // Like a section that cannot listen, a page that cannot is

@@ -857,3 +857,152 @@ fn full_disk(global: &str, filler_kib: usize) {
     assert_eq!(integrity(&files[0]), "ok");
     drop(tmpfs);
 }
+
+/// Today's day file of section Hist, written before the server starts:
+/// `vars` variables `OLD_nnn` (UDINT), `per_var` samples each, spread over
+/// the part of today that is over, so a query of today has plenty to read.
+fn prefill_today(dir: &Path, vars: usize, per_var: i64) -> PathBuf {
+    use plccoms::historian::sample::{Sample, Stored};
+    use plccoms::historian::store::{day_of, DayFile, DAY_MS};
+    // Room for distinct times before now (the first minute of a day waits).
+    while now_ms() % DAY_MS < 120_000 {
+        std::thread::sleep(Duration::from_secs(1));
+    }
+    let day = day_of(now_ms());
+    let text: String = (0..vars)
+        .map(|i| format!(" OLD_{i:03} R B {} UDINT PUB_INOUT\r\n", i * 4))
+        .collect();
+    let table = std::sync::Arc::new(
+        plccoms::vars::VarTable::from_public_text("old.pub", text.as_bytes()).unwrap(),
+    );
+    let start = day * DAY_MS;
+    let step = (now_ms() - 60_000 - start) / per_var;
+    let samples: Vec<Sample> = (0..per_var)
+        .flat_map(|c| {
+            let table = &table;
+            (0..vars).map(move |i| Sample {
+                t: start + c * step,
+                var: table.lookup(format!("OLD_{i:03}").as_bytes()).unwrap(),
+                value: Stored::Int(c * 7 + i as i64),
+                quality: plccoms::changes::Quality::Good,
+                plc_time: None,
+            })
+        })
+        .collect();
+    let mut file = DayFile::open(&dir.join("history"), "Hist", day).unwrap();
+    file.write(&[(&table, &samples)], &[]).unwrap();
+    let path = file.path.clone();
+    file.close();
+    path
+}
+
+/// A PASSIVE checkpoint of `file`'s WAL from here: whether it took every
+/// committed frame (no reader holds an older snapshot) and there were some.
+fn checkpoint_complete(file: &Path) -> bool {
+    let conn = rusqlite::Connection::open(file).unwrap();
+    conn.busy_timeout(Duration::from_secs(1)).unwrap();
+    let (busy, log, done): (i64, i64, i64) = conn
+        .query_row("PRAGMA wal_checkpoint(PASSIVE)", [], |r| {
+            Ok((r.get(0)?, r.get(1)?, r.get(2)?))
+        })
+        .unwrap();
+    busy == 0 && log > 0 && log == done
+}
+
+/// A client of `/api/history` that reads the head of the answer and then
+/// stops reading (a small receive buffer, nothing read): the server reads
+/// no further than it can send, holds no read transaction of today's file
+/// meanwhile (the recorder's checkpoints go through, the WAL does not grow
+/// with every commit), and ends the answer at HISTORY_QUERY_TIMEOUT with an
+/// error line the client sees once it reads again.
+#[test]
+fn a_stalled_history_reader_holds_no_snapshot_and_is_cut_off() {
+    use std::io::Read;
+    let dir = tempfile::tempdir().unwrap();
+    let file = prefill_today(dir.path(), 50, 8000);
+    let plc = Plc::start(
+        dir.path(),
+        &animated_pub(300),
+        &["--program", "idle", "--animate", "ANIM_*"],
+    );
+    let http = free_port();
+    let limit_s = 15;
+    let server = Server::start(
+        dir.path(),
+        &plc,
+        "HISTORY = ANIM_*",
+        &format!("HTTP_PORT = {http}\nHISTORY_SYNC = 1\nHISTORY_QUERY_TIMEOUT = {limit_s}"),
+    );
+    wait_for("the recorder writing today's file", || {
+        first_number(&server.getinfo("HISTORY_SAMPLES")) > 1000
+    });
+    let socket = socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::STREAM, None).unwrap();
+    socket.set_recv_buffer_size(4096).unwrap();
+    socket
+        .connect(&std::net::SocketAddr::from(([127, 0, 0, 1], http)).into())
+        .unwrap();
+    let mut client: TcpStream = socket.into();
+    client
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
+    let day_start = now_ms() - now_ms() % 86_400_000;
+    let asked = Instant::now();
+    write!(
+        client,
+        "GET /api/history?section=Hist&vars=*&format=csv&from={day_start} HTTP/1.1\r\n\
+         Host: 127.0.0.1:{http}\r\n\r\n"
+    )
+    .unwrap();
+    let mut head = vec![0u8; 64 * 1024];
+    client.read_exact(&mut head).unwrap();
+    assert!(
+        head.starts_with(b"HTTP/1.1 200"),
+        "{}",
+        String::from_utf8_lossy(&head[..200])
+    );
+    // The client stops reading; the recorder goes on committing.
+    std::thread::sleep(Duration::from_secs(2));
+    let start = Instant::now();
+    while !checkpoint_complete(&file) {
+        assert!(
+            start.elapsed() < Duration::from_secs(15),
+            "a checkpoint never took the whole WAL: a reader holds a snapshot \
+             (WAL {} bytes)",
+            store_wal_bytes(&file)
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    assert!(
+        asked.elapsed() < Duration::from_secs(limit_s),
+        "the checkpoint went through only after the time limit cut the reader"
+    );
+    // Read on once the limit is past: the answer ends with the time
+    // limit's error, not as if complete.
+    std::thread::sleep(
+        (asked + Duration::from_secs(limit_s + 1)).saturating_duration_since(Instant::now()),
+    );
+    let mut rest = Vec::new();
+    let end = Instant::now() + Duration::from_secs(limit_s) + DEADLINE;
+    let mut buf = vec![0u8; 256 * 1024];
+    while !rest.ends_with(b"\r\n0\r\n\r\n") {
+        assert!(Instant::now() < end, "the answer did not end");
+        match client.read(&mut buf) {
+            Ok(0) => break,
+            Ok(n) => rest.extend_from_slice(&buf[..n]),
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
+            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
+            Err(e) => panic!("reading the answer: {e}"),
+        }
+    }
+    let tail = String::from_utf8_lossy(&rest[rest.len().saturating_sub(400)..]).into_owned();
+    assert!(
+        tail.contains("# error:") && tail.contains("HISTORY_QUERY_TIMEOUT"),
+        "{tail}"
+    );
+    server.stop();
+    assert_eq!(integrity(&file), "ok");
+}
+
+fn store_wal_bytes(file: &Path) -> u64 {
+    std::fs::metadata(format!("{}-wal", file.display())).map_or(0, |m| m.len())
+}

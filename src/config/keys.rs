@@ -644,6 +644,9 @@ static KEYS: &[Key] = &[
     row("HISTORY_COMPACT", Some("3600"), number(0, 86_400, "s"),
         "seconds after which samples are packed into compressed blocks (a few bytes each instead of ~20); 0 = never",
         Setter::Global(|g, v| g.history_compact = v.secs())),
+    row("HISTORY_QUERY_TIMEOUT", Some("300"), number(1, 86_400, "s"),
+        "seconds an /api/history answer may take, a slow or stalled reader included; then it ends with an error line",
+        Setter::Global(|g, v| g.history_query_timeout = v.secs())),
     // MQTT (src/mqtt/): the broker, the client, the spool.
     row("MQTT_URL", None, Kind::Text,
         "broker: mqtt://host[:port] (1883) or mqtts://host[:port] (8883, TLS); unset = MQTT off",

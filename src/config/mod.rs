@@ -184,6 +184,8 @@ pub struct Global {
     pub history_sync: Duration,
     /// HISTORY_COMPACT: age at which samples are packed (zero: never).
     pub history_compact: Duration,
+    /// HISTORY_QUERY_TIMEOUT: the longest a `/api/history` answer may take.
+    pub history_query_timeout: Duration,
     /// The MQTT_* keys (this server's own).
     pub mqtt: MqttGlobal,
     /// Every path a `[*]` key names ([`Kind::Path`]), for [`Config::own_paths`].
@@ -228,6 +230,7 @@ impl Default for Global {
             history_retention: Retention::default(),
             history_sync: Duration::ZERO,
             history_compact: Duration::ZERO,
+            history_query_timeout: Duration::ZERO,
             mqtt: MqttGlobal::default(),
             paths: Vec::new(),
         })

@@ -28,6 +28,7 @@ use plccoms_protocol::mask::Mask;
 use plccoms_protocol::IecType;
 use rusqlite::{Connection, OptionalExtension};
 
+use super::block::Packed;
 use super::sample::{quality_from_code, Stored};
 use super::store::{self, day_of, DAY_MS, VAR_BITS, VAR_MASK};
 use crate::changes::Quality;
@@ -52,6 +53,17 @@ pub enum QueryError {
     NoSection { section: String, dir: PathBuf },
     #[error("no recorded variable of section [{section}] matches {masks} between the times asked")]
     NoVariables { section: String, masks: String },
+    #[error(
+        "{}: {samples} samples from {} to {} are damaged and left out: {what}",
+        path.display(), super::time::iso_string(*first_ms), super::time::iso_string(*last_ms)
+    )]
+    Damaged {
+        path: PathBuf,
+        first_ms: i64,
+        last_ms: i64,
+        samples: i64,
+        what: String,
+    },
     #[error("{}: {source}", path.display())]
     File {
         path: PathBuf,
@@ -223,7 +235,10 @@ pub fn rows(query: &Query) -> Result<Rows, QueryError> {
     })
 }
 
-/// The stream of [`rows`]; each item one sample.
+/// The stream of [`rows`]; each item one sample. An error item does not
+/// end it: a file that cannot be read is one error and the next file
+/// follows; a damaged block ([`QueryError::Damaged`]) is one error and the
+/// samples after it follow.
 pub struct Rows {
     query: Query,
     masks: Vec<Mask>,
@@ -235,6 +250,16 @@ pub struct Rows {
     buffer: VecDeque<Row>,
 }
 
+/// A block's samples, or what is damaged in it.
+type Unpacked = Result<Arc<Vec<Packed>>, String>;
+
+/// Reading one file, a chunk at a time. Each chunk is read in a read
+/// transaction of its own, so a reader waiting for its consumer (a slow web
+/// client, a stalled pipe) holds no snapshot: the writer's checkpoints go
+/// through and the WAL does not grow with every commit. Between chunks the
+/// writer may commit, and pack rows into a block; a chunk reads every key
+/// from `next_key` to the end of what it returns, from rows and blocks of
+/// one snapshot, so each sample is read once.
 struct FileCursor {
     conn: Connection,
     path: PathBuf,
@@ -242,17 +267,19 @@ struct FileCursor {
     /// File id -> variable, for the matching ones.
     vars: Vec<Option<Arc<Variable>>>,
     filter: String,
+    has_stamps: bool,
+    /// The file has a `blocks` table (a version 1 file gains it when written).
+    has_blocks: bool,
+    /// The first key not read yet; the end of the range.
     next_key: i64,
     end_key: i64,
-    has_stamps: bool,
-    /// Rows of `samples` read and not yet merged, with their keys.
-    rows: VecDeque<(i64, Row)>,
-    rows_done: bool,
-    /// Samples of blocks unpacked and not yet merged, and where the next
-    /// block starts (none left: `blocks_done`).
-    packed: VecDeque<(i64, Row)>,
-    next_block_key: i64,
-    blocks_done: bool,
+    /// The block last unpacked (blocks never change once written): its
+    /// first key and its samples, or what is damaged in it.
+    block: Option<(i64, Unpacked)>,
+    /// The first key of the last damaged block reported.
+    reported: Option<i64>,
+    /// A damaged block found by the last chunk, to report.
+    damaged: Option<QueryError>,
 }
 
 impl Rows {
@@ -267,9 +294,6 @@ impl Rows {
             return Ok(false);
         };
         let conn = open(&path)?;
-        // One snapshot for the whole file: samples being packed meanwhile
-        // are read once, from where they were.
-        conn.execute_batch("BEGIN").map_err(file_error(&path))?;
         let vars = file_vars(&conn, &self.masks).map_err(file_error(&path))?;
         let start_ms = day * DAY_MS;
         let mut by_id: Vec<Option<Arc<Variable>>> = Vec::new();
@@ -299,14 +323,13 @@ impl Rows {
             start_ms,
             vars: by_id,
             filter,
-            next_key: from << VAR_BITS,
-            end_key: to << VAR_BITS,
             has_stamps,
-            rows: VecDeque::new(),
-            rows_done: vars.is_empty(),
-            packed: VecDeque::new(),
-            next_block_key: from << VAR_BITS,
-            blocks_done: vars.is_empty() || !has_blocks,
+            has_blocks,
+            next_key: from << VAR_BITS,
+            end_key: if vars.is_empty() { 0 } else { to << VAR_BITS },
+            block: None,
+            reported: None,
+            damaged: None,
         });
         Ok(true)
     }
@@ -316,150 +339,164 @@ impl Rows {
 /// and come in key order: it is the one starting at or before ?1 if it
 /// reaches ?1, else the next one; both found by the primary key (a filter
 /// on `last_key` alone would walk every block before it, for every block).
-pub(crate) const READ_BLOCK: &str = "SELECT last_key, data FROM blocks \
+pub(crate) const READ_BLOCK: &str = "SELECT first_key, last_key, samples FROM blocks \
      WHERE first_key >= coalesce((SELECT first_key FROM blocks WHERE first_key <= ?1 \
                                   ORDER BY first_key DESC LIMIT 1), ?1) \
        AND last_key >= ?1 AND first_key < ?2 \
      ORDER BY first_key LIMIT 1";
 
 impl FileCursor {
-    /// `key -> column` of a side table for the keys of the chunk being
-    /// read (from `next_key` to `last`).
-    fn side(&self, table: &str, column: &str, last: i64) -> rusqlite::Result<HashMap<i64, i64>> {
-        let sql = format!("SELECT key, {column} FROM {table} WHERE key >= ?1 AND key <= ?2");
+    /// `key -> column` of a side table for the keys `from..to`.
+    fn side(
+        &self,
+        table: &str,
+        column: &str,
+        from: i64,
+        to: i64,
+    ) -> rusqlite::Result<HashMap<i64, i64>> {
+        let sql = format!("SELECT key, {column} FROM {table} WHERE key >= ?1 AND key < ?2");
         let mut stmt = self.conn.prepare_cached(&sql)?;
-        let rows = stmt.query_map([self.next_key, last], |r| Ok((r.get(0)?, r.get(1)?)))?;
+        let rows = stmt.query_map([from, to], |r| Ok((r.get(0)?, r.get(1)?)))?;
         rows.collect()
     }
 
-    /// Merges the next samples of `samples` and of the blocks into
-    /// `buffer`, in key order; `false` when the file is done.
+    /// Reads the next chunk into `buffer`, in key order; `false` when the
+    /// file is done.
     fn fill(&mut self, buffer: &mut VecDeque<Row>) -> rusqlite::Result<bool> {
-        loop {
-            if self.rows.is_empty() && !self.rows_done {
-                self.read_rows()?;
-            }
-            if self.packed.is_empty() && !self.blocks_done {
-                self.read_block()?;
-            }
-            if self.rows.is_empty() && self.packed.is_empty() {
-                if self.rows_done && self.blocks_done {
-                    return Ok(false);
-                }
-                continue;
-            }
-            let mut merged = false;
-            loop {
-                let from_rows = match (self.rows.front(), self.packed.front()) {
-                    (Some(row), Some(packed)) => row.0 < packed.0,
-                    (Some(_), None) if self.blocks_done => true,
-                    (None, Some(_)) if self.rows_done => false,
-                    _ => break,
-                };
-                let side = if from_rows {
-                    &mut self.rows
-                } else {
-                    &mut self.packed
-                };
-                if let Some((_, row)) = side.pop_front() {
-                    buffer.push_back(row);
-                    merged = true;
-                }
-            }
-            if merged {
+        while self.next_key < self.end_key {
+            // Ended at once, committed or not: nothing is written here.
+            self.conn.execute_batch("BEGIN")?;
+            let read = self.read_chunk(buffer);
+            let _ = self.conn.execute_batch("COMMIT");
+            if read? || self.damaged.is_some() {
                 return Ok(true);
             }
         }
+        Ok(false)
     }
 
-    /// Reads the next chunk of `samples` rows.
-    fn read_rows(&mut self) -> rusqlite::Result<()> {
+    /// Reads the samples from `next_key` on, up to CHUNK rows and one
+    /// block, and moves `next_key` past them; `true` if any matched.
+    fn read_chunk(&mut self, buffer: &mut VecDeque<Row>) -> rusqlite::Result<bool> {
+        let from = self.next_key;
         let sql = format!(
             "SELECT key, value FROM samples WHERE key >= ?1 AND key < ?2{} ORDER BY key LIMIT {CHUNK}",
             self.filter
         );
-        let mut stmt = self.conn.prepare_cached(&sql)?;
-        let mut rows = stmt.query([self.next_key, self.end_key])?;
-        let mut last = None;
-        let mut returned = 0;
-        let start = self.rows.len();
-        while let Some(row) = rows.next()? {
-            let key: i64 = row.get(0)?;
-            last = Some(key);
-            returned += 1;
-            let Some(Some(var)) = self.vars.get((key & VAR_MASK) as usize) else {
-                continue;
-            };
-            self.rows.push_back((
-                key,
-                Row {
-                    t: self.start_ms + (key >> VAR_BITS),
-                    plc_time: None,
-                    var: var.clone(),
-                    value: Stored::from_sql(row.get_ref(1)?),
-                    quality: Quality::Good,
-                },
-            ));
+        let mut rows: Vec<(i64, Stored)> = Vec::new();
+        {
+            let mut stmt = self.conn.prepare_cached(&sql)?;
+            let mut result = stmt.query([from, self.end_key])?;
+            while let Some(row) = result.next()? {
+                rows.push((row.get(0)?, Stored::from_sql(row.get_ref(1)?)));
+            }
         }
-        drop(rows);
-        drop(stmt);
-        let Some(last) = last else {
-            self.rows_done = true;
-            return Ok(());
+        // Read up to here: the end of the range, or of a full chunk.
+        let mut to = match rows.last() {
+            Some(&(last, _)) if rows.len() == CHUNK => last + 1,
+            _ => self.end_key,
         };
-        // Qualities other than good and PLC stamps: side tables, few rows.
-        let qualities = self.side("qualities", "quality", last)?;
+        let mut packed: &[Packed] = &[];
+        let samples;
+        if !self.has_blocks {
+            // A version 1 file being written gains the table.
+            self.has_blocks = store::has_table(&self.conn, "blocks")?;
+        }
+        if self.has_blocks {
+            let block: Option<(i64, i64, i64)> = self
+                .conn
+                .prepare_cached(READ_BLOCK)?
+                .query_row([from, self.end_key], |r| {
+                    Ok((r.get(0)?, r.get(1)?, r.get(2)?))
+                })
+                .optional()?;
+            if let Some((first, last, count)) = block.filter(|b| b.0 < to) {
+                to = to.min(last + 1);
+                match self.unpacked(first, last, count)? {
+                    Ok(all) => {
+                        samples = all;
+                        let start = samples.partition_point(|s| s.key < from);
+                        let end = samples.partition_point(|s| s.key < to);
+                        packed = &samples[start..end];
+                    }
+                    Err(what) => {
+                        if self.reported != Some(first) {
+                            self.reported = Some(first);
+                            self.damaged = Some(QueryError::Damaged {
+                                path: self.path.clone(),
+                                first_ms: self.start_ms + (first >> VAR_BITS),
+                                last_ms: self.start_ms + (last >> VAR_BITS),
+                                samples: count,
+                                what,
+                            });
+                        }
+                    }
+                }
+            }
+        }
+        rows.retain(|(key, _)| *key < to);
+        let qualities = self.side("qualities", "quality", from, to)?;
         let stamps = if self.has_stamps {
-            self.side("stamps", "plc_time", last)?
+            self.side("stamps", "plc_time", from, to)?
         } else {
             HashMap::new()
         };
-        for (key, row) in self.rows.iter_mut().skip(start) {
-            if let Some(&code) = qualities.get(key) {
-                row.quality = quality_from_code(code);
-            }
-            row.plc_time = stamps.get(key).copied();
-        }
-        self.next_key = last + 1;
-        if returned < CHUNK {
-            self.rows_done = true;
-        }
-        Ok(())
-    }
-
-    /// Unpacks the next block that holds samples of the range.
-    fn read_block(&mut self) -> rusqlite::Result<()> {
-        let block: Option<(i64, Vec<u8>)> = self
-            .conn
-            .prepare_cached(READ_BLOCK)?
-            .query_row([self.next_block_key, self.end_key], |r| {
-                Ok((r.get(0)?, r.get(1)?))
-            })
-            .optional()?;
-        let Some((last, data)) = block else {
-            self.blocks_done = true;
-            return Ok(());
-        };
-        for sample in store::unpack(&data)? {
-            if sample.key < self.next_block_key || sample.key >= self.end_key {
-                continue;
-            }
-            let Some(Some(var)) = self.vars.get((sample.key & VAR_MASK) as usize) else {
+        self.next_key = to;
+        let before = buffer.len();
+        // Both in key order: merged. A key is in a row or a block, not both.
+        let mut rows = rows.into_iter().peekable();
+        let mut packed = packed.iter().peekable();
+        loop {
+            let from_rows = match (rows.peek(), packed.peek()) {
+                (Some(row), Some(sample)) => row.0 < sample.key,
+                (Some(_), None) => true,
+                (None, Some(_)) => false,
+                (None, None) => break,
+            };
+            let (key, value, quality, plc_time) = if from_rows {
+                let (key, value) = rows.next().expect("peeked");
+                let quality = qualities.get(&key).copied().unwrap_or(0);
+                (key, value, quality, stamps.get(&key).copied())
+            } else {
+                let s = packed.next().expect("peeked");
+                (s.key, s.value.clone(), i64::from(s.quality), s.plc_time)
+            };
+            let Some(Some(var)) = self.vars.get((key & VAR_MASK) as usize) else {
                 continue;
             };
-            self.packed.push_back((
-                sample.key,
-                Row {
-                    t: self.start_ms + (sample.key >> VAR_BITS),
-                    plc_time: sample.plc_time,
-                    var: var.clone(),
-                    value: sample.value,
-                    quality: quality_from_code(i64::from(sample.quality)),
-                },
-            ));
+            buffer.push_back(Row {
+                t: self.start_ms + (key >> VAR_BITS),
+                plc_time,
+                var: var.clone(),
+                value,
+                quality: quality_from_code(quality),
+            });
         }
-        self.next_block_key = last + 1;
-        Ok(())
+        Ok(buffer.len() > before)
+    }
+
+    /// The samples of the block `first..=last`, unpacked once; `Err` names
+    /// what is damaged in it.
+    fn unpacked(
+        &mut self,
+        first: i64,
+        last: i64,
+        count: i64,
+    ) -> rusqlite::Result<Unpacked> {
+        if let Some((cached, samples)) = &self.block {
+            if *cached == first {
+                return Ok(samples.clone());
+            }
+        }
+        let data: Vec<u8> = self
+            .conn
+            .prepare_cached("SELECT data FROM blocks WHERE first_key = ?1")?
+            .query_row([first], |r| r.get(0))?;
+        let samples = store::unpack_block(first, last, count, &data)
+            .map(Arc::new)
+            .map_err(|e| e.to_string());
+        self.block = Some((first, samples.clone()));
+        Ok(samples)
     }
 }
 
@@ -472,6 +509,9 @@ impl Iterator for Rows {
                 return Some(Ok(row));
             }
             match &mut self.current {
+                Some(cursor) if cursor.damaged.is_some() => {
+                    return cursor.damaged.take().map(Err);
+                }
                 Some(cursor) => match cursor.fill(&mut self.buffer) {
                     Ok(true) => {}
                     Ok(false) => self.current = None,

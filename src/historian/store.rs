@@ -658,6 +658,31 @@ pub fn unpack(data: &[u8]) -> Result<Vec<Packed>, StoreError> {
     })
 }
 
+/// The samples of the block row `(first_key, last_key, samples, data)`,
+/// checked against the row: damage of the data or of the row is an error.
+pub fn unpack_block(
+    first: i64,
+    last: i64,
+    count: i64,
+    data: &[u8],
+) -> Result<Vec<Packed>, block::BlockError> {
+    let samples = block::decode(data)?;
+    let keys = samples.first().map(|s| s.key)..=samples.last().map(|s| s.key);
+    if samples.len() as i64 != count || keys != (Some(first)..=Some(last)) {
+        return Err(block::BlockError {
+            what: format!(
+                "its row says {count} samples with keys {first} to {last}, it holds {} with keys {:?} to {:?}",
+                samples.len(),
+                keys.start(),
+                keys.end()
+            ),
+            at: 0,
+            len: data.len(),
+        });
+    }
+    Ok(samples)
+}
+
 /// The `history` view: samples with their time, name and quality spelled
 /// out, for sqlite3, DB Browser, pandas.read_sql and MATLAB.
 fn view_sql(start_ms: i64) -> String {

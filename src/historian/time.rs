@@ -43,6 +43,13 @@ pub fn parse(text: &str, now_ms: i64) -> Result<i64, String> {
     Err(format!("'{text}' is not a time {allowed}"))
 }
 
+/// [`iso`] as a `String`, for messages.
+pub fn iso_string(t_ms: i64) -> String {
+    let mut out = Vec::new();
+    iso(t_ms, &mut out);
+    String::from_utf8_lossy(&out).into_owned()
+}
+
 /// ISO 8601 UTC with milliseconds: `2026-05-01T12:00:00.123Z`.
 pub fn iso(t_ms: i64, out: &mut Vec<u8>) {
     use std::io::Write;

@@ -2,9 +2,17 @@
 //! mode): the samples of a section's variables over a range, read on a
 //! blocking thread and streamed through a bounded channel, so a year of one
 //! variable never sits in memory and never stalls the page's runtime.
+//!
+//! A reader that stops reading costs no more than the thread waiting for
+//! it: the query holds no SQLite read transaction between its chunks (the
+//! recorder's checkpoints go through), and the whole answer has a time
+//! limit (HISTORY_QUERY_TIMEOUT), after which reading stops and the answer
+//! ends with an error saying so.
 
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 use futures::StreamExt;
 
@@ -17,12 +25,15 @@ const AHEAD: usize = 256;
 
 pub struct Source {
     dir: PathBuf,
+    /// HISTORY_QUERY_TIMEOUT.
+    limit: Duration,
 }
 
 impl Source {
-    /// The history files in `dir` (HISTORY_DIR).
-    pub fn new(dir: PathBuf) -> Source {
-        Source { dir }
+    /// The history files in `dir` (HISTORY_DIR); an answer ends after
+    /// `limit`.
+    pub fn new(dir: PathBuf, limit: Duration) -> Source {
+        Source { dir, limit }
     }
 }
 
@@ -55,20 +66,60 @@ impl HistorySource for Source {
             QueryError::NoSection { .. } => HistoryError::UnknownSection(section),
             other => HistoryError::Failed(other.to_string()),
         })?;
+        let deadline = tokio::time::Instant::now() + self.limit;
+        let too_long = HistoryError::Failed(format!(
+            "the answer took longer than HISTORY_QUERY_TIMEOUT ({} s) and was cut off; \
+             ask for a shorter range or fewer variables",
+            self.limit.as_secs()
+        ));
         let (tx, rx) = tokio::sync::mpsc::channel(AHEAD);
+        let complete = Arc::new(AtomicBool::new(false));
+        let runtime = tokio::runtime::Handle::current();
+        let read_all = complete.clone();
         tokio::task::spawn_blocking(move || {
+            // Damaged ranges are left out and named at the end.
+            let mut damaged = Vec::new();
             for row in rows {
-                let item = row
-                    .map(sample)
-                    .map_err(|e| HistoryError::Failed(e.to_string()));
-                // The page went away: stop reading.
-                if tx.blocking_send(item).is_err() {
-                    break;
+                let item = match row {
+                    Ok(row) => Ok(sample(row)),
+                    Err(e @ QueryError::Damaged { .. }) => {
+                        damaged.push(e.to_string());
+                        continue;
+                    }
+                    Err(e) => Err(HistoryError::Failed(e.to_string())),
+                };
+                // The page went away, or the time is up: stop reading.
+                let sent = runtime.block_on(tokio::time::timeout_at(deadline, tx.send(item)));
+                if !matches!(sent, Ok(Ok(()))) {
+                    return;
                 }
             }
+            if !damaged.is_empty() {
+                let item = Err(HistoryError::Failed(damaged.join("; ")));
+                if !matches!(
+                    runtime.block_on(tokio::time::timeout_at(deadline, tx.send(item))),
+                    Ok(Ok(()))
+                ) {
+                    return;
+                }
+            }
+            read_all.store(true, Ordering::Release);
         });
-        Ok(futures::stream::unfold(rx, |mut rx| async move {
-            rx.recv().await.map(|item| (item, rx))
+        let state = Some((rx, complete, too_long));
+        Ok(futures::stream::unfold(state, move |state| async move {
+            let (mut rx, complete, too_long) = state?;
+            if tokio::time::Instant::now() < deadline {
+                match tokio::time::timeout_at(deadline, rx.recv()).await {
+                    Ok(Some(item)) => return Some((item, Some((rx, complete, too_long)))),
+                    Ok(None) if complete.load(Ordering::Acquire) => return None,
+                    Ok(None) if tokio::time::Instant::now() < deadline => {
+                        let stopped = "reading the history stopped before the end (see the log)";
+                        return Some((Err(HistoryError::Failed(stopped.into())), None));
+                    }
+                    Ok(None) | Err(_) => {}
+                }
+            }
+            Some((Err(too_long), None))
         })
         .boxed())
     }
