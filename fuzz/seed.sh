@@ -85,11 +85,13 @@ for t in [b"now", b"-30s", b"-15m", b"-1h", b"-7d", b"-2w", b"2026-05-01",
           b"2026-05-01T12:00:00Z", b"2026-05-01T12:00:00.123+02:00"]:
     put("history_time", t)
 
-# --- history blocks: mode 1 = the packed form before zstd (block.rs) -------
+# --- history blocks: mode 1 = the packed form before zstd (block.rs), -----
+# mode 2 = the same sealed with its checksum, mode 0 = the stored form
 block = bytes([1, 0x64, 3, 2, 0, 2, 5, 1, 0, 0xC8, 0x01, 0, 1, 2, 3, 14,
                0x3F, 0xF8, 0, 0, 0, 0, 0, 0, 2]) + b"ab" + bytes([0, 2, 0, 1, 0, 9])
 put("history_block", bytes([1]) + block)
 put("history_block", bytes([1]) + block[:-3])
+put("history_block", bytes([2]) + block)
 put("history_block", bytes([0]) + b"\x28\xb5\x2f\xfd" + block)
 
 # --- public files ----------------------------------------------------------

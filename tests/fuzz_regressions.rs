@@ -66,8 +66,17 @@ fn every_target_runs_on_ordinary_input() {
         \x3f\xf8\x00\x00\x00\x00\x00\x00\x02ab\x00\x02\x00\x01\x00\x09";
     for end in [block.len(), block.len() - 3, 1, 0] {
         checks::history_block(&block[..end]);
+        // Sealed with its checksum (file version 3).
+        let mut sealed = block[..end].to_vec();
+        if let Some(mode) = sealed.first_mut() {
+            *mode = 2;
+        }
+        checks::history_block(&sealed);
     }
     checks::history_block(b"\x00\x28\xb5\x2f\xfd garbage");
+    // A sealed block whose checksum does not match, and one cut short.
+    checks::history_block(b"\x00\x02\x00\x00\x00\x00\x28\xb5\x2f\xfd");
+    checks::history_block(b"\x00\x02\x01");
     // READN answer of 2 bytes, then the same datagram as a request.
     let answer = [
         0x00, 0x02, 0x00, 0x07, 0x02, 0x00, 0x00, 0x0D, 0x68, 0x07, 0x07, 0x68, 0x7D, 0x00, 0x08,

@@ -290,7 +290,7 @@ fn a_version_1_file_is_upgraded_packed_and_read_back_the_same() {
     let mut file = DayFile::open(dir.path(), "Pack", DAY).unwrap();
     assert_eq!(
         count(&path, "SELECT value FROM meta WHERE key = 'version'"),
-        2
+        plccoms::historian::store::VERSION
     );
     let packed = file.pack(i64::MAX, far()).unwrap();
     assert_eq!(packed.samples, written.len() as u64);
@@ -298,4 +298,53 @@ fn a_version_1_file_is_upgraded_packed_and_read_back_the_same() {
     file.close();
     assert_eq!(count(&path, "PRAGMA freelist_count"), 0);
     assert_same(&read(dir.path(), all.0, all.1, &["*"]), &before);
+}
+
+/// A day file of version 2, whose blocks are the bare zstd frame without a
+/// checksum: read as it is, and written to, it becomes version 3 with its
+/// old blocks still read and its new ones sealed.
+#[test]
+fn a_version_2_file_with_unsealed_blocks_is_still_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let table = table();
+    let written = samples(&table, 4000);
+    let (old, new) = written.split_at(written.len() / 2);
+    let mut file = day_with(dir.path(), &table, old);
+    file.pack(i64::MAX, far()).unwrap();
+    file.close();
+    let path = day_path(dir.path(), "Pack", DAY);
+    let all = (DAY * DAY_MS, (DAY + 1) * DAY_MS);
+    let before = read(dir.path(), all.0, all.1, &["*"]);
+    assert_eq!(before.len(), old.len());
+    let conn = rusqlite::Connection::open(&path).unwrap();
+    // Version 2 stored the zstd frame alone: the sealed form less its
+    // 5-byte header.
+    let unsealed = conn
+        .execute("UPDATE blocks SET data = substr(data, 6)", [])
+        .unwrap();
+    assert!(unsealed > 0);
+    conn.execute("UPDATE meta SET value = 2 WHERE key = 'version'", [])
+        .unwrap();
+    drop(conn);
+    assert_same(&read(dir.path(), all.0, all.1, &["*"]), &before);
+
+    let mut file = DayFile::open(dir.path(), "Pack", DAY).unwrap();
+    file.write(&[(&table, new)], &[]).unwrap();
+    file.pack(i64::MAX, far()).unwrap();
+    file.close();
+    assert_eq!(
+        count(&path, "SELECT value FROM meta WHERE key = 'version'"),
+        3
+    );
+    assert_eq!(
+        count(
+            &path,
+            "SELECT count(*) FROM blocks WHERE substr(data, 1, 1) = x'02'"
+        ),
+        1
+    );
+    let after = read(dir.path(), all.0, all.1, &["*"]);
+    assert_eq!(after.len(), written.len());
+    // The new samples are later than the old ones.
+    assert_same(&after[..before.len()], &before);
 }

@@ -12,6 +12,7 @@ for `frame`.
 import sqlite3
 import struct
 import sys
+import zlib
 
 import zstandard
 
@@ -40,9 +41,21 @@ def _wrap(v):
     return v - (1 << 64) if v >= 1 << 63 else v
 
 
+def unseal(blob):
+    """The zstd frame of a stored block: a sealed block (first byte 2) is
+    checked against its CRC-32; one of file version 2 is the bare frame."""
+    blob = bytes(blob)
+    if blob[:1] == b"\x02":
+        (crc,) = struct.unpack("<I", blob[1:5])
+        if zlib.crc32(blob[5:]) != crc:
+            raise ValueError("a packed block is damaged: its checksum does not match")
+        return blob[5:]
+    return blob
+
+
 def unpack(blob):
     """A block's samples: (ms since the day's start, var id, value, quality, plc ms or None)."""
-    data = zstandard.ZstdDecompressor().decompressobj().decompress(blob)
+    data = zstandard.ZstdDecompressor().decompressobj().decompress(unseal(blob))
     if data[0] != 1:
         raise ValueError(f"block encoding {data[0]}")
     first_ms, at = _varint(data, 1)

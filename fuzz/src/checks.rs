@@ -443,18 +443,20 @@ pub fn history_time(data: &[u8]) {
 }
 
 /// A packed history block: the first byte chooses whether the rest is the
-/// stored (zstd) form or the packed form before compression. Damage is an
-/// error; what decodes packs again to the same samples.
+/// stored form (sealed or a bare zstd frame), or the packed form before
+/// compression, stored as a bare frame (file version 2) or sealed with its
+/// checksum. Damage is an error; what decodes packs again to the same
+/// samples.
 pub fn history_block(data: &[u8]) {
     use plccoms::historian::block;
     use plccoms::historian::sample::Stored;
     let Some((&mode, rest)) = data.split_first() else {
         return;
     };
-    let stored = if mode & 1 == 0 {
-        rest.to_vec()
-    } else {
-        zstd::bulk::compress(rest, 1).expect("compress")
+    let stored = match mode % 3 {
+        0 => rest.to_vec(),
+        1 => zstd::bulk::compress(rest, 1).expect("compress"),
+        _ => block::seal(&zstd::bulk::compress(rest, 1).expect("compress")),
     };
     let Ok(rows) = block::decode(&stored) else {
         return;

@@ -27,6 +27,20 @@
 //!
 //! Times are ms since the day's start (`meta.day_start_ms`), as in the
 //! sample keys.
+//!
+//! Stored, the block is sealed with a checksum, so a damaged block (a bad
+//! sector, a bad copy: SQLite's `integrity_check` sees nothing of it) is
+//! an error, never wrong values:
+//!
+//! ```text
+//! u8       2: sealed
+//! u32 LE   CRC-32 (ISO-HDLC, as zlib's crc32) of the zstd frame
+//! ...      the zstd frame of the bytes above
+//! ```
+//!
+//! Blocks written before (file version 2) are the bare zstd frame (it
+//! begins with the zstd magic `28 B5 2F FD`); they are read as they are,
+//! without a check.
 
 use std::io::Read;
 
@@ -40,6 +54,11 @@ pub const MAX_ROWS: usize = 1 << 16;
 const MAX_DECODED: u64 = 64 << 20;
 const ENCODING: u8 = 1;
 const ZSTD_LEVEL: i32 = 3;
+/// The first byte of a sealed block, and its header's length.
+const SEALED: u8 = 2;
+const SEAL_LEN: usize = 5;
+const ZSTD_MAGIC: [u8; 4] = [0x28, 0xB5, 0x2F, 0xFD];
+const CRC32: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC);
 
 /// One sample as a day file holds it.
 #[derive(Debug, Clone, PartialEq)]
@@ -52,8 +71,9 @@ pub struct Packed {
     pub plc_time: Option<i64>,
 }
 
+/// What is damaged in a block; `len` 0: found before decoding.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
-#[error("a packed block is damaged: {what} (at byte {at} of its {len} decoded bytes)")]
+#[error("a packed block is damaged: {what}{}", if *len > 0 { format!(" (at byte {at} of its {len} decoded bytes)") } else { String::new() })]
 pub struct BlockError {
     pub what: String,
     pub at: usize,
@@ -150,14 +170,53 @@ pub fn encode(rows: &[Packed]) -> Vec<u8> {
     out.extend_from_slice(&qualities);
     varint(&mut out, stamp_count);
     out.extend_from_slice(&stamps);
-    zstd::bulk::compress(&out, ZSTD_LEVEL).expect("zstd compresses any input into a Vec")
+    seal(&zstd::bulk::compress(&out, ZSTD_LEVEL).expect("zstd compresses any input into a Vec"))
+}
+
+/// A zstd frame as stored: with its checksum.
+pub fn seal(frame: &[u8]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(SEAL_LEN + frame.len());
+    out.push(SEALED);
+    out.extend_from_slice(&CRC32.checksum(frame).to_le_bytes());
+    out.extend_from_slice(frame);
+    out
+}
+
+/// The zstd frame of a stored block: checked when sealed, as it is when
+/// written before blocks were sealed.
+fn unseal(data: &[u8]) -> Result<&[u8], BlockError> {
+    let damaged = |what: String| BlockError {
+        what,
+        at: 0,
+        len: 0,
+    };
+    match data.first() {
+        Some(&SEALED) if data.len() >= SEAL_LEN => {
+            let frame = &data[SEAL_LEN..];
+            let stored = u32::from_le_bytes(data[1..SEAL_LEN].try_into().expect("4 bytes"));
+            let actual = CRC32.checksum(frame);
+            if stored != actual {
+                return Err(damaged(format!(
+                    "checksum {actual:08x} of its {} bytes, not {stored:08x}",
+                    frame.len()
+                )));
+            }
+            Ok(frame)
+        }
+        _ if data.starts_with(&ZSTD_MAGIC) => Ok(data),
+        _ => Err(damaged(format!(
+            "neither sealed nor a zstd frame ({} bytes)",
+            data.len()
+        ))),
+    }
 }
 
 /// Unpacks a block, in key order. Damaged data is an error, never a panic,
 /// and never decodes to more than [`MAX_ROWS`] samples.
 pub fn decode(data: &[u8]) -> Result<Vec<Packed>, BlockError> {
+    let frame = unseal(data)?;
     let mut raw = Vec::new();
-    let read = zstd::stream::read::Decoder::new(data)
+    let read = zstd::stream::read::Decoder::new(frame)
         .and_then(|d| d.take(MAX_DECODED + 1).read_to_end(&mut raw));
     if let Err(e) = read {
         return Err(BlockError {
@@ -469,13 +528,33 @@ mod tests {
         // One sample, one run, then nothing.
         let err = decode(&raw(&[1, 0, 1, 1, 0, 1])).unwrap_err();
         assert!(err.what.contains("ends inside a time"), "{err}");
-        let mut good =
-            zstd::bulk::decompress(&encode(&[row(5, 1, Stored::Int(3))]), 1 << 10).unwrap();
+        let sealed = encode(&[row(5, 1, Stored::Int(3))]);
+        let mut good = zstd::bulk::decompress(&sealed[SEAL_LEN..], 1 << 10).unwrap();
         good.push(0);
         assert!(decode(&raw(&good))
             .unwrap_err()
             .what
             .contains("after the end"));
+    }
+
+    /// A flipped bit anywhere in a sealed block is an error; a block of
+    /// file version 2 (the bare zstd frame) is read without a check.
+    #[test]
+    fn a_sealed_block_is_checked_and_an_unsealed_one_still_read() {
+        let rows: Vec<Packed> = (0..300i64)
+            .map(|i| row(i * 10, i % 3, Stored::Real(i as f64 / 7.0)))
+            .collect();
+        let sealed = encode(&rows);
+        assert_eq!(sealed[0], SEALED);
+        for at in [1, 4, SEAL_LEN, sealed.len() / 2, sealed.len() - 1] {
+            let mut damaged = sealed.clone();
+            damaged[at] ^= 0x01;
+            let err = decode(&damaged).unwrap_err();
+            assert!(err.what.contains("checksum"), "byte {at}: {err}");
+        }
+        assert!(decode(&sealed[..3]).is_err());
+        assert_eq!(decode(&sealed[SEAL_LEN..]).unwrap(), rows);
+        assert_eq!(decode(&seal(&sealed[SEAL_LEN..])).unwrap(), rows);
     }
 
     #[test]

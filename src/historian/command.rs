@@ -11,16 +11,26 @@ use std::path::Path;
 use std::process::ExitCode;
 use std::time::SystemTime;
 
-use super::export::{self, Format};
+use super::export::{self, ExportError, Format};
 use super::query::Query;
 use super::{history_dir, time};
 use crate::changes::unix_ms;
 use crate::cli::HistoryArgs;
 use crate::config;
 
+/// The exit status when the export was written to the end without the
+/// samples of damaged blocks (named on standard error).
+pub const EXIT_DAMAGED: u8 = 2;
+
+/// Exit status 0: all exported; [`EXIT_DAMAGED`]: exported without the
+/// damaged ranges it names; 1: failed (nothing written to `--out`).
 pub fn run(config_path: &Path, args: &HistoryArgs) -> ExitCode {
     match export_to(config_path, args) {
-        Ok(()) => ExitCode::SUCCESS,
+        Ok(None) => ExitCode::SUCCESS,
+        Ok(Some(damaged)) => {
+            eprintln!("plccoms history: {damaged}");
+            ExitCode::from(EXIT_DAMAGED)
+        }
         Err(message) => {
             eprintln!("plccoms history: {message}");
             ExitCode::FAILURE
@@ -28,7 +38,17 @@ pub fn run(config_path: &Path, args: &HistoryArgs) -> ExitCode {
     }
 }
 
-fn export_to(config_path: &Path, args: &HistoryArgs) -> Result<(), String> {
+/// What an export wrote despite damage: rows written, ranges left out.
+fn written(result: Result<u64, ExportError>) -> Result<(u64, Option<String>), String> {
+    match result {
+        Ok(rows) => Ok((rows, None)),
+        Err(e @ ExportError::Damaged { rows, .. }) => Ok((rows, Some(e.to_string()))),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
+/// Exports; `Ok(Some(..))` names the damaged ranges left out.
+fn export_to(config_path: &Path, args: &HistoryArgs) -> Result<Option<String>, String> {
     let loaded = config::load(config_path).map_err(|e| {
         let mut text = e.to_string();
         for d in e.diagnostics() {
@@ -67,27 +87,25 @@ fn export_to(config_path: &Path, args: &HistoryArgs) -> Result<(), String> {
         from_ms: from,
         to_ms: to,
     };
-    let rows = match &args.out {
+    match &args.out {
         Some(path) => {
             let file = std::fs::File::create(path)
                 .map_err(|e| format!("cannot create {}: {e}", path.display()))?;
-            let rows =
-                export::export(&query, args.format, args.wide, file).map_err(|e| e.to_string())?;
-            eprintln!("{rows} rows written to {}", path.display());
-            rows
+            let (rows, damaged) = written(export::export(&query, args.format, args.wide, file))?;
+            if damaged.is_none() {
+                eprintln!("{rows} rows written to {}", path.display());
+            }
+            Ok(damaged)
         }
         None => {
             if args.format == Format::Parquet && is_terminal() {
                 return Err("Parquet is binary: give --out FILE or redirect the output".into());
             }
-            let rows = export::export(&query, args.format, args.wide, std::io::stdout())
-                .map_err(|e| e.to_string())?;
+            let result = export::export(&query, args.format, args.wide, std::io::stdout());
             let _ = std::io::stdout().flush();
-            rows
+            Ok(written(result)?.1)
         }
-    };
-    let _ = rows;
-    Ok(())
+    }
 }
 
 fn is_terminal() -> bool {

@@ -10,7 +10,9 @@
 //! `inf`, `-inf`. In the wide form a sample whose quality is not `good` (an
 //! outage) leaves its cell empty, so a gap shows as one.
 
+use std::cell::RefCell;
 use std::io::{self, Write};
+use std::rc::Rc;
 use std::sync::Arc;
 
 use parquet::basic::{Compression, LogicalType, Repetition, TimeUnit, Type as Physical, ZstdLevel};
@@ -42,6 +44,9 @@ pub enum ExportError {
     Io(#[from] io::Error),
     #[error("Parquet: {0}")]
     Parquet(#[from] parquet::errors::ParquetError),
+    /// Written to the end, without the samples of damaged blocks.
+    #[error("{rows} rows written; left out, damaged:\n  {}", ranges.join("\n  "))]
+    Damaged { rows: u64, ranges: Vec<String> },
 }
 
 /// Writes the samples `query` selects to `out`; returns the rows written.
@@ -53,10 +58,46 @@ pub fn export<W: Write + Send>(
 ) -> Result<u64, ExportError> {
     let rows = query::rows(query)?;
     let columns = rows.variables().to_vec();
-    match format {
+    let damaged = Rc::new(RefCell::new(Vec::new()));
+    let rows = Intact {
+        rows,
+        damaged: damaged.clone(),
+    };
+    let count = match format {
         Format::Csv => write_csv(rows, &columns, wide, out),
         Format::Json => write_json(rows, &columns, wide, out),
         Format::Parquet => write_parquet(rows, &columns, wide, out),
+    }?;
+    let ranges = damaged.take();
+    if ranges.is_empty() {
+        Ok(count)
+    } else {
+        Err(ExportError::Damaged {
+            rows: count,
+            ranges,
+        })
+    }
+}
+
+/// The rows of a query without the samples of damaged blocks: each such
+/// range is named in `damaged`, and the export goes on after it.
+struct Intact {
+    rows: query::Rows,
+    damaged: Rc<RefCell<Vec<String>>>,
+}
+
+impl Iterator for Intact {
+    type Item = Result<Row, QueryError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        loop {
+            match self.rows.next()? {
+                Err(e @ QueryError::Damaged { .. }) => {
+                    self.damaged.borrow_mut().push(e.to_string())
+                }
+                other => return Some(other),
+            }
+        }
     }
 }
 
@@ -204,7 +245,7 @@ impl Wide {
     /// (one per column, `None`: no value).
     fn next_group(
         &self,
-        rows: &mut std::iter::Peekable<query::Rows>,
+        rows: &mut std::iter::Peekable<Intact>,
         cells: &mut Vec<Option<Row>>,
     ) -> Result<Option<i64>, QueryError> {
         cells.clear();
@@ -274,7 +315,7 @@ fn text_buffers<W: Write>(out: W) -> (io::BufWriter<W>, Vec<u8>, Vec<u8>) {
 }
 
 fn write_csv<W: Write>(
-    mut rows: query::Rows,
+    mut rows: Intact,
     columns: &[Arc<Variable>],
     wide: bool,
     out: W,
@@ -364,7 +405,7 @@ fn json_string(text: &str, out: &mut Vec<u8>) -> io::Result<()> {
 }
 
 fn write_json<W: Write>(
-    mut rows: query::Rows,
+    mut rows: Intact,
     columns: &[Arc<Variable>],
     wide: bool,
     out: W,
@@ -629,7 +670,7 @@ fn group_rows(columns: usize) -> usize {
 }
 
 fn write_parquet<W: Write + Send>(
-    rows: query::Rows,
+    rows: Intact,
     columns: &[Arc<Variable>],
     wide: bool,
     out: W,

@@ -477,12 +477,7 @@ impl FileCursor {
 
     /// The samples of the block `first..=last`, unpacked once; `Err` names
     /// what is damaged in it.
-    fn unpacked(
-        &mut self,
-        first: i64,
-        last: i64,
-        count: i64,
-    ) -> rusqlite::Result<Unpacked> {
+    fn unpacked(&mut self, first: i64, last: i64, count: i64) -> rusqlite::Result<Unpacked> {
         if let Some((cached, samples)) = &self.block {
             if *cached == first {
                 return Ok(samples.clone());

@@ -4,7 +4,7 @@
 //! transaction in progress), switched back to a single file when the day is
 //! done, so a day can be copied away as it is.
 //!
-//! Schema (version 2), chosen for size: a sample is first one row of a
+//! Schema (version 3), chosen for size: a sample is first one row of a
 //! rowid table whose integer key packs the time and the variable, so time
 //! and variable cost one 6-byte varint and rows are appended in key order
 //! (SQLite fills pages completely on append). Samples older than
@@ -32,7 +32,9 @@
 //! ```
 //!
 //! Version 1 files (no `blocks`) are read as they are and gain the table
-//! when written to.
+//! when written to. Version 3 seals each block with a checksum; the blocks
+//! of a version 2 file are read unchecked, and the file becomes version 3
+//! (new blocks sealed) when written to.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -47,7 +49,8 @@ use super::sample::{quality_code, Event, Sample, Stored};
 use crate::vars::VarTable;
 
 pub const FORMAT: &str = "plccoms-history";
-pub const VERSION: i64 = 2;
+/// 3: blocks are sealed with a checksum (version 2's are read unchecked).
+pub const VERSION: i64 = 3;
 /// Bits of the key that hold the variable: 32,767 variables per section and
 /// day, and a key below 2^42 (a 6-byte varint).
 pub const VAR_BITS: u32 = 15;
@@ -259,7 +262,7 @@ CREATE TABLE packed_stamps (id INTEGER PRIMARY KEY);
 const BLOCKS_V1: &str = "
 CREATE TABLE IF NOT EXISTS blocks (first_key INTEGER PRIMARY KEY, last_key INTEGER NOT NULL, samples INTEGER NOT NULL, data BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS packed_stamps (id INTEGER PRIMARY KEY);
-UPDATE meta SET value = 2 WHERE key = 'version';
+UPDATE meta SET value = 3 WHERE key = 'version';
 ";
 
 impl DayFile {
@@ -499,7 +502,10 @@ impl DayFile {
             let Some((first, last, data)) = block.filter(|b| b.1 >= key) else {
                 return Ok(None);
             };
-            self.late_block = Some((first, last, unpack(&data)?));
+            // A damaged block takes no late sample: it stays a row, read
+            // back beside the block's damage, and recording goes on.
+            let rows = block::decode(&data).unwrap_or_default();
+            self.late_block = Some((first, last, rows));
         }
         let rows = &self.late_block.as_ref().expect("cached above").2;
         Ok(rows

@@ -1,0 +1,205 @@
+//! `plccoms history` on day files written here through the store (no
+//! server, no PLC): what an export does with damaged files and hostile
+//! content, and with the file it writes to.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use common::process::PLCCOMS;
+use plccoms::changes::Quality;
+use plccoms::historian::sample::{Sample, Stored};
+use plccoms::historian::store::{day_path, DayFile, DAY_MS};
+use plccoms::vars::VarTable;
+
+/// A day long past: 2022-01-08.
+const DAY: i64 = 19_000;
+const DATE: &str = "2022-01-08";
+const NEXT_DATE: &str = "2022-01-09";
+
+/// `dir/plccoms.ini` with section [Hist]; its history in `dir/history`.
+fn ini(dir: &Path) {
+    std::fs::write(
+        dir.join("plccoms.ini"),
+        "[*]\nCOMM_LOOP_DELAY = 100\n\n[Hist]\nIPADDR = 127.0.0.1\nIPADDR_LOCAL = 127.0.0.1\n\
+         EPSPORT = 61682\nSERVER_PORT = 5010\nPUBFILE = //plc.pub\nPUBFILE_CRC = No\n\
+         PUBFILE_WRITE = No\nHISTORY = *\n",
+    )
+    .unwrap();
+}
+
+fn table(public_text: &str) -> Arc<VarTable> {
+    Arc::new(VarTable::from_public_text("p.pub", public_text.as_bytes()).expect("table"))
+}
+
+/// Day `DAY` of section Hist in `dir/history`, `samples` written to it.
+fn day_with(dir: &Path, table: &Arc<VarTable>, samples: &[Sample]) -> DayFile {
+    let mut file = DayFile::open(&dir.join("history"), "Hist", DAY).unwrap();
+    file.write(&[(table, samples)], &[]).unwrap();
+    file
+}
+
+fn sample(table: &VarTable, name: &str, t: i64, value: Stored) -> Sample {
+    Sample {
+        t,
+        var: table.lookup(name.as_bytes()).expect(name),
+        value,
+        quality: Quality::Good,
+        plc_time: None,
+    }
+}
+
+/// `plccoms history -c plccoms.ini --section Hist --from DATE --to
+/// NEXT_DATE <args>` in `dir`.
+fn history(dir: &Path, args: &[&str]) -> Output {
+    Command::new(PLCCOMS)
+        .args(["history", "-c", "plccoms.ini", "--section", "Hist"])
+        .args(["--from", DATE, "--to", NEXT_DATE])
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .unwrap()
+}
+
+/// tools/history_read.py's `samples` of `file` as `s`, then `check`; a
+/// damaged block must raise its "damaged" error.
+fn python_reader(file: &Path, check: &str) {
+    let script = format!(
+        "import sys\nsys.path.insert(0, sys.argv[1])\nfrom history_read import samples\n\
+         try:\n    s = samples(sys.argv[2])\nexcept ValueError as e:\n    \
+         assert 'damaged' in str(e), e\n    raise SystemExit(0)\n{check}\n"
+    );
+    let out = Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .arg(format!("{}/tools", env!("CARGO_MANIFEST_DIR")))
+        .arg(file)
+        .output()
+        .expect("python3");
+    assert!(out.status.success(), "python: {}", stderr(&out));
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// The value of variable `var` (0..4) at cycle `c`: scattered, so blocks
+/// do not compress to nothing.
+fn value_at(c: i64, var: i64) -> f64 {
+    let mut x = (c as u64) << 2 | var as u64;
+    x = (x ^ (x >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    x = (x ^ (x >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    (x ^ (x >> 31)) as f64 / 7.0
+}
+
+/// 4 LREALs, 50,000 cycles 100 ms apart: 200,000 samples, packed into
+/// blocks of 65,536.
+fn packed_day(dir: &Path) -> PathBuf {
+    let table = table(
+        " V0 R F 0 LREAL PUB_INOUT\r\n V1 R F 8 LREAL PUB_INOUT\r\n \
+         V2 R F 16 LREAL PUB_INOUT\r\n V3 R F 24 LREAL PUB_INOUT\r\n",
+    );
+    let samples: Vec<Sample> = (0..50_000i64)
+        .flat_map(|c| {
+            let table = &table;
+            (0..4).map(move |v| {
+                sample(
+                    table,
+                    &format!("V{v}"),
+                    DAY * DAY_MS + c * 100,
+                    Stored::Real(value_at(c, v)),
+                )
+            })
+        })
+        .collect();
+    let mut file = day_with(dir, &table, &samples);
+    file.pack(i64::MAX, Instant::now() + Duration::from_secs(3600))
+        .unwrap();
+    file.close();
+    day_path(&dir.join("history"), "Hist", DAY)
+}
+
+/// A bit of 256 bytes in the middle of a packed block flipped (a bad sector, a bad
+/// copy): SQLite's own check sees nothing wrong. The export leaves that
+/// block's samples out, writes every other sample exactly, names the file
+/// and the block's time range, and exits with 2.
+#[test]
+fn a_damaged_block_is_named_and_the_rest_exported() {
+    let dir = tempfile::tempdir().unwrap();
+    ini(dir.path());
+    let path = packed_day(dir.path());
+    python_reader(&path, "assert len(s) == 200000, len(s)");
+    let conn = rusqlite::Connection::open(&path).unwrap();
+    let blocks: Vec<(i64, i64, i64)> = conn
+        .prepare("SELECT first_key, last_key, samples FROM blocks ORDER BY first_key")
+        .unwrap()
+        .query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))
+        .unwrap()
+        .collect::<Result<_, _>>()
+        .unwrap();
+    assert!(blocks.len() >= 3, "{blocks:?}");
+    let (first, last, damaged) = blocks[1];
+    let mut data: Vec<u8> = conn
+        .query_row(
+            "SELECT data FROM blocks WHERE first_key = ?1",
+            [first],
+            |r| r.get(0),
+        )
+        .unwrap();
+    let middle = data.len() / 2;
+    for b in &mut data[middle..middle + 256] {
+        *b ^= 0x01;
+    }
+    conn.execute(
+        "UPDATE blocks SET data = ?1 WHERE first_key = ?2",
+        rusqlite::params![data, first],
+    )
+    .unwrap();
+    let check: String = conn
+        .query_row("PRAGMA integrity_check", [], |r| r.get(0))
+        .unwrap();
+    assert_eq!(check, "ok");
+    drop(conn);
+
+    // The documented format's own Python reader checks the seal too.
+    python_reader(&path, "raise SystemExit('read a damaged block')");
+
+    let out = history(dir.path(), &["--out", "out.csv"]);
+    let message = stderr(&out);
+    assert_eq!(out.status.code(), Some(2), "{message}");
+    let iso = |key: i64| {
+        let mut text = Vec::new();
+        plccoms::historian::time::iso(DAY * DAY_MS + (key >> 15), &mut text);
+        String::from_utf8(text).unwrap()
+    };
+    assert!(
+        message.contains("history/Hist/Hist-2022-01-08.sqlite")
+            && message.contains(&iso(first))
+            && message.contains(&iso(last))
+            && message.contains("damaged"),
+        "{message}"
+    );
+    let csv = std::fs::read_to_string(dir.path().join("out.csv")).unwrap();
+    let day_start = DAY * DAY_MS;
+    let mut count = 0i64;
+    for line in csv.lines().skip(1) {
+        let fields: Vec<&str> = line.split(',').collect();
+        let t = chrono::DateTime::parse_from_rfc3339(fields[0])
+            .unwrap()
+            .timestamp_millis();
+        let var: i64 = fields[1][1..].parse().unwrap();
+        let key = ((t - day_start) << 15) | var;
+        assert!(
+            !(first..=last).contains(&key),
+            "a sample of the damaged block: {line}"
+        );
+        let c = (t - day_start) / 100;
+        let value: f64 = fields[2].parse().unwrap();
+        assert_eq!(value.to_bits(), value_at(c, var).to_bits(), "{line}");
+        count += 1;
+    }
+    assert_eq!(count, 200_000 - damaged);
+}
