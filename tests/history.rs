@@ -1006,3 +1006,59 @@ fn a_stalled_history_reader_holds_no_snapshot_and_is_cut_off() {
 fn store_wal_bytes(file: &Path) -> u64 {
     std::fs::metadata(format!("{}-wal", file.display())).map_or(0, |m| m.len())
 }
+
+/// Today's day file damaged while the server was down (its header
+/// overwritten): the server keeps it as `<name>.damaged-<time>`, says so,
+/// and records into a new file of today at once, instead of stopping until
+/// the next day.
+#[test]
+fn a_damaged_file_of_today_is_set_aside_and_recording_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let plc = Plc::start(
+        dir.path(),
+        &animated_pub(10),
+        &["--program", "idle", "--animate", "ANIM_*"],
+    );
+    let server = Server::start(dir.path(), &plc, "HISTORY = ANIM_*", "");
+    wait_for("samples written", || {
+        first_number(&server.getinfo("HISTORY_SAMPLES")) > 0
+    });
+    server.stop();
+    let file = day_files(dir.path()).pop().unwrap();
+    let mut damaged = std::fs::read(&file).unwrap();
+    damaged[..64].copy_from_slice(&[b'X'; 64]);
+    std::fs::write(&file, &damaged).unwrap();
+
+    let server = Server::start(dir.path(), &plc, "HISTORY = ANIM_*", "");
+    wait_for("samples written after the restart", || {
+        first_number(&server.getinfo("HISTORY_SAMPLES")) > 0
+    });
+    assert_eq!(server.getinfo("HISTORY"), "GETINFO:HISTORY,recording");
+    server.stop();
+    let name = file.file_name().unwrap().to_string_lossy().into_owned();
+    let aside: Vec<PathBuf> = std::fs::read_dir(file.parent().unwrap())
+        .unwrap()
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| {
+            p.file_name()
+                .unwrap()
+                .to_string_lossy()
+                .starts_with(&format!("{name}.damaged-"))
+        })
+        .collect();
+    assert_eq!(aside.len(), 1, "{aside:?}");
+    assert_eq!(std::fs::read(&aside[0]).unwrap(), damaged);
+    let log = server_log(dir.path());
+    let aside_name = aside[0].file_name().unwrap().to_string_lossy().into_owned();
+    assert!(
+        log.contains(&aside_name) && log.contains("damaged"),
+        "{log}"
+    );
+    assert_eq!(integrity(&file), "ok");
+    assert!(stored_samples(&file) > 0);
+}
+
+fn server_log(dir: &Path) -> String {
+    std::fs::read_to_string(dir.join("plccoms.log")).unwrap_or_default()
+}

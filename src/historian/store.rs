@@ -178,6 +178,37 @@ fn last_packed_key(conn: &Connection) -> Result<i64, StoreError> {
     )
 }
 
+/// Whether an error says the file itself is damaged (or not a history
+/// file at all), not that writing failed (a full disk, an I/O error).
+pub fn is_damaged(e: &StoreError) -> bool {
+    match e {
+        rusqlite::Error::SqliteFailure(f, _) => matches!(
+            f.code,
+            rusqlite::ErrorCode::DatabaseCorrupt | rusqlite::ErrorCode::NotADatabase
+        ),
+        rusqlite::Error::InvalidParameterName(text) => text.starts_with(NOT_A_HISTORY_FILE),
+        _ => false,
+    }
+}
+
+const NOT_A_HISTORY_FILE: &str = "not a plccoms-history file";
+
+/// Moves a damaged day file (and its WAL and shared memory) aside, to
+/// `<name>.damaged-<UTC time>`: kept for a look or a repair, out of the way
+/// of recording (day files end in `.sqlite`, so queries and the retention
+/// skip it). Returns the new path.
+pub fn set_aside(path: &Path) -> std::io::Result<PathBuf> {
+    let stamp = chrono::Utc::now().format("%Y%m%dT%H%M%SZ");
+    let mut aside = path.as_os_str().to_owned();
+    aside.push(format!(".damaged-{stamp}"));
+    let aside = PathBuf::from(aside);
+    std::fs::rename(path, &aside)?;
+    for suffix in ["-wal", "-shm", "-journal"] {
+        let _ = std::fs::rename(with_suffix(path, suffix), with_suffix(&aside, suffix));
+    }
+    Ok(aside)
+}
+
 fn check_format(conn: &Connection) -> Result<(), StoreError> {
     let format: Option<String> = conn
         .query_row("SELECT value FROM meta WHERE key = 'format'", [], |r| {
@@ -191,7 +222,7 @@ fn check_format(conn: &Connection) -> Result<(), StoreError> {
         .optional()?;
     if format.as_deref() != Some(FORMAT) || !version.is_some_and(|v| (1..=VERSION).contains(&v)) {
         return Err(rusqlite::Error::InvalidParameterName(format!(
-            "not a {FORMAT} file of version 1 to {VERSION} (format {format:?}, version {version:?})"
+            "{NOT_A_HISTORY_FILE} of version 1 to {VERSION} (format {format:?}, version {version:?})"
         )));
     }
     Ok(())

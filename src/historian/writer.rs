@@ -8,6 +8,9 @@
 //! samples it could not commit, stops recording with one log line, and is
 //! tried again every HISTORY_SYNC; the queue then fills and recorders drop
 //! what is over its bound. Recording resumes by itself, with one log line.
+//! A day file that is damaged (not a database, corrupt, not a history file)
+//! is no such failure: it is moved aside to `<name>.damaged-<UTC time>`,
+//! with one error line, and a new file of the day started at once.
 //!
 //! With HISTORY_COMPACT, the time a round leaves over (up to half of
 //! HISTORY_SYNC) packs the samples older than it into blocks; a day that is
@@ -349,7 +352,7 @@ fn write(section: &mut Section, settings: &Settings) -> Result<WriteCounts, stor
                 // connection, so that it sees what was packed.
                 let file = match section.closing.iter().position(|f| f.day == day) {
                     Some(i) => section.closing.swap_remove(i),
-                    None => DayFile::open(&settings.dir, &section.out.name, day)?,
+                    None => open_day(settings, &section.out.name, day)?,
                 };
                 v.insert(file)
             }
@@ -376,9 +379,71 @@ fn write(section: &mut Section, settings: &Settings) -> Result<WriteCounts, stor
             .filter(|e| day_of(e.t) == day)
             .cloned()
             .collect();
-        counts += file.write(&parts, &events)?;
+        counts += match file.write(&parts, &events) {
+            Err(e) if store::is_damaged(&e) => {
+                // Damaged under a running writer: a new file, at once.
+                let path = file.path.clone();
+                drop(section.files.remove(&day));
+                set_aside(&section.out.name, &path, &e)?;
+                let file = section.files.entry(day).or_insert(DayFile::open(
+                    &settings.dir,
+                    &section.out.name,
+                    day,
+                )?);
+                file.write(&parts, &events)?
+            }
+            done => done?,
+        };
     }
     Ok(counts)
+}
+
+/// Opens a day file for writing; a damaged one is set aside and a new one
+/// started, so that recording does not stop until the next day.
+fn open_day(settings: &Settings, section: &str, day: i64) -> Result<DayFile, store::StoreError> {
+    match DayFile::open(&settings.dir, section, day) {
+        Err(e) if store::is_damaged(&e) => {
+            set_aside(section, &store::day_path(&settings.dir, section, day), &e)?;
+            DayFile::open(&settings.dir, section, day)
+        }
+        done => done,
+    }
+}
+
+/// Moves a damaged day file aside, saying so; the error again if it
+/// cannot (recording then stops, and the move is tried at the next commit).
+fn set_aside(
+    section: &str,
+    path: &std::path::Path,
+    damage: &store::StoreError,
+) -> Result<(), store::StoreError> {
+    match store::set_aside(path) {
+        Ok(aside) => {
+            error!(
+                section,
+                "history: {} is damaged ({damage}); kept as {} and a new file started \
+                 (samples in the damaged file are not read until it is repaired and renamed back)",
+                path.display(),
+                aside.display()
+            );
+            Ok(())
+        }
+        Err(e) => {
+            warn!(
+                section,
+                "history: {} is damaged ({damage}) and cannot be moved aside: {e}",
+                path.display()
+            );
+            Err(clone_error(damage))
+        }
+    }
+}
+
+fn clone_error(e: &store::StoreError) -> store::StoreError {
+    match e {
+        rusqlite::Error::SqliteFailure(f, text) => rusqlite::Error::SqliteFailure(*f, text.clone()),
+        other => rusqlite::Error::InvalidParameterName(other.to_string()),
+    }
 }
 
 /// Deletes day files past the retention; returns whether the files still
