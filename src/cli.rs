@@ -58,9 +58,21 @@ pub enum Command {
     History(HistoryArgs),
 }
 
+/// The end of `plccoms history --help`.
+const HISTORY_HELP: &str = "\
+--out: the export is written to .<name>.<pid>.tmp beside FILE and renamed over \
+FILE only when it ran to the end; until then FILE stays as it was, and an export \
+that fails or is killed leaves no FILE that looks complete (a killed one leaves \
+its .tmp file). A FILE that is a symbolic link is refused.
+
+Exit status: 0 all exported; 2 exported to the end, but without the samples of \
+damaged packed blocks, which standard error names (file and time range); \
+1 failed (--out untouched).";
+
 /// `plccoms history -c <ini> --section S --vars <masks> --from T --to T
 /// [--format csv|json|parquet] [--out FILE] [--wide]`
 #[derive(Debug, Clone, PartialEq, Eq, Args)]
+#[command(after_help = HISTORY_HELP)]
 pub struct HistoryArgs {
     /// Section whose history is read
     #[arg(long)]
@@ -77,7 +89,7 @@ pub struct HistoryArgs {
     /// Output format
     #[arg(long, value_enum, default_value = "csv")]
     pub format: Format,
-    /// Output file (default: standard output)
+    /// Output file (default: standard output); written beside it and renamed at the end, never through a symbolic link
     #[arg(long, value_name = "FILE")]
     pub out: Option<PathBuf>,
     /// One row per time and one column per variable, instead of one row per sample

@@ -203,3 +203,107 @@ fn a_damaged_block_is_named_and_the_rest_exported() {
     }
     assert_eq!(count, 200_000 - damaged);
 }
+
+/// The files of `dir` other than `keep`.
+fn others(dir: &Path, keep: &[&str]) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .filter_map(Result::ok)
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| !keep.contains(&n.as_str()))
+        .collect();
+    names.sort();
+    names
+}
+
+/// `--out` names an existing file: an export that fails (a typo in the
+/// masks) leaves it as it was; one that succeeds replaces it whole, with no
+/// file of its own left beside it.
+#[test]
+fn a_failed_export_leaves_the_out_file_as_it_was() {
+    let dir = tempfile::tempdir().unwrap();
+    ini(dir.path());
+    packed_day(dir.path());
+    let out_dir = dir.path().join("exports");
+    std::fs::create_dir(&out_dir).unwrap();
+    let target = out_dir.join("report.csv");
+    std::fs::write(&target, "precious work\n").unwrap();
+    let out = history(
+        dir.path(),
+        &["--vars", "V9*", "--out", "exports/report.csv"],
+    );
+    assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
+    assert!(stderr(&out).contains("matches V9*"), "{}", stderr(&out));
+    assert_eq!(std::fs::read_to_string(&target).unwrap(), "precious work\n");
+    assert_eq!(others(&out_dir, &["report.csv"]), Vec::<String>::new());
+
+    let out = history(dir.path(), &["--vars", "V1", "--out", "exports/report.csv"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let csv = std::fs::read_to_string(&target).unwrap();
+    assert_eq!(csv.lines().count(), 50_001);
+    assert_eq!(others(&out_dir, &["report.csv"]), Vec::<String>::new());
+}
+
+/// `--out` naming a symbolic link is refused: the export never writes
+/// through it to the file it points at (another user's link in a shared
+/// folder), and the link stays.
+#[test]
+fn an_export_does_not_write_through_a_symbolic_link() {
+    let dir = tempfile::tempdir().unwrap();
+    ini(dir.path());
+    packed_day(dir.path());
+    let victim = dir.path().join("victim.txt");
+    std::fs::write(&victim, "not yours\n").unwrap();
+    std::os::unix::fs::symlink(&victim, dir.path().join("out.csv")).unwrap();
+    let out = history(dir.path(), &["--vars", "V1", "--out", "out.csv"]);
+    let message = stderr(&out);
+    assert_eq!(out.status.code(), Some(1), "{message}");
+    assert!(
+        message.contains("out.csv") && message.contains("symbolic link"),
+        "{message}"
+    );
+    assert_eq!(std::fs::read_to_string(&victim).unwrap(), "not yours\n");
+    assert!(std::fs::symlink_metadata(dir.path().join("out.csv"))
+        .unwrap()
+        .file_type()
+        .is_symlink());
+}
+
+/// An export killed halfway leaves no file at `--out` that looks complete:
+/// it writes beside it and renames only at the end.
+#[test]
+fn a_killed_export_leaves_no_file_at_out() {
+    let dir = tempfile::tempdir().unwrap();
+    ini(dir.path());
+    packed_day(dir.path());
+    let mut child = Command::new(PLCCOMS)
+        .args(["history", "-c", "plccoms.ini", "--section", "Hist"])
+        .args([
+            "--from", DATE, "--to", NEXT_DATE, "--wide", "--format", "json",
+        ])
+        .args(["--out", "out.json"])
+        .current_dir(dir.path())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    // Killed once its output is under way.
+    loop {
+        if child.try_wait().unwrap().is_some() {
+            eprintln!("the export finished before it could be killed: nothing to check");
+            return;
+        }
+        let partial = others(dir.path(), &["plccoms.ini", "history"]);
+        if !partial.is_empty() {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no output under way: {partial:?}"
+        );
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(!dir.path().join("out.json").exists());
+}

@@ -89,9 +89,9 @@ fn export_to(config_path: &Path, args: &HistoryArgs) -> Result<Option<String>, S
     };
     match &args.out {
         Some(path) => {
-            let file = std::fs::File::create(path)
-                .map_err(|e| format!("cannot create {}: {e}", path.display()))?;
-            let (rows, damaged) = written(export::export(&query, args.format, args.wide, file))?;
+            let (rows, damaged) = write_out(path, |file| {
+                written(export::export(&query, args.format, args.wide, file))
+            })?;
             if damaged.is_none() {
                 eprintln!("{rows} rows written to {}", path.display());
             }
@@ -106,6 +106,60 @@ fn export_to(config_path: &Path, args: &HistoryArgs) -> Result<Option<String>, S
             Ok(written(result)?.1)
         }
     }
+}
+
+/// Writes `--out` through a new file beside it (`.<name>.<pid>.tmp`),
+/// renamed over it when the export ran to the end (damaged ranges left out
+/// included): until then the file there stays as it was, and a killed
+/// export leaves only the temporary file, never one that looks complete.
+/// A symbolic link at `path` is refused: an export never writes through
+/// one (the rename would replace the link itself, not its target).
+fn write_out<T>(
+    path: &Path,
+    export: impl FnOnce(&mut std::fs::File) -> Result<T, String>,
+) -> Result<T, String> {
+    if let Ok(meta) = std::fs::symlink_metadata(path) {
+        if meta.file_type().is_symlink() {
+            let target = std::fs::read_link(path).unwrap_or_default();
+            return Err(format!(
+                "--out {} is a symbolic link (to {}): not written through; give the file's own path",
+                path.display(),
+                target.display()
+            ));
+        }
+        if meta.is_dir() {
+            return Err(format!("--out {} is a folder", path.display()));
+        }
+    }
+    let name = path
+        .file_name()
+        .ok_or_else(|| format!("--out {}: not a file name", path.display()))?;
+    let mut temp_name = std::ffi::OsString::from(".");
+    temp_name.push(name);
+    temp_name.push(format!(".{}.tmp", std::process::id()));
+    let temp = path.with_file_name(temp_name);
+    // create_new: never an existing file, nor through a link planted there.
+    let mut file = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&temp)
+        .map_err(|e| format!("cannot create {}: {e}", temp.display()))?;
+    let result = export(&mut file).and_then(|done| {
+        file.sync_all()
+            .map_err(|e| format!("writing {}: {e}", temp.display()))?;
+        std::fs::rename(&temp, path).map_err(|e| {
+            format!(
+                "cannot rename {} to {}: {e}",
+                temp.display(),
+                path.display()
+            )
+        })?;
+        Ok(done)
+    });
+    if result.is_err() {
+        let _ = std::fs::remove_file(&temp);
+    }
+    result
 }
 
 fn is_terminal() -> bool {
