@@ -65,6 +65,11 @@ FILE only when it ran to the end; until then FILE stays as it was, and an export
 that fails or is killed leaves no FILE that looks complete (a killed one leaves \
 its .tmp file). A FILE that is a symbolic link is refused.
 
+CSV: a name or text value beginning with = + - @ TAB or CR that does not read \
+as a number is written with a ' before it, so that a spreadsheet shows it as text \
+instead of running it as a formula; numbers, negative ones included, are never \
+changed. JSON and Parquet hold the values as they are.
+
 Exit status: 0 all exported; 2 exported to the end, but without the samples of \
 damaged packed blocks, which standard error names (file and time range); \
 1 failed (--out untouched).";

@@ -307,3 +307,74 @@ fn a_killed_export_leaves_no_file_at_out() {
     child.wait().unwrap();
     assert!(!dir.path().join("out.json").exists());
 }
+
+/// Text a spreadsheet would run as a formula (OWASP "CSV injection": a
+/// cell beginning with = + - @ TAB or CR) is written with a `'` before it,
+/// in names and text values, long and wide; numbers, negative ones
+/// included, and text that reads as a number stay as they are. pandas
+/// reads the cells back.
+#[test]
+fn csv_cells_a_spreadsheet_would_run_are_escaped() {
+    let dir = tempfile::tempdir().unwrap();
+    ini(dir.path());
+    let table = table(
+        " S R B 0 STRING[16] PUB_INOUT\r\n I R B 20 INT PUB_INOUT\r\n F R F 24 LREAL PUB_INOUT\r\n",
+    );
+    let texts = [
+        "=1+2", "+CMD", "-5", "-1+2", "@SUM(A1)", "\tx", "\rx", "plain", "'quoted",
+    ];
+    let t0 = DAY * DAY_MS + 1000;
+    let mut samples = Vec::new();
+    for (i, text) in texts.iter().enumerate() {
+        let t = t0 + i as i64 * 100;
+        samples.push(sample(&table, "S", t, Stored::Text(text.to_string())));
+        samples.push(sample(&table, "I", t, Stored::Int(-32768 + i as i64)));
+        samples.push(sample(&table, "F", t, Stored::Real(-1.5 - i as f64)));
+    }
+    day_with(dir.path(), &table, &samples).close();
+    // Names as a PLC's public file may have them.
+    let path = day_path(&dir.path().join("history"), "Hist", DAY);
+    let conn = rusqlite::Connection::open(&path).unwrap();
+    conn.execute("UPDATE vars SET name = '+CMD' WHERE name = 'I'", [])
+        .unwrap();
+    conn.execute("UPDATE vars SET name = '@F' WHERE name = 'F'", [])
+        .unwrap();
+    drop(conn);
+    for (wide, file) in [(false, "long.csv"), (true, "wide.csv")] {
+        let mut args = vec!["--out", file];
+        if wide {
+            args.push("--wide");
+        }
+        let out = history(dir.path(), &args);
+        assert!(out.status.success(), "{}", stderr(&out));
+    }
+    let script = r#"
+import sys
+import pandas as pd
+d = sys.argv[1]
+texts = ["'=1+2", "'+CMD", "-5", "'-1+2", "'@SUM(A1)", "'\tx", "'\rx", "plain", "'quoted"]
+long = pd.read_csv(d + "/long.csv", dtype=str, keep_default_na=False)
+assert sorted(set(long["name"])) == ["'+CMD", "'@F", "S"], set(long["name"])
+assert list(long[long["name"] == "S"]["value"]) == texts, list(long[long["name"] == "S"]["value"])
+assert list(long[long["name"] == "'+CMD"]["value"]) == [str(-32768 + i) for i in range(9)]
+assert list(long[long["name"] == "'@F"]["value"]) == [str(-1.5 - i) for i in range(9)]
+wide = pd.read_csv(d + "/wide.csv", keep_default_na=False)
+assert list(wide.columns) == ["time", "S", "'+CMD", "'@F"], list(wide.columns)
+assert list(wide["S"]) == texts, list(wide["S"])
+assert str(wide["'+CMD"].dtype) == "int64" and wide["'+CMD"].iloc[0] == -32768
+assert str(wide["'@F"].dtype) == "float64" and wide["'@F"].iloc[0] == -1.5
+print("ok")
+"#;
+    let out = Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .arg(dir.path())
+        .output()
+        .expect("python3");
+    assert!(
+        out.status.success(),
+        "python: {}\n{}",
+        stderr(&out),
+        std::fs::read_to_string(dir.path().join("long.csv")).unwrap()
+    );
+}

@@ -298,11 +298,39 @@ fn csv_field(field: &[u8], quote: bool, out: &mut Vec<u8>) {
     out.push(b'"');
 }
 
+/// Whether a spreadsheet would take a text cell for a formula (OWASP "CSV
+/// injection"): it begins with `=`, `+`, `-`, `@`, a tab or a carriage
+/// return and does not read as a number. Such a cell is written with a `'`
+/// before it, which spreadsheets show as text; numbers (negative ones
+/// included) are never changed.
+pub(crate) fn runs_as_formula(text: &[u8]) -> bool {
+    matches!(
+        text.first(),
+        Some(b'=' | b'+' | b'-' | b'@' | b'\t' | b'\r')
+    ) && !std::str::from_utf8(text).is_ok_and(|t| t.parse::<f64>().is_ok())
+}
+
+/// A CSV field of text: guarded against formulas, then as [`csv_field`].
+fn csv_text(field: &[u8], quote: bool, out: &mut Vec<u8>) {
+    if runs_as_formula(field) {
+        let mut guarded = Vec::with_capacity(field.len() + 1);
+        guarded.push(b'\'');
+        guarded.extend_from_slice(field);
+        csv_field(&guarded, quote, out);
+    } else {
+        csv_field(field, quote, out);
+    }
+}
+
 fn csv_value(row: &Row, out: &mut Vec<u8>, scratch: &mut Vec<u8>) {
     scratch.clear();
     let kind = value_text(&row.value, row.var.ty, scratch);
     let is_string = matches!(row.var.ty, Some(IecType::String(_))) && matches!(kind, Written::Text);
-    csv_field(scratch, is_string && scratch.is_empty(), out);
+    if matches!(kind, Written::Text) {
+        csv_text(scratch, is_string && scratch.is_empty(), out);
+    } else {
+        csv_field(scratch, false, out);
+    }
 }
 
 /// The output buffered, a line and a value being built.
@@ -329,7 +357,7 @@ fn write_csv<W: Write>(
             line.clear();
             iso(row.time(), &mut line);
             line.push(b',');
-            csv_field(row.var.name.as_bytes(), false, &mut line);
+            csv_text(row.var.name.as_bytes(), false, &mut line);
             line.push(b',');
             csv_value(&row, &mut line, &mut scratch);
             line.push(b',');
@@ -345,7 +373,7 @@ fn write_csv<W: Write>(
             if i > 0 {
                 line.push(b',');
             }
-            csv_field(name.as_bytes(), false, &mut line);
+            csv_text(name.as_bytes(), false, &mut line);
         }
         line.push(b'\n');
         out.write_all(&line)?;
@@ -826,6 +854,24 @@ mod tests {
             text(Stored::Int(1_700_000_000_000), IecType::Dt),
             "2023-11-14T22:13:20.000Z"
         );
+        for (text, guarded) in [
+            ("=1+2", true),
+            ("+CMD", true),
+            ("@A1", true),
+            ("\tx", true),
+            ("\rx", true),
+            ("-1+2", true),
+            ("-5", false),
+            ("-1.5e3", false),
+            ("+inf", false),
+            ("a=b", false),
+            ("", false),
+        ] {
+            assert_eq!(runs_as_formula(text.as_bytes()), guarded, "{text:?}");
+        }
+        let mut out = Vec::new();
+        csv_text(b"=a,b", false, &mut out);
+        assert_eq!(out, b"\"'=a,b\"");
         let mut out = Vec::new();
         csv_field(b"a,\"b\"", false, &mut out);
         csv_field(b"", true, &mut out);

@@ -10,7 +10,9 @@
 //! takes it (`now`, `-1h`, `-7d`, `2026-11-30T12:00:00Z`); `to` defaults to
 //! now, `from` to an hour before `to`. Output, oldest first:
 //! - CSV: `unix_ms,time,name,value,quality`, one line per sample (values as
-//!   the protocol prints them; quoted as RFC 4180 when needed);
+//!   the protocol prints them; quoted as RFC 4180 when needed; a name or
+//!   value beginning with = + - @ TAB or CR that is not a number gets a `'`
+//!   before it, so a spreadsheet does not run it as a formula);
 //! - JSON: `{"section":S,"from_ms":f,"to_ms":t,"samples":[{"t":ms,
 //!   "name":N,"value":V|null,"quality":Q},..]}`.
 //!
@@ -330,8 +332,17 @@ impl Encoder {
     }
 }
 
-/// A CSV field, quoted when it holds a comma, quote or line break.
+/// A CSV field, quoted when it holds a comma, quote or line break; text a
+/// spreadsheet would run as a formula (see
+/// [`crate::historian::export::runs_as_formula`]) with a `'` before it.
 fn csv_field(text: &str, out: &mut Vec<u8>) {
+    let guarded;
+    let text = if crate::historian::export::runs_as_formula(text.as_bytes()) {
+        guarded = format!("'{text}");
+        &guarded
+    } else {
+        text
+    };
     if text.contains([',', '"', '\r', '\n']) {
         out.push(b'"');
         out.extend_from_slice(text.replace('"', "\"\"").as_bytes());
@@ -438,6 +449,28 @@ mod tests {
             serde_json::json!({"t": 1000, "name": "SINUS", "value": "0.5", "quality": "good"})
         );
         assert_eq!(samples[1]["value"], serde_json::Value::Null);
+    }
+
+    /// Names and values a spreadsheet would run as formulas get a `'`
+    /// before them; numbers, negative ones too, stay as they are.
+    #[tokio::test]
+    async fn csv_cells_a_spreadsheet_would_run_are_escaped() {
+        let source = Recorded(
+            vec![
+                sample(1_000, "+CMD", Some("-3.5"), Quality::Good),
+                sample(1_000, "TEXT", Some("=HYPERLINK(\"x\",1)"), Quality::Good),
+                sample(1_000, "TEXT", Some("@SUM(A1)"), Quality::Good),
+            ],
+            None,
+        );
+        let (_, csv) = body(&source, "section=Demo&from=0&to=5000&format=csv").await;
+        assert_eq!(
+            csv,
+            "unix_ms,time,name,value,quality\r\n\
+             1000,1970-01-01T00:00:01.000Z,'+CMD,-3.5,good\r\n\
+             1000,1970-01-01T00:00:01.000Z,TEXT,\"'=HYPERLINK(\"\"x\"\",1)\",good\r\n\
+             1000,1970-01-01T00:00:01.000Z,TEXT,'@SUM(A1),good\r\n"
+        );
     }
 
     #[tokio::test]
