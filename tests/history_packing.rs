@@ -348,3 +348,27 @@ fn a_version_2_file_with_unsealed_blocks_is_still_read() {
     // The new samples are later than the old ones.
     assert_same(&after[..before.len()], &before);
 }
+
+/// A query holds no snapshot between its chunks (a stalled reader must
+/// not pin the WAL): samples packed into blocks while it is half way are
+/// read once each, in order, none lost.
+#[test]
+fn samples_packed_while_a_query_is_half_way_are_read_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let table = table();
+    let written = samples(&table, 30_000);
+    let mut file = day_with(dir.path(), &table, &written);
+    let all = (DAY * DAY_MS, (DAY + 1) * DAY_MS);
+    let want = read(dir.path(), all.0, all.1, &["*"]);
+    assert_eq!(want.len(), written.len());
+    let mut rows = query::rows(&query(dir.path(), all.0, all.1, &["*"])).unwrap();
+    let mut got: Vec<Row> = rows
+        .by_ref()
+        .take(query::CHUNK + 100)
+        .map(Result::unwrap)
+        .collect();
+    let packing = file.pack(i64::MAX, far()).unwrap();
+    assert_eq!(packing.samples, written.len() as u64);
+    got.extend(rows.map(Result::unwrap));
+    assert_same(&got, &want);
+}

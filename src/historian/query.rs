@@ -379,6 +379,23 @@ impl FileCursor {
     /// block, and moves `next_key` past them; `true` if any matched.
     fn read_chunk(&mut self, buffer: &mut VecDeque<Row>) -> rusqlite::Result<bool> {
         let from = self.next_key;
+        if !self.has_blocks {
+            // A version 1 file being written gains the table.
+            self.has_blocks = store::has_table(&self.conn, "blocks")?;
+        }
+        let block: Option<(i64, i64, i64)> = if self.has_blocks {
+            self.conn
+                .prepare_cached(READ_BLOCK)?
+                .query_row([from, self.end_key], |r| {
+                    Ok((r.get(0)?, r.get(1)?, r.get(2)?))
+                })
+                .optional()?
+        } else {
+            None
+        };
+        // Rows up to the block's end at most: those after it are the next
+        // chunk's (most rows are newer than every block).
+        let bound = block.map_or(self.end_key, |b| self.end_key.min(b.1 + 1));
         let sql = format!(
             "SELECT key, value FROM samples WHERE key >= ?1 AND key < ?2{} ORDER BY key LIMIT {CHUNK}",
             self.filter
@@ -386,55 +403,40 @@ impl FileCursor {
         let mut rows: Vec<(i64, Stored)> = Vec::new();
         {
             let mut stmt = self.conn.prepare_cached(&sql)?;
-            let mut result = stmt.query([from, self.end_key])?;
+            let mut result = stmt.query([from, bound])?;
             while let Some(row) = result.next()? {
                 rows.push((row.get(0)?, Stored::from_sql(row.get_ref(1)?)));
             }
         }
-        // Read up to here: the end of the range, or of a full chunk.
-        let mut to = match rows.last() {
+        // Read up to here: the bound, or the end of a full chunk.
+        let to = match rows.last() {
             Some(&(last, _)) if rows.len() == CHUNK => last + 1,
-            _ => self.end_key,
+            _ => bound,
         };
         let mut packed: &[Packed] = &[];
         let samples;
-        if !self.has_blocks {
-            // A version 1 file being written gains the table.
-            self.has_blocks = store::has_table(&self.conn, "blocks")?;
-        }
-        if self.has_blocks {
-            let block: Option<(i64, i64, i64)> = self
-                .conn
-                .prepare_cached(READ_BLOCK)?
-                .query_row([from, self.end_key], |r| {
-                    Ok((r.get(0)?, r.get(1)?, r.get(2)?))
-                })
-                .optional()?;
-            if let Some((first, last, count)) = block.filter(|b| b.0 < to) {
-                to = to.min(last + 1);
-                match self.unpacked(first, last, count)? {
-                    Ok(all) => {
-                        samples = all;
-                        let start = samples.partition_point(|s| s.key < from);
-                        let end = samples.partition_point(|s| s.key < to);
-                        packed = &samples[start..end];
-                    }
-                    Err(what) => {
-                        if self.reported != Some(first) {
-                            self.reported = Some(first);
-                            self.damaged = Some(QueryError::Damaged {
-                                path: self.path.clone(),
-                                first_ms: self.start_ms + (first >> VAR_BITS),
-                                last_ms: self.start_ms + (last >> VAR_BITS),
-                                samples: count,
-                                what,
-                            });
-                        }
+        if let Some((first, last, count)) = block.filter(|b| b.0 < to) {
+            match self.unpacked(first, last, count)? {
+                Ok(all) => {
+                    samples = all;
+                    let start = samples.partition_point(|s| s.key < from);
+                    let end = samples.partition_point(|s| s.key < to);
+                    packed = &samples[start..end];
+                }
+                Err(what) => {
+                    if self.reported != Some(first) {
+                        self.reported = Some(first);
+                        self.damaged = Some(QueryError::Damaged {
+                            path: self.path.clone(),
+                            first_ms: self.start_ms + (first >> VAR_BITS),
+                            last_ms: self.start_ms + (last >> VAR_BITS),
+                            samples: count,
+                            what,
+                        });
                     }
                 }
             }
         }
-        rows.retain(|(key, _)| *key < to);
         let qualities = self.side("qualities", "quality", from, to)?;
         let stamps = if self.has_stamps {
             self.side("stamps", "plc_time", from, to)?
