@@ -262,6 +262,17 @@ fn a_damaged_block_is_an_error_that_names_the_file() {
         .expect("an error");
     let text = err.to_string();
     assert!(text.contains("Pack-") && text.contains("damaged"), "{text}");
+    assert!(matches!(err, query::QueryError::Damaged { .. }), "{err:?}");
+    // Data of another type than a blob is damage of the block too.
+    rusqlite::Connection::open(&path)
+        .unwrap()
+        .execute("UPDATE blocks SET data = 'text'", [])
+        .unwrap();
+    let err = query::rows(&all)
+        .unwrap()
+        .find_map(Result::err)
+        .expect("an error");
+    assert!(err.to_string().contains("not a blob"), "{err}");
 }
 
 /// A day file of schema version 1 (no blocks, no incremental vacuum), as

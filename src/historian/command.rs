@@ -143,7 +143,7 @@ fn write_out<T>(
         .write(true)
         .create_new(true)
         .open(&temp)
-        .map_err(|e| format!("cannot create {}: {e}", temp.display()))?;
+        .map_err(|e| format!("cannot create {} for --out: {e}", temp.display()))?;
     let result = export(&mut file).and_then(|done| {
         file.sync_all()
             .map_err(|e| format!("writing {}: {e}", temp.display()))?;

@@ -26,6 +26,7 @@ use std::sync::Arc;
 
 use plccoms_protocol::mask::Mask;
 use plccoms_protocol::IecType;
+use rusqlite::types::ValueRef;
 use rusqlite::{Connection, OptionalExtension};
 
 use super::block::Packed;
@@ -485,13 +486,20 @@ impl FileCursor {
                 return Ok(samples.clone());
             }
         }
-        let data: Vec<u8> = self
+        let samples = self
             .conn
             .prepare_cached("SELECT data FROM blocks WHERE first_key = ?1")?
-            .query_row([first], |r| r.get(0))?;
-        let samples = store::unpack_block(first, last, count, &data)
-            .map(Arc::new)
-            .map_err(|e| e.to_string());
+            .query_row([first], |r| {
+                Ok(match r.get_ref(0)? {
+                    ValueRef::Blob(data) => store::unpack_block(first, last, count, data)
+                        .map(Arc::new)
+                        .map_err(|e| e.to_string()),
+                    other => Err(format!(
+                        "a packed block is damaged: its data is {}, not a blob",
+                        other.data_type()
+                    )),
+                })
+            })?;
         self.block = Some((first, samples.clone()));
         Ok(samples)
     }

@@ -124,3 +124,70 @@ impl HistorySource for Source {
         .boxed())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::changes::Quality;
+    use crate::historian::sample::{Sample as Recorded, Stored};
+    use crate::historian::store::{day_of, DayFile, DAY_MS};
+    use crate::vars::tests::table_of;
+
+    /// A damaged block: the samples before and after it come, then an
+    /// error naming the file and the range left out.
+    #[tokio::test]
+    async fn damaged_ranges_are_named_at_the_end() {
+        let dir = tempfile::tempdir().unwrap();
+        let table = Arc::new(table_of(&[("A", "LREAL")]));
+        let a = table.lookup(b"A").unwrap();
+        let day = day_of(1_700_000_000_000);
+        let at = |i: i64| day * DAY_MS + i * 10;
+        let samples: Vec<Recorded> = (0..3 * 65_536)
+            .map(|i| Recorded {
+                t: at(i),
+                var: a,
+                value: Stored::Real(i as f64 / 3.0),
+                quality: Quality::Good,
+                plc_time: None,
+            })
+            .collect();
+        let mut file = DayFile::open(dir.path(), "S", day).unwrap();
+        file.write(&[(&table, &samples)], &[]).unwrap();
+        file.pack(
+            i64::MAX,
+            std::time::Instant::now() + Duration::from_secs(600),
+        )
+        .unwrap();
+        let path = file.path.clone();
+        file.close();
+        rusqlite::Connection::open(&path)
+            .unwrap()
+            .execute(
+                "UPDATE blocks SET data = CAST(substr(data, 1, 5) || x'00' || substr(data, 7) AS BLOB) \
+                 WHERE first_key = (SELECT first_key FROM blocks ORDER BY first_key LIMIT 1 OFFSET 1)",
+                [],
+            )
+            .unwrap();
+        let source = Source::new(dir.path().to_path_buf(), Duration::from_secs(600));
+        let items: Vec<_> = source
+            .samples(HistoryQuery {
+                section: "S".into(),
+                masks: vec!["*".into()],
+                from_ms: at(0),
+                to_ms: at(3 * 65_536),
+            })
+            .unwrap()
+            .collect()
+            .await;
+        let (last, samples) = items.split_last().unwrap();
+        assert!(samples.iter().all(Result::is_ok));
+        assert_eq!(samples.len(), 2 * 65_536);
+        let Err(HistoryError::Failed(message)) = last else {
+            panic!("{last:?}");
+        };
+        assert!(
+            message.contains("S-2023-11-14.sqlite") && message.contains("65536 samples from"),
+            "{message}"
+        );
+    }
+}

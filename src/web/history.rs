@@ -18,7 +18,9 @@
 //!
 //! An error after the first bytes went out cannot change the status: it
 //! ends the body, as a last CSV line `# error: ...` or a JSON `"error"`
-//! member after `samples`.
+//! member after `samples`. So do the historian's time limit for an answer
+//! (HISTORY_QUERY_TIMEOUT, a stalled reader included) and the damaged
+//! ranges it left out.
 
 use std::sync::Arc;
 
