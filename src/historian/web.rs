@@ -51,6 +51,28 @@ fn sample(row: Row) -> Sample {
     }
 }
 
+type Item = Result<Sample, HistoryError>;
+
+/// Sends an item, waiting for room until `deadline` at most; `false` when
+/// the receiver is gone or the time is up. Waits (and a timer) only when
+/// the channel is full.
+fn send_by(
+    runtime: &tokio::runtime::Handle,
+    tx: &tokio::sync::mpsc::Sender<Item>,
+    item: Item,
+    deadline: tokio::time::Instant,
+) -> bool {
+    use tokio::sync::mpsc::error::TrySendError;
+    match tx.try_send(item) {
+        Ok(()) => true,
+        Err(TrySendError::Closed(_)) => false,
+        Err(TrySendError::Full(item)) => matches!(
+            runtime.block_on(tokio::time::timeout_at(deadline, tx.send(item))),
+            Ok(Ok(()))
+        ),
+    }
+}
+
 impl HistorySource for Source {
     fn samples(&self, query: HistoryQuery) -> Result<SampleStream, HistoryError> {
         let section = query.section.clone();
@@ -89,17 +111,13 @@ impl HistorySource for Source {
                     Err(e) => Err(HistoryError::Failed(e.to_string())),
                 };
                 // The page went away, or the time is up: stop reading.
-                let sent = runtime.block_on(tokio::time::timeout_at(deadline, tx.send(item)));
-                if !matches!(sent, Ok(Ok(()))) {
+                if !send_by(&runtime, &tx, item, deadline) {
                     return;
                 }
             }
             if !damaged.is_empty() {
                 let item = Err(HistoryError::Failed(damaged.join("; ")));
-                if !matches!(
-                    runtime.block_on(tokio::time::timeout_at(deadline, tx.send(item))),
-                    Ok(Ok(()))
-                ) {
+                if !send_by(&runtime, &tx, item, deadline) {
                     return;
                 }
             }
