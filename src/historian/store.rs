@@ -199,9 +199,18 @@ const NOT_A_HISTORY_FILE: &str = "not a plccoms-history file";
 /// skip it). Returns the new path.
 pub fn set_aside(path: &Path) -> std::io::Result<PathBuf> {
     let stamp = chrono::Utc::now().format("%Y%m%dT%H%M%SZ");
-    let mut aside = path.as_os_str().to_owned();
-    aside.push(format!(".damaged-{stamp}"));
-    let aside = PathBuf::from(aside);
+    // Never over one set aside before (twice in a second: `-2`, ...).
+    let aside = (1..)
+        .map(|n| {
+            let mut aside = path.as_os_str().to_owned();
+            aside.push(format!(".damaged-{stamp}"));
+            if n > 1 {
+                aside.push(format!("-{n}"));
+            }
+            PathBuf::from(aside)
+        })
+        .find(|aside| std::fs::symlink_metadata(aside).is_err())
+        .expect("a free name");
     std::fs::rename(path, &aside)?;
     for suffix in ["-wal", "-shm", "-journal"] {
         let _ = std::fs::rename(with_suffix(path, suffix), with_suffix(&aside, suffix));
@@ -307,6 +316,11 @@ impl DayFile {
         }
         let conn = Connection::open(&path)?;
         conn.busy_timeout(std::time::Duration::from_secs(5))?;
+        // A file that is not a history file is left as it is.
+        let existing = has_table(&conn, "meta")?;
+        if existing {
+            check_format(&conn)?;
+        }
         // Packing frees the pages of the rows it packs; a finished day
         // gives them back (only a new file can take this setting).
         conn.pragma_update(None, "auto_vacuum", "INCREMENTAL")?;
@@ -315,8 +329,7 @@ impl DayFile {
         // one commit per HISTORY_SYNC).
         conn.pragma_update(None, "synchronous", "FULL")?;
         let start_ms = day * DAY_MS;
-        if has_table(&conn, "meta")? {
-            check_format(&conn)?;
+        if existing {
             conn.execute_batch(BLOCKS_V1)?;
         } else {
             let tx = conn.unchecked_transaction()?;

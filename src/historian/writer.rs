@@ -590,6 +590,46 @@ mod tests {
         assert_eq!(stats.packed.get(), 20_000);
     }
 
+    /// A file at a day's path that is not a history file, or not a
+    /// database at all, is kept aside and a new file of the day opened.
+    #[test]
+    fn a_damaged_or_foreign_day_file_is_set_aside() {
+        let dir = tempfile::tempdir().unwrap();
+        let settings = Settings {
+            dir: dir.path().to_path_buf(),
+            sync: Duration::from_secs(1),
+            retention: Retention::default(),
+            pack_after: None,
+        };
+        let day = day_of(unix_ms(std::time::SystemTime::now()));
+        let path = day_path(dir.path(), "D", day);
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        let foreign = rusqlite::Connection::open(&path).unwrap();
+        foreign
+            .execute_batch(
+                "CREATE TABLE meta (key, value); INSERT INTO meta VALUES ('format', 'other');",
+            )
+            .unwrap();
+        drop(foreign);
+        for damage in [None, Some(b"not a database at all".to_vec())] {
+            if let Some(bytes) = &damage {
+                std::fs::write(&path, bytes).unwrap();
+            }
+            let before = std::fs::read(&path).unwrap();
+            let file = open_day(&settings, "D", day).unwrap();
+            file.close();
+            let aside: Vec<PathBuf> = std::fs::read_dir(path.parent().unwrap())
+                .unwrap()
+                .filter_map(Result::ok)
+                .map(|e| e.path())
+                .filter(|p| p.to_string_lossy().contains(".sqlite.damaged-"))
+                .filter(|p| std::fs::read(p).is_ok_and(|b| b == before))
+                .collect();
+            assert_eq!(aside.len(), 1, "{damage:?}");
+            store::open_read(&path).unwrap();
+        }
+    }
+
     #[test]
     fn retention_by_days_and_by_size() {
         let dir = tempfile::tempdir().unwrap();
