@@ -365,7 +365,8 @@ impl FileCursor {
     /// file is done.
     fn fill(&mut self, buffer: &mut VecDeque<Row>) -> rusqlite::Result<bool> {
         while self.next_key < self.end_key {
-            // Ended at once, committed or not: nothing is written here.
+            // The chunk's own snapshot, ended before its rows are handed
+            // on (a read-only transaction: COMMIT cannot lose anything).
             self.conn.execute_batch("BEGIN")?;
             let read = self.read_chunk(buffer);
             let _ = self.conn.execute_batch("COMMIT");
