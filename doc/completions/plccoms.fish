@@ -40,7 +40,7 @@ complete -c plccoms -n "__fish_plccoms_using_subcommand history" -l to -d 'End (
 complete -c plccoms -n "__fish_plccoms_using_subcommand history" -l format -d 'Output format' -r -f -a "csv\t''
 json\t''
 parquet\t''"
-complete -c plccoms -n "__fish_plccoms_using_subcommand history" -l out -d 'Output file (default: standard output)' -r -F
+complete -c plccoms -n "__fish_plccoms_using_subcommand history" -l out -d 'Output file (default: standard output); written beside it and renamed at the end, never through a symbolic link' -r -F
 complete -c plccoms -n "__fish_plccoms_using_subcommand history" -s c -l config -d 'Configuration file' -r -F
 complete -c plccoms -n "__fish_plccoms_using_subcommand history" -l wide -d 'One row per time and one column per variable, instead of one row per sample'
 complete -c plccoms -n "__fish_plccoms_using_subcommand history" -s h -l help -d 'Print help'
