@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use plccoms::backend::epsnet::{EpsnetBackend, EpsnetConfig};
 use plccoms::backend::{
-    Exception, FileInfo, PlcBackend, PlcError, ReadRequest, WriteData, WriteRequest,
+    FileInfo, PlcBackend, PlcError, ReadRequest, Refusal, WriteData, WriteRequest,
     FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_READONLY,
 };
 use plccoms_plc::time::ttida_from_unix;
@@ -82,7 +82,7 @@ async fn reads_across_the_1230_split_and_batches() {
     assert_eq!(answers[0].as_ref().unwrap(), &big);
     assert_eq!(answers[1].as_ref().unwrap(), &big[..1230]);
     assert_eq!(answers[2].as_ref().unwrap(), &big[1229..1231]);
-    assert_eq!(answers[3], Err(Exception::BadParameters));
+    assert_eq!(answers[3], Err(Refusal::BAD_PARAMETERS));
     assert_eq!(answers[4].as_ref().unwrap(), &Vec::<u8>::new());
 
     // Many small reads: packed, answered in order.
@@ -139,8 +139,8 @@ async fn writes_and_bits_sharing_a_byte() {
         .await
         .unwrap();
     assert_eq!(answers[..3], [Ok(()), Ok(()), Ok(())]);
-    assert_eq!(answers[3], Err(Exception::BadParameters));
-    assert_eq!(answers[4], Err(Exception::BadParameters));
+    assert_eq!(answers[3], Err(Refusal::BAD_PARAMETERS));
+    assert_eq!(answers[4], Err(Refusal::BAD_PARAMETERS));
     let back = plc
         .read(&[read(Area::R, 10_000, 3000), read(Area::R, 240, 1)])
         .await
@@ -235,11 +235,11 @@ async fn files_read_info_write_list() {
     // Escapes and missing files are refused by the PLC.
     assert_eq!(
         plc.read_file(b"../etc/passwd", 0, 100).await.unwrap(),
-        Err(Exception::BadParameters)
+        Err(Refusal::BAD_PARAMETERS)
     );
     assert_eq!(
         plc.file_info(b"nope.txt").await.unwrap(),
-        Err(Exception::BadParameters)
+        Err(Refusal::BAD_PARAMETERS)
     );
 }
 
@@ -271,7 +271,7 @@ async fn no_file_store_is_not_activated() {
     let mut plc = backend(sim.local_addr(), 500, 100, 2);
     assert_eq!(
         plc.file_info(b"x").await.unwrap(),
-        Err(Exception::NotActivated)
+        Err(Refusal::NOT_ACTIVATED)
     );
 }
 

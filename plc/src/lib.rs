@@ -2,7 +2,8 @@
 //! outside. Memory areas and their image ([`memory`]), public files
 //! ([`pubfile`]), file attributes and times ([`files`], [`time`]), and the
 //! EPSNET wire format ([`epsnet`]: frames, codec, the one table of service
-//! codes), Modbus TCP ([`modbus`]: frames, codec, tag files), and how a
+//! codes), Modbus TCP ([`modbus`]: frames, codec, tag files), a device's
+//! refusal whatever its protocol ([`refusal`]), and how a
 //! variable's bytes become a client's value ([`value_codec`]). Shared by the
 //! server's backends and the simulated PLC (`plcsim`), which reuse the same
 //! frames and codecs from opposite ends.
@@ -12,9 +13,11 @@ pub mod files;
 pub mod memory;
 pub mod modbus;
 pub mod pubfile;
+pub mod refusal;
 pub mod time;
 pub mod value_codec;
 
 pub use epsnet::Exception;
 pub use files::{DirEntry, FileInfo};
 pub use memory::{MemoryImage, MemoryMap, WriteData};
+pub use refusal::Refusal;

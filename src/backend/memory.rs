@@ -6,9 +6,9 @@ use std::sync::{Arc, Mutex};
 use async_trait::async_trait;
 
 use super::{
-    Answer, DirEntry, Exception, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest,
-    WriteRequest,
+    Answer, DirEntry, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, Refusal, WriteRequest,
 };
+use plccoms_plc::epsnet::Exception;
 use plcsim::{Device, FileStore};
 
 /// Same block limit as EPSNET, so plans made against this backend are the
@@ -32,10 +32,11 @@ impl MemoryBackend {
 
     /// Runs a file service on the device's file store; a device without one
     /// answers "service not activated", as a PLC without a file system would.
+    /// The simulated PLC refuses in EPSNET's terms.
     fn with_files<T>(&self, f: impl FnOnce(&mut FileStore) -> Result<T, Exception>) -> Answer<T> {
         match self.lock().files.as_mut() {
-            Some(files) => f(files),
-            None => Err(Exception::NotActivated),
+            Some(files) => f(files).map_err(Refusal::Epsnet),
+            None => Err(Refusal::NOT_ACTIVATED),
         }
     }
 
@@ -70,7 +71,11 @@ impl PlcBackend for MemoryBackend {
         let device = self.lock();
         Ok(requests
             .iter()
-            .map(|r| device.read(r.area, r.offset, r.len))
+            .map(|r| {
+                device
+                    .read(r.area, r.offset, r.len)
+                    .map_err(Refusal::Epsnet)
+            })
             .collect())
     }
 
@@ -78,7 +83,11 @@ impl PlcBackend for MemoryBackend {
         let mut device = self.lock();
         Ok(requests
             .iter()
-            .map(|r| device.write(r.area, r.offset, &r.data))
+            .map(|r| {
+                device
+                    .write(r.area, r.offset, &r.data)
+                    .map_err(Refusal::Epsnet)
+            })
             .collect())
     }
 
@@ -99,7 +108,7 @@ impl PlcBackend for MemoryBackend {
         len: u32,
     ) -> Result<Answer<Vec<u8>>, PlcError> {
         if len > MAX_FILE_BLOCK {
-            return Ok(Err(Exception::BadParameters));
+            return Ok(Err(Refusal::BAD_PARAMETERS));
         }
         Ok(self.with_files(|files| files.read(path, offset, len)))
     }
@@ -138,7 +147,7 @@ mod tests {
         let mut backend = MemoryBackend::new(device.clone());
         assert_eq!(
             backend.file_info(b"x").await.unwrap(),
-            Err(Exception::NotActivated)
+            Err(Refusal::NOT_ACTIVATED)
         );
         let dir = tempfile::tempdir().unwrap();
         device.lock().unwrap().files = Some(FileStore::open(dir.path()).unwrap());
@@ -155,7 +164,7 @@ mod tests {
         assert_eq!(list[0].name, b"a.txt");
         assert_eq!(
             backend.read_file(b"../a.txt", 0, 1).await.unwrap(),
-            Err(Exception::BadParameters)
+            Err(Refusal::BAD_PARAMETERS)
         );
     }
 }

@@ -2,8 +2,8 @@
 //!
 //! Errors come in two levels, as in tokio-modbus: the outer `Result` is the
 //! link (`PlcError`: timeout, unreachable, garbage on the wire), the inner one
-//! is what the PLC itself answered for one request (`Exception`: its error
-//! byte). A caller cannot mistake a lost PLC for "address out of range".
+//! is what the device itself answered for one request (`Refusal`: an EPSNET
+//! error byte, a Modbus exception). A caller cannot mistake a lost PLC for "address out of range".
 
 pub mod epsnet;
 pub mod memory;
@@ -13,12 +13,12 @@ pub mod plugin;
 use async_trait::async_trait;
 use plccoms_protocol::Area;
 
-pub use plccoms_plc::epsnet::Exception;
 pub use plccoms_plc::files::{
     DirEntry, FileInfo, FILE_ATTRIBUTE_ARCHIVE, FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_HIDDEN,
     FILE_ATTRIBUTE_READONLY, FILE_ATTRIBUTE_SYSTEM,
 };
 pub use plccoms_plc::memory::WriteData;
+pub use plccoms_plc::Refusal;
 
 /// A block of PLC memory to read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -47,7 +47,7 @@ pub enum PlcError {
     #[error("malformed answer from PLC: {0}")]
     Protocol(String),
     #[error("the PLC refused the request: {0}")]
-    Refused(Exception),
+    Refused(Refusal),
     #[error("not supported by this backend: {0}")]
     Unsupported(&'static str),
 }
@@ -63,8 +63,8 @@ impl PlcError {
     }
 }
 
-/// Answer to one request inside a batch: data, or the PLC's error byte.
-pub type Answer<T> = Result<T, Exception>;
+/// Answer to one request inside a batch: data, or the device's refusal.
+pub type Answer<T> = Result<T, Refusal>;
 
 /// PLC run state.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -140,7 +140,7 @@ pub trait PlcBackend: Send {
 
     /// Information about a file or directory in the PLC.
     async fn file_info(&mut self, _path: &[u8]) -> Result<Answer<FileInfo>, PlcError> {
-        Ok(Err(Exception::NotActivated))
+        Ok(Err(Refusal::NOT_ACTIVATED))
     }
 
     /// Up to `len` (at most `max_file_block`) bytes of a file from `offset`;
@@ -151,7 +151,7 @@ pub trait PlcBackend: Send {
         _offset: u64,
         _len: u32,
     ) -> Result<Answer<Vec<u8>>, PlcError> {
-        Ok(Err(Exception::NotActivated))
+        Ok(Err(Refusal::NOT_ACTIVATED))
     }
 
     /// Write a block of a file. The PLC commits the file only when `last` is
@@ -163,7 +163,7 @@ pub trait PlcBackend: Send {
         _data: &[u8],
         _last: bool,
     ) -> Result<Answer<()>, PlcError> {
-        Ok(Err(Exception::NotActivated))
+        Ok(Err(Refusal::NOT_ACTIVATED))
     }
 
     async fn write_file_info(
@@ -171,11 +171,11 @@ pub trait PlcBackend: Send {
         _path: &[u8],
         _info: &FileInfo,
     ) -> Result<Answer<()>, PlcError> {
-        Ok(Err(Exception::NotActivated))
+        Ok(Err(Refusal::NOT_ACTIVATED))
     }
 
     async fn list_dir(&mut self, _path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError> {
-        Ok(Err(Exception::NotActivated))
+        Ok(Err(Refusal::NOT_ACTIVATED))
     }
 }
 

@@ -16,7 +16,7 @@ use std::sync::Arc;
 use tokio::time::Instant;
 
 use super::{error, link_error, select, Cx, Reply, Selection};
-use crate::backend::{Exception, ReadRequest};
+use crate::backend::{ReadRequest, Refusal};
 use crate::link::ReadReply;
 use crate::vars::{VarId, VarTable};
 
@@ -188,7 +188,7 @@ pub fn complete(cx: &mut Cx<'_>, then: ReadThen, reply: ReadReply, out: &mut Vec
                 } else {
                     match answers.next() {
                         Some(Ok(bytes)) => var.decode(&bytes).format(var.ty, format, out),
-                        Some(Err(Exception::Modbus(code))) => {
+                        Some(Err(Refusal::Modbus(code))) => {
                             // The device's exception, named in the context.
                             out.truncate(start);
                             let context = super::set::exception_context(&var.name, code);

@@ -19,7 +19,7 @@ use plccoms_protocol::request::{parse_set, ArgError};
 use plccoms_protocol::value::{FormatOptions, Value};
 
 use super::{error, link_error, Cx, Reply};
-use crate::backend::{Exception, ReadRequest, WriteRequest};
+use crate::backend::{self, ReadRequest, WriteRequest};
 use crate::link::{LinkError, SetItem, SetReply};
 use crate::section::Section;
 use crate::vars::{Codec, Var, VarId, VarTable};
@@ -139,7 +139,7 @@ fn confirm(then: &SetThen, reply: SetReply) -> Result<(Value, u64), (ErrorCode, 
     };
     let bytes = match outcome.answer {
         Ok(bytes) => bytes,
-        Err(Exception::Modbus(code)) => {
+        Err(backend::Refusal::Modbus(code)) => {
             // The device's exception, named in the context: a value it
             // refuses is a wrong value, anything else the address's fault.
             let errcode = if code == plccoms_plc::modbus::ExceptionCode::ILLEGAL_DATA_VALUE {

@@ -16,9 +16,7 @@ use tokio::sync::oneshot;
 
 use super::plan::{Limits, Range, ReadPlan};
 use super::{LinkError, ReadReply, SetOutcome, SetReply};
-use crate::backend::{
-    Answer, Exception, PlcBackend, PlcError, ReadRequest, WriteData, WriteRequest,
-};
+use crate::backend::{Answer, PlcBackend, PlcError, ReadRequest, Refusal, WriteData, WriteRequest};
 use crate::changes::{unix_ms, Publisher};
 use crate::vars::{VarId, VarTable};
 
@@ -66,7 +64,7 @@ pub async fn read_ranges(
     for &i in &retry {
         let parts = split(requests[i], max(requests[i].area)).count();
         let mut bytes = Vec::with_capacity(requests[i].len as usize);
-        let mut failure: Option<Exception> = None;
+        let mut failure: Option<Refusal> = None;
         for answer in results.by_ref().take(parts) {
             match answer {
                 Ok(b) => bytes.extend_from_slice(&b),
@@ -76,7 +74,7 @@ pub async fn read_ranges(
         answers[i] = match failure {
             Some(e) => Err(e),
             None if bytes.len() == requests[i].len as usize => Ok(bytes),
-            None => Err(Exception::BadParameters),
+            None => Err(Refusal::BAD_PARAMETERS),
         };
     }
     Ok(answers)

@@ -16,7 +16,7 @@
 
 use plccoms_protocol::Area;
 
-use crate::backend::{Answer, Exception, PlcBackend, ReadRequest};
+use crate::backend::{Answer, PlcBackend, ReadRequest, Refusal};
 
 /// One wanted range.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -237,7 +237,7 @@ impl ReadPlan {
                 other => {
                     let exception = match other {
                         Some(Err(e)) => e,
-                        _ => Exception::BadParameters,
+                        _ => Refusal::BAD_PARAMETERS,
                     };
                     data.data.resize(start + len, 0);
                     data.failed.push((start..start + len, exception));
@@ -276,7 +276,7 @@ impl ReadPlan {
 #[derive(Debug, Default)]
 pub struct PlanData {
     data: Vec<u8>,
-    failed: Vec<(std::ops::Range<usize>, Exception)>,
+    failed: Vec<(std::ops::Range<usize>, Refusal)>,
 }
 
 #[cfg(test)]
@@ -380,16 +380,12 @@ mod tests {
     fn refused_and_short_blocks_fail_only_their_ranges() {
         let ranges = [r(Area::R, 0, 4), r(Area::R, 2000, 4), r(Area::R, 4000, 4)];
         let plan = ReadPlan::new(&ranges, &Limits::uniform(1230));
-        let answers = vec![
-            Ok(vec![1; 4]),
-            Err(Exception::BadParameters),
-            Ok(vec![3; 3]),
-        ];
+        let answers = vec![Ok(vec![1; 4]), Err(Refusal::BAD_PARAMETERS), Ok(vec![3; 3])];
         let (data, refused) = plan.assemble_answers(answers);
         assert_eq!(refused, vec![1, 2]);
         assert_eq!(plan.range_answer(&data, 0), Ok(&[1u8; 4][..]));
-        assert_eq!(plan.range_answer(&data, 1), Err(Exception::BadParameters));
-        assert_eq!(plan.range_answer(&data, 2), Err(Exception::BadParameters));
+        assert_eq!(plan.range_answer(&data, 1), Err(Refusal::BAD_PARAMETERS));
+        assert_eq!(plan.range_answer(&data, 2), Err(Refusal::BAD_PARAMETERS));
     }
 
     #[test]

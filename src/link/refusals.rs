@@ -17,7 +17,7 @@ use futures::future::BoxFuture;
 use tracing::{info, warn};
 
 use super::plan::{Limits, Range, ReadPlan};
-use crate::backend::{Exception, PlcBackend, PlcError};
+use crate::backend::{PlcBackend, PlcError, Refusal};
 use crate::vars::{VarId, VarTable};
 
 #[derive(Debug, Default)]
@@ -92,7 +92,7 @@ impl Split<'_> {
             let ranges: Vec<Range> = group.iter().map(|(_, r)| *r).collect();
             let plan = ReadPlan::with_holes(&ranges, &[], self.limits, &self.refusals.holes);
             let (data, _) = plan.assemble_answers(self.backend.read(plan.blocks()).await?);
-            let mut refused: Vec<(Wanted, Exception)> = Vec::new();
+            let mut refused: Vec<(Wanted, Refusal)> = Vec::new();
             for (i, wanted) in group.iter().enumerate() {
                 match plan.range_answer(&data, i) {
                     Ok(bytes) => self.found.push((wanted.0, bytes.to_vec())),
@@ -126,7 +126,7 @@ impl Split<'_> {
         })
     }
 
-    fn refuse(&mut self, id: VarId, range: Range, exception: Exception) {
+    fn refuse(&mut self, id: VarId, range: Range, exception: Refusal) {
         if self.refusals.alone.insert(id) {
             self.refusals.holes.push(range);
             warn!(

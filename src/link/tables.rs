@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 
 use tracing::{info, warn};
 
-use crate::backend::{Exception, PlcBackend};
+use crate::backend::{PlcBackend, Refusal};
 use crate::config::Section;
 use crate::vars::{VarFile, VarTable};
 use plccoms_plc::modbus::tags;
@@ -336,7 +336,7 @@ pub async fn fetch_file(backend: &mut dyn PlcBackend, path: &[u8]) -> Result<Vec
         .map_err(|e| format!("the PLC cannot be asked for it: {e}"))?
         .map_err(|e| match e {
             // What EPSNET answers for a missing file (see plc::epsnet::service).
-            Exception::BadParameters => format!("file not found on the PLC (it answered {e})"),
+            Refusal::BAD_PARAMETERS => format!("file not found on the PLC (it answered {e})"),
             e => format!("the PLC refused it: {e}"),
         })?;
     if info.size > MAX_PUBFILE {

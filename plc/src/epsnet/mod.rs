@@ -23,9 +23,6 @@ pub enum Exception {
     /// Wrong service parameters; also reading past the end of an area.
     BadParameters,
     Other(u8),
-    /// A Modbus device's exception (the Modbus backend's refusals travel
-    /// through the same answer type).
-    Modbus(crate::modbus::ExceptionCode),
 }
 
 impl Exception {
@@ -48,7 +45,6 @@ impl Exception {
             Exception::NotReady => 0x09,
             Exception::BadParameters => 0x0C,
             Exception::Other(byte) => byte,
-            Exception::Modbus(code) => code.0,
         }
     }
 }
@@ -62,7 +58,6 @@ impl fmt::Display for Exception {
             Exception::NotReady => f.write_str("data not ready (0x09)"),
             Exception::BadParameters => f.write_str("wrong service parameters (0x0C)"),
             Exception::Other(byte) => write!(f, "error byte 0x{byte:02X}"),
-            Exception::Modbus(code) => write!(f, "{code}"),
         }
     }
 }

@@ -24,7 +24,7 @@ use async_trait::async_trait;
 use tokio::time::Instant;
 
 use super::{
-    Answer, DirEntry, Exception, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteData,
+    Answer, DirEntry, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, Refusal, WriteData,
     WriteRequest,
 };
 use crate::metrics::BackendCounters;
@@ -155,7 +155,9 @@ impl Exchange<'_> {
                 return Err(format!("answer addressed to {}, not to us", f.da));
             }
         }
-        service::decode_answer(request, frame).map_err(|e| e.to_string())
+        service::decode_answer(request, frame)
+            .map(|answer| answer.map_err(Refusal::Epsnet))
+            .map_err(|e| e.to_string())
     }
 }
 
@@ -241,7 +243,7 @@ struct Split {
     requests: Vec<Request>,
     /// Per caller request: the range of `requests` it became, or a local
     /// answer given without asking the PLC.
-    parts: Vec<Result<Range<usize>, Exception>>,
+    parts: Vec<Result<Range<usize>, Refusal>>,
 }
 
 fn split_reads(reads: &[ReadRequest]) -> Split {
@@ -249,7 +251,7 @@ fn split_reads(reads: &[ReadRequest]) -> Split {
     let mut parts = Vec::new();
     for r in reads {
         if r.offset.checked_add(r.len).is_none() {
-            parts.push(Err(Exception::BadParameters));
+            parts.push(Err(Refusal::BAD_PARAMETERS));
             continue;
         }
         let start = requests.len();
@@ -279,7 +281,7 @@ fn split_writes(writes: &[WriteRequest]) -> Split {
         match &w.data {
             WriteData::Bit { bit, value } => {
                 let Some(mask) = 1u8.checked_shl(u32::from(*bit)) else {
-                    parts.push(Err(Exception::BadParameters));
+                    parts.push(Err(Refusal::BAD_PARAMETERS));
                     continue;
                 };
                 requests.push(Request::WriteBits {
@@ -293,7 +295,7 @@ fn split_writes(writes: &[WriteRequest]) -> Split {
                 if w.offset.checked_add(bytes.len() as u32).is_none()
                     || u32::try_from(bytes.len()).is_err()
                 {
-                    parts.push(Err(Exception::BadParameters));
+                    parts.push(Err(Refusal::BAD_PARAMETERS));
                     continue;
                 }
                 if bytes.is_empty() {
@@ -418,7 +420,7 @@ impl<T: Transport> PlcBackend for EpsnetClient<T> {
 
     async fn file_info(&mut self, path: &[u8]) -> Result<Answer<FileInfo>, PlcError> {
         if path.len() > MAX_PATH {
-            return Ok(Err(Exception::BadParameters));
+            return Ok(Err(Refusal::BAD_PARAMETERS));
         }
         match self
             .file_request(Request::FileInfo {
@@ -439,7 +441,7 @@ impl<T: Transport> PlcBackend for EpsnetClient<T> {
         len: u32,
     ) -> Result<Answer<Vec<u8>>, PlcError> {
         if path.len() > MAX_PATH || len > MAX_FILE_BLOCK {
-            return Ok(Err(Exception::BadParameters));
+            return Ok(Err(Refusal::BAD_PARAMETERS));
         }
         match self
             .file_request(Request::FileRead {
@@ -463,7 +465,7 @@ impl<T: Transport> PlcBackend for EpsnetClient<T> {
         last: bool,
     ) -> Result<Answer<()>, PlcError> {
         if path.len() > MAX_PATH {
-            return Ok(Err(Exception::BadParameters));
+            return Ok(Err(Refusal::BAD_PARAMETERS));
         }
         // Blocks larger than the limit go as several, strictly in order.
         let chunks: Vec<&[u8]> = if data.is_empty() {
@@ -498,7 +500,7 @@ impl<T: Transport> PlcBackend for EpsnetClient<T> {
         info: &FileInfo,
     ) -> Result<Answer<()>, PlcError> {
         if path.len() > MAX_PATH {
-            return Ok(Err(Exception::BadParameters));
+            return Ok(Err(Refusal::BAD_PARAMETERS));
         }
         match self
             .file_request(Request::FileWriteInfo {
@@ -515,7 +517,7 @@ impl<T: Transport> PlcBackend for EpsnetClient<T> {
 
     async fn list_dir(&mut self, path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError> {
         if path.len() > MAX_PATH {
-            return Ok(Err(Exception::BadParameters));
+            return Ok(Err(Refusal::BAD_PARAMETERS));
         }
         let mut all = Vec::new();
         loop {

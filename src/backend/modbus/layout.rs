@@ -5,7 +5,7 @@
 
 use plccoms_protocol::Area;
 
-use crate::backend::{Exception, ReadRequest};
+use crate::backend::{ReadRequest, Refusal};
 use plccoms_plc::modbus::frame::{Request, Response};
 use plccoms_plc::modbus::{ExceptionCode, Table, INPUT_BASE, MAP};
 
@@ -29,7 +29,7 @@ pub enum Source {
     /// The backend's own system registers.
     System { offset: u32, len: u32 },
     /// Outside the layout: refused without asking the device.
-    Refused(Exception),
+    Refused(Refusal),
 }
 
 /// The Modbus requests (appended to `requests`) and local parts that make
@@ -44,7 +44,7 @@ pub fn plan_read(
         .checked_add(read.len)
         .filter(|&end| MAP.contains(read.area, start, read.len) && end > start)
     else {
-        return vec![Source::Refused(Exception::Modbus(
+        return vec![Source::Refused(Refusal::Modbus(
             ExceptionCode::ILLEGAL_DATA_ADDRESS,
         ))];
     };

@@ -48,7 +48,7 @@ use plccoms_protocol::Area;
 use tracing::{info, warn};
 
 use super::{
-    Answer, Exception, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteData, WriteRequest,
+    Answer, PlcBackend, PlcError, PlcStatus, ReadRequest, Refusal, WriteData, WriteRequest,
 };
 use crate::metrics::BackendCounters;
 use client::{Connection, Outcome};
@@ -227,7 +227,7 @@ impl ModbusBackend {
             })
             .await?
             .map(|r| answer_bytes(&r))
-            .map_err(Exception::Modbus))
+            .map_err(Refusal::Modbus))
     }
 
     /// Writes whole holding registers from `first` (high byte first).
@@ -249,7 +249,7 @@ impl ModbusBackend {
                 },
             };
             if let Err(code) = self.one(request).await? {
-                return Ok(Err(Exception::Modbus(code)));
+                return Ok(Err(Refusal::Modbus(code)));
             }
             address = address.wrapping_add(chunk.len() as u16);
         }
@@ -270,7 +270,7 @@ impl ModbusBackend {
                 },
             };
             if let Err(code) = self.one(request).await? {
-                return Ok(Err(Exception::Modbus(code)));
+                return Ok(Err(Refusal::Modbus(code)));
             }
             address = address.wrapping_add(chunk.len() as u16);
         }
@@ -298,7 +298,7 @@ impl ModbusBackend {
                     info!(device = %self.config.device, "the device has no mask write (FC 22): register bits are written by read-modify-write");
                     self.mask_write = false;
                 }
-                Err(code) => return Ok(Err(Exception::Modbus(code))),
+                Err(code) => return Ok(Err(Refusal::Modbus(code))),
             }
         }
         let current = match self.read_holding(register, 1).await? {
@@ -314,7 +314,7 @@ impl ModbusBackend {
     }
 
     async fn write_one(&mut self, write: &WriteRequest) -> Result<Answer<()>, PlcError> {
-        let refused = |code| Ok(Err(Exception::Modbus(code)));
+        let refused = |code| Ok(Err(Refusal::Modbus(code)));
         let len = match &write.data {
             WriteData::Bytes(bytes) => bytes.len() as u32,
             WriteData::Bit { .. } => 1,
@@ -466,11 +466,11 @@ impl PlcBackend for ModbusBackend {
                             let data = answer_bytes(response);
                             match data.get(from..from + len) {
                                 Some(part) => bytes.extend_from_slice(part),
-                                None => failure = Some(Exception::BadParameters),
+                                None => failure = Some(Refusal::BAD_PARAMETERS),
                             }
                         }
                         Err(code) => {
-                            failure.get_or_insert(Exception::Modbus(*code));
+                            failure.get_or_insert(Refusal::Modbus(*code));
                         }
                     },
                     Source::System { offset, len } => {

@@ -37,12 +37,13 @@ use std::sync::{mpsc, Arc};
 use std::time::Duration;
 
 use async_trait::async_trait;
+use plccoms_plc::epsnet::Exception;
 use plccoms_plugin_abi as abi;
 use tokio::sync::oneshot;
 use tokio::time::Instant;
 
 use super::{
-    Answer, DirEntry, Exception, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteData,
+    Answer, DirEntry, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, Refusal, WriteData,
     WriteRequest,
 };
 use crate::metrics::BackendCounters;
@@ -329,8 +330,9 @@ fn status(what: &str, code: i32, err: &abi::PluginError) -> Result<Answer<()>, P
     };
     match code {
         abi::OK => Ok(Ok(())),
-        1..=255 => Ok(Err(Exception::from_byte(code as u8))),
-        abi::ERR_UNSUPPORTED => Ok(Err(Exception::UnknownService)),
+        // The ABI's refusals are EPSNET error bytes.
+        1..=255 => Ok(Err(Refusal::Epsnet(Exception::from_byte(code as u8)))),
+        abi::ERR_UNSUPPORTED => Ok(Err(Refusal::UNKNOWN_SERVICE)),
         abi::ERR_TIMEOUT => Err(PlcError::Timeout(format!("plugin {what}{says}"))),
         abi::ERR_IO => Err(PlcError::Io(std::io::Error::other(format!(
             "plugin {what}{says}"
@@ -592,7 +594,7 @@ impl PluginBackend {
             let (what, code) = match &w.data {
                 WriteData::Bit { bit, value } => {
                     let Some(mask) = 1u8.checked_shl(u32::from(*bit)) else {
-                        return Ok(Err(Exception::BadParameters));
+                        return Ok(Err(Refusal::BAD_PARAMETERS));
                     };
                     let f = loaded.api.write_bits.expect("checked at load");
                     let note = loaded.note("write_bits");
@@ -605,7 +607,7 @@ impl PluginBackend {
                 }
                 WriteData::Bytes(bytes) => {
                     let Ok(len) = u32::try_from(bytes.len()) else {
-                        return Ok(Err(Exception::BadParameters));
+                        return Ok(Err(Refusal::BAD_PARAMETERS));
                     };
                     let f = loaded.api.write.expect("checked at load");
                     let note = loaded.note("write");
@@ -623,8 +625,8 @@ impl PluginBackend {
 
     /// File services: `None` when the plugin has none (answered as a PLC
     /// without them: not activated).
-    fn no_files(&self) -> Option<Exception> {
-        (!self.files).then_some(Exception::NotActivated)
+    fn no_files(&self) -> Option<Refusal> {
+        (!self.files).then_some(Refusal::NOT_ACTIVATED)
     }
 }
 
@@ -706,7 +708,7 @@ impl PlcBackend for PluginBackend {
         let mut out = Vec::with_capacity(requests.len());
         for r in requests {
             if r.offset.checked_add(r.len).is_none() {
-                out.push(Err(Exception::BadParameters));
+                out.push(Err(Refusal::BAD_PARAMETERS));
                 continue;
             }
             let mut joined = Vec::with_capacity(r.len as usize);
@@ -810,7 +812,7 @@ impl PlcBackend for PluginBackend {
             return Ok(Err(e));
         }
         if len > self.max_file {
-            return Ok(Err(Exception::BadParameters));
+            return Ok(Err(Refusal::BAD_PARAMETERS));
         }
         let path = path.to_vec();
         self.call("file_read", move |loaded| {
@@ -1017,11 +1019,11 @@ mod tests {
         assert!(matches!(status("read", 0, &err), Ok(Ok(()))));
         assert!(matches!(
             status("read", 0x0C, &err),
-            Ok(Err(Exception::BadParameters))
+            Ok(Err(Refusal::BAD_PARAMETERS))
         ));
         assert!(matches!(
             status("read", abi::ERR_UNSUPPORTED, &err),
-            Ok(Err(Exception::UnknownService))
+            Ok(Err(Refusal::UNKNOWN_SERVICE))
         ));
         assert!(matches!(
             status("read", abi::ERR_TIMEOUT, &err),
