@@ -202,31 +202,9 @@ proptest! {
 // ---------------------------------------------------------------------------
 // Public files
 
-const FIXED_TYPES: [IecType; 19] = [
-    IecType::Bool,
-    IecType::Byte,
-    IecType::Word,
-    IecType::Dword,
-    IecType::Lword,
-    IecType::Sint,
-    IecType::Int,
-    IecType::Dint,
-    IecType::Lint,
-    IecType::Usint,
-    IecType::Uint,
-    IecType::Udint,
-    IecType::Ulint,
-    IecType::Real,
-    IecType::Lreal,
-    IecType::Date,
-    IecType::Time,
-    IecType::Tod,
-    IecType::Dt,
-];
-
 fn any_type() -> impl Strategy<Value = IecType> {
     prop_oneof![
-        4 => proptest::sample::select(&FIXED_TYPES[..]),
+        4 => proptest::sample::select(&IecType::FIXED[..]),
         1 => (1u16..=255).prop_map(IecType::String),
     ]
 }

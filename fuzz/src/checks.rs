@@ -91,32 +91,10 @@ pub mod alloc_count {
 // ---------------------------------------------------------------------------
 // request_line
 
-pub const FIXED_TYPES: [IecType; 19] = [
-    IecType::Bool,
-    IecType::Byte,
-    IecType::Word,
-    IecType::Dword,
-    IecType::Lword,
-    IecType::Sint,
-    IecType::Int,
-    IecType::Dint,
-    IecType::Lint,
-    IecType::Usint,
-    IecType::Uint,
-    IecType::Udint,
-    IecType::Ulint,
-    IecType::Real,
-    IecType::Lreal,
-    IecType::Date,
-    IecType::Time,
-    IecType::Tod,
-    IecType::Dt,
-];
-
 /// Every type: the fixed ones and strings of the smallest, default and
 /// largest capacity.
 pub fn all_types() -> impl Iterator<Item = IecType> {
-    FIXED_TYPES.into_iter().chain([
+    IecType::FIXED.into_iter().chain([
         IecType::String(1),
         IecType::String(80),
         IecType::String(255),

@@ -35,6 +35,30 @@ pub enum IecType {
 }
 
 impl IecType {
+    /// Every type but `STRING[n]`, in declaration order: the one list tests,
+    /// property generators and fuzz checks iterate.
+    pub const FIXED: [IecType; 19] = [
+        IecType::Bool,
+        IecType::Byte,
+        IecType::Word,
+        IecType::Dword,
+        IecType::Lword,
+        IecType::Sint,
+        IecType::Int,
+        IecType::Dint,
+        IecType::Lint,
+        IecType::Usint,
+        IecType::Uint,
+        IecType::Udint,
+        IecType::Ulint,
+        IecType::Real,
+        IecType::Lreal,
+        IecType::Date,
+        IecType::Time,
+        IecType::Tod,
+        IecType::Dt,
+    ];
+
     /// Parses a type name as it appears in a public file, case-insensitively,
     /// including the long aliases (`TIME_OF_DAY`, `DATE_AND_TIME`) and
     /// `STRING[n]`. `None` for anything else.
@@ -189,6 +213,14 @@ impl fmt::Display for Area {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn fixed_lists_each_type_once_by_its_name() {
+        for (i, ty) in IecType::FIXED.iter().enumerate() {
+            assert_eq!(IecType::parse(ty.to_string().as_bytes()), Some(*ty));
+            assert!(!IecType::FIXED[..i].contains(ty), "{ty} twice");
+        }
+    }
 
     #[test]
     fn parses_every_type_and_alias() {

@@ -12,31 +12,9 @@ use plccoms_protocol::{
 };
 use proptest::prelude::*;
 
-const FIXED_TYPES: [IecType; 19] = [
-    IecType::Bool,
-    IecType::Byte,
-    IecType::Word,
-    IecType::Dword,
-    IecType::Lword,
-    IecType::Sint,
-    IecType::Int,
-    IecType::Dint,
-    IecType::Lint,
-    IecType::Usint,
-    IecType::Uint,
-    IecType::Udint,
-    IecType::Ulint,
-    IecType::Real,
-    IecType::Lreal,
-    IecType::Date,
-    IecType::Time,
-    IecType::Tod,
-    IecType::Dt,
-];
-
 fn any_type() -> impl Strategy<Value = IecType> {
     prop_oneof![
-        proptest::sample::select(&FIXED_TYPES[..]),
+        proptest::sample::select(&IecType::FIXED[..]),
         (1u16..=255).prop_map(IecType::String),
     ]
 }
@@ -192,11 +170,10 @@ proptest! {
 
     #[test]
     fn integers_round_trip(raw in any::<[u8; 8]>(), opts in any_opts()) {
-        for ty in [
-            IecType::Bool, IecType::Byte, IecType::Word, IecType::Dword, IecType::Lword,
-            IecType::Sint, IecType::Int, IecType::Dint, IecType::Lint, IecType::Usint,
-            IecType::Uint, IecType::Udint, IecType::Ulint, IecType::Time, IecType::Tod,
-        ] {
+        // Every fixed type but the floating-point ones.
+        for ty in IecType::FIXED.into_iter().filter(|ty| {
+            !matches!(ty, IecType::Real | IecType::Lreal | IecType::Date | IecType::Dt)
+        }) {
             let v = Value::decode(ty, &raw);
             let text = format(&v, ty, &opts);
             prop_assert_eq!(Value::parse(ty, &text, &opts), Ok(v.clone()), "{}", ty);
