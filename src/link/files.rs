@@ -194,21 +194,10 @@ impl Files {
                 if let Some(data) = self.cache.get(&path, offset, len) {
                     return Ok(Ok(FileOutput::Data(data)));
                 }
-                let mut data = Vec::with_capacity(len as usize);
-                while data.len() < len as usize {
-                    let want = (len - data.len() as u32).min(block);
-                    let at = offset + data.len() as u64;
-                    match backend.read_file(&path, at, want).await? {
-                        Ok(piece) => {
-                            let short = piece.len() < want as usize;
-                            data.extend_from_slice(&piece);
-                            if short {
-                                break;
-                            }
-                        }
-                        Err(e) => return Ok(Err(e)),
-                    }
-                }
+                let data = match read_file(backend, &path, offset, len).await? {
+                    Ok(data) => data,
+                    Err(e) => return Ok(Err(e)),
+                };
                 self.cache.note_read(&path, offset, len, &data);
                 Ok(FileOutput::Data(data))
             }
@@ -246,6 +235,34 @@ impl Files {
             }
         })
     }
+}
+
+/// `len` bytes of the PLC's file `path` from `offset`, asked for in the
+/// backend's blocks; fewer where the file ends first (a short block). The
+/// one place a file is read, for clients' reads and the server's own.
+pub async fn read_file(
+    backend: &mut dyn PlcBackend,
+    path: &[u8],
+    offset: u64,
+    len: u32,
+) -> Result<Answer<Vec<u8>>, PlcError> {
+    let block = backend.max_file_block().max(1);
+    let mut data = Vec::with_capacity(len as usize);
+    while data.len() < len as usize {
+        let want = (len - data.len() as u32).min(block);
+        let at = offset + data.len() as u64;
+        match backend.read_file(path, at, want).await? {
+            Ok(piece) => {
+                let short = piece.len() < want as usize;
+                data.extend_from_slice(&piece);
+                if short {
+                    break;
+                }
+            }
+            Err(e) => return Ok(Err(e)),
+        }
+    }
+    Ok(Ok(data))
 }
 
 struct Entry {

@@ -345,22 +345,10 @@ pub async fn fetch_file(backend: &mut dyn PlcBackend, path: &[u8]) -> Result<Vec
             info.size
         ));
     }
-    let block = backend.max_file_block().max(1);
-    let mut bytes = Vec::with_capacity(info.size as usize);
-    loop {
-        let chunk = backend
-            .read_file(path, bytes.len() as u64, block)
-            .await
-            .map_err(|e| format!("reading it from the PLC failed: {e}"))?
-            .map_err(|e| format!("the PLC refused to read it: {e}"))?;
-        let done = (chunk.len() as u32) < block;
-        bytes.extend_from_slice(&chunk);
-        if done || bytes.len() as u64 >= info.size {
-            break;
-        }
-        if bytes.len() as u64 > MAX_PUBFILE {
-            return Err("the file grew past the accepted size while reading".to_string());
-        }
-    }
-    Ok(bytes)
+    // Exactly the size the PLC gave: at most MAX_PUBFILE, however the file
+    // changes meanwhile.
+    super::files::read_file(backend, path, 0, info.size as u32)
+        .await
+        .map_err(|e| format!("reading it from the PLC failed: {e}"))?
+        .map_err(|e| format!("the PLC refused to read it: {e}"))
 }
