@@ -173,14 +173,28 @@ async fn files_read_info_write_list() {
     .await;
     let mut plc = backend(sim.local_addr(), 500, 100, 2);
 
-    // Write a file of 3 blocks (one larger than the limit: split further).
+    // A block larger than the limit is refused (the link splits uploads).
     let content = pattern(4000, 9);
+    assert_eq!(
+        plc.write_file(b"/logs/big.bin", 0, &content[..1151], true)
+            .await
+            .unwrap(),
+        Err(Refusal::BAD_PARAMETERS)
+    );
+    assert!(plc.file_info(b"/logs/big.bin").await.unwrap().is_err());
+
+    // Write a file of 4 blocks.
     let mut at = 0;
-    for (i, block) in [&content[..1000], &content[1000..3500], &content[3500..]]
-        .iter()
-        .enumerate()
+    for (i, block) in [
+        &content[..1000],
+        &content[1000..2150],
+        &content[2150..3300],
+        &content[3300..],
+    ]
+    .iter()
+    .enumerate()
     {
-        let last = i == 2;
+        let last = i == 3;
         assert_eq!(
             plc.write_file(b"/logs/new.bin", at, block, last)
                 .await

@@ -120,6 +120,9 @@ impl PlcBackend for MemoryBackend {
         data: &[u8],
         last: bool,
     ) -> Result<Answer<()>, PlcError> {
+        if data.len() > MAX_FILE_BLOCK as usize {
+            return Ok(Err(Refusal::BAD_PARAMETERS));
+        }
         Ok(self.with_files(|files| files.write(path, offset, data, last)))
     }
 

@@ -154,7 +154,8 @@ pub trait PlcBackend: Send {
         Ok(Err(Refusal::NOT_ACTIVATED))
     }
 
-    /// Write a block of a file. The PLC commits the file only when `last` is
+    /// Write a block (at most `max_file_block` bytes; the link splits
+    /// uploads) of a file. The PLC commits the file only when `last` is
     /// set; a write at offset 0 starts the file anew.
     async fn write_file(
         &mut self,

@@ -464,34 +464,24 @@ impl<T: Transport> PlcBackend for EpsnetClient<T> {
         data: &[u8],
         last: bool,
     ) -> Result<Answer<()>, PlcError> {
-        if path.len() > MAX_PATH {
+        // The link splits uploads into max_file_block pieces; a larger one
+        // is refused, as read_file refuses a larger len.
+        if path.len() > MAX_PATH || data.len() > MAX_FILE_BLOCK as usize {
             return Ok(Err(Refusal::BAD_PARAMETERS));
         }
-        // Blocks larger than the limit go as several, strictly in order.
-        let chunks: Vec<&[u8]> = if data.is_empty() {
-            vec![data]
-        } else {
-            data.chunks(MAX_FILE_BLOCK as usize).collect()
-        };
-        let count = chunks.len();
-        let mut at = offset;
-        for (i, chunk) in chunks.into_iter().enumerate() {
-            let answer = self
-                .file_request(Request::FileWrite {
-                    path: path.to_vec(),
-                    offset: at,
-                    last: last && i + 1 == count,
-                    data: chunk.to_vec(),
-                })
-                .await?;
-            match answer {
-                Ok(Response::Done) => {}
-                Ok(other) => return Err(unexpected(other)),
-                Err(e) => return Ok(Err(e)),
-            }
-            at += chunk.len() as u64;
+        match self
+            .file_request(Request::FileWrite {
+                path: path.to_vec(),
+                offset,
+                last,
+                data: data.to_vec(),
+            })
+            .await?
+        {
+            Ok(Response::Done) => Ok(Ok(())),
+            Ok(other) => Err(unexpected(other)),
+            Err(e) => Ok(Err(e)),
         }
-        Ok(Ok(()))
     }
 
     async fn write_file_info(

@@ -853,47 +853,35 @@ impl PlcBackend for PluginBackend {
         if let Some(e) = self.no_files() {
             return Ok(Err(e));
         }
-        let chunks: Vec<Vec<u8>> = if data.is_empty() {
-            vec![Vec::new()]
-        } else {
-            data.chunks(self.max_file as usize)
-                .map(<[u8]>::to_vec)
-                .collect()
-        };
-        let count = chunks.len();
-        let mut at = offset;
-        for (i, chunk) in chunks.into_iter().enumerate() {
-            let path = path.to_vec();
-            let is_last = i32::from(last && i + 1 == count);
-            let len = chunk.len() as u64;
-            let answer = self
-                .call("file_write", move |loaded| {
-                    let f = loaded.api.file_write.expect("files checked");
-                    let handle = loaded.handle.ok_or(PlcError::NotConfigured)?;
-                    let mut err = new_error();
-                    let note = loaded.note("file_write");
-                    // SAFETY: the path and data live across the call.
-                    let code = crash::inside(&note, || unsafe {
-                        f(
-                            handle,
-                            path.as_ptr(),
-                            path.len(),
-                            at,
-                            chunk.as_ptr(),
-                            chunk.len() as u32,
-                            is_last,
-                            &mut err,
-                        )
-                    });
-                    status("file_write", code, &err)
-                })
-                .await?;
-            if answer.is_err() {
-                return Ok(answer);
-            }
-            at += len;
+        // The link splits uploads into max_file_block pieces; a larger one
+        // is refused, so the plugin never gets more than it announced.
+        if data.len() > self.max_file as usize {
+            return Ok(Err(Refusal::BAD_PARAMETERS));
         }
-        Ok(Ok(()))
+        let path = path.to_vec();
+        let data = data.to_vec();
+        let last = i32::from(last);
+        self.call("file_write", move |loaded| {
+            let f = loaded.api.file_write.expect("files checked");
+            let handle = loaded.handle.ok_or(PlcError::NotConfigured)?;
+            let mut err = new_error();
+            let note = loaded.note("file_write");
+            // SAFETY: the path and data live across the call.
+            let code = crash::inside(&note, || unsafe {
+                f(
+                    handle,
+                    path.as_ptr(),
+                    path.len(),
+                    offset,
+                    data.as_ptr(),
+                    data.len() as u32,
+                    last,
+                    &mut err,
+                )
+            });
+            status("file_write", code, &err)
+        })
+        .await
     }
 
     async fn write_file_info(
