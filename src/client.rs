@@ -345,7 +345,7 @@ impl ClientTable {
             let Some(new_id) = new_table.lookup(&var.name) else {
                 continue;
             };
-            if !var.fixed && self.enabled.get(id) {
+            if !self.table.is_fixed(id) && self.enabled.get(id) {
                 next.enable(new_id);
             } else if all_enabled && !new_table.is_fixed(new_id) && !self.enabled.get(id) {
                 next.disable(new_id);

@@ -6,14 +6,14 @@
 
 use std::collections::HashMap;
 
-use plccoms_protocol::value::Value;
-use plccoms_protocol::{cp1250, Area, IecType, Mask};
+use plccoms_protocol::{cp1250, Mask};
 
-use plccoms_plc::memory::WriteData;
 use plccoms_plc::modbus::tags::TagFile;
 use plccoms_plc::pubfile::{self, PubFile};
 pub use plccoms_plc::value_codec::{Codec, EncodeError};
 use plccoms_plc::MemoryMap;
+/// A table's variable: its name upper case, as the server prints it.
+pub use plccoms_plc::Var;
 
 /// Index of a variable in its table.
 pub type VarId = u32;
@@ -21,58 +21,11 @@ pub type VarId = u32;
 pub const PLC_RUN: &[u8] = b"__PLC_RUN";
 pub const PF_CRC: &[u8] = b"__PF_CRC";
 
-#[derive(Debug, Clone, PartialEq)]
-pub struct Var {
-    /// Upper-case cp1250, as the server prints it.
-    pub name: Box<[u8]>,
-    pub area: Area,
-    pub offset: u32,
-    pub bit: Option<u8>,
-    pub ty: IecType,
-    /// From the fixed public file: always polled, ignored by DI.
-    pub fixed: bool,
-    /// How its bytes become the client's value (`ty`) and back.
-    pub codec: Codec,
-    /// Whether a SET may write it (a Modbus tag may be read-only).
-    pub writable: bool,
-}
-
-impl Var {
-    /// The value held by `bytes` as read for this variable (a BOOL's bit is
-    /// picked out of its byte).
-    pub fn decode(&self, bytes: &[u8]) -> Value {
-        match self.bit {
-            Some(bit) => Value::Bool(bytes.first().is_some_and(|b| b & (1 << bit) != 0)),
-            None => self.codec.decode(self.ty, bytes),
-        }
-    }
-
-    /// What to write so the variable holds `value` (a BOOL as its bit only),
-    /// or why it cannot hold it (the raw value of a scaled tag out of range).
-    pub fn encode(&self, value: &Value) -> Result<WriteData, EncodeError> {
-        match (self.bit, value) {
-            (Some(bit), Value::Bool(on)) => Ok(WriteData::Bit { bit, value: *on }),
-            _ => self.codec.encode(self.ty, value).map(WriteData::Bytes),
-        }
-    }
-
-    /// Bytes read from PLC memory for this variable.
-    pub fn byte_len(&self) -> u32 {
-        self.codec.byte_len(self.ty)
-    }
-}
-
-/// A variable as a file defines it, before it joins a table.
+/// A variable as a file defines it (name as written), before it joins a
+/// table.
 #[derive(Debug, Clone)]
 pub struct VarDef {
-    /// cp1250, case as written.
-    pub name: Box<[u8]>,
-    pub area: Area,
-    pub offset: u32,
-    pub bit: Option<u8>,
-    pub ty: IecType,
-    pub codec: Codec,
-    pub writable: bool,
+    pub var: Var,
     /// 1-based line in its file, for messages.
     pub line: usize,
 }
@@ -96,13 +49,7 @@ impl From<&PubFile> for VarFile {
                 .vars
                 .iter()
                 .map(|v| VarDef {
-                    name: v.name.clone(),
-                    area: v.area,
-                    offset: v.offset,
-                    bit: v.bit,
-                    ty: v.ty,
-                    codec: Codec::Native,
-                    writable: true,
+                    var: v.var(),
                     line: v.line,
                 })
                 .collect(),
@@ -119,18 +66,9 @@ impl From<&TagFile> for VarFile {
             vars: file
                 .tags
                 .iter()
-                .map(|t| {
-                    let (area, offset, bit) = t.place();
-                    VarDef {
-                        name: t.name.clone(),
-                        area,
-                        offset,
-                        bit,
-                        ty: t.ty,
-                        codec: t.codec,
-                        writable: t.writable,
-                        line: t.line,
-                    }
+                .map(|t| VarDef {
+                    var: t.var(),
+                    line: t.line,
                 })
                 .collect(),
             warnings: file.warnings.iter().map(|w| w.to_string()).collect(),
@@ -257,12 +195,13 @@ impl VarTable {
         }
         self.vars.reserve(file.vars.len());
         self.index.reserve(file.vars.len());
-        for pv in &file.vars {
+        for def in &file.vars {
+            let pv = &def.var;
             let name: Box<[u8]> = cp1250::to_upper(&pv.name).into_boxed_slice();
             if !map.contains(pv.area, pv.offset, pv.codec.byte_len(pv.ty)) {
                 warnings.push(format!(
                     "{file_name}: line {}: {} at {}{} is outside the PLC memory (size {}), skipped",
-                    pv.line,
+                    def.line,
                     cp1250::decode(&name),
                     pv.area,
                     pv.offset,
@@ -271,14 +210,15 @@ impl VarTable {
                 continue;
             }
             if let Some(&existing) = self.index.get(&name) {
-                let winner = if self.vars[existing as usize].fixed && !fixed {
+                // fixed_count is set once the fixed file is in.
+                let winner = if (existing as usize) < self.fixed_count && !fixed {
                     "the fixed file's variable wins"
                 } else {
                     "the first definition wins"
                 };
                 warnings.push(format!(
                     "{file_name}: line {}: {} is defined twice, {winner}",
-                    pv.line,
+                    def.line,
                     cp1250::decode(&name)
                 ));
                 continue;
@@ -286,16 +226,7 @@ impl VarTable {
             let id = self.vars.len() as VarId;
             self.max_name_len = self.max_name_len.max(name.len());
             self.index.insert(name.clone(), id);
-            self.vars.push(Var {
-                name,
-                area: pv.area,
-                offset: pv.offset,
-                bit: pv.bit,
-                ty: pv.ty,
-                fixed,
-                codec: pv.codec,
-                writable: pv.writable,
-            });
+            self.vars.push(Var { name, ..pv.clone() });
         }
     }
 

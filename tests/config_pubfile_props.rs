@@ -403,13 +403,14 @@ proptest! {
         for want in &expected {
             let id = table.lookup(&want.name);
             prop_assert!(id.is_some(), "{:?} missing", want.name);
-            let var = table.var(id.unwrap());
+            let id = id.unwrap();
+            let var = table.var(id);
             prop_assert_eq!(&var.name[..], &cp1250::to_upper(&want.name)[..]);
             prop_assert_eq!(var.area, want.area);
             prop_assert_eq!(var.offset, want.offset);
             prop_assert_eq!(var.bit, want.bit);
             prop_assert_eq!(var.ty, want.ty);
-            prop_assert!(!var.fixed);
+            prop_assert!(!table.is_fixed(id));
         }
     }
 }

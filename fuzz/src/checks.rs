@@ -500,10 +500,20 @@ pub fn pubfile(data: &[u8]) {
     }
     let table = built.expect("the shipped fixed file defines __PLC_RUN and __PF_CRC");
     assert!(table.len() <= fixed.vars.len() + parsed.vars.len());
+    // On a name clash the fixed file's variable wins: a name the fixed file
+    // defines is a fixed variable.
+    let fixed_names: Vec<Vec<u8>> = fixed
+        .vars
+        .iter()
+        .map(|v| plccoms_protocol::cp1250::to_upper(&v.name))
+        .collect();
     for (id, var) in table.vars().iter().enumerate() {
         assert!(map.contains(var.area, var.offset, var.byte_len()));
         assert_eq!(table.lookup(&var.name), Some(id as u32));
-        assert_eq!(table.is_fixed(id as u32), var.fixed);
+        assert_eq!(
+            table.is_fixed(id as u32),
+            fixed_names.iter().any(|n| n[..] == var.name[..])
+        );
     }
     let mut warnings = Vec::new();
     if let Ok(table) = VarTable::build("fuzz.pub", &parsed, None, &map, &mut warnings) {

@@ -3,8 +3,8 @@
 //! ([`pubfile`]), file attributes and times ([`files`], [`time`]), and the
 //! EPSNET wire format ([`epsnet`]: frames, codec, the one table of service
 //! codes), Modbus TCP ([`modbus`]: frames, codec, tag files), a device's
-//! refusal whatever its protocol ([`refusal`]), and how a
-//! variable's bytes become a client's value ([`value_codec`]). Shared by the
+//! refusal whatever its protocol ([`refusal`]), a variable ([`var`]) and how
+//! its bytes become a client's value ([`value_codec`]). Shared by the
 //! server's backends and the simulated PLC (`plcsim`), which reuse the same
 //! frames and codecs from opposite ends.
 
@@ -16,8 +16,10 @@ pub mod pubfile;
 pub mod refusal;
 pub mod time;
 pub mod value_codec;
+pub mod var;
 
 pub use epsnet::Exception;
 pub use files::{DirEntry, FileInfo};
 pub use memory::{MemoryImage, MemoryMap, WriteData};
 pub use refusal::Refusal;
+pub use var::Var;

@@ -51,6 +51,21 @@ pub struct PubVar {
     pub line: usize,
 }
 
+impl PubVar {
+    /// The variable the line defines: Tecomat memory's own layout, writable.
+    pub fn var(&self) -> crate::Var {
+        crate::Var {
+            name: self.name.clone(),
+            area: self.area,
+            offset: self.offset,
+            bit: self.bit,
+            ty: self.ty,
+            codec: crate::value_codec::Codec::Native,
+            writable: true,
+        }
+    }
+}
+
 /// A parsed public file.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct PubFile {

@@ -32,9 +32,10 @@ use tokio::net::UdpSocket;
 use tokio::sync::Semaphore;
 use tokio::task::JoinHandle;
 
-use self::program::{ProgVar, Program, ProgramKind};
+use self::program::{Program, ProgramKind};
 use self::server::Rng;
 use plccoms_plc::epsnet::frame::{DEFAULT_PORT, MAX_PACKET};
+use plccoms_plc::Var;
 use plccoms_plc::{pubfile, time, MemoryMap};
 
 use crate::device::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
@@ -139,17 +140,17 @@ fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 /// The variables of a Modbus tag file, and its CRC.
-pub fn load_tags_bytes(bytes: &[u8]) -> (Vec<ProgVar>, u32) {
+pub fn load_tags_bytes(bytes: &[u8]) -> (Vec<Var>, u32) {
     let parsed = plccoms_plc::modbus::tags::parse(bytes);
     for warning in &parsed.warnings {
         tracing::warn!("plcsim: tag file {warning}");
     }
-    let vars = parsed.tags.into_iter().map(ProgVar::from).collect();
+    let vars = parsed.tags.iter().map(|tag| tag.var()).collect();
     (vars, pubfile::crc_of(bytes))
 }
 
 /// The variables and `__PF_CRC` of a public file.
-pub fn load_pub_bytes(bytes: &[u8]) -> (Vec<ProgVar>, u32) {
+pub fn load_pub_bytes(bytes: &[u8]) -> (Vec<Var>, u32) {
     let parsed = pubfile::parse(bytes);
     for warning in &parsed.warnings {
         tracing::warn!("plcsim: public file {warning}");
@@ -166,18 +167,7 @@ pub fn load_pub_bytes(bytes: &[u8]) -> (Vec<ProgVar>, u32) {
         }
         None => computed,
     };
-    let vars = parsed
-        .vars
-        .into_iter()
-        .map(|v| ProgVar {
-            name: v.name,
-            area: v.area,
-            offset: v.offset,
-            bit: v.bit,
-            ty: v.ty,
-            codec: plccoms_plc::value_codec::Codec::Native,
-        })
-        .collect();
+    let vars = parsed.vars.into_iter().map(|v| v.var()).collect();
     (vars, crc)
 }
 

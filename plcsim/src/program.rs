@@ -17,36 +17,10 @@
 //! order, scale, TS48), so the program's values are the ones a client reads.
 
 use plccoms_protocol::value::Value;
-use plccoms_protocol::{Area, IecType};
+use plccoms_protocol::IecType;
 
 use plccoms_plc::value_codec::Codec;
-use plccoms_plc::MemoryImage;
-
-/// A variable the program can address: name, place and type.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ProgVar {
-    pub name: Box<[u8]>,
-    pub area: Area,
-    pub offset: u32,
-    pub bit: Option<u8>,
-    pub ty: IecType,
-    /// How the value is laid out (Native for public files).
-    pub codec: Codec,
-}
-
-impl From<plccoms_plc::modbus::tags::Tag> for ProgVar {
-    fn from(tag: plccoms_plc::modbus::tags::Tag) -> ProgVar {
-        let (area, offset, bit) = tag.place();
-        ProgVar {
-            name: tag.name,
-            area,
-            offset,
-            bit,
-            ty: tag.ty,
-            codec: tag.codec,
-        }
-    }
-}
+use plccoms_plc::{MemoryImage, Var};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ProgramKind {
@@ -104,7 +78,7 @@ struct DemoSlots {
 #[derive(Debug, Clone)]
 pub struct Program {
     kind: ProgramKind,
-    vars: Vec<ProgVar>,
+    vars: Vec<Var>,
     demo: DemoSlots,
     animated: Vec<usize>,
     masks: Vec<Vec<u8>>,
@@ -113,7 +87,7 @@ pub struct Program {
 }
 
 impl Program {
-    pub fn new(kind: ProgramKind, vars: Vec<ProgVar>, masks: &[String], cycle_ms: u64) -> Self {
+    pub fn new(kind: ProgramKind, vars: Vec<Var>, masks: &[String], cycle_ms: u64) -> Self {
         let find = |name: &str| {
             vars.iter()
                 .position(|v| v.name.eq_ignore_ascii_case(name.as_bytes()))
@@ -146,7 +120,7 @@ impl Program {
         self.kind
     }
 
-    pub fn vars(&self) -> &[ProgVar] {
+    pub fn vars(&self) -> &[Var] {
         &self.vars
     }
 
@@ -158,7 +132,7 @@ impl Program {
     }
 
     /// Names of the variables the animation drives.
-    pub fn animated(&self) -> impl Iterator<Item = &ProgVar> {
+    pub fn animated(&self) -> impl Iterator<Item = &Var> {
         self.animated.iter().map(|&i| &self.vars[i])
     }
 
@@ -215,7 +189,7 @@ impl Program {
     }
 }
 
-fn animate(v: &ProgVar, image: &mut MemoryImage, cycle: u64, cycle_ms: u64, now: f64, k: usize) {
+fn animate(v: &Var, image: &mut MemoryImage, cycle: u64, cycle_ms: u64, now: f64, k: usize) {
     match v.ty {
         IecType::Bool => write_f64(image, v, (cycle % 2) as f64),
         IecType::Real | IecType::Lreal => write_f64(
@@ -247,7 +221,7 @@ fn animate(v: &ProgVar, image: &mut MemoryImage, cycle: u64, cycle_ms: u64, now:
 }
 
 /// The bytes of `v` in the image, if they lie inside it.
-fn place<'a>(image: &'a mut MemoryImage, v: &ProgVar) -> Option<&'a mut [u8]> {
+fn place<'a>(image: &'a mut MemoryImage, v: &Var) -> Option<&'a mut [u8]> {
     let area = image.area_mut(v.area);
     let start = v.offset as usize;
     let end = start.checked_add(v.codec.byte_len(v.ty) as usize)?;
@@ -256,13 +230,13 @@ fn place<'a>(image: &'a mut MemoryImage, v: &ProgVar) -> Option<&'a mut [u8]> {
 
 /// Whether `v` is laid out by a codec of its own (a Modbus tag) rather
 /// than in Tecomat memory's little-endian form.
-fn encoded(v: &ProgVar) -> bool {
+fn encoded(v: &Var) -> bool {
     v.codec != Codec::Native && v.bit.is_none()
 }
 
 /// Writes `value` through `v`'s codec; a value its raw type cannot hold
 /// (a scaled tag) is left out.
-fn write_value(image: &mut MemoryImage, v: &ProgVar, value: &Value) {
+fn write_value(image: &mut MemoryImage, v: &Var, value: &Value) {
     if let (Ok(bytes), Some(target)) = (v.codec.encode(v.ty, value), place(image, v)) {
         let n = bytes.len().min(target.len());
         target[..n].copy_from_slice(&bytes[..n]);
@@ -270,7 +244,7 @@ fn write_value(image: &mut MemoryImage, v: &ProgVar, value: &Value) {
 }
 
 /// Little-endian bytes of an integer of `v`'s type.
-fn write_bytes(image: &mut MemoryImage, v: &ProgVar, bytes: &[u8]) {
+fn write_bytes(image: &mut MemoryImage, v: &Var, bytes: &[u8]) {
     if encoded(v) {
         let mut le = [0u8; 8];
         let n = bytes.len().min(8);
@@ -284,7 +258,7 @@ fn write_bytes(image: &mut MemoryImage, v: &ProgVar, bytes: &[u8]) {
     }
 }
 
-fn write_text(image: &mut MemoryImage, v: &ProgVar, text: &[u8]) {
+fn write_text(image: &mut MemoryImage, v: &Var, text: &[u8]) {
     if encoded(v) {
         let cap = match v.ty {
             IecType::String(n) => usize::from(n),
@@ -300,7 +274,7 @@ fn write_text(image: &mut MemoryImage, v: &ProgVar, text: &[u8]) {
 }
 
 /// Reads a numeric variable as f64 (BOOL as 0/1).
-pub fn read_f64(image: &mut MemoryImage, v: &ProgVar) -> Option<f64> {
+pub fn read_f64(image: &mut MemoryImage, v: &Var) -> Option<f64> {
     let bit = v.bit;
     let ty = v.ty;
     if encoded(v) {
@@ -328,7 +302,7 @@ pub fn read_f64(image: &mut MemoryImage, v: &ProgVar) -> Option<f64> {
 
 /// Writes a numeric variable from f64 (integers rounded and saturated, BOOL
 /// set when non-zero, only its own bit).
-pub fn write_f64(image: &mut MemoryImage, v: &ProgVar, x: f64) {
+pub fn write_f64(image: &mut MemoryImage, v: &Var, x: f64) {
     let bit = v.bit;
     let ty = v.ty;
     if encoded(v) {
@@ -375,15 +349,17 @@ pub fn write_f64(image: &mut MemoryImage, v: &ProgVar, x: f64) {
 mod tests {
     use super::*;
     use plccoms_plc::MemoryMap;
+    use plccoms_protocol::Area;
 
-    fn var(name: &str, offset: u32, bit: Option<u8>, ty: IecType) -> ProgVar {
-        ProgVar {
+    fn var(name: &str, offset: u32, bit: Option<u8>, ty: IecType) -> Var {
+        Var {
             name: name.as_bytes().into(),
             area: Area::R,
             offset,
             bit,
             ty,
             codec: Codec::Native,
+            writable: true,
         }
     }
 
@@ -437,7 +413,7 @@ mod tests {
               sinus,REAL,holding,0,,CDAB\ntext,STRING[16],holding,10\n\
               positive,BOOL,coil,3\ncount,DINT,input,4,,DCBA\n",
         );
-        let vars: Vec<ProgVar> = file.tags.into_iter().map(ProgVar::from).collect();
+        let vars: Vec<Var> = file.tags.iter().map(tags::Tag::var).collect();
         let mut image = MemoryImage::new(MAP);
         let mut program = Program::new(ProgramKind::Demo, vars.clone(), &["count".into()], 10);
         program.step(&mut image, 0.0);

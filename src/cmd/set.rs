@@ -79,7 +79,6 @@ pub fn plan(
             offset: address.offset,
             bit: address.bit,
             ty: address.ty,
-            fixed: false,
             codec: Codec::Native,
             writable: true,
         };

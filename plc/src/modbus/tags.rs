@@ -72,6 +72,20 @@ impl Tag {
         }
     }
 
+    /// The variable the tag names, at its [`Tag::place`].
+    pub fn var(&self) -> crate::Var {
+        let (area, offset, bit) = self.place();
+        crate::Var {
+            name: self.name.clone(),
+            area,
+            offset,
+            bit,
+            ty: self.ty,
+            codec: self.codec,
+            writable: self.writable,
+        }
+    }
+
     /// Registers (or bits) the tag occupies.
     pub fn span(&self) -> u32 {
         match (&self.codec, self.table.is_bits()) {

@@ -1,0 +1,54 @@
+//! A variable: its name, its place in PLC memory, its type and how its
+//! bytes become a client's value and back. The one struct the server's
+//! variable tables and the simulated PLC's program use, made from a public
+//! file's line ([`crate::pubfile::PubVar`]) or a Modbus tag
+//! ([`crate::modbus::tags::Tag`]).
+
+use plccoms_protocol::value::Value;
+use plccoms_protocol::{Area, IecType};
+
+use crate::memory::WriteData;
+use crate::value_codec::{Codec, EncodeError};
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct Var {
+    /// cp1250 bytes: as written in its file; upper case in a server's table,
+    /// as the server prints it.
+    pub name: Box<[u8]>,
+    pub area: Area,
+    /// Byte offset in the area.
+    pub offset: u32,
+    /// Bit in the byte at `offset`, for a BOOL.
+    pub bit: Option<u8>,
+    pub ty: IecType,
+    /// How its bytes become the client's value (`ty`) and back (Native for
+    /// a public file's variables).
+    pub codec: Codec,
+    /// Whether a SET may write it (a Modbus tag may be read-only).
+    pub writable: bool,
+}
+
+impl Var {
+    /// The value held by `bytes` as read for this variable (a BOOL's bit is
+    /// picked out of its byte).
+    pub fn decode(&self, bytes: &[u8]) -> Value {
+        match self.bit {
+            Some(bit) => Value::Bool(bytes.first().is_some_and(|b| b & (1 << bit) != 0)),
+            None => self.codec.decode(self.ty, bytes),
+        }
+    }
+
+    /// What to write so the variable holds `value` (a BOOL as its bit only),
+    /// or why it cannot hold it (the raw value of a scaled tag out of range).
+    pub fn encode(&self, value: &Value) -> Result<WriteData, EncodeError> {
+        match (self.bit, value) {
+            (Some(bit), Value::Bool(on)) => Ok(WriteData::Bit { bit, value: *on }),
+            _ => self.codec.encode(self.ty, value).map(WriteData::Bytes),
+        }
+    }
+
+    /// Bytes read from PLC memory for this variable.
+    pub fn byte_len(&self) -> u32 {
+        self.codec.byte_len(self.ty)
+    }
+}
