@@ -11,24 +11,16 @@ use plccoms_protocol::{cp1250, Mask};
 use plccoms_plc::modbus::tags::TagFile;
 use plccoms_plc::pubfile::{self, PubFile};
 pub use plccoms_plc::value_codec::{Codec, EncodeError};
+/// A table's variable (its name upper case, as the server prints it), and
+/// a file's (name as written, with its line).
+pub use plccoms_plc::var::{Var, VarDef};
 use plccoms_plc::MemoryMap;
-/// A table's variable: its name upper case, as the server prints it.
-pub use plccoms_plc::Var;
 
 /// Index of a variable in its table.
 pub type VarId = u32;
 
 pub const PLC_RUN: &[u8] = b"__PLC_RUN";
 pub const PF_CRC: &[u8] = b"__PF_CRC";
-
-/// A variable as a file defines it (name as written), before it joins a
-/// table.
-#[derive(Debug, Clone)]
-pub struct VarDef {
-    pub var: Var,
-    /// 1-based line in its file, for messages.
-    pub line: usize,
-}
 
 /// The variables of a file and its warnings, ready for [`VarTable::build`].
 #[derive(Debug, Clone, Default)]
@@ -45,14 +37,7 @@ pub struct VarFile {
 impl From<&PubFile> for VarFile {
     fn from(file: &PubFile) -> VarFile {
         VarFile {
-            vars: file
-                .vars
-                .iter()
-                .map(|v| VarDef {
-                    var: v.var(),
-                    line: v.line,
-                })
-                .collect(),
+            vars: file.vars.clone(),
             warnings: file.warnings.iter().map(|w| w.to_string()).collect(),
             more_warnings: file.more_warnings,
             too_many: file.too_many,

@@ -10,7 +10,9 @@ use std::path::Path;
 
 use plccoms::config;
 use plccoms::vars::VarTable;
-use plccoms_plc::pubfile::{self, PubVar};
+use plccoms_plc::pubfile;
+use plccoms_plc::value_codec::Codec;
+use plccoms_plc::var::{Var, VarDef};
 use plccoms_plc::MemoryMap;
 use plccoms_protocol::{cp1250, Area, IecType};
 use proptest::prelude::*;
@@ -337,8 +339,8 @@ proptest! {
     ) {
         let bytes = lines.join(&b"\n"[..]);
         let parsed = pubfile::parse(&bytes);
-        for v in &parsed.vars {
-            prop_assert_eq!(v.bit.is_some(), v.ty == IecType::Bool);
+        for def in &parsed.vars {
+            prop_assert_eq!(def.var.bit.is_some(), def.var.ty == IecType::Bool);
         }
     }
 
@@ -374,15 +376,19 @@ proptest! {
         prop_assert!(parsed.warnings.is_empty(), "{:?}", parsed.warnings);
         prop_assert_eq!(parsed.crc, with_crc.then_some(crc));
         prop_assert_eq!(pubfile::crc_of(pubfile::crc_content(&bytes)), crc);
-        let expected: Vec<PubVar> = vars
+        let expected: Vec<VarDef> = vars
             .iter()
             .enumerate()
-            .map(|(i, v)| PubVar {
-                name: v.name.clone().into_boxed_slice(),
-                area: v.area,
-                offset: v.offset,
-                bit: if v.ty == IecType::Bool { Some(v.bit.unwrap_or(0)) } else { None },
-                ty: v.ty,
+            .map(|(i, v)| VarDef {
+                var: Var {
+                    name: v.name.clone().into_boxed_slice(),
+                    area: v.area,
+                    offset: v.offset,
+                    bit: if v.ty == IecType::Bool { Some(v.bit.unwrap_or(0)) } else { None },
+                    ty: v.ty,
+                    codec: Codec::Native,
+                    writable: true,
+                },
                 line: i + 2,
             })
             .collect();
@@ -400,7 +406,7 @@ proptest! {
         .unwrap();
         prop_assert!(warnings.is_empty(), "{:?}", warnings);
         prop_assert_eq!(table.len(), fixed.vars.len() + vars.len());
-        for want in &expected {
+        for want in expected.iter().map(|def| &def.var) {
             let id = table.lookup(&want.name);
             prop_assert!(id.is_some(), "{:?} missing", want.name);
             let id = id.unwrap();

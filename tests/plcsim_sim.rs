@@ -32,6 +32,7 @@ fn var(file: &pubfile::PubFile, name: &str) -> ReadRequest {
     let v = file
         .vars
         .iter()
+        .map(|def| &def.var)
         .find(|v| v.name.eq_ignore_ascii_case(name.as_bytes()))
         .unwrap_or_else(|| panic!("{name} in demo.pub"));
     ReadRequest {
@@ -65,7 +66,7 @@ fn demo_pub_is_complete_and_its_crc_matches() {
     ] {
         var(&file, name);
     }
-    let mut types: Vec<String> = file.vars.iter().map(|v| v.ty.to_string()).collect();
+    let mut types: Vec<String> = file.vars.iter().map(|def| def.var.ty.to_string()).collect();
     types.sort();
     types.dedup();
     assert_eq!(
@@ -73,7 +74,7 @@ fn demo_pub_is_complete_and_its_crc_matches() {
         21,
         "every IEC type, two STRING sizes: {types:?}"
     );
-    assert!(file.vars.iter().any(|v| v.name.contains(&0xEC)));
+    assert!(file.vars.iter().any(|def| def.var.name.contains(&0xEC)));
     let fixed = pubfile::parse(plcsim::FIXED_PUB);
     assert_eq!(fixed.vars.len(), 2);
 }

@@ -132,6 +132,7 @@ async fn a_program_change_reloads_the_public_file_and_keeps_client_settings() {
         let counter = plccoms_plc::pubfile::parse(&new_pub)
             .vars
             .into_iter()
+            .map(|def| def.var)
             .find(|v| &*v.name == b"counter")
             .unwrap();
         device

@@ -468,10 +468,17 @@ pub fn pubfile(data: &[u8]) {
     let lines = data.split(|&b| b == b'\n').count();
     let mut names = HashSet::new();
     assert!(parsed.vars.len() <= plccoms_plc::pubfile::MAX_VARS);
-    for v in &parsed.vars {
+    for def in &parsed.vars {
+        let v = &def.var;
         assert!(!v.name.is_empty());
         assert!(v.name.len() <= plccoms_plc::pubfile::MAX_NAME, "{v:?}");
-        assert!(v.line >= 1 && v.line <= lines, "line {} of {lines}", v.line);
+        assert!(
+            def.line >= 1 && def.line <= lines,
+            "line {} of {lines}",
+            def.line
+        );
+        assert_eq!(v.codec, plccoms_plc::value_codec::Codec::Native, "{v:?}");
+        assert!(v.writable, "{v:?}");
         assert_eq!(v.bit.is_some(), v.ty == IecType::Bool, "{v:?}");
         assert!(!matches!(v.bit, Some(b) if b >= 8));
         assert!(
@@ -505,7 +512,7 @@ pub fn pubfile(data: &[u8]) {
     let fixed_names: Vec<Vec<u8>> = fixed
         .vars
         .iter()
-        .map(|v| plccoms_protocol::cp1250::to_upper(&v.name))
+        .map(|def| plccoms_protocol::cp1250::to_upper(&def.var.name))
         .collect();
     for (id, var) in table.vars().iter().enumerate() {
         assert!(map.contains(var.area, var.offset, var.byte_len()));

@@ -35,42 +35,14 @@ use std::path::Path;
 
 use plccoms_protocol::{Area, IecType};
 
-/// One variable of a public file.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct PubVar {
-    /// The name exactly as in the file (cp1250 bytes, case as written).
-    pub name: Box<[u8]>,
-    pub area: Area,
-    /// Byte offset in the area.
-    pub offset: u32,
-    /// Bit in the byte at `offset`: `Some` for BOOL (bit 0 when the file gives
-    /// none), `None` for every other type.
-    pub bit: Option<u8>,
-    pub ty: IecType,
-    /// 1-based line in the file.
-    pub line: usize,
-}
-
-impl PubVar {
-    /// The variable the line defines: Tecomat memory's own layout, writable.
-    pub fn var(&self) -> crate::Var {
-        crate::Var {
-            name: self.name.clone(),
-            area: self.area,
-            offset: self.offset,
-            bit: self.bit,
-            ty: self.ty,
-            codec: crate::value_codec::Codec::Native,
-            writable: true,
-        }
-    }
-}
+use crate::value_codec::Codec;
+use crate::var::{Var, VarDef};
 
 /// A parsed public file.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct PubFile {
     /// Variables in file order.
-    pub vars: Vec<PubVar>,
+    pub vars: Vec<VarDef>,
     /// The value of the `;* Crc="xxxx"` trailer, if the file has one.
     pub crc: Option<u32>,
     /// Skipped lines and other problems, in file order: the first
@@ -230,7 +202,7 @@ const GRAMMAR: &str = "NAME AREA KIND OFFSET [.BIT] TYPE [PUB_IN|PUB_OUT|PUB_INO
 /// NAME AREA KIND OFFSET .BIT TYPE FLAG
 const MAX_FIELDS: usize = 7;
 
-fn parse_var(fields: &[&[u8]], line: usize) -> Result<PubVar, String> {
+fn parse_var(fields: &[&[u8]], line: usize) -> Result<VarDef, String> {
     if fields.len() < 5 {
         return Err(format!(
             "too few fields ({}); expected {GRAMMAR}",
@@ -331,12 +303,17 @@ fn parse_var(fields: &[&[u8]], line: usize) -> Result<PubVar, String> {
     if u64::from(offset) + ty.size() as u64 > u64::from(u32::MAX) + 1 {
         return Err(format!("offset {offset} is too large for a {ty}"));
     }
-    Ok(PubVar {
-        name: name.into(),
-        area,
-        offset,
-        bit,
-        ty,
+    // `bit`: Some for a BOOL (bit 0 when the file gives none), else None.
+    Ok(VarDef {
+        var: Var {
+            name: name.into(),
+            area,
+            offset,
+            bit,
+            ty,
+            codec: Codec::Native,
+            writable: true,
+        },
         line,
     })
 }
@@ -488,11 +465,11 @@ impl Hash for FoldedName<'_> {
 mod tests {
     use super::*;
 
-    fn one(line: &str) -> PubVar {
+    fn one(line: &str) -> Var {
         let file = parse(line.as_bytes());
         assert_eq!(file.warnings, vec![], "{line}");
         assert_eq!(file.vars.len(), 1, "{line}");
-        file.vars.into_iter().next().unwrap()
+        file.vars.into_iter().next().unwrap().var
     }
 
     fn warning(line: &str) -> String {
@@ -510,20 +487,28 @@ mod tests {
         assert_eq!(
             file.vars,
             vec![
-                PubVar {
-                    name: (*b"__PLC_RUN").into(),
-                    area: Area::S,
-                    offset: 2,
-                    bit: Some(2),
-                    ty: IecType::Bool,
+                VarDef {
+                    var: Var {
+                        name: (*b"__PLC_RUN").into(),
+                        area: Area::S,
+                        offset: 2,
+                        bit: Some(2),
+                        ty: IecType::Bool,
+                        codec: Codec::Native,
+                        writable: true,
+                    },
                     line: 1,
                 },
-                PubVar {
-                    name: (*b"__PF_CRC").into(),
-                    area: Area::S,
-                    offset: 70,
-                    bit: None,
-                    ty: IecType::Dword,
+                VarDef {
+                    var: Var {
+                        name: (*b"__PF_CRC").into(),
+                        area: Area::S,
+                        offset: 70,
+                        bit: None,
+                        ty: IecType::Dword,
+                        codec: Codec::Native,
+                        writable: true,
+                    },
                     line: 2,
                 },
             ]
@@ -555,7 +540,7 @@ mod tests {
     fn cp1250_names_are_kept_as_bytes() {
         let file = parse(b" Teplota_kuchyn\xec R B 4 REAL\r\n");
         assert!(file.warnings.is_empty());
-        assert_eq!(&*file.vars[0].name, b"Teplota_kuchyn\xec");
+        assert_eq!(&*file.vars[0].var.name, b"Teplota_kuchyn\xec");
     }
 
     #[test]
@@ -648,7 +633,7 @@ mod tests {
         let text = b"\r\n\n; a comment\r\n   ; indented comment\n A R B 0 INT ; trailing\r\n\t B\tR\tB\t2\tINT;glued\n\n C R B 4 INT";
         let file = parse(text);
         assert!(file.warnings.is_empty(), "{:?}", file.warnings);
-        let names: Vec<_> = file.vars.iter().map(|v| (&*v.name, v.line)).collect();
+        let names: Vec<_> = file.vars.iter().map(|v| (&*v.var.name, v.line)).collect();
         assert_eq!(names, vec![(&b"A"[..], 5), (&b"B"[..], 6), (&b"C"[..], 8)]);
         assert_eq!(file.crc, None);
     }
@@ -670,7 +655,7 @@ mod tests {
     fn duplicates_are_case_insensitive_and_the_first_wins() {
         let file = parse(b" Teplota_kuchyn\xec R B 0 INT\n TEPLOTA_KUCHYN\xcc R B 2 INT\n");
         assert_eq!(file.vars.len(), 1);
-        assert_eq!(file.vars[0].offset, 0);
+        assert_eq!(file.vars[0].var.offset, 0);
         assert_eq!(
             file.warnings[0].to_string(),
             "line 2: duplicate name 'TEPLOTA_KUCHYN\\xCC' (first defined on line 1); skipped"
@@ -767,7 +752,7 @@ mod tests {
         let file =
             parse(format!(" {long} R B 0 BYTE\r\n {} R B 0 BYTE\r\n", &long[1..]).as_bytes());
         assert_eq!(file.vars.len(), 1);
-        assert_eq!(file.vars[0].name.len(), MAX_NAME);
+        assert_eq!(file.vars[0].var.name.len(), MAX_NAME);
         let warning = file.warnings[0].to_string();
         assert!(
             warning.starts_with("line 1: name of 256 bytes 'NNN"),

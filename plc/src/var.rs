@@ -1,8 +1,8 @@
 //! A variable: its name, its place in PLC memory, its type and how its
 //! bytes become a client's value and back. The one struct the server's
-//! variable tables and the simulated PLC's program use, made from a public
-//! file's line ([`crate::pubfile::PubVar`]) or a Modbus tag
-//! ([`crate::modbus::tags::Tag`]).
+//! variable tables, the simulated PLC's program and the public file parser
+//! use ([`VarDef`], a public file's line), also made from a Modbus tag
+//! ([`crate::modbus::tags::Tag::var`]).
 
 use plccoms_protocol::value::Value;
 use plccoms_protocol::{Area, IecType};
@@ -51,4 +51,12 @@ impl Var {
     pub fn byte_len(&self) -> u32 {
         self.codec.byte_len(self.ty)
     }
+}
+
+/// A variable as its file defines it (name as written), with its 1-based
+/// line for messages.
+#[derive(Debug, Clone, PartialEq)]
+pub struct VarDef {
+    pub var: Var,
+    pub line: usize,
 }

@@ -89,9 +89,9 @@ mod tests {
         let file = pubfile::parse(&bytes);
         assert!(file.warnings.is_empty(), "{:?}", file.warnings);
         assert_eq!(file.vars.len(), 1000);
-        assert_eq!(&file.vars[0].name[..], b"ANIM_00000");
-        assert_eq!(&file.vars[10].name[..], b"SETV_000");
-        assert_eq!(&file.vars[15].name[..], b"VAR_00000");
+        assert_eq!(&file.vars[0].var.name[..], b"ANIM_00000");
+        assert_eq!(&file.vars[10].var.name[..], b"SETV_000");
+        assert_eq!(&file.vars[15].var.name[..], b"VAR_00000");
         assert_eq!(
             file.crc,
             Some(pubfile::crc_of(pubfile::crc_content(&bytes)))

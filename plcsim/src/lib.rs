@@ -167,7 +167,7 @@ pub fn load_pub_bytes(bytes: &[u8]) -> (Vec<Var>, u32) {
         }
         None => computed,
     };
-    let vars = parsed.vars.into_iter().map(|v| v.var()).collect();
+    let vars = parsed.vars.into_iter().map(|def| def.var).collect();
     (vars, crc)
 }
 
@@ -411,6 +411,7 @@ fn check_fixed(bytes: &[u8]) {
         parsed
             .vars
             .iter()
+            .map(|def| &def.var)
             .find(|v| v.name.eq_ignore_ascii_case(name))
     };
     match find(b"__PLC_RUN") {

@@ -186,7 +186,7 @@ pub async fn run(args: FanoutArgs) -> Result<(), String> {
         .map_err(|e| format!("{}: {e}", args.pubfile.display()))?;
     let mut names = Names::default();
     let mut watched = Vec::new();
-    for (i, v) in file.vars.iter().enumerate() {
+    for (i, v) in file.vars.iter().map(|def| &def.var).enumerate() {
         let upper = plccoms_protocol::cp1250::to_upper(&v.name);
         let anim = if plcsim::program::mask_matches(args.animated.as_bytes(), &v.name)
             && !v.ty.is_string()

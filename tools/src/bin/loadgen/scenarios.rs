@@ -510,7 +510,7 @@ pub async fn poll(args: PollArgs) -> Result<(), String> {
         .vars
         .iter()
         .chain(&fixed.vars)
-        .map(|v| (v.area, v.offset, v.ty.size() as u32))
+        .map(|def| (def.var.area, def.var.offset, def.var.ty.size() as u32))
         .collect();
     let minimum = min_reads(ranges, plccoms_plc::epsnet::service::MAX_READ);
     let obs = start_proxy(&args.proxy, addr, Vec::new()).await?;
