@@ -191,7 +191,7 @@ pub fn complete(cx: &mut Cx<'_>, then: ReadThen, reply: ReadReply, out: &mut Vec
                         Some(Err(Refusal::Modbus(code))) => {
                             // The device's exception, named in the context.
                             out.truncate(start);
-                            let context = super::set::exception_context(&var.name, code);
+                            let context = crate::section::write::exception_context(&var.name, code);
                             plccoms_protocol::answer::write_error(out, ErrorCode::MemGet, &context);
                             out.extend_from_slice(eol);
                             return;

@@ -105,7 +105,7 @@ enum Job {
     },
     Set {
         rx: oneshot::Receiver<SetReply>,
-        then: set::SetThen,
+        then: crate::section::write::WriteTarget,
     },
     Conf {
         rx: oneshot::Receiver<ReconfReply>,
@@ -189,7 +189,7 @@ impl Reply {
         Reply::Wait(Waiting(Job::Read { rx, then }))
     }
 
-    fn set(rx: oneshot::Receiver<SetReply>, then: set::SetThen) -> Reply {
+    fn set(rx: oneshot::Receiver<SetReply>, then: crate::section::write::WriteTarget) -> Reply {
         Reply::Wait(Waiting(Job::Set { rx, then }))
     }
 

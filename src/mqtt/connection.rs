@@ -611,7 +611,7 @@ impl Task {
                     retain: self.rules.retain,
                 }]);
             }
-            Err(e) => self.refuse(outcome.level, e.into()),
+            Err(refused) => self.refuse(outcome.level, refused),
         }
     }
 

@@ -2,14 +2,14 @@
 //! payload is the value, as a SET takes it (UTF-8 here, cp1250 in the PLC).
 //!
 //! A write goes through exactly SET's validation and errors
-//! (`cmd::set::write`, READ_ONLY included), after this server's own checks:
+//! (`Section::write`, READ_ONLY included), after this server's own checks:
 //! the variable must match MQTT_WRITE, the message must not be a retained
 //! one (a retained `/set` would be written again at every reconnection, long
 //! after it was sent), and the name and value must have a cp1250 form.
 //! Writes of a section are made one at a time, in the order they arrive.
 //!
 //! A confirmed write is published on the value topic (the value read back
-//! from the PLC). A refused one is published on `<VAR>/error` (not retained),
+//! from the PLC), once: by the change stream, else from the write's outcome. A refused one is published on `<VAR>/error` (not retained),
 //! counted, and logged (at most once a second per error code: any client of
 //! the broker can cause refusals). Nothing is ever written later: a write that arrives while the
 //! PLC is unreachable is refused at once (ERROR:10), and the client's
@@ -26,7 +26,7 @@ use tokio::sync::mpsc;
 
 use super::settings::SectionRules;
 use super::topics::unlevel;
-use crate::cmd::set::{self, Confirmed, WriteError};
+use crate::section::write::{WriteRefusal, Written};
 use crate::section::Section;
 
 /// Writes waiting for the PLC, per section; more are refused at once.
@@ -52,7 +52,7 @@ pub struct Request {
 #[derive(Debug)]
 pub struct Outcome {
     pub level: String,
-    pub result: Result<Confirmed, WriteError>,
+    pub result: Result<Written, Refused>,
 }
 
 /// A refusal: the error code and the line a client would read.
@@ -62,11 +62,12 @@ pub struct Refused {
     pub line: String,
 }
 
-impl From<WriteError> for Refused {
-    fn from(e: WriteError) -> Refused {
+impl Refused {
+    /// The section's refusal of `request`, as SET's error line.
+    fn of(refusal: WriteRefusal, request: &Request) -> Refused {
         Refused {
-            code: e.code.code(),
-            line: e.line,
+            code: refusal.code().code(),
+            line: refusal.line(&request.name, &request.value),
         }
     }
 }
@@ -168,7 +169,8 @@ pub async fn worker(
     outcomes: mpsc::Sender<Outcome>,
 ) {
     while let Some(request) = requests.recv().await {
-        let result = set::write(&section, &request.name, &request.value).await;
+        let result = section.write(&request.name, &request.value).await;
+        let result = result.map_err(|refusal| Refused::of(refusal, &request));
         let outcome = Outcome {
             level: request.level,
             result,

@@ -3,6 +3,7 @@
 //! the link's handle, the change stream, and the connected clients.
 
 pub mod state;
+pub mod write;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;

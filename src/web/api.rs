@@ -15,6 +15,7 @@ use serde::{Deserialize, Serialize};
 
 use super::State;
 use crate::changes::Snapshot;
+use crate::section::write::WriteRefusal;
 use crate::section::Section;
 use crate::vars::VarId;
 
@@ -365,26 +366,31 @@ pub async fn set(
     };
     let var = cp1250::encode(&write.name);
     let value = cp1250::encode(&write.value);
-    match crate::cmd::set::write(&section, &var, &value).await {
-        Ok(confirmed) => Json(Written {
-            name: cp1250::decode(&confirmed.name).into_owned(),
-            value: cp1250::decode(&confirmed.text).into_owned(),
+    match section.write(&var, &value).await {
+        Ok(written) => Json(Written {
+            name: cp1250::decode(&written.name).into_owned(),
+            value: cp1250::decode(&written.text).into_owned(),
         })
         .into_response(),
-        Err(refused) => {
-            let status = match refused.code {
-                // READ_ONLY answers ERROR:30.
-                ErrorCode::BadRequest => StatusCode::FORBIDDEN,
-                ErrorCode::UnknownVariable | ErrorCode::WrongValue | ErrorCode::MemSet => {
-                    StatusCode::BAD_REQUEST
-                }
-                _ => StatusCode::BAD_GATEWAY,
+        Err(refusal) => {
+            let status = match refusal {
+                WriteRefusal::ReadOnly => StatusCode::FORBIDDEN,
+                WriteRefusal::UnknownVariable
+                | WriteRefusal::BadValue(_)
+                | WriteRefusal::BadAddress => StatusCode::BAD_REQUEST,
+                // The device refusing a value or an address is the
+                // request's fault, as the code it answers says.
+                WriteRefusal::Refused { .. } => match refusal.code() {
+                    ErrorCode::WrongValue | ErrorCode::MemSet => StatusCode::BAD_REQUEST,
+                    _ => StatusCode::BAD_GATEWAY,
+                },
+                WriteRefusal::Unreachable | WriteRefusal::Failed => StatusCode::BAD_GATEWAY,
             };
             (
                 status,
                 Json(WriteFailed {
-                    code: refused.code.code(),
-                    error: refused.line,
+                    code: refusal.code().code(),
+                    error: refusal.line(&var, &value),
                 }),
             )
                 .into_response()

@@ -13,7 +13,7 @@
 //! runtime at a lower CPU priority: however busy the page and its browsers
 //! keep it, the poll thread and the telnet sessions' runtime are not
 //! slowed. It reads the sections through their public API only (live state,
-//! the change stream's subscriptions, `cmd::set::write`).
+//! the change stream's subscriptions, `Section::write`).
 
 mod api;
 mod assets;
