@@ -207,14 +207,25 @@ fn writes_round_trip_and_refusals_never_applied_later() {
     sub.wait_payload("plccoms/Plc/plc", "online");
     sub.wait_payload("plccoms/Plc/COUNTER", "0");
 
-    // A write comes back confirmed on the value topic, also for a variable
-    // not published, and in cp1250 text.
+    // A write comes back confirmed on the value topic, once: also for a
+    // variable not published, in cp1250 text, and for a value unchanged
+    // (which the change stream does not publish).
     broker.publish("plccoms/Plc/COUNTER/set", "42", false);
     sub.wait_payload("plccoms/Plc/COUNTER", "42");
     broker.publish("plccoms/Plc/setpoint/set", "21.5", false);
     sub.wait_payload("plccoms/Plc/SETPOINT", "21.500000");
     broker.publish("plccoms/Plc/NOTE/set", "Dobrý den", false);
     sub.wait_payload("plccoms/Plc/NOTE", "\"Dobrý den\"");
+    broker.publish("plccoms/Plc/NOTE/set", "Dobrý den", false);
+    let confirmations = |topic: &str, payload: &str| {
+        sub.on(topic)
+            .iter()
+            .filter(|m| m.payload == payload)
+            .count()
+    };
+    sub.wait_for("the unchanged NOTE confirmed", || {
+        (confirmations("plccoms/Plc/NOTE", "\"Dobrý den\"") >= 2).then_some(())
+    });
 
     // Refusals on <VAR>/error, with SET's error lines.
     broker.publish("plccoms/Plc/counter/set", "abc", false);
@@ -238,6 +249,10 @@ fn writes_round_trip_and_refusals_never_applied_later() {
     );
     let mut line = Line::connect(plc);
     assert_eq!(line.ask("GET:note"), "GET:NOTE,\"Dobrý den\"");
+    // Each write published once, the refusals' time after.
+    assert_eq!(confirmations("plccoms/Plc/COUNTER", "42"), 1);
+    assert_eq!(confirmations("plccoms/Plc/SETPOINT", "21.500000"), 1);
+    assert_eq!(confirmations("plccoms/Plc/NOTE", "\"Dobrý den\""), 2);
     let log = server.log();
     assert!(log.contains("write refused: ERROR:35"), "{log}");
     assert!(

@@ -137,6 +137,9 @@ pub(super) struct State {
     value_topics: Vec<Option<String>>,
     /// Deadband: the value last published per variable (MQTT_DELTA only).
     last: Vec<Option<Value>>,
+    /// The change stream's sequence of the value last published per
+    /// variable: a confirmed write it already carried is not published again.
+    published_seq: Vec<u64>,
     plc_online: Option<bool>,
     announced: BTreeSet<String>,
     /// The discovery announcement under way: one at a time, however many
@@ -163,7 +166,9 @@ impl Task {
                 biased;
                 _ = self.shutdown.cancelled() => break,
                 event = next_event(&mut self.state.link) => self.on_event(event),
-                Some(outcome) = self.outcomes.recv() => self.on_outcome(outcome),
+                // Changes before outcomes: the link publishes a write's
+                // value before it answers, so a write's outcome finds the
+                // batch that carried its value handled (`published_seq`).
                 batch = changes.next(), if stream_open => match batch {
                     Some(batch) => {
                         if batch.table_changed {
@@ -173,6 +178,7 @@ impl Task {
                     }
                     None => stream_open = false,
                 },
+                Some(outcome) = self.outcomes.recv() => self.on_outcome(outcome),
                 _ = sleep_until(self.state.retry_at) => {
                     self.state.retry_at = None;
                     self.connect();
@@ -419,6 +425,7 @@ impl Task {
         let state = &mut self.state;
         state.value_topics = vec![None; table.len()];
         state.last = vec![None; table.len()];
+        state.published_seq = vec![0; table.len()];
         state.wanted = changes.wanted().to_vec();
         let replaced = state.table.replace(table).is_some();
         if replaced {
@@ -513,6 +520,7 @@ impl Task {
                 }
                 *last = value;
             }
+            self.state.published_seq[id as usize] = snapshot.seq;
             let payload = super::payload::value(
                 self.rules.format,
                 text,
@@ -595,15 +603,23 @@ impl Task {
             Ok(confirmed) => {
                 self.metrics.writes.inc();
                 debug!(section = %self.section.name, "MQTT: wrote {} = {}", cp1250::decode(&confirmed.name), cp1250::decode(&confirmed.text));
+                let table = self.state.table.clone();
+                if let Some(id) = table.and_then(|t| t.lookup(&confirmed.name)) {
+                    let id = id as usize;
+                    // The change stream published this value or a later
+                    // one: confirmed already. It does not when the value
+                    // is unchanged, not in MQTT_PUBLISH, or in the deadband.
+                    if self.state.published_seq[id] >= confirmed.seq {
+                        return;
+                    }
+                    self.state.published_seq[id] = confirmed.seq;
+                    if self.rules.delta.is_some() {
+                        self.state.last[id] = Some(confirmed.value.clone());
+                    }
+                }
                 let now = crate::changes::unix_ms(std::time::SystemTime::now());
                 let payload =
                     super::payload::value(self.rules.format, &confirmed.text, now, Quality::Good);
-                if self.rules.delta.is_some() {
-                    let table = self.state.table.clone();
-                    if let Some(id) = table.and_then(|t| t.lookup(&confirmed.name)) {
-                        self.state.last[id as usize] = Some(confirmed.value.clone());
-                    }
-                }
                 self.queue(vec![Message {
                     topic: self.topics.value(&confirmed.name),
                     payload,
