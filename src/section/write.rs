@@ -32,8 +32,10 @@ pub enum WriteRefusal {
     BadValue(String),
     /// No link to the PLC: refused at once, never written later.
     Unreachable,
-    /// The link failed during the write, or it waited past EPSTOUT.
+    /// The link failed during the write.
     Failed,
+    /// The write waited past EPSTOUT to be sent: it never will be.
+    TimedOut,
     /// The device refused the write or its read-back.
     Refused {
         /// The variable's name as the protocol prints it.
@@ -53,7 +55,7 @@ impl WriteRefusal {
             WriteRefusal::ReadOnly => ErrorCode::BadRequest,
             WriteRefusal::BadValue(_) => ErrorCode::WrongValue,
             WriteRefusal::Unreachable => ErrorCode::ConnectPlc,
-            WriteRefusal::Failed => ErrorCode::SendData,
+            WriteRefusal::Failed | WriteRefusal::TimedOut => ErrorCode::SendData,
             // A value the device refuses is a wrong value, anything else
             // the address's fault.
             WriteRefusal::Refused {
@@ -79,7 +81,7 @@ impl WriteRefusal {
             WriteRefusal::UnknownVariable | WriteRefusal::ReadOnly | WriteRefusal::BadValue(_) => {
                 request.to_vec()
             }
-            WriteRefusal::Unreachable | WriteRefusal::Failed => Vec::new(),
+            WriteRefusal::Unreachable | WriteRefusal::Failed | WriteRefusal::TimedOut => Vec::new(),
             WriteRefusal::Refused {
                 name,
                 refusal: backend::Refusal::Modbus(code),
@@ -146,7 +148,8 @@ impl WriteTarget {
         let outcome = match reply {
             Ok(outcome) => outcome,
             Err(LinkError::Offline) => return Err(WriteRefusal::Unreachable),
-            Err(_) => return Err(WriteRefusal::Failed),
+            Err(LinkError::Late) => return Err(WriteRefusal::TimedOut),
+            Err(LinkError::Plc(_)) => return Err(WriteRefusal::Failed),
         };
         let bytes = outcome.answer.map_err(|refusal| WriteRefusal::Refused {
             name: self.var.name.to_vec(),
@@ -232,5 +235,51 @@ impl Section {
                 format: self.format,
             },
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use plccoms_plc::modbus::ExceptionCode;
+
+    #[test]
+    fn refusals_render_as_set_error_lines() {
+        let line = |r: WriteRefusal| r.line(b"counter", b"abc");
+        assert_eq!(
+            line(WriteRefusal::BadValue("not a number".into())),
+            "ERROR:35 Wrong parameter value in request: 'SET:counter,abc'"
+        );
+        assert_eq!(
+            line(WriteRefusal::ReadOnly),
+            "ERROR:30 Bad client request: 'SET:counter,abc'"
+        );
+        assert_eq!(WriteRefusal::Unreachable.code(), ErrorCode::ConnectPlc);
+        assert_eq!(WriteRefusal::TimedOut.context(b"X", b"SET:X,1"), b"");
+        let refused = |refusal, direct| WriteRefusal::Refused {
+            name: b"%R10".to_vec(),
+            refusal,
+            direct,
+        };
+        let value = refused(
+            backend::Refusal::Modbus(ExceptionCode::ILLEGAL_DATA_VALUE),
+            false,
+        );
+        assert_eq!(value.code(), ErrorCode::WrongValue);
+        assert!(value.context(b"", b"").starts_with(b"%R10: "));
+        let device = refused(backend::Refusal::BAD_PARAMETERS, false);
+        assert_eq!(
+            (device.code(), device.context(b"", b"")),
+            (ErrorCode::SendData, vec![])
+        );
+        let direct = refused(backend::Refusal::BAD_PARAMETERS, true);
+        assert_eq!(
+            (direct.code(), direct.context(b"", b"")),
+            (ErrorCode::MemSet, b"%R10".to_vec())
+        );
+        assert_eq!(
+            WriteRefusal::BadAddress.context(b"%ZZ", b"SET:%ZZ,1"),
+            b"%ZZ"
+        );
     }
 }

@@ -384,7 +384,9 @@ pub async fn set(
                     ErrorCode::WrongValue | ErrorCode::MemSet => StatusCode::BAD_REQUEST,
                     _ => StatusCode::BAD_GATEWAY,
                 },
-                WriteRefusal::Unreachable | WriteRefusal::Failed => StatusCode::BAD_GATEWAY,
+                WriteRefusal::Unreachable | WriteRefusal::Failed | WriteRefusal::TimedOut => {
+                    StatusCode::BAD_GATEWAY
+                }
             };
             (
                 status,
