@@ -14,7 +14,7 @@ use tracing::{error, info, warn};
 use crate::backend::epsnet::EpsnetBackend;
 use crate::backend::modbus::ModbusBackend;
 use crate::backend::{epsnet_config, modbus_config, PlcBackend};
-use crate::config::{Config, Global, Section};
+use crate::config::{Config, Global, Protocol, Section};
 use crate::link::tables::{local_path, plc_path, LoadError, NamedBy, PubSource};
 use crate::link::Tables;
 use crate::server::{start_section, RunningSection};
@@ -265,7 +265,7 @@ async fn backend_for(
     server: &mut Server,
 ) -> Result<Option<Box<dyn PlcBackend>>, String> {
     if let Some(simulator) = section.simulator.clone() {
-        if section.protocol == "MODBUS_TCP" {
+        if section.protocol == Protocol::ModbusTcp {
             let device = spawn_modbus_simulator(section, &simulator, dir, server).await?;
             if let std::net::IpAddr::V4(ip) = device.ip() {
                 section.ipaddr = Some(ip);

@@ -13,6 +13,8 @@ pub mod plugin;
 use async_trait::async_trait;
 use plccoms_protocol::Area;
 
+use crate::config::Protocol;
+
 pub use plccoms_plc::files::{
     DirEntry, FileInfo, FILE_ATTRIBUTE_ARCHIVE, FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_HIDDEN,
     FILE_ATTRIBUTE_READONLY, FILE_ATTRIBUTE_SYSTEM,
@@ -202,19 +204,13 @@ pub(crate) fn add_dir_page(
 /// made.
 pub type Opened = Result<Option<Box<dyn PlcBackend>>, String>;
 
-/// The backends, by the name the section key `PROTOCOL` gives them. A new
-/// backend is a module, its name here and its arm in [`open`].
-pub const PROTOCOLS: &[&str] = &["EPSNET", "MODBUS_TCP"];
-
 /// The backend of a section, chosen by its `PROTOCOL` key; `dir` is the
-/// configuration's folder (where relative file names start).
+/// configuration's folder (where relative file names start). A new backend
+/// is a module, a variant of [`Protocol`] and its arm here.
 pub fn open(section: &crate::config::Section, dir: &std::path::Path) -> Opened {
-    match section.protocol.as_str() {
-        "EPSNET" => open_epsnet(section, dir),
-        "MODBUS_TCP" => open_modbus(section, dir),
-        other => Err(format!(
-            "PROTOCOL = {other} is not a backend of this server"
-        )),
+    match section.protocol {
+        Protocol::Epsnet => open_epsnet(section, dir),
+        Protocol::ModbusTcp => open_modbus(section, dir),
     }
 }
 

@@ -10,6 +10,7 @@ use std::fmt::Write;
 use plccoms_protocol::answer::ErrorCode;
 
 use super::{error, Cx, Reply};
+use crate::config::Protocol;
 
 const KEYS: &[&str] = &[
     "VERSION",
@@ -85,7 +86,7 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
     // The settings as SETCONF left them, and the link as it is.
     let state = cx.section.state();
     let (config, link) = (&state.config, &state.link);
-    let modbus = config.protocol == "MODBUS_TCP";
+    let modbus = config.protocol == Protocol::ModbusTcp;
     // The full list shows what the section's protocol has.
     let shown = match key {
         "PROTOCOL" | "MODBUS_PORT" | "MODBUS_UNIT" => modbus,
@@ -96,7 +97,7 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
         return;
     }
     match key {
-        "PROTOCOL" => line(text, key, &config.protocol),
+        "PROTOCOL" => line(text, key, config.protocol.name()),
         "MODBUS_PORT" => line(text, key, &config.modbus.port.to_string()),
         "MODBUS_UNIT" => line(text, key, &config.modbus.unit.to_string()),
         // The EPSNET code and the ini parser are built with the server.

@@ -7,10 +7,9 @@ use std::net::{IpAddr, Ipv4Addr};
 use std::time::Duration;
 
 use super::history::{self, Form};
-use super::{split_masks, Global, MqttFormat, Network, Section, Simulator, MQTT_FORMATS};
+use super::{split_masks, Global, MqttFormat, Network, Protocol, Section, Simulator, MQTT_FORMATS};
 
-/// The backends a section's `PROTOCOL` names (the backend module's list).
-pub use crate::backend::PROTOCOLS;
+pub use super::protocol::PROTOCOLS;
 
 /// The simulator programs `SIMULATOR_PROGRAM` accepts.
 pub const SIMULATOR_PROGRAMS: [&str; 2] = ["demo", "idle"];
@@ -447,6 +446,16 @@ impl Value {
         }
     }
 
+    fn protocol(self) -> Protocol {
+        match self {
+            // The key's choices are the enum's names.
+            Value::Choice(name) => {
+                Protocol::parse(name).unwrap_or_else(|| mismatch(&Value::Choice(name)))
+            }
+            other => mismatch(&other),
+        }
+    }
+
     fn choices(self) -> Vec<&'static str> {
         match self {
             Value::Choices(list) => list,
@@ -722,7 +731,7 @@ static KEYS: &[Key] = &[
     // This server's own keys.
     row("PROTOCOL", Some("EPSNET"), choice("protocol", PROTOCOLS),
         "backend: EPSNET (default) or MODBUS_TCP",
-        Setter::Section(|s, v| s.protocol = v.text())),
+        Setter::Section(|s, v| s.protocol = v.protocol())),
     row("SIMULATOR", Some("No"), Kind::Bool,
         "Yes runs a simulated PLC (EPSNET, or Modbus TCP) inside the server on a loopback port",
         Setter::Section(|s, v| {

@@ -23,6 +23,7 @@ pub mod history;
 mod ini;
 mod keys;
 mod mqtt;
+mod protocol;
 #[cfg(test)]
 mod tests;
 
@@ -43,6 +44,7 @@ use diag::Diags;
 use ini::{Entry, RawSection};
 use keys::Settings;
 pub use mqtt::{check_prefix, split_masks, MqttFormat, MqttGlobal, MqttSection, MQTT_FORMATS};
+pub use protocol::Protocol;
 
 /// A loaded ini file.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -267,8 +269,8 @@ pub struct Section {
     pub pubfile_write: bool,
     pub pubfile: Option<String>,
     pub pubfile_fixed: Option<String>,
-    /// `PROTOCOL`: the backend, upper case, one of [`PROTOCOLS`].
-    pub protocol: String,
+    /// `PROTOCOL`: the backend.
+    pub protocol: Protocol,
     /// Set when `SIMULATOR = Yes`.
     pub simulator: Option<Simulator>,
     /// `ALLOW`: the client addresses and networks admitted; `None` admits
@@ -772,7 +774,7 @@ fn section_defaults(name: &str) -> Section {
         pubfile_write: false,
         pubfile: None,
         pubfile_fixed: None,
-        protocol: String::new(),
+        protocol: Protocol::Epsnet,
         simulator: None,
         allow: None,
         read_only: false,
@@ -808,7 +810,7 @@ fn read_section(
     history::warn_unused(&section.history, &map, diags);
     // Modbus keys: only with PROTOCOL = MODBUS_TCP; such a section reads a
     // tag file, not public files.
-    let modbus = section.protocol == "MODBUS_TCP";
+    let modbus = section.protocol == Protocol::ModbusTcp;
     for (key, entry) in &map {
         let misplaced = if modbus {
             matches!(*key, "PUBFILE" | "PUBFILE_FIXED")

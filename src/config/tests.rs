@@ -102,7 +102,7 @@ fn plain_section(name: &str, server_port: u16) -> Section {
         server_port,
         pubfile_crc: false,
         pubfile_write: false,
-        protocol: "EPSNET".into(),
+        protocol: Protocol::Epsnet,
         read_only: false,
         ..section_defaults(name)
     }
@@ -911,7 +911,7 @@ fn defaults_come_from_the_table() {
     let mut expected = section_defaults("PLC");
     expected.server_port = 5010;
     assert_eq!(section("SERVER_PORT = 5010"), expected);
-    assert_eq!(expected.protocol, "EPSNET");
+    assert_eq!(expected.protocol, Protocol::Epsnet);
 }
 
 /// A PLC section body to try a key in: keys of the simulator need it on,
@@ -995,11 +995,11 @@ fn every_key_sets_its_field() {
 fn protocol() {
     assert_eq!(
         section("SERVER_PORT = 1\nPROTOCOL = epsnet").protocol,
-        "EPSNET"
+        Protocol::Epsnet
     );
     assert_eq!(
         section("SERVER_PORT = 1\nPROTOCOL = modbus_tcp\nMODBUS_TAGS = t.csv").protocol,
-        "MODBUS_TCP"
+        Protocol::ModbusTcp
     );
     assert_eq!(
         section_error("SERVER_PORT = 1\nPROTOCOL = modbus"),

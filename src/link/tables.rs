@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use tracing::{info, warn};
 
 use crate::backend::{PlcBackend, Refusal};
-use crate::config::Section;
+use crate::config::{Protocol, Section};
 use crate::vars::{VarFile, VarTable};
 use plccoms_plc::modbus::tags;
 use plccoms_plc::pubfile::{self, PubFile};
@@ -44,7 +44,7 @@ pub enum UserKind {
 impl UserKind {
     /// The kind a section's backend reads.
     pub fn of(section: &Section) -> UserKind {
-        if section.protocol == "MODBUS_TCP" {
+        if section.protocol == Protocol::ModbusTcp {
             UserKind::ModbusTags
         } else {
             UserKind::PubFile

@@ -1,0 +1,45 @@
+//! `PROTOCOL`: which backend a section talks through.
+
+use std::fmt;
+
+/// A section's backend, as its `PROTOCOL` key names it. Adding a backend is
+/// one variant here (with its ini name in [`Protocol::ALL`] and
+/// [`Protocol::name`]) and one arm in `backend::open`; the compiler points at
+/// every other match.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Protocol {
+    /// Teco's EPSNET, over UDP, serial line or shared memory (the default).
+    #[default]
+    Epsnet,
+    /// Modbus TCP, variables from a tag file (`MODBUS_TAGS`).
+    ModbusTcp,
+}
+
+/// The ini names, in [`Protocol::ALL`]'s order: the key table's choices.
+pub const PROTOCOLS: &[&str] = &[Protocol::Epsnet.name(), Protocol::ModbusTcp.name()];
+
+impl Protocol {
+    /// Every protocol, in the order the documentation lists them.
+    pub const ALL: [Protocol; 2] = [Protocol::Epsnet, Protocol::ModbusTcp];
+
+    /// The name in the ini file and in `GETINFO:PROTOCOL`.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Protocol::Epsnet => "EPSNET",
+            Protocol::ModbusTcp => "MODBUS_TCP",
+        }
+    }
+
+    /// The protocol `text` names, ignoring case as the ini file does.
+    pub fn parse(text: &str) -> Option<Protocol> {
+        Protocol::ALL
+            .into_iter()
+            .find(|p| p.name().eq_ignore_ascii_case(text))
+    }
+}
+
+impl fmt::Display for Protocol {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
