@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 
 use bytes::BytesMut;
 use plccoms::backend::FileInfo;
-use plccoms::mqtt::settings::BrokerUrl;
+use plccoms::config::BrokerUrl;
 use plccoms::mqtt::spool::{decode_record, encode_record};
 use plccoms::mqtt::topics::{level, unlevel};
 use plccoms::vars::VarTable;

@@ -6,6 +6,7 @@
 use std::net::{IpAddr, Ipv4Addr};
 use std::time::Duration;
 
+use super::broker::BrokerUrl;
 use super::history::{self, Form};
 use super::{split_masks, Global, MqttFormat, Network, Protocol, Section, Simulator, MQTT_FORMATS};
 
@@ -659,7 +660,7 @@ static KEYS: &[Key] = &[
     // MQTT (src/mqtt/): the broker, the client, the spool.
     row("MQTT_URL", None, Kind::Text,
         "broker: mqtt://host[:port] (1883) or mqtts://host[:port] (8883, TLS); unset = MQTT off",
-        Setter::Global(|g, v| g.mqtt.url = Some(v.text()))),
+        Setter::Global(|g, v| g.mqtt.url = BrokerUrl::parse(&v.text()).ok())),
     row("MQTT_USER", None, Kind::Text, "user name at the broker",
         Setter::Global(|g, v| g.mqtt.user = Some(v.text()))),
     row("MQTT_PASSWORD", None, Kind::Text, "password at the broker",

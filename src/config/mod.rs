@@ -18,6 +18,7 @@
 //! project's addition: the section is served by a simulated PLC inside the
 //! server instead of a real one.
 
+mod broker;
 mod diag;
 pub mod history;
 mod ini;
@@ -33,6 +34,7 @@ use std::net::{IpAddr, Ipv4Addr, Ipv6Addr};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+pub use broker::BrokerUrl;
 pub use diag::{Diagnostic, Severity};
 pub use history::{History, Retention, StampPair};
 pub use keys::{

@@ -8,6 +8,7 @@ use std::collections::HashMap;
 
 use plccoms_protocol::Delta;
 
+use super::broker::BrokerUrl;
 use super::diag::{Diagnostic, Diags, Severity};
 use super::ini::Entry;
 
@@ -15,7 +16,7 @@ use super::ini::Entry;
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct MqttGlobal {
     /// MQTT_URL: `mqtt://host[:port]` or `mqtts://host[:port]`.
-    pub url: Option<String>,
+    pub url: Option<BrokerUrl>,
     pub user: Option<String>,
     pub password: Option<String>,
     /// MQTT_PASSWORD_FILE: read at start-up, a trailing line end dropped.
@@ -122,8 +123,10 @@ pub(super) fn check_global(
             }
         }
     };
-    if let Some(url) = &mqtt.url {
-        if let Err(problem) = crate::mqtt::settings::BrokerUrl::parse(url) {
+    // The key's setter keeps only a good URL; a bad one is reported here,
+    // with the parser's words.
+    if mqtt.url.is_none() {
+        if let Some(Err(problem)) = map.get("MQTT_URL").map(|e| BrokerUrl::parse(&e.value)) {
             bad("MQTT_URL", problem);
         }
     }

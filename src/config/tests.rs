@@ -1372,3 +1372,19 @@ fn own_paths_resolve_as_their_consumers_do() {
     // The clients' own folder is theirs.
     assert!(own.iter().all(|o| o.key != "FILES_ROOT"));
 }
+
+#[test]
+fn mqtt_url_is_parsed_once_at_load() {
+    assert_eq!(
+        global("MQTT_URL = mqtts://b.lan:8884").mqtt.url,
+        Some(BrokerUrl {
+            host: "b.lan".into(),
+            port: 8884,
+            tls: true
+        })
+    );
+    assert_eq!(
+        global_error("MQTT_URL = http://b"),
+        "PLCComS.ini:2: MQTT_URL = http://b has scheme 'http' (allowed mqtt, mqtts)"
+    );
+}
