@@ -281,7 +281,7 @@ fn open_epsnet(section: &crate::config::Section, dir: &std::path::Path) -> Opene
         return Ok(Some(Box::new(plugin::PluginBackend::new(config))));
     }
     if let Some(device) = &section.serial_device {
-        let config = serial_config(section, device)?;
+        let config = serial_config(section, device);
         return Ok(Some(Box::new(epsnet::SerialBackend::new(config))));
     }
     match section.ipaddr {
@@ -296,21 +296,18 @@ fn open_epsnet(section: &crate::config::Section, dir: &std::path::Path) -> Opene
 }
 
 /// EPSNET serial settings from a section's keys, for the line `device`.
-pub fn serial_config(
-    section: &crate::config::Section,
-    device: &str,
-) -> Result<epsnet::SerialConfig, String> {
+pub fn serial_config(section: &crate::config::Section, device: &str) -> epsnet::SerialConfig {
     let mut config = epsnet::SerialConfig::new(device);
     config.speed = section.serial_speed.unwrap_or(config.speed);
     config.rts = epsnet::serial::rts_of(
         device,
         section.serial_rts,
-        section.serial_device_cfg.as_deref(),
-    )?;
+        section.serial_device_cfg.as_deref().unwrap_or_default(),
+    );
     config.timing.eps_addr = section.epsaddr;
     config.timing.timeout = section.epstout;
     config.timing.timeout_step = section.epstout_step;
-    Ok(config)
+    config
 }
 
 /// EPSNET settings from a section's keys, for a PLC at `plc`.

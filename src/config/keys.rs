@@ -603,7 +603,7 @@ static KEYS: &[Key] = &[
     row("SCIENT_NOTATION", Some("No"), Kind::Bool, "REAL/LREAL in scientific notation",
         Setter::Global(|g, v| g.scient_notation = v.bool())),
     row("SERIAL_DEVICE_CFG", None, Kind::Text, "serial devices and their RTS pins",
-        Setter::Global(|g, v| g.serial_device_cfg = Some(v.text()))),
+        Setter::Global(|g, v| g.serial_device_cfg = super::serial::parse_device_cfg(&v.text()).ok())),
     // This server's own keys.
     row("OUTPUT_HARD_LIMIT", Some("16777216"), number(4096, 1 << 30, "bytes"),
         "output queued for one client beyond which it is disconnected at once",
@@ -730,7 +730,7 @@ static KEYS: &[Key] = &[
     row("PUBFILE_FIXED", None, Kind::Path(PathUse::Input), "fixed public file; built in when not set",
         Setter::Section(|s, v| s.pubfile_fixed = Some(v.text()))),
     // This server's own keys.
-    row("PROTOCOL", Some("EPSNET"), choice("protocol", PROTOCOLS),
+    row("PROTOCOL", Some(Protocol::Epsnet.name()), choice("protocol", PROTOCOLS),
         "backend: EPSNET (default) or MODBUS_TCP",
         Setter::Section(|s, v| s.protocol = v.protocol())),
     row("SIMULATOR", Some("No"), Kind::Bool,

@@ -25,6 +25,7 @@ mod ini;
 mod keys;
 mod mqtt;
 mod protocol;
+pub mod serial;
 #[cfg(test)]
 mod tests;
 
@@ -47,6 +48,7 @@ use ini::{Entry, RawSection};
 use keys::Settings;
 pub use mqtt::{check_prefix, split_masks, MqttFormat, MqttGlobal, MqttSection, MQTT_FORMATS};
 pub use protocol::Protocol;
+pub use serial::DevicePin;
 
 /// A loaded ini file.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -155,7 +157,8 @@ pub struct Global {
     pub lim_of_decimals: bool,
     pub num_of_decimals: u8,
     pub scient_notation: bool,
-    pub serial_device_cfg: Option<String>,
+    /// `SERIAL_DEVICE_CFG`, parsed.
+    pub serial_device_cfg: Option<Vec<DevicePin>>,
     /// OUTPUT_HARD_LIMIT: output queued for one client, in bytes, beyond
     /// which it is disconnected at once (this server's own key).
     pub output_hard_limit: usize,
@@ -266,7 +269,7 @@ pub struct Section {
     pub shm_port: Option<u32>,
     /// `[*] SERIAL_DEVICE_CFG`, which every section inherits: the RTS GPIO
     /// pin of each serial device.
-    pub serial_device_cfg: Option<String>,
+    pub serial_device_cfg: Option<Vec<DevicePin>>,
     pub pubfile_crc: bool,
     pub pubfile_write: bool,
     pub pubfile: Option<String>,
@@ -706,9 +709,12 @@ fn read_global(
     }
     check_http(&global, &map, diags, errors);
     mqtt::check_global(&global.mqtt, &map, diags, errors);
-    if let (Some(text), Some(entry)) = (&global.serial_device_cfg, map.get("SERIAL_DEVICE_CFG")) {
-        if let Err(problem) = crate::backend::epsnet::serial::parse_device_cfg(text) {
-            errors.push(diags.make(Severity::Error, entry.line, problem));
+    // The key's setter keeps only a good list; a bad one is reported here.
+    if global.serial_device_cfg.is_none() {
+        if let Some(entry) = map.get("SERIAL_DEVICE_CFG") {
+            if let Err(problem) = serial::parse_device_cfg(&entry.value) {
+                errors.push(diags.make(Severity::Error, entry.line, problem));
+            }
         }
     }
     global

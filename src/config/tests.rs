@@ -121,7 +121,7 @@ fn vendor_file_loads_unchanged() {
             comm_sched_pri: 10,
             ffile_maxrecs: 0,
             sync_var_enabled: false,
-            serial_device_cfg: Some("/dev/ttyS0 -1, /dev/ttyS1 -1".into()),
+            serial_device_cfg: serial::parse_device_cfg("/dev/ttyS0 -1, /dev/ttyS1 -1").ok(),
             ..Global::default()
         }
     );
@@ -464,8 +464,8 @@ fn comments_and_quotes() {
         "COMM_LOOP_DELAY = 20 ; semicolon comment\n",
     ));
     assert_eq!(
-        g.serial_device_cfg.as_deref(),
-        Some("/dev/ttyS0 -1, /dev/ttyS1 -1")
+        g.serial_device_cfg,
+        serial::parse_device_cfg("/dev/ttyS0 -1, /dev/ttyS1 -1").ok()
     );
     assert_eq!(g.comm_loop_delay, Duration::from_millis(20));
 

@@ -29,6 +29,7 @@ use tokio_util::codec::Decoder;
 
 use super::{EpsnetClient, Exchange, Timing, Transport};
 use crate::backend::{Answer, PlcError};
+use crate::config::serial::{pin_of, DevicePin};
 use plccoms_plc::epsnet::service::{Request, Response};
 use plccoms_plc::epsnet::stream::{self, StreamCodec, StreamItem, MAX_FRAME};
 
@@ -80,45 +81,12 @@ impl SerialConfig {
     }
 }
 
-/// `[*] SERIAL_DEVICE_CFG = "/dev/ttyS0 -1, /dev/ttyS1 17"`: each device's
-/// RTS GPIO pin (-1: none). `Err` names the entry that is not `DEVICE PIN`.
-pub fn parse_device_cfg(text: &str) -> Result<Vec<(String, Option<u32>)>, String> {
-    text.split(',')
-        .map(str::trim)
-        .filter(|entry| !entry.is_empty())
-        .map(|entry| {
-            let bad =
-                || format!("SERIAL_DEVICE_CFG: '{entry}' is not DEVICE PIN (e.g. /dev/ttyS0 -1)");
-            let (device, pin) = entry.rsplit_once(char::is_whitespace).ok_or_else(bad)?;
-            let pin = match pin {
-                "-1" => None,
-                digits if !digits.is_empty() && digits.bytes().all(|b| b.is_ascii_digit()) => {
-                    Some(digits.parse::<u32>().map_err(|_| bad())?)
-                }
-                _ => return Err(bad()),
-            };
-            Ok((device.trim().to_string(), pin))
-        })
-        .collect()
-}
-
 /// The RTS of `device`: SERIAL_RTS if set, else its pin in
-/// SERIAL_DEVICE_CFG, else hardware flow control.
-pub fn rts_of(
-    device: &str,
-    serial_rts: Option<u32>,
-    device_cfg: Option<&str>,
-) -> Result<Rts, String> {
-    if let Some(pin) = serial_rts {
-        return Ok(Rts::Gpio(pin));
-    }
-    let pins = device_cfg.map(parse_device_cfg).transpose()?;
-    let pin = pins
-        .iter()
-        .flatten()
-        .find(|(name, _)| name == device)
-        .and_then(|(_, pin)| *pin);
-    Ok(pin.map_or(Rts::Hardware, Rts::Gpio))
+/// SERIAL_DEVICE_CFG (parsed by config), else hardware flow control.
+pub fn rts_of(device: &str, serial_rts: Option<u32>, device_cfg: &[DevicePin]) -> Rts {
+    serial_rts
+        .or_else(|| pin_of(device_cfg, device))
+        .map_or(Rts::Hardware, Rts::Gpio)
 }
 
 /// How long a line must be quiet before a frame that stopped half-way is
@@ -403,29 +371,12 @@ mod tests {
     use super::*;
 
     #[test]
-    fn device_cfg_as_the_vendor_writes_it() {
-        assert_eq!(
-            parse_device_cfg("/dev/ttyS0 -1, /dev/ttyS1 17").unwrap(),
-            [
-                ("/dev/ttyS0".to_string(), None),
-                ("/dev/ttyS1".to_string(), Some(17))
-            ]
-        );
-        assert_eq!(
-            parse_device_cfg("/dev/ttyS0").unwrap_err(),
-            "SERIAL_DEVICE_CFG: '/dev/ttyS0' is not DEVICE PIN (e.g. /dev/ttyS0 -1)"
-        );
-        assert!(parse_device_cfg("/dev/ttyS0 -2").is_err());
-        assert!(parse_device_cfg("/dev/ttyS0 99999999999").is_err());
-    }
-
-    #[test]
     fn rts_from_the_section_then_the_device_table() {
-        let cfg = Some("/dev/ttyS0 -1, /dev/ttyS1 17");
-        assert_eq!(rts_of("/dev/ttyS1", Some(5), cfg), Ok(Rts::Gpio(5)));
-        assert_eq!(rts_of("/dev/ttyS1", None, cfg), Ok(Rts::Gpio(17)));
-        assert_eq!(rts_of("/dev/ttyS0", None, cfg), Ok(Rts::Hardware));
-        assert_eq!(rts_of("/dev/ttyUSB0", None, None), Ok(Rts::Hardware));
+        let cfg = crate::config::serial::parse_device_cfg("/dev/ttyS0 -1, /dev/ttyS1 17").unwrap();
+        assert_eq!(rts_of("/dev/ttyS1", Some(5), &cfg), Rts::Gpio(5));
+        assert_eq!(rts_of("/dev/ttyS1", None, &cfg), Rts::Gpio(17));
+        assert_eq!(rts_of("/dev/ttyS0", None, &cfg), Rts::Hardware);
+        assert_eq!(rts_of("/dev/ttyUSB0", None, &[]), Rts::Hardware);
     }
 
     #[test]
