@@ -3,9 +3,9 @@
 use std::fmt;
 
 /// A section's backend, as its `PROTOCOL` key names it. Adding a backend is
-/// one variant here (with its ini name in [`Protocol::ALL`] and
-/// [`Protocol::name`]) and one arm in `backend::open`; the compiler points at
-/// every other match.
+/// one variant here (listed in [`Protocol::ALL`], named in
+/// [`Protocol::name`]) and one arm in `backend::open`; the key table's
+/// choices follow, and the compiler points at every other match.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Protocol {
     /// Teco's EPSNET, over UDP, serial line or shared memory (the default).
@@ -16,7 +16,15 @@ pub enum Protocol {
 }
 
 /// The ini names, in [`Protocol::ALL`]'s order: the key table's choices.
-pub const PROTOCOLS: &[&str] = &[Protocol::Epsnet.name(), Protocol::ModbusTcp.name()];
+pub const PROTOCOLS: &[&str] = &{
+    let mut names = [""; Protocol::ALL.len()];
+    let mut i = 0;
+    while i < names.len() {
+        names[i] = Protocol::ALL[i].name();
+        i += 1;
+    }
+    names
+};
 
 impl Protocol {
     /// Every protocol, in the order the documentation lists them.
@@ -41,5 +49,21 @@ impl Protocol {
 impl fmt::Display for Protocol {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_parse_back_in_any_case() {
+        assert_eq!(PROTOCOLS, ["EPSNET", "MODBUS_TCP"]);
+        for protocol in Protocol::ALL {
+            assert_eq!(Protocol::parse(protocol.name()), Some(protocol));
+            let lower = protocol.to_string().to_ascii_lowercase();
+            assert_eq!(Protocol::parse(&lower), Some(protocol));
+        }
+        assert_eq!(Protocol::parse("MODBUS"), None);
     }
 }
