@@ -709,10 +709,12 @@ fn read_global(
     }
     check_http(&global, &map, diags, errors);
     mqtt::check_global(&global.mqtt, &map, diags, errors);
-    // The key's setter keeps only a good list; a bad one is reported here.
+    // The key's setter keeps only a good list; a bad one is reported here,
+    // once per line.
     if global.serial_device_cfg.is_none() {
         if let Some(entry) = map.get("SERIAL_DEVICE_CFG") {
-            if let Err(problem) = serial::parse_device_cfg(&entry.value) {
+            let reported = errors.iter().any(|d| d.line == entry.line);
+            if let (false, Err(problem)) = (reported, serial::parse_device_cfg(&entry.value)) {
                 errors.push(diags.make(Severity::Error, entry.line, problem));
             }
         }
