@@ -33,6 +33,7 @@ pub mod daemon;
 pub mod demo;
 pub mod files_quota;
 pub mod historian;
+pub mod history_source;
 pub mod link;
 pub mod localfs;
 pub mod logfile;

@@ -174,7 +174,7 @@ pub async fn start(config: &Config) -> Result<Server, String> {
             Arc::new(crate::historian::web::Source::new(
                 crate::historian::history_dir(&config.path, &global),
                 global.history_query_timeout,
-            )) as Arc<dyn crate::web::history::HistorySource>
+            )) as Arc<dyn crate::history_source::HistorySource>
         });
         // Like a section that cannot listen, a page that cannot is
         // reported and the PLC sections serve on.

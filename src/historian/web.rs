@@ -18,7 +18,7 @@ use futures::StreamExt;
 
 use super::export::{value_text, Written};
 use super::query::{self, Query, QueryError, Row};
-use crate::web::history::{HistoryError, HistoryQuery, HistorySource, Sample, SampleStream};
+use crate::history_source::{HistoryError, HistoryQuery, HistorySource, Sample, SampleStream};
 
 /// Rows read ahead of the page's writer, at most.
 const AHEAD: usize = 256;

@@ -22,61 +22,16 @@
 //! (HISTORY_QUERY_TIMEOUT, a stalled reader included) and the damaged
 //! ranges it left out.
 
-use std::sync::Arc;
-
 use axum::body::{Body, Bytes};
 use axum::extract::Query;
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
-use futures::stream::{BoxStream, StreamExt};
+use futures::stream::StreamExt;
 use serde::{Deserialize, Serialize};
 
 use super::api::error;
 use super::State;
-use crate::changes::Quality;
-
-/// One recorded value.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Sample {
-    /// UTC milliseconds of the poll that read it.
-    pub unix_ms: i64,
-    /// The variable's name as the protocol prints it.
-    pub name: Arc<str>,
-    /// As the protocol prints it; `None` where the record marks no value
-    /// (the link was lost).
-    pub value: Option<String>,
-    pub quality: Quality,
-}
-
-/// What is asked of the historian.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct HistoryQuery {
-    pub section: String,
-    /// Variable masks (`*` wildcards, any case), as EN: takes them.
-    pub masks: Vec<String>,
-    /// UTC milliseconds, both ends included.
-    pub from_ms: i64,
-    pub to_ms: i64,
-}
-
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum HistoryError {
-    /// The section is not recorded (404).
-    #[error("section '{0}' is not recorded by the historian")]
-    UnknownSection(String),
-    /// Reading the records failed (500, or the end of a started body).
-    #[error("{0}")]
-    Failed(String),
-}
-
-pub type SampleStream = BoxStream<'static, Result<Sample, HistoryError>>;
-
-/// The historian, as the web server reads it.
-pub trait HistorySource: Send + Sync {
-    /// The samples of `query.section`'s variables matching `query.masks`
-    /// from `from_ms` to `to_ms`, oldest first, streamed as they are read.
-    fn samples(&self, query: HistoryQuery) -> Result<SampleStream, HistoryError>;
-}
+use crate::history_source::{HistoryError, HistoryQuery, HistorySource, Sample, SampleStream};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Format {
@@ -357,6 +312,7 @@ fn csv_field(text: &str, out: &mut Vec<u8>) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::changes::Quality;
 
     /// Samples held in memory, filtered as a historian would.
     struct Recorded(Vec<Sample>, Option<HistoryError>);

@@ -35,8 +35,8 @@ use tokio_util::sync::CancellationToken;
 use tracing::{error, info};
 
 use crate::config::Global;
+use crate::history_source::HistorySource;
 use crate::section::Section;
-pub use history::HistorySource;
 
 /// What the `[*]` keys ask of the web server.
 #[derive(Debug, Clone)]
