@@ -46,7 +46,7 @@ use tracing::{info, warn};
 use crate::changes::unix_ms;
 use crate::config::{Config, Global, History};
 use crate::metrics::{self, Counter, Gauge};
-use crate::section::Section;
+use crate::section::{InfoLines, Section};
 use record::{Output, Recorder};
 use sample::{Event, EventKind};
 use writer::Message;
@@ -113,9 +113,11 @@ impl Stats {
             State::Recording
         }
     }
+}
 
+impl InfoLines for Stats {
     /// The GETINFO lines (`KEY,value`), after the vendor's keys.
-    pub fn getinfo(&self) -> Vec<(&'static str, String)> {
+    fn getinfo(&self) -> Vec<(&'static str, String)> {
         let queued = self.queued.load(Ordering::Relaxed);
         vec![
             (

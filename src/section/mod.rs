@@ -59,7 +59,14 @@ pub struct Section {
     pub config_dir: PathBuf,
     clients: Mutex<Clients>,
     /// The historian's figures, when it records this section (GETINFO).
-    pub history: OnceLock<Arc<crate::historian::Stats>>,
+    pub history: OnceLock<Arc<dyn InfoLines>>,
+}
+
+/// An app's own GETINFO lines for a section (the historian's figures): the
+/// app fills the section's slot, so the section needs no app's types.
+pub trait InfoLines: Send + Sync {
+    /// `KEY,value` lines, shown after the vendor's keys.
+    fn getinfo(&self) -> Vec<(&'static str, String)>;
 }
 
 #[derive(Default)]
