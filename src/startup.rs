@@ -156,7 +156,7 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     let mqtt = crate::mqtt::settings::Settings::load(&config.global.mqtt, &dir, &config.path)
         .and_then(|settings| {
             settings
-                .map(|settings| crate::mqtt::start(settings, &server.sections))
+                .map(|settings| crate::mqtt::start(settings, &sections))
                 .transpose()
         });
     match mqtt {

@@ -31,7 +31,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::metrics::{self, escape_label, Counter, Gauge};
-use crate::server::RunningSection;
+use crate::section::Section;
 use connection::Task;
 use settings::{id_safe, SectionRules, Settings};
 use spool::Spool;
@@ -178,12 +178,12 @@ impl Mqtt {
 
 /// Starts a task per section. Fails when a section's rules or queue folder
 /// cannot be used (the folder held by another process, say).
-pub fn start(settings: Settings, sections: &[RunningSection]) -> Result<Mqtt, String> {
+pub fn start(settings: Settings, sections: &[Arc<Section>]) -> Result<Mqtt, String> {
     let settings = Arc::new(settings);
     let stop = CancellationToken::new();
     let mut prepared = Vec::new();
-    for running in sections {
-        let section = running.section.clone();
+    for section in sections {
+        let section = section.clone();
         let config = section.state().config.clone();
         let rules =
             SectionRules::new(&config.mqtt).map_err(|e| format!("[{}] {e}", section.name))?;
