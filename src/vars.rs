@@ -22,6 +22,10 @@ pub type VarId = u32;
 pub const PLC_RUN: &[u8] = b"__PLC_RUN";
 pub const PF_CRC: &[u8] = b"__PF_CRC";
 
+/// The standard fixed public file, used when PUBFILE_FIXED is not set.
+pub const STANDARD_FIXED: &[u8] =
+    b" __PLC_RUN S B 2 .2 BOOL PUB_INOUT\r\n __PF_CRC S B 70 DWORD PUB_INOUT\r\n";
+
 /// The variables of a file and its warnings, ready for [`VarTable::build`].
 #[derive(Debug, Clone, Default)]
 pub struct VarFile {
@@ -115,7 +119,7 @@ impl VarTable {
     /// Foxtrot, warnings dropped: a table without a PLC, for tests, tools
     /// and benchmarks.
     pub fn from_public_text(name: &str, text: &[u8]) -> Result<VarTable, TableError> {
-        let fixed = plccoms_plc::pubfile::parse(crate::link::tables::STANDARD_FIXED);
+        let fixed = plccoms_plc::pubfile::parse(STANDARD_FIXED);
         let user = plccoms_plc::pubfile::parse(text);
         VarTable::build(
             "FIXED.pub",

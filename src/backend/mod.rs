@@ -22,6 +22,13 @@ pub use plccoms_plc::files::{
 pub use plccoms_plc::memory::WriteData;
 pub use plccoms_plc::Refusal;
 
+/// Pause after the first failed probe; doubles up to [`PROBE_MAX`]. The
+/// defaults of [`PlcBackend::probe_backoff`], which the link's health uses.
+pub const PROBE_MIN: std::time::Duration = std::time::Duration::from_millis(100);
+/// Longest pause between probes: with a probe taking at most EPSTOUT plus a
+/// retry, a PLC that returns is found again within about a second.
+pub const PROBE_MAX: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// A block of PLC memory to read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub struct ReadRequest {
@@ -105,10 +112,7 @@ pub trait PlcBackend: Send {
     /// Pause after the first failed connection attempt of an outage, and
     /// the longest it doubles to (see `link::health`).
     fn probe_backoff(&self) -> (std::time::Duration, std::time::Duration) {
-        (
-            crate::link::health::PROBE_MIN,
-            crate::link::health::PROBE_MAX,
-        )
+        (PROBE_MIN, PROBE_MAX)
     }
 
     /// Largest block one file read or write request may carry.
@@ -258,7 +262,7 @@ pub fn modbus_config(
         .modbus
         .tags
         .as_deref()
-        .map(|name| crate::link::tables::local_path(dir, section, name));
+        .map(|name| section.path_of(dir, name));
     config
 }
 

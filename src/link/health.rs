@@ -29,11 +29,8 @@ use std::time::Duration;
 
 use tokio::time::Instant;
 
-/// Pause after the first failed probe; doubles up to [`PROBE_MAX`].
-pub const PROBE_MIN: Duration = Duration::from_millis(100);
-/// Longest pause between probes: with a probe taking at most EPSTOUT plus a
-/// retry, a PLC that returns is found again within about a second.
-pub const PROBE_MAX: Duration = Duration::from_secs(1);
+use crate::backend::{PROBE_MAX, PROBE_MIN};
+
 /// Good polls in a row after a connection before the link counts as steady
 /// again (at COMM_LOOP_DELAY 100 ms, one second).
 pub const STEADY_POLLS: u32 = 10;

@@ -12,17 +12,13 @@ use tracing::{info, warn};
 
 use crate::backend::{PlcBackend, Refusal};
 use crate::config::{Protocol, Section};
-use crate::vars::{VarFile, VarTable};
+use crate::vars::{VarFile, VarTable, STANDARD_FIXED};
 use plccoms_plc::modbus::tags;
 use plccoms_plc::pubfile::{self, PubFile};
 use plccoms_plc::MemoryMap;
 
 /// Largest public file read, from this machine or fetched from a PLC.
 pub const MAX_PUBFILE: u64 = 64 * 1024 * 1024;
-
-/// The standard fixed public file, used when PUBFILE_FIXED is not set.
-pub const STANDARD_FIXED: &[u8] =
-    b" __PLC_RUN S B 2 .2 BOOL PUB_INOUT\r\n __PF_CRC S B 70 DWORD PUB_INOUT\r\n";
 
 /// A user public file as loaded: its name (as GETINFO and warnings show it)
 /// and its bytes.
