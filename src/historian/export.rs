@@ -28,6 +28,7 @@ use super::query::{self, Query, QueryError, Row, Variable};
 use super::sample::{quality_code, Stored};
 use super::time::iso;
 use crate::changes::Quality;
+use crate::history_source::runs_as_formula;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Format {
@@ -296,18 +297,6 @@ fn csv_field(field: &[u8], quote: bool, out: &mut Vec<u8>) {
         out.push(b);
     }
     out.push(b'"');
-}
-
-/// Whether a spreadsheet would take a text cell for a formula (OWASP "CSV
-/// injection"): it begins with `=`, `+`, `-`, `@`, a tab or a carriage
-/// return and does not read as a number. Such a cell is written with a `'`
-/// before it, which spreadsheets show as text; numbers (negative ones
-/// included) are never changed.
-pub(crate) fn runs_as_formula(text: &[u8]) -> bool {
-    matches!(
-        text.first(),
-        Some(b'=' | b'+' | b'-' | b'@' | b'\t' | b'\r')
-    ) && !std::str::from_utf8(text).is_ok_and(|t| t.parse::<f64>().is_ok())
 }
 
 /// A CSV field of text: guarded against formulas, then as [`csv_field`].

@@ -28,9 +28,11 @@ pub mod query;
 pub mod record;
 pub mod sample;
 pub mod store;
-pub mod time;
 pub mod web;
 mod writer;
+
+// The history time language, shared with the web app, lives below both.
+pub use crate::history_source::time;
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};

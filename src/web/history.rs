@@ -59,7 +59,7 @@ pub fn parse_time(name: &str, text: &str, now_ms: i64) -> Result<i64, String> {
     let text = text.trim();
     let ms = match text.parse::<i64>() {
         Ok(ms) => ms,
-        Err(_) => crate::historian::time::parse(text, now_ms)
+        Err(_) => crate::history_source::time::parse(text, now_ms)
             .map_err(|e| format!("{name}={text}: {e}"))?,
     };
     // Arithmetic on times far out would wrap.
@@ -291,10 +291,10 @@ impl Encoder {
 
 /// A CSV field, quoted when it holds a comma, quote or line break; text a
 /// spreadsheet would run as a formula (see
-/// [`crate::historian::export::runs_as_formula`]) with a `'` before it.
+/// [`crate::history_source::runs_as_formula`]) with a `'` before it.
 fn csv_field(text: &str, out: &mut Vec<u8>) {
     let guarded;
-    let text = if crate::historian::export::runs_as_formula(text.as_bytes()) {
+    let text = if crate::history_source::runs_as_formula(text.as_bytes()) {
         guarded = format!("'{text}");
         &guarded
     } else {

@@ -1,7 +1,10 @@
 //! Recorded history as the apps read it: the web page's `/api/history` and
 //! chart ask a [`HistorySource`], the historian implements it, start-up
 //! wires the one to the other. Here, below both, so that neither app
-//! imports the other.
+//! imports the other; so are the times both take and the CSV formula guard
+//! both write with.
+
+pub mod time;
 
 use std::sync::Arc;
 
@@ -50,4 +53,16 @@ pub trait HistorySource: Send + Sync {
     /// The samples of `query.section`'s variables matching `query.masks`
     /// from `from_ms` to `to_ms`, oldest first, streamed as they are read.
     fn samples(&self, query: HistoryQuery) -> Result<SampleStream, HistoryError>;
+}
+
+/// Whether a spreadsheet would take a text cell for a formula (OWASP "CSV
+/// injection"): it begins with `=`, `+`, `-`, `@`, a tab or a carriage
+/// return and does not read as a number. Such a cell is written with a `'`
+/// before it, which spreadsheets show as text; numbers (negative ones
+/// included) are never changed.
+pub fn runs_as_formula(text: &[u8]) -> bool {
+    matches!(
+        text.first(),
+        Some(b'=' | b'+' | b'-' | b'@' | b'\t' | b'\r')
+    ) && !std::str::from_utf8(text).is_ok_and(|t| t.parse::<f64>().is_ok())
 }
