@@ -4,9 +4,10 @@
 
 use std::path::PathBuf;
 
-use clap::{ArgAction, Args, Parser, Subcommand};
+use clap::{ArgAction, Parser, Subcommand};
 
-use crate::historian::export::Format;
+// The historian owns its subcommand's arguments; the binary only mounts them.
+use crate::historian::command::HistoryArgs;
 
 /// Log file used with `-d` when `-l` is not given.
 pub const DEFAULT_LOG: &str = "PLCComS.log";
@@ -58,50 +59,6 @@ pub enum Command {
     History(HistoryArgs),
 }
 
-/// The end of `plccoms history --help`.
-const HISTORY_HELP: &str = "\
---out: the export is written to .<name>.<pid>.tmp beside FILE and renamed over \
-FILE only when it ran to the end; until then FILE stays as it was, and an export \
-that fails or is killed leaves no FILE that looks complete (a killed one leaves \
-its .tmp file). A FILE that is a symbolic link is refused.
-
-CSV: a name or text value beginning with = + - @ TAB or CR that does not read \
-as a number is written with a ' before it, so that a spreadsheet shows it as text \
-instead of running it as a formula; numbers, negative ones included, are never \
-changed. JSON and Parquet hold the values as they are.
-
-Exit status: 0 all exported; 2 exported to the end, but without the samples of \
-damaged packed blocks, which standard error names (file and time range); \
-1 failed (--out untouched).";
-
-/// `plccoms history -c <ini> --section S --vars <masks> --from T --to T
-/// [--format csv|json|parquet] [--out FILE] [--wide]`
-#[derive(Debug, Clone, PartialEq, Eq, Args)]
-#[command(after_help = HISTORY_HELP)]
-pub struct HistoryArgs {
-    /// Section whose history is read
-    #[arg(long)]
-    pub section: String,
-    /// Variables: names or masks with *, comma-separated
-    #[arg(long, default_value = "*")]
-    pub vars: String,
-    /// Start (included): ISO 8601 UTC (2026-05-01T12:00:00Z, 2026-05-01) or relative (-1h, -7d)
-    #[arg(long, allow_hyphen_values = true)]
-    pub from: String,
-    /// End (excluded), as --from; default now
-    #[arg(long, default_value = "now", allow_hyphen_values = true)]
-    pub to: String,
-    /// Output format
-    #[arg(long, value_enum, default_value = "csv")]
-    pub format: Format,
-    /// Output file (default: standard output); written beside it and renamed at the end, never through a symbolic link
-    #[arg(long, value_name = "FILE")]
-    pub out: Option<PathBuf>,
-    /// One row per time and one column per variable, instead of one row per sample
-    #[arg(long)]
-    pub wide: bool,
-}
-
 impl Cli {
     /// Where reports go: the `-l` file, else `PLCComS.log` when running as a
     /// daemon, else `None` (the terminal).
@@ -117,6 +74,7 @@ impl Cli {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::historian::export::Format;
     use clap::CommandFactory;
 
     fn cli(args: &[&str]) -> Cli {

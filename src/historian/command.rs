@@ -7,16 +7,61 @@
 //! ```
 
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::SystemTime;
+
+use clap::Args;
 
 use super::export::{self, ExportError, Format};
 use super::query::Query;
 use super::{history_dir, time};
 use crate::changes::unix_ms;
-use crate::cli::HistoryArgs;
 use crate::config;
+
+/// The end of `plccoms history --help`.
+const HISTORY_HELP: &str = "\
+--out: the export is written to .<name>.<pid>.tmp beside FILE and renamed over \
+FILE only when it ran to the end; until then FILE stays as it was, and an export \
+that fails or is killed leaves no FILE that looks complete (a killed one leaves \
+its .tmp file). A FILE that is a symbolic link is refused.
+
+CSV: a name or text value beginning with = + - @ TAB or CR that does not read \
+as a number is written with a ' before it, so that a spreadsheet shows it as text \
+instead of running it as a formula; numbers, negative ones included, are never \
+changed. JSON and Parquet hold the values as they are.
+
+Exit status: 0 all exported; 2 exported to the end, but without the samples of \
+damaged packed blocks, which standard error names (file and time range); \
+1 failed (--out untouched).";
+
+/// `plccoms history -c <ini> --section S --vars <masks> --from T --to T
+/// [--format csv|json|parquet] [--out FILE] [--wide]`
+#[derive(Debug, Clone, PartialEq, Eq, Args)]
+#[command(after_help = HISTORY_HELP)]
+pub struct HistoryArgs {
+    /// Section whose history is read
+    #[arg(long)]
+    pub section: String,
+    /// Variables: names or masks with *, comma-separated
+    #[arg(long, default_value = "*")]
+    pub vars: String,
+    /// Start (included): ISO 8601 UTC (2026-05-01T12:00:00Z, 2026-05-01) or relative (-1h, -7d)
+    #[arg(long, allow_hyphen_values = true)]
+    pub from: String,
+    /// End (excluded), as --from; default now
+    #[arg(long, default_value = "now", allow_hyphen_values = true)]
+    pub to: String,
+    /// Output format
+    #[arg(long, value_enum, default_value = "csv")]
+    pub format: Format,
+    /// Output file (default: standard output); written beside it and renamed at the end, never through a symbolic link
+    #[arg(long, value_name = "FILE")]
+    pub out: Option<PathBuf>,
+    /// One row per time and one column per variable, instead of one row per sample
+    #[arg(long)]
+    pub wide: bool,
+}
 
 /// The exit status when the export was written to the end without the
 /// samples of damaged blocks (named on standard error).
