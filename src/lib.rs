@@ -45,8 +45,6 @@ pub mod section;
 pub mod server;
 pub mod session;
 pub mod startup;
-#[cfg(feature = "fanout-trace")]
-pub mod trace;
 pub mod vars;
 pub mod watch;
 pub mod web;

@@ -69,7 +69,7 @@ impl Server {
         }
         futures::future::join_all(self.sections.iter().map(|s| s.wait_link(LINK_GRACE))).await;
         #[cfg(feature = "fanout-trace")]
-        if let Some(summary) = crate::trace::summary() {
+        if let Some(summary) = crate::session::trace::summary() {
             info!("{summary}");
         }
         // After the links: what they published last is recorded.
@@ -94,7 +94,7 @@ pub const MQTT_GRACE: std::time::Duration = std::time::Duration::from_millis(500
 /// Starts every section of `config`; fails only when none could start.
 pub async fn start(config: &Config) -> Result<Server, String> {
     #[cfg(feature = "fanout-trace")]
-    crate::trace::listen();
+    crate::session::trace::listen();
     // The configuration holds passwords and tokens: clients neither read
     // nor write it, whatever FILES_ROOT says.
     crate::localfs::protect(&config.path, true);

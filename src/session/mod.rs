@@ -19,6 +19,9 @@
 
 pub mod connection;
 pub mod queue;
+// The fan-out latency of this server's client writes (a measuring build only).
+#[cfg(feature = "fanout-trace")]
+pub mod trace;
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -321,7 +324,7 @@ impl Session {
                     self.conn.advance_written(n);
                     #[cfg(feature = "fanout-trace")]
                     if self.conn.backlog() == 0 && !self.traced.is_empty() {
-                        crate::trace::written(&mut self.traced);
+                        trace::written(&mut self.traced);
                     }
                 }
                 result = Connection::read_more(reader, input), if can_read => {
