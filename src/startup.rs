@@ -14,7 +14,7 @@ use tracing::{error, info, warn};
 use crate::backend::epsnet::EpsnetBackend;
 use crate::backend::modbus::ModbusBackend;
 use crate::backend::{epsnet_config, modbus_config, PlcBackend};
-use crate::config::{Config, Global, Protocol, Section};
+use crate::config::{config_dir, Config, Global, Protocol, Section};
 use crate::link::tables::{local_path, plc_path, LoadError, NamedBy, PubSource};
 use crate::link::Tables;
 use crate::server::{start_section, RunningSection};
@@ -185,8 +185,6 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     }
     Ok(server)
 }
-
-pub use crate::config::config_dir;
 
 /// The folder of clients' own files (names beginning with `.`), created if
 /// missing, relative to `dir`: FILES_ROOT; else,
