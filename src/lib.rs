@@ -18,6 +18,8 @@
 //!   keeps the last warnings and errors for it.
 //! - `mqtt` publishes each section's changes to an MQTT broker and takes
 //!   writes back.
+//! - `history_source` is recorded history as the apps read it: the
+//!   historian implements it, the web page reads it, start-up wires them.
 //!
 //! The line protocol (`plccoms-protocol`), the PLC model and EPSNET wire
 //! format (`plccoms-plc`) and the simulated PLC (`plcsim`) are crates of
