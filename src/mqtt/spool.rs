@@ -168,20 +168,44 @@ pub fn decode_record(bytes: &[u8]) -> Result<Option<(u64, Message, usize)>, Reco
 }
 
 /// Where the next record after the damaged one at `from` starts: a sync
-/// marker opening a whole record numbered `next` or later.
-fn resync(bytes: &[u8], from: usize, next: u64) -> Option<usize> {
+/// marker opening a whole record numbered `next` or later. Each candidate's
+/// checksum costs its claimed length, so a segment of markers claiming long
+/// bodies would cost its size squared: candidates whose number cannot be
+/// next are passed by before the checksum, and the checksums of one
+/// segment draw on `budget` bytes; spent, the segment is cut there.
+fn resync(bytes: &[u8], from: usize, next: u64, budget: &mut usize) -> Option<usize> {
     let mut at = from + 1;
     while let Some(found) = bytes.get(at..)?.windows(SYNC.len()).position(|w| w == SYNC) {
         at += found;
-        if let Ok(Some((seq, _, _))) = decode_record(&bytes[at..]) {
-            if seq >= next {
-                return Some(at);
+        let claimed = bytes
+            .get(at + 4..at + 8)
+            .map_or(0, |l| u32::from_le_bytes([l[0], l[1], l[2], l[3]]) as usize);
+        // A record takes at least OLD_HEADER + BODY_HEAD bytes, so no
+        // number of this segment lies further ahead than its size could
+        // hold: one that does is damage too.
+        let seq = bytes
+            .get(at + HEADER..at + HEADER + 8)
+            .map(|b| u64::from_le_bytes(b.try_into().unwrap_or_default()));
+        let most_ahead = (bytes.len() / (OLD_HEADER + BODY_HEAD)) as u64;
+        let plausible = seq.is_some_and(|seq| seq >= next && seq - next <= most_ahead);
+        if plausible && claimed <= MAX_BODY {
+            *budget = budget.checked_sub(claimed)?;
+            if let Ok(Some((seq, _, _))) = decode_record(&bytes[at..]) {
+                if seq >= next {
+                    return Some(at);
+                }
             }
         }
         at += 1;
     }
     None
 }
+
+/// Bytes of checksums [`resync`] may compute for one segment: eight times
+/// the largest segment, far beyond what real damage needs.
+const RESYNC_BUDGET: usize = 32 << 20;
+/// Problems of one segment listed in the log; the rest are counted.
+const LISTED_PROBLEMS: usize = 8;
 
 /// What opening a folder found.
 #[derive(Debug, Default, Clone, PartialEq, Eq)]
@@ -697,6 +721,7 @@ fn recover_segment(first: u64, path: PathBuf, recovered: &mut Recovered) -> io::
     let mut at = 0;
     let mut next = first;
     let mut problems = Vec::new();
+    let mut budget = RESYNC_BUDGET;
     while at < bytes.len() {
         let problem = match decode_record(&bytes[at..]) {
             // Past a skip, or in a segment with gaps, numbers may jump.
@@ -712,7 +737,7 @@ fn recover_segment(first: u64, path: PathBuf, recovered: &mut Recovered) -> io::
             Ok(None) => "a record torn at the end".to_string(),
             Err(e) => e.to_string(),
         };
-        match resync(&bytes, at, next) {
+        match resync(&bytes, at, next, &mut budget) {
             Some(found) => {
                 problems.push(format!("bytes {at}-{found} skipped ({problem})"));
                 at = found;
@@ -725,6 +750,11 @@ fn recover_segment(first: u64, path: PathBuf, recovered: &mut Recovered) -> io::
     }
     let size: usize = kept.iter().map(|r| r.len()).sum();
     if !problems.is_empty() {
+        let unlisted = problems.len().saturating_sub(LISTED_PROBLEMS);
+        problems.truncate(LISTED_PROBLEMS);
+        if unlisted > 0 {
+            problems.push(format!("{unlisted} more"));
+        }
         recovered.cut.push(format!(
             "{} ({} bytes): {}; {size} bytes of whole records kept",
             path.display(),
@@ -953,6 +983,37 @@ mod tests {
         spool.push(&[message(301)]).unwrap();
         spool.rewind();
         assert_eq!(drain(&mut spool), [301]);
+    }
+
+    /// A segment of sync markers each claiming a body to its end would cost
+    /// its size squared in checksums: the work is bounded and the segment
+    /// cut, the records before the damage kept, the log line short.
+    #[test]
+    fn a_segment_of_false_markers_is_cut_with_bounded_work() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut bytes = Vec::new();
+        encode_record(0, &message(0), &mut bytes);
+        let whole = bytes.len();
+        bytes.extend_from_slice(b"junk");
+        let false_markers = 200_000;
+        let total = bytes.len() + false_markers * 24;
+        while bytes.len() < total {
+            let at = bytes.len();
+            bytes.extend_from_slice(&SYNC);
+            let claimed = (total - at - HEADER) as u32;
+            bytes.extend_from_slice(&claimed.to_le_bytes());
+            bytes.extend_from_slice(&[0; 4]);
+            // A plausible number: the cheap checks pass, the checksum fails.
+            bytes.extend_from_slice(&1u64.to_le_bytes());
+            bytes.extend_from_slice(&[0; 4]);
+        }
+        let path = dir.path().join("00000000000000000000.seg");
+        fs::write(&path, &bytes).unwrap();
+        let mut recovered = Recovered::default();
+        let segment = recover_segment(0, path, &mut recovered).unwrap();
+        assert_eq!((segment.next, segment.bytes), (1, whole as u64));
+        assert_eq!(recovered.cut.len(), 1);
+        assert!(recovered.cut[0].len() < 1024, "{}", recovered.cut[0]);
     }
 
     #[test]
