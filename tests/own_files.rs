@@ -14,15 +14,6 @@ mod common;
 use common::{process::free_port, Client};
 use plccoms::config::{keys, Kind, PathUse, Scope};
 
-/// Sends a WRITEFILE of `data` to `name` in one go and returns the answer.
-async fn writefile(c: &mut Client, name: &str, data: &[u8]) -> String {
-    let mut request = format!("WRITEFILE:{name}[{}]=", data.len()).into_bytes();
-    request.extend_from_slice(data);
-    request.extend_from_slice(format!("\r\nWRITEFILE:{name}[0]=\r\n").as_bytes());
-    c.send(&request).await;
-    String::from_utf8_lossy(&c.line().await).into_owned()
-}
-
 #[tokio::test]
 async fn no_client_writes_any_path_a_key_names_nor_reads_its_secrets() {
     let mut walked = 0;
@@ -65,7 +56,7 @@ async fn no_client_writes_any_path_a_key_names_nor_reads_its_secrets() {
             None => format!("./{name}"),
         };
         assert_eq!(
-            writefile(&mut c, &target, b"client").await,
+            c.writefile(&target, b"client").await,
             format!("ERROR:42 Unable to write file: '{target}'\r\n"),
             "{} ({used:?}): written",
             key.name
@@ -73,7 +64,7 @@ async fn no_client_writes_any_path_a_key_names_nor_reads_its_secrets() {
         if inner.is_some() {
             let added = format!("./{name}/0002.seg");
             assert_eq!(
-                writefile(&mut c, &added, b"client").await,
+                c.writefile(&added, b"client").await,
                 format!("ERROR:42 Unable to write file: '{added}'\r\n"),
                 "{}: a file added to the folder",
                 key.name
@@ -206,7 +197,7 @@ async fn clients_files_default_to_a_folder_of_their_own_in_the_state_directory()
     }
     let mut c = Client::connect(addr).await;
     assert_eq!(
-        writefile(&mut c, "./note.txt", b"hello").await,
+        c.writefile("./note.txt", b"hello").await,
         "WRITEFILE:./note.txt OK\r\n"
     );
     assert_eq!(

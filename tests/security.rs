@@ -27,15 +27,6 @@ fn mtime(path: &Path) -> std::time::SystemTime {
     std::fs::metadata(path).unwrap().modified().unwrap()
 }
 
-/// Sends a WRITEFILE of `data` to `name` in one go and returns the answer.
-async fn writefile(c: &mut Client, name: &str, data: &[u8]) -> String {
-    let mut request = format!("WRITEFILE:{name}[{}]=", data.len()).into_bytes();
-    request.extend_from_slice(data);
-    request.extend_from_slice(format!("\r\nWRITEFILE:{name}[0]=\r\n").as_bytes());
-    c.send(&request).await;
-    String::from_utf8_lossy(&c.line().await).into_owned()
-}
-
 #[tokio::test]
 async fn clients_cannot_rewrite_touch_or_read_the_servers_own_files() {
     let (_server, addr, dir) = server("", "", None).await;
@@ -48,7 +39,8 @@ async fn clients_cannot_rewrite_touch_or_read_the_servers_own_files() {
 
     // The configuration: not rewritten, not touched, not read.
     assert_eq!(
-        writefile(&mut c, "./PLCComS.ini", b"[*]\n[X]\nSERVER_PORT=1\n").await,
+        c.writefile("./PLCComS.ini", b"[*]\n[X]\nSERVER_PORT=1\n")
+            .await,
         "ERROR:42 Unable to write file: './PLCComS.ini'\r\n"
     );
     c.ask(
@@ -73,7 +65,7 @@ async fn clients_cannot_rewrite_touch_or_read_the_servers_own_files() {
     )
     .await;
     assert_eq!(
-        writefile(&mut c, "./.hidden", b"x").await,
+        c.writefile("./.hidden", b"x").await,
         "ERROR:42 Unable to write file: './.hidden'\r\n"
     );
     c.ask(
@@ -83,12 +75,12 @@ async fn clients_cannot_rewrite_touch_or_read_the_servers_own_files() {
     .await;
     std::fs::write(dir.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
     assert_eq!(
-        writefile(&mut c, "./demo.pub", b" X R B 0 INT\r\n").await,
+        c.writefile("./demo.pub", b" X R B 0 INT\r\n").await,
         "ERROR:42 Unable to write file: './demo.pub'\r\n"
     );
     // Other files of the root work as before.
     assert_eq!(
-        writefile(&mut c, "./notes.txt", b"hello").await,
+        c.writefile("./notes.txt", b"hello").await,
         "WRITEFILE:./notes.txt OK\r\n"
     );
     c.ask("GETFILE:./notes.txt\n", "GETFILE:./notes.txt[5]=hello\r\n")
@@ -114,7 +106,7 @@ async fn files_root_gives_pc_files_a_folder_of_their_own() {
     assert!(dir.path().join("files").is_dir());
     let mut c = Client::connect(addr).await;
     assert_eq!(
-        writefile(&mut c, "./a.txt", b"abc").await,
+        c.writefile("./a.txt", b"abc").await,
         "WRITEFILE:./a.txt OK\r\n"
     );
     assert_eq!(
@@ -143,12 +135,12 @@ async fn writefile_to_the_files_root_is_bounded_by_its_quota() {
     std::fs::write(root.join("old/log.bin"), vec![0u8; 50_000]).unwrap();
     let mut c = Client::connect(addr).await;
     assert_eq!(
-        writefile(&mut c, "./a.bin", &[1; 30_000]).await,
+        c.writefile("./a.bin", &[1; 30_000]).await,
         "WRITEFILE:./a.bin OK\r\n"
     );
     // 80,000 bytes in the root, 30,000 more would pass 100,000.
     assert_eq!(
-        writefile(&mut c, "./b.bin", &[2; 30_000]).await,
+        c.writefile("./b.bin", &[2; 30_000]).await,
         "ERROR:42 Unable to write file: './b.bin'\r\n"
     );
     assert!(!root.join("b.bin").exists());
@@ -156,7 +148,7 @@ async fn writefile_to_the_files_root_is_bounded_by_its_quota() {
     std::fs::remove_file(root.join("old/log.bin")).unwrap();
     let start = Instant::now();
     loop {
-        let answer = writefile(&mut c, "./b.bin", &[2; 30_000]).await;
+        let answer = c.writefile("./b.bin", &[2; 30_000]).await;
         if answer == "WRITEFILE:./b.bin OK\r\n" {
             break;
         }
@@ -182,7 +174,7 @@ async fn the_servers_own_files_in_the_root_do_not_count_towards_the_quota() {
     std::fs::write(dir.path().join("hist/big.db"), vec![0u8; 200_000]).unwrap();
     let mut c = Client::connect(addr).await;
     assert_eq!(
-        writefile(&mut c, "./a.bin", &[1; 30_000]).await,
+        c.writefile("./a.bin", &[1; 30_000]).await,
         "WRITEFILE:./a.bin OK\r\n"
     );
 }

@@ -266,6 +266,16 @@ impl Client {
         tokio::time::sleep(std::time::Duration::from_millis(50)).await;
     }
 
+    /// Sends a WRITEFILE of `data` to `name` in one block and the closing
+    /// zero block; returns the answer line.
+    pub async fn writefile(&mut self, name: &str, data: &[u8]) -> String {
+        let mut request = format!("WRITEFILE:{name}[{}]=", data.len()).into_bytes();
+        request.extend_from_slice(data);
+        request.extend_from_slice(format!("\r\nWRITEFILE:{name}[0]=\r\n").as_bytes());
+        self.send(&request).await;
+        String::from_utf8_lossy(&self.line().await).into_owned()
+    }
+
     /// Sends a request and checks the whole answer.
     pub async fn ask(&mut self, request: &str, answer: &str) {
         self.send(request.as_bytes()).await;
