@@ -355,18 +355,34 @@ pub fn local_path(cx: &Cx<'_>, name: &[u8], access: Access) -> Option<PathBuf> {
     match localfs::resolve_for(&cx.section.root, name, access, &extra) {
         Ok(path) => Some(path),
         Err(err @ (LocalError::Outside | LocalError::Protected)) => {
-            if let Some(quiet) = REFUSED.admit() {
-                warn!(
-                    section = %cx.section.name,
-                    client = %cx.client.peer,
-                    name = %String::from_utf8_lossy(name),
-                    "refused local file access: {err}{}",
-                    more(quiet)
-                );
-            }
+            log_file_refusal(
+                &REFUSED,
+                cx,
+                name,
+                format_args!("refused local file access: {err}"),
+            );
             None
         }
         Err(LocalError::Io(_)) => None,
+    }
+}
+
+/// Logs a local file refused to a client, through `limiter`: a client can
+/// cause it at will.
+pub fn log_file_refusal(
+    limiter: &RateLimited,
+    cx: &Cx<'_>,
+    name: &[u8],
+    what: std::fmt::Arguments<'_>,
+) {
+    if let Some(quiet) = limiter.admit() {
+        warn!(
+            section = %cx.section.name,
+            client = %cx.client.peer,
+            name = %String::from_utf8_lossy(name),
+            "{what}{}",
+            more(quiet)
+        );
     }
 }
 

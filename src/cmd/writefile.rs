@@ -29,13 +29,12 @@
 use plccoms_protocol::answer::ErrorCode;
 use plccoms_protocol::request::{classify, parse_block, Command, Line};
 use tokio::time::Instant;
-use tracing::warn;
 
-use super::{error, is_local, local_path, ok_line, Cx, FileThen, Reply};
+use super::{error, is_local, local_path, log_file_refusal, ok_line, Cx, FileThen, Reply};
 use crate::files_quota;
 use crate::link::files::{FileJob, Spool};
 use crate::localfs::{self, Access, Staging};
-use crate::ratelimit::{more, RateLimited};
+use crate::ratelimit::RateLimited;
 
 /// Largest PLC file taken by WRITEFILE.
 pub const MAX_PLC_FILE: usize = 16 * 1024 * 1024;
@@ -137,15 +136,12 @@ fn within_quota(cx: &Cx<'_>, name: &[u8], len: usize) -> bool {
     match files_quota::admit(&cx.section.root, quota, len as u64) {
         Ok(()) => true,
         Err(over) => {
-            if let Some(quiet) = REFUSED.admit() {
-                warn!(
-                    section = %cx.section.name,
-                    client = %cx.client.peer,
-                    name = %String::from_utf8_lossy(name),
-                    "WRITEFILE refused: {over}{}",
-                    more(quiet)
-                );
-            }
+            log_file_refusal(
+                &REFUSED,
+                cx,
+                name,
+                format_args!("WRITEFILE refused: {over}"),
+            );
             false
         }
     }
