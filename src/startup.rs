@@ -15,7 +15,7 @@ use crate::backend::epsnet::EpsnetBackend;
 use crate::backend::modbus::ModbusBackend;
 use crate::backend::{epsnet_config, modbus_config, PlcBackend};
 use crate::config::{config_dir, Config, Global, Protocol, Section};
-use crate::link::tables::{local_path, plc_path, LoadError, NamedBy, PubSource};
+use crate::link::tables::{plc_path, LoadError, NamedBy, PubSource};
 use crate::link::Tables;
 use crate::server::{start_section, RunningSection};
 use plcsim::{SimConfig, SimHandle};
@@ -304,7 +304,7 @@ async fn spawn_modbus_simulator(
     };
     let bytes = match (&simulator.pubfile, &section.modbus.tags) {
         (Some(path), _) => read(dir.join(path), "SIMULATOR_PUB")?,
-        (None, Some(name)) => read(local_path(dir, section, name), "MODBUS_TAGS")?,
+        (None, Some(name)) => read(section.path_of(dir, name), "MODBUS_TAGS")?,
         (None, None) => {
             let store = tempfile::Builder::new()
                 .prefix("plccoms-sim-")

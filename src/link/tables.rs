@@ -108,11 +108,9 @@ impl PubSource {
         })
     }
 
-    /// Where a PUBFILE value lives on this machine: `//name` in the root
-    /// folder (the configuration's, or the section's subfolder with
-    /// PUBFILE_WRITE), anything else relative to the configuration.
+    /// Where a PUBFILE value lives on this machine ([`Section::path_of`]).
     pub fn local_path(&self, section: &Section, name: &str) -> PathBuf {
-        local_path(&self.dir, section, name)
+        section.path_of(&self.dir, name)
     }
 
     /// The user public file if it is on this machine (`Ok(None)` when the
@@ -297,13 +295,6 @@ fn read_bounded(path: &Path) -> std::io::Result<Vec<u8>> {
         return Err(too_large());
     }
     Ok(bytes)
-}
-
-/// Where a PUBFILE (or MODBUS_TAGS) value lives on this machine: `//name`
-/// in the root folder (`dir`, the configuration's, or the section's
-/// subfolder with PUBFILE_WRITE), anything else relative to `dir`.
-pub fn local_path(dir: &Path, section: &Section, name: &str) -> PathBuf {
-    section.path_of(dir, name)
 }
 
 /// The CRC that `__PF_CRC` must match for `user` (PUBFILE_CRC): a public
