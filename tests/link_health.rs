@@ -89,6 +89,16 @@ fn section(name: &str, port: u16, plc: SocketAddr, extra: &str) -> String {
     )
 }
 
+/// A simulated PLC on loopback serving the demo public file, SETPOINT at
+/// 1.5; the folder of its files lives as long as the handle is kept.
+async fn plc_with_setpoint() -> (SimHandle, tempfile::TempDir) {
+    let files = tempfile::tempdir().unwrap();
+    std::fs::write(files.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
+    let sim = spawn_sim("127.0.0.1:0".parse().unwrap(), files.path()).await;
+    poke(&sim, SETPOINT, &1.5f32.to_le_bytes());
+    (sim, files)
+}
+
 /// A UDP port on loopback where nothing answers (yet).
 fn silent_addr() -> SocketAddr {
     SocketAddr::from(([127, 0, 0, 1], common::process::free_udp_port()))
@@ -96,11 +106,8 @@ fn silent_addr() -> SocketAddr {
 
 #[tokio::test]
 async fn a_silent_plc_stops_fresh_values_is_lost_in_time_and_refuses_sets_at_once() {
-    let files = tempfile::tempdir().unwrap();
-    std::fs::write(files.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
-    let sim = spawn_sim("127.0.0.1:0".parse().unwrap(), files.path()).await;
+    let (sim, files) = plc_with_setpoint().await;
     let plc = sim.local_addr();
-    poke(&sim, SETPOINT, &1.5f32.to_le_bytes());
     let (server, port, _conf) =
         common::start_on_free_port(|port| format!("[*]\n{}", section("PLC", port, plc, ""))).await;
     let mut stream = server.sections[0].section.changes.subscribe(&["setpoint"]);
@@ -349,11 +356,8 @@ fn web_quality(http: SocketAddr, var: &str) -> String {
 
 #[tokio::test]
 async fn the_web_page_calls_a_value_good_only_while_get_serves_it() {
-    let files = tempfile::tempdir().unwrap();
-    std::fs::write(files.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
-    let sim = spawn_sim("127.0.0.1:0".parse().unwrap(), files.path()).await;
+    let (sim, _files) = plc_with_setpoint().await;
     let plc = sim.local_addr();
-    poke(&sim, SETPOINT, &1.5f32.to_le_bytes());
     let http_port = common::process::free_port();
     let (_server, port, _conf) = common::start_on_free_port(|port| {
         format!(
