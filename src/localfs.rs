@@ -25,9 +25,9 @@ use std::sync::{OnceLock, RwLock};
 use std::time::{Duration, UNIX_EPOCH};
 
 use crate::backend::{DirEntry, FileInfo, FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_READONLY};
+use plccoms_plc::files::host::info_of;
 use plccoms_plc::time;
 use plccoms_protocol::cp1250;
-use plcsim::store::info_of;
 
 /// Name prefix of upload staging files; hidden from listings and refused as
 /// a path part.
@@ -179,7 +179,7 @@ pub fn info(path: &Path) -> io::Result<FileInfo> {
 /// A directory's entries by name; names not representable in cp1250 and
 /// staging files are left out.
 pub fn list(path: &Path) -> io::Result<Vec<DirEntry>> {
-    plcsim::store::list_dir(path, STAGING_PREFIX, MAX_ENTRIES)
+    plccoms_plc::files::host::list_dir(path, STAGING_PREFIX, MAX_ENTRIES)
 }
 
 /// A GETFILE directory listing: one entry a line, directories with a

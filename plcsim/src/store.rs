@@ -19,10 +19,8 @@ use std::io::{self, Read, Seek, SeekFrom, Write};
 use std::path::{Component, Path, PathBuf};
 use std::time::{Duration, Instant, UNIX_EPOCH};
 
-use plccoms_plc::files::{
-    DirEntry, FileInfo, FILE_ATTRIBUTE_ARCHIVE, FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_HIDDEN,
-    FILE_ATTRIBUTE_READONLY,
-};
+use plccoms_plc::files::host::{info_of, list_dir};
+use plccoms_plc::files::{DirEntry, FileInfo, FILE_ATTRIBUTE_ARCHIVE, FILE_ATTRIBUTE_READONLY};
 use plccoms_plc::{time, Exception};
 use plccoms_protocol::cp1250;
 
@@ -342,72 +340,10 @@ impl FileStore {
     }
 }
 
-/// A host directory's entries by cp1250 name, sorted: names that cp1250
-/// cannot hold and names starting with `hidden_prefix` (staging files) are
-/// left out, at most `max` entries. Shared by the simulated PLC's store and
-/// the server's local files.
-pub fn list_dir(host: &Path, hidden_prefix: &str, max: usize) -> io::Result<Vec<DirEntry>> {
-    let mut entries = Vec::new();
-    for entry in fs::read_dir(host)? {
-        let Ok(entry) = entry else { continue };
-        let name = entry.file_name();
-        let Some(name) = name.to_str() else { continue };
-        if name.starts_with(hidden_prefix) {
-            continue;
-        }
-        let Some(bytes) = cp1250::try_encode(name) else {
-            continue;
-        };
-        let Ok(meta) = fs::metadata(entry.path()) else {
-            continue;
-        };
-        entries.push(DirEntry {
-            name: bytes,
-            info: info_of(&entry.path(), &meta),
-        });
-        if entries.len() >= max {
-            break;
-        }
-    }
-    entries.sort_by(|a, b| a.name.cmp(&b.name));
-    Ok(entries)
-}
-
-/// GETFILEINFO's view of a host file: size, attributes (directory or
-/// archive, read-only, hidden for dot names) and ttida times. Shared by the
-/// simulated PLC's file store and the server's local files.
-pub fn info_of(path: &Path, meta: &fs::Metadata) -> FileInfo {
-    let mut attributes = if meta.is_dir() {
-        FILE_ATTRIBUTE_DIRECTORY
-    } else {
-        FILE_ATTRIBUTE_ARCHIVE
-    };
-    if meta.permissions().readonly() {
-        attributes |= FILE_ATTRIBUTE_READONLY;
-    }
-    if path
-        .file_name()
-        .and_then(|n| n.to_str())
-        .is_some_and(|n| n.starts_with('.'))
-    {
-        attributes |= FILE_ATTRIBUTE_HIDDEN;
-    }
-    let modified = meta.modified().map(time::ttida_from_system).unwrap_or(0);
-    let created = meta
-        .created()
-        .map(time::ttida_from_system)
-        .unwrap_or(modified);
-    FileInfo {
-        size: if meta.is_dir() { 0 } else { meta.len() },
-        attributes,
-        created,
-        modified,
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use plccoms_plc::files::{FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_HIDDEN};
 
     #[test]
     fn paths_stay_inside_the_root() {

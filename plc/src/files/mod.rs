@@ -1,5 +1,7 @@
 //! File attributes, times and directory entries as PLCComS reports them.
 
+pub mod host;
+
 /// File attributes and times as PLCComS reports them (GETFILEINFO). Times are
 /// the 8-byte `ttida` structure packed little-endian into a u64: year-1900,
 /// month, day, hour, minute, second, 0, 0.
