@@ -7,7 +7,8 @@ use std::path::PathBuf;
 use clap::{ArgAction, Parser, Subcommand};
 
 // The historian owns its subcommand's arguments; the binary only mounts them.
-use crate::historian::command::HistoryArgs;
+#[cfg(feature = "historian")]
+use plccoms_historian::command::HistoryArgs;
 
 /// Log file used with `-d` when `-l` is not given.
 pub const DEFAULT_LOG: &str = "PLCComS.log";
@@ -56,6 +57,7 @@ pub struct Cli {
 #[derive(Debug, Clone, PartialEq, Eq, Subcommand)]
 pub enum Command {
     /// Write out what the historian recorded (CSV, JSON or Parquet)
+    #[cfg(feature = "historian")]
     History(HistoryArgs),
 }
 
@@ -74,8 +76,8 @@ impl Cli {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::historian::export::Format;
     use clap::CommandFactory;
+    use plccoms_historian::export::Format;
 
     fn cli(args: &[&str]) -> Cli {
         Cli::try_parse_from(std::iter::once("plccoms").chain(args.iter().copied()))

@@ -3,7 +3,7 @@
 //! on loopback only (its `IPADDR_LOCAL`), so that trying the server out on a
 //! plant PC opens nothing to the network.
 
-use crate::config::Config;
+use plccoms_core::config::Config;
 
 /// The demo configuration, built in.
 pub const CONFIG: &str = include_str!("../PLCComS.ini.example");
@@ -43,7 +43,7 @@ mod tests {
 
     #[test]
     fn the_demo_is_simulated_and_on_loopback_only() {
-        let loaded = crate::config::parse(std::path::Path::new(NAME), CONFIG).unwrap();
+        let loaded = plccoms_core::config::parse(std::path::Path::new(NAME), CONFIG).unwrap();
         assert!(!loaded.config.sections.is_empty());
         for section in &loaded.config.sections {
             assert!(section.simulator.is_some(), "[{}]", section.name);

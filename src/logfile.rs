@@ -40,7 +40,8 @@ impl LogFile {
         let file = open(&self.path)?;
         *self.lock() = file;
         // The line a crashing plugin leaves goes to the new file too.
-        crate::backend::plugin::crash::set_log_fd(self.as_raw_fd());
+        #[cfg(feature = "plugin")]
+        plccoms_driver_plugin::crash::set_log_fd(self.as_raw_fd());
         Ok(())
     }
 

@@ -6,19 +6,20 @@ use std::process::ExitCode;
 use std::sync::Arc;
 
 use clap::Parser;
-use plccoms::cli::{Cli, Command};
-use plccoms::config::{self, Diagnostic, Severity};
+use plccoms::cli::Cli;
 use plccoms::daemon::{self, Notifier};
 use plccoms::logfile::{self, LogFile};
 use plccoms::watch;
+use plccoms_core::config::{self, Diagnostic, Severity};
 use tracing::{error, info, warn};
 
 const DEFAULT_CONFIG: &str = "PLCComS.ini";
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    if let Some(Command::History(args)) = &cli.command {
-        return plccoms::historian::command::run(&cli.config, args);
+    #[cfg(feature = "historian")]
+    if let Some(plccoms::cli::Command::History(args)) = &cli.command {
+        return plccoms_historian::command::run(&cli.config, args);
     }
     // Detach before any thread exists; the parent exits with the outcome of
     // the child's start-up.
@@ -76,16 +77,17 @@ fn init_logging(cli: &Cli) -> Result<Option<Arc<LogFile>>, String> {
     // The log, and the last warnings and errors kept for the web page.
     let registry = tracing_subscriber::registry()
         .with(filter)
-        .with(plccoms::logring::layer());
+        .with(plccoms_core::logring::layer());
     let fmt = tracing_subscriber::fmt::layer().with_target(cli.verbose >= 2);
     match cli.log_path() {
         Some(path) => {
             // Clients never write it (WRITEFILE:./PLCComS.log).
-            plccoms::localfs::protect(&path, false);
+            plccoms_core::localfs::protect(&path, false);
             let file = LogFile::open(&path)
                 .map_err(|e| format!("cannot open log file {}: {e}", path.display()))?;
             // A plugin that crashes the process says so in the log too.
-            plccoms::backend::plugin::crash::set_log_fd(std::os::fd::AsRawFd::as_raw_fd(&*file));
+            #[cfg(feature = "plugin")]
+            plccoms_driver_plugin::crash::set_log_fd(std::os::fd::AsRawFd::as_raw_fd(&*file));
             registry
                 .with(fmt.with_ansi(false).with_writer(file.clone()))
                 .init();

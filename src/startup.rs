@@ -11,28 +11,107 @@ use std::sync::Arc;
 
 use tracing::{error, info, warn};
 
-use crate::backend::epsnet::EpsnetBackend;
-use crate::backend::modbus::ModbusBackend;
-use crate::backend::{epsnet_config, modbus_config, PlcBackend};
-use crate::config::{config_dir, Config, Global, Protocol, Section};
-use crate::link::tables::{plc_path, LoadError, NamedBy, PubSource};
-use crate::link::Tables;
-use crate::server::{start_section, RunningSection};
+use plccoms_core::config::{config_dir, Config, Global, Protocol, Section};
+use plccoms_core::driver::PlcBackend;
+use plccoms_core::link::tables::{plc_path, LoadError, NamedBy, PubSource};
+use plccoms_core::link::Tables;
+use plccoms_core::vars::VarTable;
 use plcsim::{SimConfig, SimHandle};
+
+use crate::DRIVERS;
+
+type SectionRef = Arc<plccoms_core::section::Section>;
+
+/// A section that is serving: its link, and its telnet port.
+pub struct RunningSection {
+    pub section: Arc<plccoms_core::section::Section>,
+    pub local_addr: SocketAddr,
+    link: plccoms_core::section::run::Running,
+    listener: plccoms_telnet::server::Listener,
+}
+
+impl RunningSection {
+    /// Stops accepting and polling. Sessions end when their link is gone.
+    pub fn abort(&self) {
+        self.stop_accepting();
+        self.link.stop();
+    }
+
+    /// Stops accepting and tells every session to close once it has
+    /// answered what it received; the link keeps serving their reads.
+    pub fn stop_accepting(&self) {
+        self.listener.stop_accepting();
+    }
+
+    /// Waits until every session has answered what it received and closed,
+    /// at most `grace`.
+    pub async fn wait_sessions(&self, grace: std::time::Duration) {
+        self.listener.wait_sessions(grace).await;
+    }
+
+    /// Waits, at most `grace`, for the link's thread to finish what it is
+    /// doing with the PLC after [`RunningSection::abort`].
+    pub async fn wait_link(&self, grace: std::time::Duration) {
+        self.link.wait(grace).await;
+    }
+}
+
+impl Drop for RunningSection {
+    fn drop(&mut self) {
+        self.abort();
+    }
+}
+
+/// Starts serving one section: its link on `backend` (none: no PLC yet)
+/// and its telnet port on `bind`, at once, whatever the PLC does.
+/// `config_dir` is the configuration file's folder, the root of the
+/// section's local files; `tables` how to (re)load its public files
+/// (`None`: `table` stays). The port is bound first: a port in use starts
+/// nothing.
+pub async fn start_section(
+    global: Arc<Global>,
+    config: Section,
+    table: VarTable,
+    backend: Option<Box<dyn PlcBackend>>,
+    bind: SocketAddr,
+    config_dir: PathBuf,
+    tables: Option<Tables>,
+) -> std::io::Result<RunningSection> {
+    let port = plccoms_telnet::server::bind(bind)?;
+    let link = plccoms_core::section::run::start(plccoms_core::section::run::Setup {
+        global,
+        config,
+        table,
+        backend,
+        drivers: DRIVERS,
+        config_dir,
+        tables,
+    })?;
+    let listener = plccoms_telnet::server::serve(port, link.section.clone())?;
+    Ok(RunningSection {
+        section: link.section.clone(),
+        local_addr: listener.local_addr,
+        link,
+        listener,
+    })
+}
 
 /// Every section that started, and what keeps them alive.
 pub struct Server {
     pub sections: Vec<RunningSection>,
     /// Every section's metrics, and whatever else reports (`/metrics`).
-    pub metrics: Arc<crate::metrics::Registry>,
+    pub metrics: Arc<plccoms_core::metrics::Registry>,
     /// The web page, `/metrics` and the API, when HTTP_PORT is set.
-    pub web: Option<crate::web::WebServer>,
+    #[cfg(feature = "web")]
+    pub web: Option<plccoms_web::WebServer>,
     /// The historian, when a section records (HISTORY).
-    pub historian: Option<crate::historian::Historian>,
+    #[cfg(feature = "historian")]
+    pub historian: Option<plccoms_historian::Historian>,
     simulators: Vec<SimHandle>,
     _file_stores: Vec<tempfile::TempDir>,
     /// The MQTT north side, when MQTT_URL is set.
-    mqtt: Option<crate::mqtt::Mqtt>,
+    #[cfg(feature = "mqtt")]
+    mqtt: Option<plccoms_mqtt::Mqtt>,
 }
 
 impl Server {
@@ -46,7 +125,9 @@ impl Server {
     /// the simulators. Sections stop together: the whole takes at most
     /// [`SESSIONS_GRACE`] + [`LINK_GRACE`] (plus half a second for MQTT),
     /// however many there are.
+    #[cfg_attr(not(any(feature = "web", feature = "historian")), allow(unused_mut))]
     pub async fn shutdown(mut self) {
+        #[cfg(feature = "web")]
         if let Some(web) = self.web.take() {
             web.shutdown().await;
         }
@@ -55,6 +136,7 @@ impl Server {
         }
         // MQTT first, while the links still answer: `offline`, DISCONNECT,
         // the queue saved.
+        #[cfg(feature = "mqtt")]
         if let Some(mqtt) = self.mqtt {
             mqtt.shutdown(MQTT_GRACE).await;
         }
@@ -69,10 +151,11 @@ impl Server {
         }
         futures::future::join_all(self.sections.iter().map(|s| s.wait_link(LINK_GRACE))).await;
         #[cfg(feature = "fanout-trace")]
-        if let Some(summary) = crate::session::trace::summary() {
+        if let Some(summary) = plccoms_telnet::session::trace::summary() {
             info!("{summary}");
         }
         // After the links: what they published last is recorded.
+        #[cfg(feature = "historian")]
         if let Some(historian) = self.historian.take() {
             historian.stop().await;
         }
@@ -94,16 +177,16 @@ pub const MQTT_GRACE: std::time::Duration = std::time::Duration::from_millis(500
 /// Starts every section of `config`; fails only when none could start.
 pub async fn start(config: &Config) -> Result<Server, String> {
     #[cfg(feature = "fanout-trace")]
-    crate::session::trace::listen();
+    plccoms_telnet::session::trace::listen();
     // The configuration holds passwords and tokens: clients neither read
     // nor write it, whatever FILES_ROOT says.
-    crate::localfs::protect(&config.path, true);
+    plccoms_core::localfs::protect(&config.path, true);
     // So is every file and folder a key names: certificates, keys and
     // passwords, plugin libraries, tag and public files, the history and
     // the queues. Registered before anything starts, so that a part that
     // fails to start leaves its files guarded all the same.
     for own in config.own_paths() {
-        crate::localfs::protect(&own.path, own.used != crate::config::PathUse::Input);
+        plccoms_core::localfs::protect(&own.path, own.used != plccoms_core::config::PathUse::Input);
     }
     let dir = config_dir(&config.path);
     let mut global = config.global.clone();
@@ -112,17 +195,20 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     let mut server = Server {
         sections: Vec::new(),
         metrics: Arc::default(),
+        #[cfg(feature = "web")]
         web: None,
+        #[cfg(feature = "historian")]
         historian: None,
         simulators: Vec::new(),
         _file_stores: Vec::new(),
+        #[cfg(feature = "mqtt")]
         mqtt: None,
     };
     let mut failures = Vec::new();
     for section in &config.sections {
         match start_one(&global, section, &dir, &mut server).await {
             Ok(running) => {
-                let probe: std::sync::Weak<dyn crate::metrics::SectionProbe> =
+                let probe: std::sync::Weak<dyn plccoms_core::metrics::SectionProbe> =
                     Arc::downgrade(&running.section) as _;
                 server.metrics.add_section(
                     &running.section.name,
@@ -146,17 +232,49 @@ pub async fn start(config: &Config) -> Result<Server, String> {
         ));
     }
     let sections: Vec<_> = server.sections.iter().map(|r| r.section.clone()).collect();
-    server.historian = crate::historian::Historian::start(config, &sections);
+    start_historian(config, &sections, &mut server);
+    start_mqtt(config, &dir, &sections, &mut server);
+    start_web(config, &global, &dir, sections, &mut server);
+    Ok(server)
+}
+
+// The north apps. Each is a cargo feature (on by default); in a build
+// without one, a configuration that asks for it is told so and the PLC
+// sections serve on, as when an app cannot start.
+
+/// Part of a configuration this build cannot serve: said once, at start.
+#[cfg(not(all(feature = "historian", feature = "mqtt", feature = "web")))]
+fn left_out(what: &str, feature: &str) {
+    error!("{what} not started: this build has no {feature} (built without the cargo feature `{feature}`)");
+}
+
+#[cfg(feature = "historian")]
+fn start_historian(config: &Config, sections: &[SectionRef], server: &mut Server) {
+    server.historian = plccoms_historian::Historian::start(config, sections);
     if let Some(historian) = &server.historian {
         server.metrics.add_source(historian.metrics());
     }
-    // Like the web page, an MQTT north side that cannot start (a queue
-    // folder locked by another process, an unreadable password or CA file)
-    // is reported and the PLC sections serve on.
-    let mqtt = crate::mqtt::settings::Settings::load(&config.global.mqtt, &dir, &config.path)
+}
+
+#[cfg(not(feature = "historian"))]
+fn start_historian(_config: &Config, sections: &[SectionRef], _server: &mut Server) {
+    if sections
+        .iter()
+        .any(|section| section.state().config.history.enabled())
+    {
+        left_out("HISTORY", "historian");
+    }
+}
+
+/// Like the web page, an MQTT north side that cannot start (a queue folder
+/// locked by another process, an unreadable password or CA file) is
+/// reported and the PLC sections serve on.
+#[cfg(feature = "mqtt")]
+fn start_mqtt(config: &Config, dir: &Path, sections: &[SectionRef], server: &mut Server) {
+    let mqtt = plccoms_mqtt::settings::Settings::load(&config.global.mqtt, dir, &config.path)
         .and_then(|settings| {
             settings
-                .map(|settings| crate::mqtt::start(settings, &sections))
+                .map(|settings| plccoms_mqtt::start(settings, sections))
                 .transpose()
         });
     match mqtt {
@@ -167,23 +285,59 @@ pub async fn start(config: &Config) -> Result<Server, String> {
         Ok(None) => {}
         Err(message) => error!("MQTT not started: {message}"),
     }
-    if let Some(web) = crate::web::WebConfig::from_global(&global, &dir) {
-        // /api/history and the chart's range mode read the historian's
-        // files; without one they answer "historian not enabled".
-        let history = server.historian.as_ref().map(|_| {
-            Arc::new(crate::historian::web::Source::new(
-                crate::historian::history_dir(&config.path, &global),
-                global.history_query_timeout,
-            )) as Arc<dyn crate::history_source::HistorySource>
-        });
-        // Like a section that cannot listen, a page that cannot is
-        // reported and the PLC sections serve on.
-        match crate::web::start(&web, sections, server.metrics.clone(), history) {
-            Ok(running) => server.web = Some(running),
-            Err(message) => error!("web page not started: {message}"),
-        }
+}
+
+#[cfg(not(feature = "mqtt"))]
+fn start_mqtt(config: &Config, _dir: &Path, _sections: &[SectionRef], _server: &mut Server) {
+    if config.global.mqtt.url.is_some() {
+        left_out("MQTT", "mqtt");
     }
-    Ok(server)
+}
+
+/// Like a section that cannot listen, a page that cannot is reported and
+/// the PLC sections serve on.
+#[cfg(feature = "web")]
+fn start_web(
+    config: &Config,
+    global: &Arc<Global>,
+    dir: &Path,
+    sections: Vec<SectionRef>,
+    server: &mut Server,
+) {
+    let Some(web) = plccoms_web::WebConfig::from_global(global, dir) else {
+        return;
+    };
+    // /api/history and the chart's range mode read the historian's files;
+    // without one they answer "historian not enabled".
+    #[cfg(feature = "historian")]
+    let history = server.historian.as_ref().map(|_| {
+        Arc::new(plccoms_historian::web::Source::new(
+            plccoms_historian::history_dir(&config.path, global),
+            global.history_query_timeout,
+        )) as Arc<dyn plccoms_core::history_source::HistorySource>
+    });
+    #[cfg(not(feature = "historian"))]
+    let history = {
+        let _ = config;
+        None
+    };
+    match plccoms_web::start(&web, sections, server.metrics.clone(), history) {
+        Ok(running) => server.web = Some(running),
+        Err(message) => error!("web page not started: {message}"),
+    }
+}
+
+#[cfg(not(feature = "web"))]
+fn start_web(
+    _config: &Config,
+    global: &Arc<Global>,
+    _dir: &Path,
+    _sections: Vec<SectionRef>,
+    _server: &mut Server,
+) {
+    if global.http_port.is_some() {
+        left_out("HTTP_PORT: the web page", "web");
+    }
 }
 
 /// The folder of clients' own files (names beginning with `.`), created if
@@ -192,7 +346,7 @@ pub async fn start(config: &Config) -> Result<Server, String> {
 /// in `$STATE_DIRECTORY`, a folder of their own apart from the server's
 /// files; else `dir` itself (empty), the configuration's folder, as the
 /// vendor's server.
-fn files_root(global: &crate::config::Global, dir: &Path) -> Result<PathBuf, String> {
+fn files_root(global: &plccoms_core::config::Global, dir: &Path) -> Result<PathBuf, String> {
     let state = std::env::var_os("STATE_DIRECTORY")
         .and_then(|dirs| std::env::split_paths(&dirs).next())
         .filter(|d| d.is_absolute());
@@ -269,24 +423,46 @@ async fn backend_for(
                 section.ipaddr = Some(ip);
             }
             section.modbus.port = device.port();
-            return Ok(Some(Box::new(ModbusBackend::new(modbus_config(
-                section, device, dir,
-            )))));
+            return modbus_backend(section, device, dir);
         }
         let plc = spawn_simulator(section, &simulator, dir, server).await?;
         if let std::net::IpAddr::V4(ip) = plc.ip() {
             section.ipaddr = Some(ip);
         }
         section.epsport = plc.port();
-        return Ok(Some(Box::new(EpsnetBackend::new(epsnet_config(
-            section, plc,
-        )))));
+        return Ok(Some(Box::new(plccoms_driver_epsnet::EpsnetBackend::new(
+            plccoms_driver_epsnet::config_of(section, plc),
+        ))));
     }
-    let backend = crate::backend::open(section, dir)?;
+    let backend = DRIVERS.open(section, dir)?;
     if backend.is_none() {
         warn!(section = %section.name, "no PLC address (IPADDR) yet: serving clients without a PLC until SETCONF:ipaddr");
     }
     Ok(backend)
+}
+
+/// The backend of a simulated Modbus device at `device`.
+#[cfg(feature = "modbus")]
+fn modbus_backend(
+    section: &Section,
+    device: SocketAddr,
+    dir: &Path,
+) -> Result<Option<Box<dyn PlcBackend>>, String> {
+    Ok(Some(Box::new(plccoms_driver_modbus::ModbusBackend::new(
+        plccoms_driver_modbus::config_of(section, device, dir),
+    ))))
+}
+
+#[cfg(not(feature = "modbus"))]
+fn modbus_backend(
+    _section: &Section,
+    _device: SocketAddr,
+    _dir: &Path,
+) -> Result<Option<Box<dyn PlcBackend>>, String> {
+    Err(
+        "PROTOCOL = MODBUS_TCP: this build has no driver for it (built without its cargo feature)"
+            .into(),
+    )
 }
 
 /// Runs the simulated Modbus device of a `SIMULATOR = Yes` section with
@@ -295,7 +471,7 @@ async fn backend_for(
 /// the built-in demo tag file, written to a folder of its own.
 async fn spawn_modbus_simulator(
     section: &mut Section,
-    simulator: &crate::config::Simulator,
+    simulator: &plccoms_core::config::Simulator,
     dir: &Path,
     server: &mut Server,
 ) -> Result<SocketAddr, String> {
@@ -336,7 +512,7 @@ async fn spawn_modbus_simulator(
 /// with the server.
 async fn run_simulator(
     section: &Section,
-    simulator: &crate::config::Simulator,
+    simulator: &plccoms_core::config::Simulator,
     config: SimConfig,
     what: &str,
     server: &mut Server,
@@ -359,7 +535,7 @@ async fn run_simulator(
 /// the section's PUBFILE asks for, so the server fetches it as from a PLC.
 async fn spawn_simulator(
     section: &Section,
-    simulator: &crate::config::Simulator,
+    simulator: &plccoms_core::config::Simulator,
     dir: &Path,
     server: &mut Server,
 ) -> Result<SocketAddr, String> {

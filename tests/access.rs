@@ -205,5 +205,8 @@ async fn accepted_sockets_have_tcp_keepalive() {
     assert_eq!(sockopt(fd, libc::IPPROTO_TCP, libc::TCP_KEEPIDLE), 60);
     assert_eq!(sockopt(fd, libc::IPPROTO_TCP, libc::TCP_KEEPINTVL), 10);
     assert_eq!(sockopt(fd, libc::IPPROTO_TCP, libc::TCP_KEEPCNT), 5);
-    assert_eq!(plccoms::server::KEEPALIVE_IDLE, Duration::from_secs(60));
+    assert_eq!(
+        plccoms_telnet::server::KEEPALIVE_IDLE,
+        Duration::from_secs(60)
+    );
 }

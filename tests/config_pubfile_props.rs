@@ -8,8 +8,8 @@ use std::collections::HashSet;
 use std::net::Ipv4Addr;
 use std::path::Path;
 
-use plccoms::config;
-use plccoms::vars::VarTable;
+use plccoms_core::config;
+use plccoms_core::vars::VarTable;
 use plccoms_plc::pubfile;
 use plccoms_plc::value_codec::Codec;
 use plccoms_plc::var::{Var, VarDef};

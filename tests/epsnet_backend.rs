@@ -3,11 +3,11 @@
 use std::net::SocketAddr;
 use std::time::Duration;
 
-use plccoms::backend::epsnet::{EpsnetBackend, EpsnetConfig};
-use plccoms::backend::{
+use plccoms_core::driver::{
     FileInfo, PlcBackend, PlcError, ReadRequest, Refusal, WriteData, WriteRequest,
     FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_READONLY,
 };
+use plccoms_driver_epsnet::{EpsnetBackend, EpsnetConfig};
 use plccoms_plc::time::ttida_from_unix;
 use plccoms_protocol::Area;
 use plcsim::program::ProgramKind;

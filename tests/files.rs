@@ -513,7 +513,7 @@ async fn diff_lines_never_land_inside_a_getfile_answer() {
                     .write(
                         Area::R,
                         0,
-                        &plccoms::backend::WriteData::Bytes(v.to_le_bytes().to_vec()),
+                        &plccoms_core::driver::WriteData::Bytes(v.to_le_bytes().to_vec()),
                     )
                     .unwrap();
                 v = v.wrapping_add(1);
@@ -541,7 +541,7 @@ async fn diff_lines_never_land_inside_a_getfile_answer() {
 
 #[tokio::test]
 async fn files_through_the_epsnet_simulator() {
-    use plccoms::backend::epsnet::{EpsnetBackend, EpsnetConfig};
+    use plccoms_driver_epsnet::{EpsnetBackend, EpsnetConfig};
     use plcsim::{program::ProgramKind, SimConfig};
     let files = tempfile::tempdir().unwrap();
     let big = pattern(5000);
@@ -598,4 +598,36 @@ async fn files_through_the_epsnet_simulator() {
     c.send(b"GETMEM:%R0 2\n").await;
     let mem = c.line().await;
     assert!(mem.starts_with(b"GETMEM:%R0[2]="), "{mem:?}");
+}
+
+/// The in-process backend the other tests run on: file services reach the
+/// device's store, and a path out of it is refused.
+#[tokio::test]
+async fn the_in_process_backend_keeps_files_in_the_device_store() {
+    use plccoms_core::driver::PlcBackend as _;
+    let device = std::sync::Arc::new(std::sync::Mutex::new(plcsim::Device::new(
+        plccoms_plc::MemoryMap::FOXTROT,
+    )));
+    let mut backend = common::memory::MemoryBackend::new(device.clone());
+    assert_eq!(
+        backend.file_info(b"x").await.unwrap(),
+        Err(plccoms_core::driver::Refusal::NOT_ACTIVATED)
+    );
+    let dir = tempfile::tempdir().unwrap();
+    device.lock().unwrap().files = Some(plcsim::FileStore::open(dir.path()).unwrap());
+    assert_eq!(
+        backend.write_file(b"a.txt", 0, b"abc", true).await.unwrap(),
+        Ok(())
+    );
+    assert_eq!(backend.file_info(b"a.txt").await.unwrap().unwrap().size, 3);
+    assert_eq!(
+        backend.read_file(b"a.txt", 1, 10).await.unwrap(),
+        Ok(b"bc".to_vec())
+    );
+    let list = backend.list_dir(b"/").await.unwrap().unwrap();
+    assert_eq!(list[0].name, b"a.txt");
+    assert_eq!(
+        backend.read_file(b"../a.txt", 0, 1).await.unwrap(),
+        Err(plccoms_core::driver::Refusal::BAD_PARAMETERS)
+    );
 }

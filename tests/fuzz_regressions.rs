@@ -88,9 +88,9 @@ fn every_target_runs_on_ordinary_input() {
     line.extend_from_slice(&answer[6..21]);
     checks::epsnet_stream(&line);
     let mut record = Vec::new();
-    plccoms::mqtt::spool::encode_record(
+    plccoms_mqtt::spool::encode_record(
         7,
-        &plccoms::mqtt::spool::Message {
+        &plccoms_mqtt::spool::Message {
             topic: "plccoms/Demo/A%2FB".into(),
             payload: b"42".to_vec(),
             qos: 1,

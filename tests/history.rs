@@ -862,8 +862,8 @@ fn full_disk(global: &str, filler_kib: usize) {
 /// `vars` variables `OLD_nnn` (UDINT), `per_var` samples each, spread over
 /// the part of today that is over, so a query of today has plenty to read.
 fn prefill_today(dir: &Path, vars: usize, per_var: i64) -> PathBuf {
-    use plccoms::historian::sample::{Sample, Stored};
-    use plccoms::historian::store::{day_of, DayFile, DAY_MS};
+    use plccoms_historian::sample::{Sample, Stored};
+    use plccoms_historian::store::{day_of, DayFile, DAY_MS};
     // Room for distinct times before now (the first minute of a day waits).
     while now_ms() % DAY_MS < 120_000 {
         std::thread::sleep(Duration::from_secs(1));
@@ -873,7 +873,7 @@ fn prefill_today(dir: &Path, vars: usize, per_var: i64) -> PathBuf {
         .map(|i| format!(" OLD_{i:03} R B {} UDINT PUB_INOUT\r\n", i * 4))
         .collect();
     let table = std::sync::Arc::new(
-        plccoms::vars::VarTable::from_public_text("old.pub", text.as_bytes()).unwrap(),
+        plccoms_core::vars::VarTable::from_public_text("old.pub", text.as_bytes()).unwrap(),
     );
     let start = day * DAY_MS;
     let step = (now_ms() - 60_000 - start) / per_var;
@@ -884,7 +884,7 @@ fn prefill_today(dir: &Path, vars: usize, per_var: i64) -> PathBuf {
                 t: start + c * step,
                 var: table.lookup(format!("OLD_{i:03}").as_bytes()).unwrap(),
                 value: Stored::Int(c * 7 + i as i64),
-                quality: plccoms::changes::Quality::Good,
+                quality: plccoms_core::changes::Quality::Good,
                 plc_time: None,
             })
         })

@@ -10,10 +10,10 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use common::process::PLCCOMS;
-use plccoms::changes::Quality;
-use plccoms::historian::sample::{Sample, Stored};
-use plccoms::historian::store::{day_path, DayFile, DAY_MS};
-use plccoms::vars::VarTable;
+use plccoms_core::changes::Quality;
+use plccoms_core::vars::VarTable;
+use plccoms_historian::sample::{Sample, Stored};
+use plccoms_historian::store::{day_path, DayFile, DAY_MS};
 
 /// A day long past: 2022-01-08.
 const DAY: i64 = 19_000;
@@ -172,7 +172,7 @@ fn a_damaged_block_is_named_and_the_rest_exported() {
     assert_eq!(out.status.code(), Some(2), "{message}");
     let iso = |key: i64| {
         let mut text = Vec::new();
-        plccoms::historian::time::iso(DAY * DAY_MS + (key >> 15), &mut text);
+        plccoms_historian::time::iso(DAY * DAY_MS + (key >> 15), &mut text);
         String::from_utf8(text).unwrap()
     };
     assert!(

@@ -7,11 +7,11 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use plccoms::changes::Quality;
-use plccoms::historian::query::{self, Query, Row};
-use plccoms::historian::sample::{Sample, Stored};
-use plccoms::historian::store::{day_path, DayFile, DAY_MS, MIN_BLOCK};
-use plccoms::vars::VarTable;
+use plccoms_core::changes::Quality;
+use plccoms_core::vars::VarTable;
+use plccoms_historian::query::{self, Query, Row};
+use plccoms_historian::sample::{Sample, Stored};
+use plccoms_historian::store::{day_path, DayFile, DAY_MS, MIN_BLOCK};
 
 /// A day long past: nothing else writes to it.
 const DAY: i64 = 19_000;
@@ -301,7 +301,7 @@ fn a_version_1_file_is_upgraded_packed_and_read_back_the_same() {
     let mut file = DayFile::open(dir.path(), "Pack", DAY).unwrap();
     assert_eq!(
         count(&path, "SELECT value FROM meta WHERE key = 'version'"),
-        plccoms::historian::store::VERSION
+        plccoms_historian::store::VERSION
     );
     let packed = file.pack(i64::MAX, far()).unwrap();
     assert_eq!(packed.samples, written.len() as u64);

@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 
 use common::health::{answer, LOSS, SLACK};
 use common::Client;
-use plccoms::changes::{LinkEvent, Quality};
+use plccoms_core::changes::{LinkEvent, Quality};
 use plccoms_protocol::Area;
 use plcsim::{SimConfig, SimHandle};
 
@@ -67,7 +67,7 @@ fn poke(sim: &SimHandle, offset: u32, bytes: &[u8]) {
         .write(
             Area::R,
             offset,
-            &plccoms::backend::WriteData::Bytes(bytes.to_vec()),
+            &plccoms_core::driver::WriteData::Bytes(bytes.to_vec()),
         )
         .unwrap();
 }
@@ -122,7 +122,7 @@ async fn a_silent_plc_stops_fresh_values_is_lost_in_time_and_refuses_sets_at_onc
     let id = batch.changes[0];
     assert_eq!(batch.snapshot.quality(id), Quality::Good);
     let polled = batch.snapshot.polled.unwrap();
-    let now_ms = plccoms::changes::unix_ms(std::time::SystemTime::now());
+    let now_ms = plccoms_core::changes::unix_ms(std::time::SystemTime::now());
     assert!(
         (now_ms - polled.unix_ms).abs() < 5000,
         "poll time {polled:?}"
@@ -297,7 +297,7 @@ async fn a_plc_off_at_start_up_with_a_local_public_file() {
     let port = common::process::free_port();
     let path = dir.join("PLCComS.ini");
     std::fs::write(&path, format!("[*]\n{}", section("PLC", port, plc, ""))).unwrap();
-    let loaded = plccoms::config::load(&path).unwrap();
+    let loaded = plccoms_core::config::load(&path).unwrap();
     let started = Instant::now();
     let _server = plccoms::startup::start(&loaded.config)
         .await

@@ -12,7 +12,7 @@
 mod common;
 
 use common::{process::free_port, Client};
-use plccoms::config::{keys, Kind, PathUse, Scope};
+use plccoms_core::config::{keys, Kind, PathUse, Scope};
 
 #[tokio::test]
 async fn no_client_writes_any_path_a_key_names_nor_reads_its_secrets() {
@@ -128,7 +128,7 @@ async fn a_plugin_library_others_could_replace_is_refused_with_a_clear_line() {
         ),
     )
     .unwrap();
-    let config = plccoms::config::load(&ini).unwrap().config;
+    let config = plccoms_core::config::load(&ini).unwrap().config;
     let server = plccoms::startup::start(&config).await.unwrap();
     let mut c = Client::connect(std::net::SocketAddr::from(([127, 0, 0, 1], port))).await;
     common::health::until(

@@ -12,7 +12,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use common::Client;
-use plccoms::backend::WriteData;
+use plccoms_core::driver::WriteData;
 use plccoms_protocol::Area;
 use plcsim::{SimConfig, SimHandle};
 

@@ -5,8 +5,8 @@ mod common;
 
 use std::time::Duration;
 
-use plccoms::backend::epsnet::{EpsnetBackend, EpsnetConfig};
-use plccoms::backend::{PlcBackend, ReadRequest};
+use plccoms_core::driver::{PlcBackend, ReadRequest};
+use plccoms_driver_epsnet::{EpsnetBackend, EpsnetConfig};
 use plccoms_plc::epsnet::codec::encode_packet;
 use plccoms_plc::epsnet::frame::{DataFrame, Frame, Packet};
 use plccoms_plc::epsnet::service::{Request, SETTID};

@@ -139,7 +139,7 @@ async fn a_program_change_reloads_the_public_file_and_keeps_client_settings() {
             .write(
                 counter.area,
                 counter.offset,
-                &plccoms::backend::WriteData::Bytes(vec![9, 0]),
+                &plccoms_core::driver::WriteData::Bytes(vec![9, 0]),
             )
             .unwrap();
     }

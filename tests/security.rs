@@ -186,7 +186,7 @@ async fn setconf_pubfile_stays_in_its_folder_and_answers_alike() {
     std::fs::write(outside.path().join("x.pub"), plcsim::DEMO_PUB).unwrap();
     std::os::unix::fs::symlink(outside.path().join("x.pub"), dir.path().join("link.pub")).unwrap();
     std::fs::write(dir.path().join("PLCComS.log"), b"log\n").unwrap();
-    plccoms::localfs::protect(&dir.path().join("PLCComS.log"), false);
+    plccoms_core::localfs::protect(&dir.path().join("PLCComS.log"), false);
     let mut c = Client::connect(addr).await;
     c.ask(
         "EN:sinus\n",

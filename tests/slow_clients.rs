@@ -9,7 +9,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use common::{start_with, Client, TestServer};
-use plccoms::backend::WriteData;
+use plccoms_core::driver::WriteData;
 use plccoms_protocol::Area;
 use tokio::io::AsyncReadExt;
 use tokio::net::{TcpSocket, TcpStream};

@@ -11,11 +11,11 @@ use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
 use bytes::BytesMut;
-use plccoms::backend::FileInfo;
-use plccoms::config::BrokerUrl;
-use plccoms::mqtt::spool::{decode_record, encode_record};
-use plccoms::mqtt::topics::{level, unlevel};
-use plccoms::vars::VarTable;
+use plccoms_core::config::BrokerUrl;
+use plccoms_core::driver::FileInfo;
+use plccoms_core::vars::VarTable;
+use plccoms_mqtt::spool::{decode_record, encode_record};
+use plccoms_mqtt::topics::{level, unlevel};
 use plccoms_plc::epsnet::codec::{decode_packet, encode_packet, EpsnetCodec};
 use plccoms_plc::epsnet::frame::{Frame as EpsFrame, MAX_PACKET};
 use plccoms_plc::epsnet::service::{answer_frame, decode_answer, PlcTime, Request, Response};
@@ -386,7 +386,7 @@ pub fn input_decoder(data: &[u8]) {
 /// The ini loader on lossily decoded text, as `config::load` does.
 pub fn ini(data: &[u8]) {
     let text = String::from_utf8_lossy(data);
-    match plccoms::config::parse(Path::new("fuzz.ini"), &text) {
+    match plccoms_core::config::parse(Path::new("fuzz.ini"), &text) {
         Ok(loaded) => {
             for d in &loaded.diagnostics {
                 let _ = d.to_string();
@@ -407,13 +407,13 @@ pub fn ini(data: &[u8]) {
 pub fn history_time(data: &[u8]) {
     let text = String::from_utf8_lossy(data);
     for now in [0, 1_700_000_000_000, i64::MAX] {
-        match plccoms::historian::time::parse(&text, now) {
+        match plccoms_historian::time::parse(&text, now) {
             Ok(t) => {
                 if text.trim_start().starts_with('-') {
                     assert!(t <= now, "{text:?} -> {t} after now {now}");
                 }
                 let mut out = Vec::new();
-                plccoms::historian::time::iso(t, &mut out);
+                plccoms_historian::time::iso(t, &mut out);
             }
             Err(message) => assert!(!message.is_empty()),
         }
@@ -426,8 +426,8 @@ pub fn history_time(data: &[u8]) {
 /// checksum. Damage is an error; what decodes packs again to the same
 /// samples.
 pub fn history_block(data: &[u8]) {
-    use plccoms::historian::block;
-    use plccoms::historian::sample::Stored;
+    use plccoms_historian::block;
+    use plccoms_historian::sample::Stored;
     let Some((&mode, rest)) = data.split_first() else {
         return;
     };
@@ -786,7 +786,7 @@ fn files_root() -> &'static Path {
         std::fs::write(base.join("outside.txt"), b"o").expect("seed file");
         let _ = std::os::unix::fs::symlink(base.join("outside.txt"), root.join("out"));
         std::fs::write(root.join("own.ini"), b"[*]").expect("seed file");
-        plccoms::localfs::protect(&root.join("own.ini"), true);
+        plccoms_core::localfs::protect(&root.join("own.ini"), true);
         root
     })
 }
@@ -796,7 +796,7 @@ fn files_root() -> &'static Path {
 /// server's own files, or (for writes) to the root itself; a pubfile name
 /// that passes has no way up and is not absolute.
 pub fn local_path(data: &[u8]) {
-    use plccoms::localfs::{resolve_for, Access};
+    use plccoms_core::localfs::{resolve_for, Access};
     let root = files_root();
     let canonical = std::fs::canonicalize(root).expect("root");
     for access in [Access::Read, Access::Write] {
@@ -826,7 +826,7 @@ pub fn local_path(data: &[u8]) {
         }
     }
     let text = String::from_utf8_lossy(data);
-    if plccoms::link::tables::check_client_name(&text).is_ok() {
+    if plccoms_core::link::tables::check_client_name(&text).is_ok() {
         let rest = text.strip_prefix("//").unwrap_or(&text);
         assert!(!rest.starts_with(['/', '\\']), "absolute: {text:?}");
         assert!(
@@ -843,7 +843,7 @@ pub fn local_path(data: &[u8]) {
 /// refused with a message, never a panic; a parsed query is usable.
 pub fn web_query(data: &[u8]) {
     let text = String::from_utf8_lossy(data);
-    match plccoms::web::history::parse_query(&text, 1_800_000_000_000) {
+    match plccoms_web::history::parse_query(&text, 1_800_000_000_000) {
         Ok((query, _format)) => {
             assert!(!query.section.is_empty());
             assert!(query.from_ms <= query.to_ms, "{query:?}");
@@ -857,7 +857,7 @@ pub fn web_query(data: &[u8]) {
 // ---------------------------------------------------------------------------
 // MQTT.
 
-/// Records of the MQTT on-disk queue (`src/mqtt/spool.rs`), one after
+/// Records of the MQTT on-disk queue (`apps/mqtt/src/spool.rs`), one after
 /// another: never a panic; every record decoded encodes back to its bytes
 /// (records of the format before the sync marker: to the same message).
 pub fn mqtt_spool(data: &[u8]) {
@@ -904,7 +904,7 @@ pub fn mqtt_text(data: &[u8]) {
 /// decodes any bytes, and a value it decoded encodes to bytes that decode
 /// to the same value.
 pub fn modbus_tags(data: &[u8]) {
-    use plccoms::vars::{VarFile, VarTable};
+    use plccoms_core::vars::{VarFile, VarTable};
     use plccoms_plc::modbus::{tags, MAP};
 
     let file = tags::parse(data);

@@ -5,6 +5,13 @@ use plccoms_protocol::Area;
 
 use crate::epsnet::Exception;
 
+/// Byte and bit of `__PLC_RUN`, and byte of `__PF_CRC`, in the S area (as the
+/// vendor's fixed public files place them): the simulated PLC keeps them, a
+/// Modbus backend fills them in for its device.
+pub const PLC_RUN_BYTE: u32 = 2;
+pub const PLC_RUN_BIT: u8 = 2;
+pub const PF_CRC_OFFSET: u32 = 70;
+
 /// What a write puts into memory: whole bytes, or one bit of one byte (so two
 /// BOOLs sharing a byte never overwrite each other).
 #[derive(Debug, Clone, PartialEq, Eq)]

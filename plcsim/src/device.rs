@@ -8,11 +8,7 @@ use plccoms_plc::{Exception, MemoryImage, MemoryMap, WriteData};
 
 use crate::store::FileStore;
 
-/// Byte and bit of `__PLC_RUN`, and byte of `__PF_CRC`, in the S area (as the
-/// vendor's fixed public files place them).
-pub const PLC_RUN_BYTE: u32 = 2;
-pub const PLC_RUN_BIT: u8 = 2;
-pub const PF_CRC_OFFSET: u32 = 70;
+pub use plccoms_plc::memory::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
 
 pub const DEFAULT_IDENT: &str = "CP1000    SIM 1.0 1.0";
 

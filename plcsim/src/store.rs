@@ -343,7 +343,7 @@ impl FileStore {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use plccoms_plc::files::{FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_HIDDEN};
+    use plccoms_plc::files::FILE_ATTRIBUTE_DIRECTORY;
 
     #[test]
     fn paths_stay_inside_the_root() {

@@ -4,9 +4,9 @@
 use std::net::SocketAddr;
 use std::time::Duration;
 
-use plccoms::backend::epsnet::{EpsnetBackend, EpsnetConfig};
-use plccoms::backend::WriteData;
-use plccoms::server::{start_section, RunningSection};
+use plccoms::startup::{start_section, RunningSection};
+use plccoms_core::driver::WriteData;
+use plccoms_driver_epsnet::{EpsnetBackend, EpsnetConfig};
 use plccoms_protocol::Area;
 use plcsim::program::ProgramKind;
 use plcsim::{SimConfig, SimHandle};

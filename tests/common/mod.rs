@@ -6,6 +6,7 @@ pub mod epsnet;
 pub mod health;
 pub mod line;
 pub mod logs;
+pub mod memory;
 pub mod modbus;
 pub mod mqtt;
 pub mod process;
@@ -15,10 +16,10 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use plccoms::backend::memory::MemoryBackend;
-use plccoms::config;
-use plccoms::server::{start_section, RunningSection};
-use plccoms::vars::VarTable;
+use memory::MemoryBackend;
+use plccoms::startup::{start_section, RunningSection};
+use plccoms_core::config;
+use plccoms_core::vars::VarTable;
 use plccoms_plc::pubfile;
 use plccoms_plc::MemoryMap;
 use plcsim::Device;
@@ -120,7 +121,7 @@ pub async fn start_with(global_ini: &str, user: &[u8]) -> TestServer {
 pub async fn start_on(
     global_ini: &str,
     user: &[u8],
-    backend: Option<Box<dyn plccoms::backend::PlcBackend>>,
+    backend: Option<Box<dyn plccoms_core::driver::PlcBackend>>,
 ) -> TestServer {
     let (global, section, table) = section_parts(global_ini, FIXED_PUB, ("test.pub", user));
     let device = Arc::new(Mutex::new(Device::new(MemoryMap::FOXTROT)));
@@ -162,7 +163,7 @@ impl TestServer {
             .write(
                 area,
                 offset,
-                &plccoms::backend::WriteData::Bytes(bytes.to_vec()),
+                &plccoms_core::driver::WriteData::Bytes(bytes.to_vec()),
             )
             .unwrap();
     }
@@ -458,7 +459,7 @@ pub async fn simulated(
             ),
         )
         .unwrap();
-        let loaded = plccoms::config::load(&path).unwrap();
+        let loaded = plccoms_core::config::load(&path).unwrap();
         match plccoms::startup::start(&loaded.config).await {
             Ok(server) => {
                 return (

@@ -10,10 +10,10 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::Instant;
 
-use plccoms::backend::epsnet::{EpsnetBackend, EpsnetConfig};
-use plccoms::config;
-use plccoms::server::start_section;
-use plccoms::vars::VarTable;
+use plccoms::startup::start_section;
+use plccoms_core::config;
+use plccoms_core::vars::VarTable;
+use plccoms_driver_epsnet::{EpsnetBackend, EpsnetConfig};
 use plccoms_plc::pubfile;
 use plccoms_plc::MemoryMap;
 use plcsim::{program::ProgramKind, SimConfig};

@@ -17,10 +17,10 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use clap::{Parser, Subcommand};
-use plccoms::changes::Quality;
-use plccoms::historian::sample::{Sample, Stored};
-use plccoms::historian::store::{day_of, file_bytes, DayFile, DAY_MS};
-use plccoms::vars::VarTable;
+use plccoms_core::changes::Quality;
+use plccoms_core::vars::VarTable;
+use plccoms_historian::sample::{Sample, Stored};
+use plccoms_historian::store::{day_of, file_bytes, DayFile, DAY_MS};
 
 #[derive(Parser)]
 struct Args {
@@ -168,7 +168,7 @@ fn main() {
                     .collect();
                 // Cycle 1000 at noon: a key takes 6 bytes from 17 minutes
                 // into the day on (5 before).
-                let today = day_of(plccoms::changes::unix_ms(std::time::SystemTime::now()));
+                let today = day_of(plccoms_core::changes::unix_ms(std::time::SystemTime::now()));
                 let start = today * DAY_MS + DAY_MS / 2 - 100_000;
                 let run = Run {
                     dir: dir.path(),
@@ -208,7 +208,7 @@ fn main() {
             day,
             packed,
         } => {
-            let now = plccoms::changes::unix_ms(std::time::SystemTime::now());
+            let now = plccoms_core::changes::unix_ms(std::time::SystemTime::now());
             let day = day.unwrap_or(day_of(now) - 1);
             let table = table("LREAL", 1);
             let id = table.fixed_count() as u32;

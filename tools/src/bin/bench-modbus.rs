@@ -27,14 +27,12 @@ use clap::Parser;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::TcpStream;
 
-use plccoms::backend::modbus::ModbusBackend;
-use plccoms::backend::{
-    modbus_config, Answer, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteRequest,
-};
-use plccoms::link::tables::PubSource;
-use plccoms::link::Tables;
-use plccoms::metrics::BackendCounters;
-use plccoms::server::start_section;
+use plccoms::startup::start_section;
+use plccoms_core::driver::{Answer, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteRequest};
+use plccoms_core::link::tables::PubSource;
+use plccoms_core::link::Tables;
+use plccoms_core::metrics::BackendCounters;
+use plccoms_driver_modbus::ModbusBackend;
 use plccoms_protocol::Area;
 use plcsim::program::ProgramKind;
 use plcsim::{PubSource as SimPub, SimConfig};
@@ -319,16 +317,20 @@ async fn run(args: &Args, project: &Project, inflight: u8, latency: u64) -> Run 
         args.delay,
         device.local_addr().port()
     );
-    let loaded = plccoms::config::parse(&dir.path().join("bench.ini"), &ini).expect("ini");
+    let loaded = plccoms_core::config::parse(&dir.path().join("bench.ini"), &ini).expect("ini");
     let section = loaded.config.sections.into_iter().next().expect("section");
     let source = PubSource::new(&section, dir.path()).expect("source");
     let user = source
-        .load_local(&section, plccoms::link::tables::NamedBy::Configuration)
+        .load_local(&section, plccoms_core::link::tables::NamedBy::Configuration)
         .expect("tags");
     let table = source.build(&section.name, user.as_ref()).expect("table");
     let reads = Arc::new(Mutex::new(Vec::new()));
     let backend = Timed {
-        inner: ModbusBackend::new(modbus_config(&section, device.local_addr(), dir.path())),
+        inner: ModbusBackend::new(plccoms_driver_modbus::config_of(
+            &section,
+            device.local_addr(),
+            dir.path(),
+        )),
         counters: Arc::default(),
         reads: reads.clone(),
         after_write: false,

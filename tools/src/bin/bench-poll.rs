@@ -30,13 +30,13 @@ use clap::Parser;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpStream, UdpSocket};
 
-use plccoms::backend::epsnet::{EpsnetBackend, EpsnetConfig};
-use plccoms::backend::{
+use plccoms::startup::start_section;
+use plccoms_core::config;
+use plccoms_core::driver::{
     Answer, DirEntry, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteRequest,
 };
-use plccoms::config;
-use plccoms::server::start_section;
-use plccoms::vars::VarTable;
+use plccoms_core::vars::VarTable;
+use plccoms_driver_epsnet::{EpsnetBackend, EpsnetConfig};
 use plccoms_plc::epsnet::codec;
 use plccoms_plc::epsnet::frame::MAX_PACKET;
 use plccoms_plc::pubfile;

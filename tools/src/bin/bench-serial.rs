@@ -101,7 +101,7 @@ async fn measure(
 ) -> Run {
     let path = dir.join("PLCComS.ini");
     std::fs::write(&path, ini).unwrap();
-    let loaded = plccoms::config::load(&path).expect("ini");
+    let loaded = plccoms_core::config::load(&path).expect("ini");
     let server = plccoms::startup::start(&loaded.config)
         .await
         .expect("start");

@@ -1,0 +1,163 @@
+//! `GET /api/sections/{section}/live?vars=<masks>`: live values as
+//! server-sent events, one `values` event per publish of the section's
+//! change stream that changed something shown (so at the poll rate).
+//!
+//! Each stream is a [`Subscription`](plccoms_core::changes::Subscription): while it
+//! is open the link polls what it shows, and when the browser goes the
+//! interest goes with it. A browser that reads slowly is not queued for:
+//! the next event is made only when the connection takes it, from the
+//! latest snapshot (`missed` counts the publishes it skipped). Memory per
+//! stream is bounded by the variables it shows, which are capped.
+//!
+//! Event data (JSON):
+//! `{"seq":n,"polled_ms":t|null,"online":b,"missed":n,"table_changed":b,
+//!   "link":"lost"|"restored"|null,"values":[[name,value,quality,changed_ms],..]}`.
+//! The first event holds every shown variable that has a value. After
+//! `table_changed` or a `link` event the page reads `/values` again for
+//! every quality.
+
+use std::convert::Infallible;
+use std::sync::Arc;
+use std::time::Duration;
+
+use std::net::SocketAddr;
+
+use axum::extract::{ConnectInfo, Path, Query};
+use axum::http::{header, HeaderValue, StatusCode};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use plccoms_protocol::cp1250;
+use serde::{Deserialize, Serialize};
+use tokio_util::sync::CancellationToken;
+
+use super::api::{error, find, parse_masks};
+use super::limits::{Permit, MAX_LIVE_STREAMS};
+use super::metrics::{StreamGuard, WebMetrics};
+use super::State;
+use plccoms_core::changes::{ChangeBatch, LinkEvent, Subscription};
+
+/// Most variables one stream shows: a mask matching more is refused (the
+/// link would poll all of them for one browser).
+pub const MAX_LIVE: usize = 2000;
+
+#[derive(Deserialize)]
+pub struct LiveQuery {
+    vars: Option<String>,
+}
+
+pub async fn live(
+    state: State,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    Path(name): Path<String>,
+    Query(query): Query<LiveQuery>,
+) -> Response {
+    let section = match find(&state, &name) {
+        Ok(section) => section,
+        Err(refused) => return refused.into_response(),
+    };
+    let masks = parse_masks(query.vars.as_deref());
+    let count = section.changes.latest().table.matching(&masks).len();
+    if count > MAX_LIVE {
+        return error(
+            StatusCode::BAD_REQUEST,
+            format!(
+                "the masks match {count} variables; at most {MAX_LIVE} are shown live: narrow them"
+            ),
+        );
+    }
+    let permit = match state.0.live_streams.acquire(peer.ip(), MAX_LIVE_STREAMS) {
+        Ok(permit) => permit,
+        Err(refused) => {
+            let mut response = error(
+                StatusCode::SERVICE_UNAVAILABLE,
+                format!(
+                    "{}: close another page or try later",
+                    refused.describe(state.0.live_streams.what())
+                ),
+            );
+            response
+                .headers_mut()
+                .insert(header::RETRY_AFTER, HeaderValue::from_static("10"));
+            return response;
+        }
+    };
+    let stream = Stream {
+        _permit: permit,
+        subscription: section.changes.subscribe(&masks),
+        stop: state.0.stop.clone(),
+        _guard: StreamGuard::new(state.0.web_metrics.clone()),
+        metrics: state.0.web_metrics.clone(),
+    };
+    let events = futures::stream::unfold(stream, |mut stream| async move {
+        let batch = tokio::select! {
+            _ = stream.stop.cancelled() => return None,
+            batch = stream.subscription.next() => batch?,
+        };
+        let data = encode(&batch);
+        stream.metrics.events.inc();
+        stream.metrics.event_bytes.add(data.len() as u64);
+        Some((
+            Ok::<_, Infallible>(Event::default().event("values").data(data)),
+            stream,
+        ))
+    });
+    Sse::new(events)
+        .keep_alive(KeepAlive::new().interval(Duration::from_secs(15)))
+        .into_response()
+}
+
+struct Stream {
+    _permit: Permit,
+    subscription: Subscription,
+    stop: CancellationToken,
+    metrics: Arc<WebMetrics>,
+    _guard: StreamGuard,
+}
+
+#[derive(Serialize)]
+struct Batch<'a> {
+    seq: u64,
+    polled_ms: Option<i64>,
+    online: bool,
+    missed: u64,
+    table_changed: bool,
+    link: Option<&'static str>,
+    values: Vec<(
+        std::borrow::Cow<'a, str>,
+        std::borrow::Cow<'a, str>,
+        &'static str,
+        i64,
+    )>,
+}
+
+/// The event data of a batch.
+pub fn encode(batch: &ChangeBatch) -> String {
+    let snapshot = &batch.snapshot;
+    let values = batch
+        .changes
+        .iter()
+        .filter_map(|&id| {
+            let slot = snapshot.slot(id);
+            let text = slot.text()?;
+            Some((
+                cp1250::decode(&snapshot.table.var(id).name),
+                cp1250::decode(text),
+                snapshot.quality(id).as_str(),
+                slot.changed_ms,
+            ))
+        })
+        .collect();
+    let body = Batch {
+        seq: snapshot.seq,
+        polled_ms: snapshot.polled.map(|p| p.unix_ms),
+        online: snapshot.online,
+        missed: batch.missed,
+        table_changed: batch.table_changed,
+        link: batch.link.map(|event| match event {
+            LinkEvent::Lost => "lost",
+            LinkEvent::Restored => "restored",
+        }),
+        values,
+    };
+    serde_json::to_string(&body).unwrap_or_default()
+}

@@ -1,0 +1,313 @@
+//! A subscription to a section's changes, for in-process consumers (the
+//! historian, MQTT, the web page): the variables matching a set of masks,
+//! polled for as long as the subscription lives, delivered as batches of
+//! the variables that changed since the previous batch.
+//!
+//! It is the mechanism sessions use: the latest [`Snapshot`] on a `watch`
+//! channel, interest counted in the snapshot's [`Interest`] so the link polls
+//! what is subscribed, and change sequence numbers per variable. Memory is
+//! bounded whatever the consumer does: a consumer that falls behind is not
+//! queued for; its next batch compares against the latest snapshot and says
+//! how many publishes it `missed` (their intermediate values are gone, the
+//! latest are in the batch).
+
+use std::sync::Arc;
+
+use tokio::sync::watch;
+
+use super::{Interest, Snapshot};
+use crate::vars::{VarId, VarTable};
+
+/// The link to the PLC changed state between two batches.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LinkEvent {
+    Lost,
+    Restored,
+}
+
+/// What changed since the previous batch.
+#[derive(Debug, Clone)]
+pub struct ChangeBatch {
+    /// The snapshot the values are read from (`snapshot.slot(id)`,
+    /// `snapshot.quality(id)`, `snapshot.table.var(id)`).
+    pub snapshot: Arc<Snapshot>,
+    /// Publishes between the previous batch and this one that the consumer
+    /// did not see: a variable that changed more than once meanwhile shows
+    /// only its latest value.
+    pub missed: u64,
+    /// A new variable table (a new public file): `changes` holds every
+    /// subscribed variable of it that has a value.
+    pub table_changed: bool,
+    pub link: Option<LinkEvent>,
+    /// Subscribed variables whose value changed, in table order.
+    pub changes: Vec<VarId>,
+}
+
+pub struct Subscription {
+    rx: watch::Receiver<Arc<Snapshot>>,
+    masks: Vec<Vec<u8>>,
+    /// `masks` match names of the project only (`VarTable::matching_names`).
+    names_only: bool,
+    table: Arc<VarTable>,
+    interest: Arc<Interest>,
+    /// Subscribed variables of `table`, ascending.
+    wanted: Vec<VarId>,
+    /// Per entry of `wanted`: change sequence of the value last delivered.
+    delivered: Vec<u64>,
+    seen_seq: u64,
+    online: Option<bool>,
+    /// Also a batch for every poll cycle, changes or not.
+    every_poll: bool,
+    seen_poll: u64,
+}
+
+impl Subscription {
+    pub(super) fn new<M: AsRef<[u8]>>(
+        mut rx: watch::Receiver<Arc<Snapshot>>,
+        masks: &[M],
+        names_only: bool,
+    ) -> Subscription {
+        let snapshot = rx.borrow_and_update().clone();
+        let mut subscription = Subscription {
+            rx,
+            masks: masks.iter().map(|m| m.as_ref().to_vec()).collect(),
+            names_only,
+            table: snapshot.table.clone(),
+            interest: snapshot.interest.clone(),
+            wanted: Vec::new(),
+            delivered: Vec::new(),
+            // Everything known now is owed in the first batch.
+            seen_seq: 0,
+            online: None,
+            every_poll: false,
+            seen_poll: 0,
+        };
+        subscription.resolve(&snapshot);
+        subscription
+    }
+
+    /// Also delivers a batch for every completed poll cycle, with no changes
+    /// if none: for consumers that act per cycle (heartbeats, the
+    /// historian's event capture). A batch that skipped cycles says so in
+    /// `missed`.
+    pub fn every_poll(mut self) -> Subscription {
+        self.every_poll = true;
+        self
+    }
+
+    /// The subscribed variables of the current table.
+    pub fn wanted(&self) -> &[VarId] {
+        &self.wanted
+    }
+
+    pub fn table(&self) -> &Arc<VarTable> {
+        &self.table
+    }
+
+    /// The latest snapshot, without waiting.
+    pub fn latest(&self) -> Arc<Snapshot> {
+        self.rx.borrow().clone()
+    }
+
+    /// Registers interest in what the masks match in `snapshot`'s table.
+    fn resolve(&mut self, snapshot: &Snapshot) {
+        self.release();
+        self.table = snapshot.table.clone();
+        self.interest = snapshot.interest.clone();
+        self.wanted = if self.names_only {
+            self.table.matching_names(&self.masks)
+        } else {
+            self.table.matching(&self.masks)
+        };
+        for &id in &self.wanted {
+            if !self.table.is_fixed(id) {
+                self.interest.add(id);
+            }
+        }
+        self.delivered = vec![0; self.wanted.len()];
+    }
+
+    fn release(&mut self) {
+        for &id in &self.wanted {
+            if !self.table.is_fixed(id) {
+                self.interest.remove(id);
+            }
+        }
+        self.wanted.clear();
+    }
+
+    /// The next batch with something in it: changes, a new table or a link
+    /// event. `None` once the section stopped.
+    pub async fn next(&mut self) -> Option<ChangeBatch> {
+        loop {
+            let snapshot = self.rx.borrow_and_update().clone();
+            if let Some(batch) = self.batch(snapshot) {
+                return Some(batch);
+            }
+            self.rx.changed().await.ok()?;
+        }
+    }
+
+    /// The batch `snapshot` makes, if it holds anything new.
+    fn batch(&mut self, snapshot: Arc<Snapshot>) -> Option<ChangeBatch> {
+        let table_changed = !Arc::ptr_eq(&snapshot.table, &self.table);
+        if snapshot.seq == self.seen_seq && !table_changed {
+            return None;
+        }
+        let missed = snapshot.seq.saturating_sub(self.seen_seq + 1);
+        let first = self.seen_seq == 0;
+        let consecutive = snapshot.seq == self.seen_seq + 1;
+        self.seen_seq = snapshot.seq;
+        if table_changed {
+            self.resolve(&snapshot);
+        }
+        let link = match (self.online, snapshot.online) {
+            (Some(true), false) => Some(LinkEvent::Lost),
+            (Some(false), true) => Some(LinkEvent::Restored),
+            _ => None,
+        };
+        self.online = Some(snapshot.online);
+        let mut changes = Vec::new();
+        if consecutive && !table_changed && !first {
+            // Only what this publish changed; `changed` is short.
+            for &id in &snapshot.changed {
+                if let Ok(index) = self.wanted.binary_search(&id) {
+                    self.offer(&snapshot, index, &mut changes);
+                }
+            }
+            changes.sort_unstable();
+        } else {
+            for index in 0..self.wanted.len() {
+                self.offer(&snapshot, index, &mut changes);
+            }
+        }
+        let new_poll = snapshot.poll_seq > self.seen_poll;
+        self.seen_poll = snapshot.poll_seq;
+        if changes.is_empty() && link.is_none() && !table_changed && !(self.every_poll && new_poll)
+        {
+            return None;
+        }
+        Some(ChangeBatch {
+            snapshot,
+            missed,
+            table_changed,
+            link,
+            changes,
+        })
+    }
+
+    fn offer(&mut self, snapshot: &Snapshot, index: usize, changes: &mut Vec<VarId>) {
+        let id = self.wanted[index];
+        let slot = snapshot.slot(id);
+        if slot.text().is_none() || slot.changed_seq <= self.delivered[index] {
+            return;
+        }
+        self.delivered[index] = slot.changed_seq;
+        changes.push(id);
+    }
+}
+
+impl Drop for Subscription {
+    fn drop(&mut self) {
+        self.release();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::Duration;
+
+    use plccoms_protocol::value::FormatOptions;
+
+    use super::*;
+    use crate::changes::{PollStamp, Publisher};
+    use crate::vars::table_of;
+
+    fn setup() -> (Publisher, super::super::ChangeStream) {
+        let table = Arc::new(table_of(&[("A", "INT"), ("B", "INT"), ("C", "REAL")]));
+        Publisher::new(table, FormatOptions::default(), Duration::from_secs(1))
+    }
+
+    fn poll(publisher: &mut Publisher, values: &[(VarId, i16)]) {
+        let stamp = PollStamp::now();
+        for &(id, value) in values {
+            publisher.update(id, &value.to_le_bytes(), stamp.unix_ms);
+        }
+        publisher.publish_poll(stamp);
+    }
+
+    fn names(batch: &ChangeBatch) -> Vec<String> {
+        batch
+            .changes
+            .iter()
+            .map(|&id| String::from_utf8_lossy(&batch.snapshot.table.var(id).name).into_owned())
+            .collect()
+    }
+
+    #[tokio::test]
+    async fn changes_of_subscribed_variables_with_interest_and_missed_counts() {
+        let (mut publisher, stream) = setup();
+        let fixed = publisher.table().fixed_count() as VarId;
+        let (a, b) = (fixed, fixed + 1);
+        let mut sub = stream.subscribe(&["a", "B"]);
+        assert!(publisher.interest().is_wanted(a) && publisher.interest().is_wanted(b));
+        assert!(!publisher.interest().is_wanted(fixed + 2));
+        poll(&mut publisher, &[(a, 1), (b, 2)]);
+        let batch = sub.next().await.unwrap();
+        assert_eq!(names(&batch), ["A", "B"]);
+        assert_eq!(batch.snapshot.quality(a), crate::changes::Quality::Good);
+        // One change: only it.
+        poll(&mut publisher, &[(a, 1), (b, 3)]);
+        let batch = sub.next().await.unwrap();
+        assert_eq!((names(&batch), batch.missed), (vec!["B".to_string()], 0));
+        // Three publishes unseen: the latest values, and the count.
+        poll(&mut publisher, &[(a, 5)]);
+        poll(&mut publisher, &[(a, 6)]);
+        poll(&mut publisher, &[(a, 7)]);
+        let batch = sub.next().await.unwrap();
+        assert_eq!((names(&batch), batch.missed), (vec!["A".to_string()], 2));
+        assert_eq!(batch.snapshot.slot(a).text(), Some(&b"7"[..]));
+        // Link loss and return are events.
+        publisher.publish_offline();
+        assert_eq!(sub.next().await.unwrap().link, Some(LinkEvent::Lost));
+        poll(&mut publisher, &[(a, 7)]);
+        assert_eq!(sub.next().await.unwrap().link, Some(LinkEvent::Restored));
+        drop(sub);
+        assert!(!publisher.interest().is_wanted(a), "interest released");
+    }
+
+    #[tokio::test]
+    async fn every_poll_delivers_cycles_without_changes() {
+        let (mut publisher, stream) = setup();
+        let a = publisher.table().fixed_count() as VarId;
+        let mut sub = stream.subscribe(&["A"]).every_poll();
+        poll(&mut publisher, &[(a, 1)]);
+        assert_eq!(names(&sub.next().await.unwrap()), ["A"]);
+        poll(&mut publisher, &[(a, 1)]);
+        let batch = sub.next().await.unwrap();
+        assert!(batch.changes.is_empty());
+        assert_eq!(batch.snapshot.poll_seq, batch.snapshot.seq);
+        // A publish outside a poll without subscribed changes: nothing.
+        publisher.publish();
+        poll(&mut publisher, &[(a, 2)]);
+        let batch = sub.next().await.unwrap();
+        assert_eq!((names(&batch), batch.missed), (vec!["A".to_string()], 1));
+    }
+
+    #[tokio::test]
+    async fn a_new_table_is_resolved_again() {
+        let (mut publisher, stream) = setup();
+        let mut sub = stream.subscribe(&["*"]);
+        let table = Arc::new(table_of(&[("A", "INT"), ("D", "INT")]));
+        let d = table.lookup(b"D").unwrap();
+        publisher.replace_table(table);
+        publisher.publish();
+        let batch = sub.next().await.unwrap();
+        assert!(batch.table_changed);
+        assert!(sub.wanted().contains(&d));
+        assert!(publisher.interest().is_wanted(d));
+        poll(&mut publisher, &[(d, 4)]);
+        let batch = sub.next().await.unwrap();
+        assert_eq!(names(&batch), ["D"]);
+    }
+}

@@ -1,0 +1,242 @@
+//! The PLC backend: the one interface through which the server touches a PLC.
+//!
+//! Errors come in two levels, as in tokio-modbus: the outer `Result` is the
+//! link (`PlcError`: timeout, unreachable, garbage on the wire), the inner one
+//! is what the device itself answered for one request (`Refusal`: an EPSNET
+//! error byte, a Modbus exception). A caller cannot mistake a lost PLC for "address out of range".
+
+use async_trait::async_trait;
+use plccoms_protocol::Area;
+
+pub use plccoms_plc::files::{
+    DirEntry, FileInfo, FILE_ATTRIBUTE_ARCHIVE, FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_HIDDEN,
+    FILE_ATTRIBUTE_READONLY, FILE_ATTRIBUTE_SYSTEM,
+};
+pub use plccoms_plc::memory::WriteData;
+pub use plccoms_plc::Refusal;
+
+/// Pause after the first failed probe; doubles up to [`PROBE_MAX`]. The
+/// defaults of [`PlcBackend::probe_backoff`], which the link's health uses.
+pub const PROBE_MIN: std::time::Duration = std::time::Duration::from_millis(100);
+/// Longest pause between probes: with a probe taking at most EPSTOUT plus a
+/// retry, a PLC that returns is found again within about a second.
+pub const PROBE_MAX: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// A block of PLC memory to read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct ReadRequest {
+    pub area: Area,
+    pub offset: u32,
+    pub len: u32,
+}
+
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct WriteRequest {
+    pub area: Area,
+    pub offset: u32,
+    pub data: WriteData,
+}
+
+/// The link to the PLC failed: nothing is known about what the PLC did.
+#[derive(Debug, thiserror::Error)]
+pub enum PlcError {
+    #[error("no PLC configured")]
+    NotConfigured,
+    #[error("PLC does not answer: {0}")]
+    Timeout(String),
+    #[error("PLC link error: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("malformed answer from PLC: {0}")]
+    Protocol(String),
+    #[error("the PLC refused the request: {0}")]
+    Refused(Refusal),
+    #[error("not supported by this backend: {0}")]
+    Unsupported(&'static str),
+}
+
+impl PlcError {
+    /// Whether the PLC itself is unreachable (as opposed to answering
+    /// garbage or refusing a request).
+    pub fn is_link_failure(&self) -> bool {
+        matches!(
+            self,
+            PlcError::NotConfigured | PlcError::Timeout(_) | PlcError::Io(_)
+        )
+    }
+}
+
+/// Answer to one request inside a batch: data, or the device's refusal.
+pub type Answer<T> = Result<T, Refusal>;
+
+/// PLC run state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PlcStatus {
+    pub run: bool,
+}
+
+/// One PLC, reached some way. The server owns one per PLC section, driven by
+/// one task (the section's link), so methods take `&mut self`.
+#[async_trait]
+pub trait PlcBackend: Send {
+    /// Where the PLC is, for logs and GETINFO (e.g. `127.0.0.1:61682`).
+    fn describe(&self) -> String;
+
+    /// The link's own address on the PLC's network (EPSNET source address),
+    /// for GETINFO.
+    fn source_address(&self) -> Option<u8> {
+        None
+    }
+
+    /// Largest block one memory read request of `area` may carry; the
+    /// poller plans around it.
+    fn max_read_block(&self, area: Area) -> u32;
+
+    /// Widest run of unwanted bytes of `area` a read may span to join two
+    /// wanted ranges; `None`: any within the block limit.
+    fn read_gap(&self, _area: Area) -> Option<u32> {
+        None
+    }
+
+    /// Reads of `area` start and end on multiples of this many bytes.
+    fn read_align(&self, _area: Area) -> u32 {
+        1
+    }
+
+    /// Pause after the first failed connection attempt of an outage, and
+    /// the longest it doubles to (see `link::health`).
+    fn probe_backoff(&self) -> (std::time::Duration, std::time::Duration) {
+        (PROBE_MIN, PROBE_MAX)
+    }
+
+    /// Largest block one file read or write request may carry.
+    fn max_file_block(&self) -> u32;
+
+    /// How long the PLC has to answer one request (EPSTOUT): the freshness
+    /// bound of polled values and the longest a SET may wait to be sent
+    /// build on it.
+    fn answer_timeout(&self) -> std::time::Duration {
+        std::time::Duration::from_secs(1)
+    }
+
+    /// Where to count requests, retries, timeouts, errors and round trips
+    /// (the section's, kept across new links).
+    fn set_counters(&mut self, _counters: std::sync::Arc<crate::metrics::BackendCounters>) {}
+
+    /// (Re)initialise the link and return the PLC's identification string.
+    async fn connect(&mut self) -> Result<String, PlcError>;
+
+    /// Read every block; answers come back in request order. The backend packs
+    /// and splits requests as its transport allows.
+    async fn read(&mut self, requests: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError>;
+
+    /// Write every block, in order; answers in request order.
+    async fn write(&mut self, requests: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError>;
+
+    async fn status(&mut self) -> Result<PlcStatus, PlcError>;
+
+    // File services. A backend without a file system (a Modbus device)
+    // keeps the defaults: "service not activated", as from a PLC without one.
+
+    /// Information about a file or directory in the PLC.
+    async fn file_info(&mut self, _path: &[u8]) -> Result<Answer<FileInfo>, PlcError> {
+        Ok(Err(Refusal::NOT_ACTIVATED))
+    }
+
+    /// Up to `len` (at most `max_file_block`) bytes of a file from `offset`;
+    /// fewer at its end.
+    async fn read_file(
+        &mut self,
+        _path: &[u8],
+        _offset: u64,
+        _len: u32,
+    ) -> Result<Answer<Vec<u8>>, PlcError> {
+        Ok(Err(Refusal::NOT_ACTIVATED))
+    }
+
+    /// Write a block (at most `max_file_block` bytes; the link splits
+    /// uploads) of a file. The PLC commits the file only when `last` is
+    /// set; a write at offset 0 starts the file anew.
+    async fn write_file(
+        &mut self,
+        _path: &[u8],
+        _offset: u64,
+        _data: &[u8],
+        _last: bool,
+    ) -> Result<Answer<()>, PlcError> {
+        Ok(Err(Refusal::NOT_ACTIVATED))
+    }
+
+    async fn write_file_info(
+        &mut self,
+        _path: &[u8],
+        _info: &FileInfo,
+    ) -> Result<Answer<()>, PlcError> {
+        Ok(Err(Refusal::NOT_ACTIVATED))
+    }
+
+    async fn list_dir(&mut self, _path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError> {
+        Ok(Err(Refusal::NOT_ACTIVATED))
+    }
+}
+
+/// Adds a page of a directory listing to `all`; `Ok(true)` when the
+/// listing is complete. A page announcing more but bringing nothing would
+/// page for ever: an error.
+pub fn add_dir_page(
+    all: &mut Vec<DirEntry>,
+    entries: Vec<DirEntry>,
+    more: bool,
+) -> Result<bool, PlcError> {
+    let empty = entries.is_empty();
+    all.extend(entries);
+    if more && empty {
+        return Err(PlcError::Protocol(
+            "empty directory page announcing more".into(),
+        ));
+    }
+    Ok(!more)
+}
+
+/// A section's backend, `None` when it has no PLC yet; or why it cannot be
+/// made.
+pub type Opened = Result<Option<Box<dyn PlcBackend>>, String>;
+
+/// A south driver, as the binary registers it: asked whether it serves a
+/// section, and if so, the section's backend.
+#[derive(Clone, Copy)]
+pub struct Driver {
+    /// For messages: `epsnet`, `modbus`, `plugin`.
+    pub name: &'static str,
+    /// The backend of `section` when this driver serves it (`None`: not
+    /// this driver's section). `dir` is the configuration's folder, where
+    /// relative file names start. Nothing is opened here: the link opens its
+    /// socket or device when it connects, and again after each loss.
+    pub open: fn(&crate::config::Section, &std::path::Path) -> Option<Opened>,
+}
+
+/// The drivers of this build, in the binary's list. Each serves sections
+/// no other serves (by `PROTOCOL` and the keys that pick a transport), so
+/// their order does not matter.
+#[derive(Clone, Copy)]
+pub struct Drivers(pub &'static [Driver]);
+
+impl Drivers {
+    /// The backend of `section`: the one driver's that serves it, or why
+    /// none can (a driver left out of this build).
+    pub fn open(&self, section: &crate::config::Section, dir: &std::path::Path) -> Opened {
+        self.0
+            .iter()
+            .find_map(|driver| (driver.open)(section, dir))
+            .unwrap_or_else(|| {
+                Err(format!(
+                    "PROTOCOL = {}: this build has no driver for it (built without its cargo feature)",
+                    section.protocol
+                ))
+            })
+    }
+
+    /// The drivers' names, for `--version` and the logs.
+    pub fn names(&self) -> impl Iterator<Item = &'static str> + '_ {
+        self.0.iter().map(|driver| driver.name)
+    }
+}
