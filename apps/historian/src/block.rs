@@ -45,7 +45,7 @@
 use std::io::Read;
 
 use super::sample::Stored;
-use super::store::{DAY_MS, VAR_BITS, VAR_MASK};
+use crate::key::{DAY_MS, VAR_BITS, VAR_MASK};
 
 /// Samples per block at most: a block decodes to a few MB at most.
 pub const MAX_ROWS: usize = 1 << 16;

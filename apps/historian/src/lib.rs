@@ -24,6 +24,7 @@ pub mod block;
 pub mod capture;
 pub mod command;
 pub mod export;
+pub mod key;
 pub mod query;
 pub mod record;
 pub mod sample;

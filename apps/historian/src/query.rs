@@ -5,7 +5,7 @@
 //! a file being written is read as it is (WAL readers do not wait).
 //!
 //! ```no_run
-//! # use plccoms::historian::query::{Query, rows};
+//! # use plccoms_historian::query::{Query, rows};
 //! let query = Query {
 //!     dir: "history".into(),
 //!     section: "Demo".into(),
@@ -17,7 +17,7 @@
 //!     let row = row?;
 //!     println!("{} {} {:?}", row.t, row.var.name, row.value);
 //! }
-//! # Ok::<(), plccoms::historian::query::QueryError>(())
+//! # Ok::<(), plccoms_historian::query::QueryError>(())
 //! ```
 
 use std::collections::{HashMap, VecDeque};
@@ -30,8 +30,9 @@ use rusqlite::types::ValueRef;
 use rusqlite::{Connection, OptionalExtension};
 
 use super::block::Packed;
+use super::key::{day_of, DAY_MS, VAR_BITS, VAR_MASK};
 use super::sample::{quality_from_code, Stored};
-use super::store::{self, day_of, DAY_MS, VAR_BITS, VAR_MASK};
+use super::store;
 use plccoms_core::changes::Quality;
 
 /// Rows read from a file at a time.

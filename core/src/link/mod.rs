@@ -2,7 +2,7 @@
 //! section's backend. It polls on fixed deadlines, serves the clients' direct
 //! reads, SETs, file transfers and SETCONF between polls, watches the link's
 //! health, and publishes values ([`crate::changes`]) and the section's live
-//! state ([`crate::section::state`]).
+//! state ([`state`]).
 //!
 //! Its parts, each with one job: [`health`] (connected, lost, when to probe,
 //! what to log), [`cycle`] (plan, read in slices with SETs served between
@@ -27,6 +27,7 @@ pub mod jobs;
 pub mod plan;
 pub mod reconf;
 pub mod refusals;
+pub mod state;
 pub mod tables;
 
 use std::sync::Arc;
@@ -41,13 +42,13 @@ use crate::changes::{unix_ms, Notice, Publisher};
 use crate::config;
 use crate::driver::{Answer, Drivers, PlcBackend, PlcError, ReadRequest};
 use crate::metrics::SectionMetrics;
-use crate::section::state::{LinkStatus, SectionState};
 use cycle::Cycle;
 use files::{FileJob, FileReply, Files};
 pub use health::LinkState;
 use health::{Connected, Failure, Health, SharedState};
 pub use jobs::SetItem;
 pub use reconf::ConfChange;
+use state::{LinkStatus, SectionState};
 use tables::{LoadError, NamedBy, PubSource, UserFile};
 
 /// Why the link could not serve a request.

@@ -3,7 +3,6 @@
 //! the link's handle, the change stream, and the connected clients.
 
 pub mod run;
-pub mod state;
 pub mod write;
 
 use std::net::SocketAddr;
@@ -16,9 +15,9 @@ use tokio_util::sync::CancellationToken;
 
 use crate::changes::ChangeStream;
 use crate::config::Global;
+use crate::link::state::SectionState;
 use crate::link::LinkHandle;
 use crate::metrics::{Gauge, SectionMetrics};
-use state::SectionState;
 
 /// A connected client, for GETINFO's NETWORK list and the web page.
 #[derive(Debug, Clone)]

@@ -6,7 +6,7 @@
 //! the variable and the exception (`'NAME: Modbus exception 2 (illegal data
 //! address)'`); other refusals ERROR:20, as from a Tecomat PLC.
 
-use plccoms_protocol::address::{parse_direct, DirectAddress};
+use plccoms_protocol::address::parse_direct;
 use plccoms_protocol::answer::ErrorCode;
 use plccoms_protocol::cp1250;
 use plccoms_protocol::value::Value;
@@ -15,40 +15,10 @@ use std::sync::Arc;
 
 use tokio::time::Instant;
 
-use super::{error, link_error, select, Cx, Reply, Selection};
+use super::{error, link_error, select, Cx, ReadThen, Reply, Selection};
 use plccoms_core::driver::{ReadRequest, Refusal};
 use plccoms_core::link::ReadReply;
-use plccoms_core::vars::{VarId, VarTable};
-
-/// What to do with the PLC's answer.
-pub enum ReadThen {
-    Vars {
-        table: Arc<VarTable>,
-        ids: Vec<VarId>,
-        /// Per id: the value from the latest poll, or `None` when it is in
-        /// the PLC's answer (in order).
-        cached: Vec<Option<Arc<[u8]>>>,
-        single: bool,
-    },
-    Direct {
-        name: Vec<u8>,
-        address: DirectAddress,
-    },
-    /// A GETMEM block of `size` bytes.
-    Mem { name: Vec<u8>, size: u32 },
-}
-
-impl ReadThen {
-    /// About how many bytes the answer takes (the session bounds what it
-    /// has waiting by it).
-    pub fn estimate(&self) -> usize {
-        match self {
-            ReadThen::Vars { table, ids, .. } => ids.len() * (table.max_name_len() + 24),
-            ReadThen::Direct { .. } => 64,
-            ReadThen::Mem { size, .. } => *size as usize + 64,
-        }
-    }
-}
+use plccoms_core::vars::VarId;
 
 pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> Reply {
     if args.first() == Some(&b'%') {
@@ -140,11 +110,8 @@ fn direct(cx: &mut Cx<'_>, args: &[u8], out: &mut Vec<u8>) -> Reply {
     Reply::read(cx.section.link.read(vec![request]), then)
 }
 
-/// Writes the answer once the PLC answered.
+/// Writes a GET's answer once the PLC answered.
 pub fn complete(cx: &mut Cx<'_>, then: ReadThen, reply: ReadReply, out: &mut Vec<u8>) {
-    if let ReadThen::Mem { name, .. } = &then {
-        return super::getmem::complete(cx, name, reply, out);
-    }
     let eol = cx.client.eol;
     let format = &cx.section.format;
     let answers = match reply {

@@ -11,8 +11,7 @@ use plccoms_protocol::address::parse_direct;
 use plccoms_protocol::answer::{write_error, ErrorCode};
 use plccoms_protocol::request::{parse_getmem, ArgError};
 
-use super::get::ReadThen;
-use super::{error, link_error, Cx, Reply};
+use super::{error, link_error, Cx, ReadThen, Reply};
 use plccoms_core::driver::ReadRequest;
 use plccoms_core::link::ReadReply;
 

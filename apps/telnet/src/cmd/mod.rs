@@ -95,13 +95,43 @@ pub enum WaitKind {
     File,
 }
 
+/// What to do with the PLC's answer.
+pub enum ReadThen {
+    Vars {
+        table: Arc<VarTable>,
+        ids: Vec<VarId>,
+        /// Per id: the value from the latest poll, or `None` when it is in
+        /// the PLC's answer (in order).
+        cached: Vec<Option<Arc<[u8]>>>,
+        single: bool,
+    },
+    Direct {
+        name: Vec<u8>,
+        address: plccoms_protocol::address::DirectAddress,
+    },
+    /// A GETMEM block of `size` bytes.
+    Mem { name: Vec<u8>, size: u32 },
+}
+
+impl ReadThen {
+    /// About how many bytes the answer takes (the session bounds what it
+    /// has waiting by it).
+    pub fn estimate(&self) -> usize {
+        match self {
+            ReadThen::Vars { table, ids, .. } => ids.len() * (table.max_name_len() + 24),
+            ReadThen::Direct { .. } => 64,
+            ReadThen::Mem { size, .. } => *size as usize + 64,
+        }
+    }
+}
+
 /// An answer the link is working on.
 pub struct Waiting(Job);
 
 enum Job {
     Read {
         rx: oneshot::Receiver<ReadReply>,
-        then: get::ReadThen,
+        then: ReadThen,
     },
     Set {
         rx: oneshot::Receiver<SetReply>,
@@ -172,7 +202,10 @@ impl Waiting {
     /// Renders the answer into `out`.
     pub fn finish(self, done: Completion, cx: &mut Cx<'_>, out: &mut Vec<u8>) -> Effect {
         match (self.0, done.0) {
-            (Job::Read { then, .. }, Completed::Read(reply)) => get::complete(cx, then, reply, out),
+            (Job::Read { then, .. }, Completed::Read(reply)) => match then {
+                ReadThen::Mem { name, .. } => getmem::complete(cx, &name, reply, out),
+                then => get::complete(cx, then, reply, out),
+            },
             (Job::Set { then, .. }, Completed::Set(reply)) => set::complete(cx, then, reply, out),
             (Job::Conf { then, .. }, Completed::Conf(reply)) => {
                 return setconf::complete(cx, then, reply, out)
@@ -185,7 +218,7 @@ impl Waiting {
 }
 
 impl Reply {
-    fn read(rx: oneshot::Receiver<ReadReply>, then: get::ReadThen) -> Reply {
+    fn read(rx: oneshot::Receiver<ReadReply>, then: ReadThen) -> Reply {
         Reply::Wait(Waiting(Job::Read { rx, then }))
     }
 

@@ -2,8 +2,8 @@
 //! link's status. One copy, on a `watch` channel written only by the section's
 //! link; GETINFO, ALLOW, READ_ONLY, the listener and the web page read it.
 
+use super::LinkState;
 use crate::config;
-use crate::link::LinkState;
 
 #[derive(Debug, Clone)]
 pub struct SectionState {
