@@ -211,8 +211,8 @@ pub async fn start(config: &Config) -> Result<Server, String> {
                 let probe: std::sync::Weak<dyn plccoms_core::metrics::SectionProbe> =
                     Arc::downgrade(&running.section) as _;
                 server.metrics.add_section(
-                    &running.section.name,
-                    running.section.metrics.clone(),
+                    running.section.name(),
+                    running.section.metrics().clone(),
                     probe,
                 );
                 server.sections.push(running);

@@ -695,7 +695,7 @@ async fn plc_stopped_then_restarted_on_the_same_port() {
     );
     assert!(started.elapsed() < Duration::from_secs(10));
     eventually("the poller notices", SLOW, || {
-        server.section.link.state() != plccoms_core::link::LinkState::Online
+        server.section.link_state() != plccoms_core::link::LinkState::Online
     })
     .await;
     // Once the PLC is known lost: ERROR:10 for reads and writes, also of a
@@ -732,7 +732,7 @@ async fn plc_stopped_then_restarted_on_the_same_port() {
         .wait_for_line(b"DIFF:SETPOINT,2.500000\r\n", SLOW)
         .await;
     assert!(skipped.is_empty(), "{skipped:?}");
-    assert!(server.section.link.state() == plccoms_core::link::LinkState::Online);
+    assert!(server.section.link_state() == plccoms_core::link::LinkState::Online);
     // The SETs refused during the outage were not kept for later.
     c.ask("GET:counter\n", "GET:COUNTER,0\r\n").await;
     assert_eq!(peek(&sim, Area::R, 130, 2), [0, 0]);
@@ -813,7 +813,7 @@ async fn twenty_percent_packet_loss() {
         "{refused} of 150 SETs refused (waited over EPSTOUT behind a poll that lost datagrams)"
     );
     assert!(refused < 120, "{refused} of 150 SETs refused");
-    assert!(server.section.link.state() == plccoms_core::link::LinkState::Online);
+    assert!(server.section.link_state() == plccoms_core::link::LinkState::Online);
 }
 
 #[tokio::test]

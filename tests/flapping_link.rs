@@ -34,7 +34,7 @@ async fn a_plc_that_connects_and_fails_every_read_backs_off_and_logs_once() {
         )
     })
     .await;
-    let metrics = &server.sections[0].section.metrics;
+    let metrics = &server.sections[0].section.metrics();
     eventually("a failed read", Duration::from_secs(20), || {
         metrics.backend.errors.get() > 0
     })

@@ -110,7 +110,7 @@ async fn a_silent_plc_stops_fresh_values_is_lost_in_time_and_refuses_sets_at_onc
     let plc = sim.local_addr();
     let (server, port, _conf) =
         common::start_on_free_port(|port| format!("[*]\n{}", section("PLC", port, plc, ""))).await;
-    let mut stream = server.sections[0].section.changes.subscribe(&["setpoint"]);
+    let mut stream = server.sections[0].section.subscribe(&["setpoint"]);
     let mut c = Client::connect(SocketAddr::from(([127, 0, 0, 1], port))).await;
     c.ask(
         "EN:setpoint\n",

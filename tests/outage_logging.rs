@@ -24,13 +24,13 @@ async fn an_outage_is_logged_once_and_the_recovery_once() {
 
     sim.stop().await;
     eventually("the link notices", SLOW, || {
-        server.section.link.state() != plccoms_core::link::LinkState::Online
+        server.section.link_state() != plccoms_core::link::LinkState::Online
     })
     .await;
     // Long enough for the reconnect back-off to try several times (100 ms,
     // doubling to 1 s): each failed attempt must stay quiet.
     tokio::time::sleep(Duration::from_millis(2500)).await;
-    assert!(server.section.link.state() != plccoms_core::link::LinkState::Online);
+    assert!(server.section.link_state() != plccoms_core::link::LinkState::Online);
 
     let sim = plcsim::spawn(SimConfig {
         bind: plc,

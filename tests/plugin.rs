@@ -64,7 +64,7 @@ async fn the_example_plugin_behaves_like_the_simulated_plc() {
         }
     };
     assert!(first.starts_with(b"DIFF:SINUS,") && later.starts_with(b"DIFF:SINUS,"));
-    let backend = &server.sections[0].section.metrics.backend;
+    let backend = &server.sections[0].section.metrics().backend;
     assert!(backend.requests.get() > 0);
     assert_eq!(backend.timeouts.get(), 0);
 }
@@ -93,7 +93,7 @@ async fn wrong_lengths_and_bad_codes_get_clear_errors() {
     for mode in [1, 2] {
         let (server, mut c, _conf) = bad(mode, "").await;
         let start = Instant::now();
-        while server.sections[0].section.metrics.backend.errors.get() == 0 {
+        while server.sections[0].section.metrics().backend.errors.get() == 0 {
             assert!(
                 start.elapsed() < BACK,
                 "mode {mode}: no plugin error counted"
@@ -129,7 +129,7 @@ async fn the_plcs_refusals_are_errors_of_their_request_only() {
     .unwrap();
     let (server, mut c, _conf) = bad(7, &format!("PUBFILE = {}", project.display())).await;
     until(&mut c, "GET:v\n", "GET:V,0\r\n", BACK).await;
-    let metrics = &server.sections[0].section.metrics;
+    let metrics = &server.sections[0].section.metrics();
     let served = |line: &str| line == "GET:V,0\r\n";
 
     // A refused write is the vendor's answer to a write that failed; the
@@ -162,7 +162,7 @@ async fn slow_calls_are_bounded_by_the_timeout_and_counted() {
     let (server, mut c, _conf) = bad(3, "SHM_PORT = 3000\nEPSTOUT = 200\nEPSTOUT_STEP = 100").await;
     let mut other = Client::connect(server.sections[0].local_addr).await;
     let start = Instant::now();
-    let backend = &server.sections[0].section.metrics.backend;
+    let backend = &server.sections[0].section.metrics().backend;
     while backend.timeouts.get() < 2 {
         assert!(start.elapsed() < BACK, "no timeout counted");
         let (line, took) = answer(&mut c, "GET:__pf_crc\n").await;

@@ -224,7 +224,7 @@ async fn line_noise_never_yields_a_wrong_value() {
     // 30 SETs confirmed, and on until a bad answer and a retry were counted
     // (a few dozen exchanges may chance to have neither).
     sim.set_loss(0.1);
-    let metrics = &server.sections[0].section.metrics.backend;
+    let metrics = &server.sections[0].section.metrics().backend;
     let (mut good, mut errors) = (0, 0);
     let start = Instant::now();
     let mut i = 0u32;

@@ -201,13 +201,13 @@ impl Historian {
             stats
                 .sync_ms
                 .set(config.global.history_sync.as_millis() as u64);
-            let _ = section.history.set(stats.clone());
+            let _ = section.set_info_lines(stats.clone());
             outs.push(writer::SectionOut {
-                name: section.name.clone(),
+                name: section.name().to_string(),
                 stats: stats.clone(),
             });
-            stats_list.push((section.name.clone(), stats.clone()));
-            info!(section = %section.name, dir = %dir.display(), "history: recording {}", history.masks.join(", "));
+            stats_list.push((section.name().to_string(), stats.clone()));
+            info!(section = %section.name(), dir = %dir.display(), "history: recording {}", history.masks.join(", "));
             recorders.push(tokio::spawn(record_section(
                 section.clone(),
                 history,
@@ -329,11 +329,8 @@ async fn record_section(
     queue: Queue,
     stop: CancellationToken,
 ) {
-    let mut sub = section
-        .changes
-        .subscribe(&Recorder::masks(&history))
-        .every_poll();
-    let mut recorder = Recorder::new(&section.name, history, section.format);
+    let mut sub = section.subscribe(&Recorder::masks(&history)).every_poll();
+    let mut recorder = Recorder::new(section.name(), history, *section.format());
     let mut missed_log = RateLimited::new();
     let mut dropped_log = RateLimited::new();
     // Dropped samples not yet told in an event: count, first and last time.
@@ -359,7 +356,7 @@ async fn record_section(
         if batch.missed > 0 {
             queue.stats.missed.add(batch.missed);
             if let Some(n) = missed_log.add(batch.missed) {
-                warn!(section = %section.name, "history: {n} publishes were not seen by the recorder (it was late): changes in between may be missing");
+                warn!(section = %section.name(), "history: {n} publishes were not seen by the recorder (it was late): changes in between may be missing");
             }
         }
         if pending.is_empty() {
@@ -386,7 +383,7 @@ async fn record_section(
                 None => (n, first, last),
             });
             if let Some(total) = dropped_log.add(n) {
-                warn!(section = %section.name, "history: {total} samples dropped: the writer's queue is full ({MAX_QUEUED} samples)");
+                warn!(section = %section.name(), "history: {total} samples dropped: the writer's queue is full ({MAX_QUEUED} samples)");
             }
         }
     }

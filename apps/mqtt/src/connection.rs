@@ -268,7 +268,7 @@ impl Task {
             }
             Ok(Event::Incoming(Packet::SubAck(ack))) => {
                 if ack.return_codes.contains(&SubscribeReasonCode::Failure) {
-                    error!(section = %self.section.name, "MQTT: the broker refused a subscription (to {} or {}): writes or discovery refreshes will not arrive; check the broker's ACL", self.topics.set_filter(), discovery::HA_STATUS);
+                    error!(section = %self.section.name(), "MQTT: the broker refused a subscription (to {} or {}): writes or discovery refreshes will not arrive; check the broker's ACL", self.topics.set_filter(), discovery::HA_STATUS);
                 }
             }
             Ok(_) => {}
@@ -281,15 +281,15 @@ impl Task {
         let queued = self.spool.len();
         match (&self.state.logged, self.state.reconnect_logged) {
             (None, _) => {
-                info!(section = %self.section.name, "MQTT: connected to {}:{} as {} ({queued} queued messages)", broker.host, broker.port, self.client_id)
+                info!(section = %self.section.name(), "MQTT: connected to {}:{} as {} ({queued} queued messages)", broker.host, broker.port, self.client_id)
             }
             (Some(_), false) => {
-                info!(section = %self.section.name, "MQTT: connected to {}:{} again as {}; sending {queued} queued messages", broker.host, broker.port, self.client_id);
+                info!(section = %self.section.name(), "MQTT: connected to {}:{} again as {}; sending {queued} queued messages", broker.host, broker.port, self.client_id);
                 self.state.reconnect_logged = true;
             }
             // Connections that fail at once, again and again: quiet.
             (Some(_), true) => {
-                debug!(section = %self.section.name, "MQTT: connected again ({queued} queued messages)")
+                debug!(section = %self.section.name(), "MQTT: connected again ({queued} queued messages)")
             }
         }
         let state = &mut self.state;
@@ -321,7 +321,7 @@ impl Task {
         let plc = self
             .state
             .plc_online
-            .unwrap_or_else(|| self.section.changes.latest().online);
+            .unwrap_or_else(|| self.section.latest().online);
         self.state.direct.push_back(plc_message(&self.topics, plc));
         self.announce();
         self.spool.rewind();
@@ -348,7 +348,7 @@ impl Task {
         self.metrics.connected.set(0);
         let broker = &self.settings.broker;
         let problem = describe(&e);
-        let section = &self.section.name;
+        let section = self.section.name();
         if self.state.logged.as_deref() != Some(problem.as_str()) {
             if was_connected {
                 warn!(section = %section, "MQTT: connection to {}:{} lost: {problem}; changes are queued on disk, reconnecting", broker.host, broker.port);
@@ -385,7 +385,7 @@ impl Task {
                     Ok(Some((seq, message))) => (message, Some(seq)),
                     Ok(None) => break,
                     Err(e) => {
-                        error!(section = %self.section.name, "MQTT: cannot read the queue: {e}");
+                        error!(section = %self.section.name(), "MQTT: cannot read the queue: {e}");
                         break;
                     }
                 },
@@ -409,7 +409,7 @@ impl Task {
                 Err(e) => {
                     // Only a topic rumqttc refuses gets here (the channel
                     // has room for the whole window): skip it, once.
-                    error!(section = %self.section.name, "MQTT: message not sent: {e}");
+                    error!(section = %self.section.name(), "MQTT: message not sent: {e}");
                     if let Some(seq) = seq {
                         self.spool.ack(seq);
                     }
@@ -452,7 +452,7 @@ impl Task {
                 .missed_logged
                 .is_some_and(|at| at.elapsed() < Duration::from_secs(60));
             if !quiet {
-                warn!(section = %self.section.name, "MQTT: fell behind the polls ({} publishes not seen); the latest values are published, intermediate ones are not (plccoms_mqtt_missed_total)", batch.missed);
+                warn!(section = %self.section.name(), "MQTT: fell behind the polls ({} publishes not seen); the latest values are published, intermediate ones are not (plccoms_mqtt_missed_total)", batch.missed);
                 self.state.missed_logged = Some(Instant::now());
             }
         }
@@ -476,7 +476,7 @@ impl Task {
     fn publish_all(&mut self, batch: Option<&ChangeBatch>) {
         let snapshot = match batch {
             Some(batch) => batch.snapshot.clone(),
-            None => self.section.changes.latest(),
+            None => self.section.latest(),
         };
         let same_table = self
             .state
@@ -502,7 +502,7 @@ impl Task {
         let snapshot = &batch.snapshot;
         let table = &snapshot.table;
         let section = self.section.clone();
-        let format = &section.format;
+        let format = section.format();
         let mut out = Vec::with_capacity(ids.len());
         for &id in ids {
             let slot = snapshot.slot(id);
@@ -553,7 +553,7 @@ impl Task {
                 if dropped > 0 {
                     self.metrics.dropped.add(dropped);
                     if self.state.dropping == 0 {
-                        warn!(section = %self.section.name, "MQTT: MQTT_BUFFER ({} bytes) is full: dropping the oldest queued messages (counted in plccoms_mqtt_dropped_total)", self.settings.buffer);
+                        warn!(section = %self.section.name(), "MQTT: MQTT_BUFFER ({} bytes) is full: dropping the oldest queued messages (counted in plccoms_mqtt_dropped_total)", self.settings.buffer);
                     }
                     self.state.dropping += dropped;
                 }
@@ -561,7 +561,7 @@ impl Task {
             Err(e) => {
                 self.metrics.dropped.add(messages.len() as u64);
                 if !self.state.spool_failing {
-                    error!(section = %self.section.name, "MQTT: cannot write the queue in {}: {e}; changes are dropped until it works again", self.spool_dir.display());
+                    error!(section = %self.section.name(), "MQTT: cannot write the queue in {}: {e}; changes are dropped until it works again", self.spool_dir.display());
                     self.state.spool_failing = true;
                 }
             }
@@ -602,7 +602,7 @@ impl Task {
         match outcome.result {
             Ok(confirmed) => {
                 self.metrics.writes.inc();
-                debug!(section = %self.section.name, "MQTT: wrote {} = {}", cp1250::decode(&confirmed.name), cp1250::decode(&confirmed.text));
+                debug!(section = %self.section.name(), "MQTT: wrote {} = {}", cp1250::decode(&confirmed.name), cp1250::decode(&confirmed.text));
                 let table = self.state.table.clone();
                 if let Some(id) = table.and_then(|t| t.lookup(&confirmed.name)) {
                     let id = id as usize;
@@ -638,7 +638,7 @@ impl Task {
             .entry(refused.code)
             .or_insert_with(|| RateLimited::new(REFUSAL_LOG_INTERVAL));
         if let Some(quiet) = log.admit() {
-            warn!(section = %self.section.name, "MQTT: write refused: {}{}", refused.line, ratelimit::more(quiet));
+            warn!(section = %self.section.name(), "MQTT: write refused: {}{}", refused.line, ratelimit::more(quiet));
         }
         let now = plccoms_core::changes::unix_ms(std::time::SystemTime::now());
         self.queue(vec![Message {
@@ -670,7 +670,7 @@ impl Task {
         let gone = self.state.announced.difference(&current).cloned().collect();
         if current != self.state.announced {
             if let Err(e) = discovery::save_announced(&self.spool_dir, &current) {
-                warn!(section = %self.section.name, "MQTT: cannot save the discovery topics in {}: {e}", self.spool_dir.display());
+                warn!(section = %self.section.name(), "MQTT: cannot save the discovery topics in {}: {e}", self.spool_dir.display());
             }
             self.state.announced = current;
         }
@@ -688,7 +688,7 @@ impl Task {
         let var = table.var(*self.state.wanted.get(index)?);
         let device = Device {
             prefix: &self.settings.prefix,
-            section: &self.section.name,
+            section: self.section.name(),
             topics: &self.topics,
             format: self.rules.format,
             qos: self.rules.qos,
@@ -745,14 +745,14 @@ impl Task {
         let durable = !self.state.connected || self.spool.len() > WINDOW as u64;
         if let Err(e) = self.spool.checkpoint(durable) {
             if !self.state.spool_failing {
-                error!(section = %self.section.name, "MQTT: cannot sync the queue in {}: {e}", self.spool_dir.display());
+                error!(section = %self.section.name(), "MQTT: cannot sync the queue in {}: {e}", self.spool_dir.display());
                 self.state.spool_failing = true;
             }
         }
         self.metrics.queued.set(self.spool.len());
         self.metrics.queued_bytes.set(self.spool.bytes());
         if self.state.dropping > 0 && self.state.connected && !self.spool.has_unsent() {
-            warn!(section = %self.section.name, "MQTT: {} queued messages were dropped (MQTT_BUFFER full) while the broker was away or behind", self.state.dropping);
+            warn!(section = %self.section.name(), "MQTT: {} queued messages were dropped (MQTT_BUFFER full) while the broker was away or behind", self.state.dropping);
             self.state.dropping = 0;
         }
     }
@@ -784,11 +784,11 @@ impl Task {
         self.state.link = None;
         self.metrics.connected.set(0);
         if let Err(e) = self.spool.checkpoint(true) {
-            error!(section = %self.section.name, "MQTT: cannot save the queue in {}: {e}", self.spool_dir.display());
+            error!(section = %self.section.name(), "MQTT: cannot save the queue in {}: {e}", self.spool_dir.display());
         }
         let queued = self.spool.len();
         if queued > 0 {
-            info!(section = %self.section.name, "MQTT: {queued} messages stay queued in {} for the next start", self.spool_dir.display());
+            info!(section = %self.section.name(), "MQTT: {queued} messages stay queued in {} for the next start", self.spool_dir.display());
         }
     }
 }

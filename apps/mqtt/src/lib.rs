@@ -186,23 +186,28 @@ pub fn start(settings: Settings, sections: &[Arc<Section>]) -> Result<Mqtt, Stri
         let section = section.clone();
         let config = section.state().config.clone();
         let rules =
-            SectionRules::new(&config.mqtt).map_err(|e| format!("[{}] {e}", section.name))?;
-        let client_id = settings.section_client_id(&section.name);
+            SectionRules::new(&config.mqtt).map_err(|e| format!("[{}] {e}", section.name()))?;
+        let client_id = settings.section_client_id(section.name());
         let spool_dir = settings.spool.join(id_safe(&client_id));
-        let (spool, recovered) = Spool::open(&spool_dir, settings.buffer)
-            .map_err(|e| format!("[{}] MQTT queue {}: {e}", section.name, spool_dir.display()))?;
+        let (spool, recovered) = Spool::open(&spool_dir, settings.buffer).map_err(|e| {
+            format!(
+                "[{}] MQTT queue {}: {e}",
+                section.name(),
+                spool_dir.display()
+            )
+        })?;
         for cut in &recovered.cut {
-            warn!(section = %section.name, "MQTT queue: {cut}");
+            warn!(section = %section.name(), "MQTT queue: {cut}");
         }
         if recovered.messages > 0 {
-            info!(section = %section.name, "MQTT: {} messages ({} bytes) queued from before are sent first", recovered.messages, recovered.bytes);
+            info!(section = %section.name(), "MQTT: {} messages ({} bytes) queued from before are sent first", recovered.messages, recovered.bytes);
         }
         if !rules.write.is_empty() && config.read_only {
-            warn!(section = %section.name, "MQTT_WRITE is set but the section is READ_ONLY: every write is refused");
+            warn!(section = %section.name(), "MQTT_WRITE is set but the section is READ_ONLY: every write is refused");
         }
-        let topics = Topics::new(&settings.prefix, &section.name);
+        let topics = Topics::new(&settings.prefix, section.name());
         info!(
-            section = %section.name,
+            section = %section.name(),
             "MQTT: publishing [{}] under {}/, writable [{}], QoS {}, {:?}, as {}",
             config.mqtt.publish.join(", "),
             topics.base(),
@@ -222,10 +227,10 @@ pub fn start(settings: Settings, sections: &[Arc<Section>]) -> Result<Mqtt, Stri
         let metrics = Arc::new(Metrics::default());
         source
             .sections
-            .push((section.name.clone(), metrics.clone()));
+            .push((section.name().to_string(), metrics.clone()));
         metrics.queued.set(spool.len());
         metrics.queued_bytes.set(spool.bytes());
-        let changes = section.changes.subscribe_names(&rules.publish);
+        let changes = section.subscribe_names(&rules.publish);
         let (write_tx, write_rx) = mpsc::channel(writes::QUEUE);
         let (outcome_tx, outcome_rx) = mpsc::channel(writes::QUEUE);
         writers.push(tokio::spawn(writes::worker(

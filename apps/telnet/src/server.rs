@@ -37,7 +37,7 @@ impl Listener {
     /// answered what it received; the link keeps serving their reads.
     pub fn stop_accepting(&self) {
         self.accept.abort();
-        self.section.shutdown.cancel();
+        self.section.shutdown().cancel();
         self.sessions.close();
     }
 
@@ -48,7 +48,7 @@ impl Listener {
             .await
             .is_err()
         {
-            warn!(section = %self.section.name, "{} session(s) still busy at shutdown", self.sessions.len());
+            warn!(section = %self.section.name(), "{} session(s) still busy at shutdown", self.sessions.len());
         }
     }
 }
@@ -65,7 +65,7 @@ pub fn serve(listener: TcpListener, section: Arc<Section>) -> io::Result<Listene
     let local_addr = listener.local_addr()?;
     let sessions = TaskTracker::new();
     let accept = tokio::spawn(accept_loop(listener, section.clone(), sessions.clone()));
-    info!(section = %section.name, listen = %local_addr, "listening");
+    info!(section = %section.name(), listen = %local_addr, "listening");
     Ok(Listener {
         local_addr,
         section,
@@ -130,7 +130,7 @@ async fn accept_loop(listener: TcpListener, section: Arc<Section>, sessions: Tas
             Err(err) => {
                 // Out of descriptors and the like: wait instead of spinning.
                 if let Some(quiet) = refusals.accept.admit() {
-                    warn!(section = %section.name, "accept failed: {err}{}", more(quiet));
+                    warn!(section = %section.name(), "accept failed: {err}{}", more(quiet));
                 }
                 tokio::time::sleep(Duration::from_millis(100)).await;
                 continue;
@@ -140,13 +140,13 @@ async fn accept_loop(listener: TcpListener, section: Arc<Section>, sessions: Tas
             // Closed at once without a word: nothing about the server is
             // told to a client that may not use it.
             if let Some(quiet) = refusals.allow.admit() {
-                warn!(section = %section.name, client = %peer, "refused: not in ALLOW{}", more(quiet));
+                warn!(section = %section.name(), client = %peer, "refused: not in ALLOW{}", more(quiet));
             }
             drop(stream);
             continue;
         }
         if let Err(err) = set_keepalive(&stream) {
-            warn!(section = %section.name, client = %peer, "cannot set TCP keepalive: {err}");
+            warn!(section = %section.name(), client = %peer, "cannot set TCP keepalive: {err}");
         }
         match section.admit(peer) {
             Some(client) => {
@@ -161,9 +161,9 @@ async fn accept_loop(listener: TcpListener, section: Arc<Section>, sessions: Tas
             }
             None => {
                 if let Some(quiet) = refusals.full.admit() {
-                    warn!(section = %section.name, client = %peer, "refused: NET_CONNECT_MAX ({}) reached{}", section.global.net_connect_max, more(quiet));
+                    warn!(section = %section.name(), client = %peer, "refused: NET_CONNECT_MAX ({}) reached{}", section.global().net_connect_max, more(quiet));
                 }
-                let crlf = section.global.end_line_crlf;
+                let crlf = section.global().end_line_crlf;
                 tokio::spawn(refuse(stream, crlf));
             }
         }

@@ -115,10 +115,10 @@ pub struct PollView {
 
 fn section_view(section: &Section) -> SectionView {
     let state = section.state();
-    let snapshot = section.changes.latest();
-    let metrics = &section.metrics;
+    let snapshot = section.latest();
+    let metrics = section.metrics();
     SectionView {
-        name: section.name.clone(),
+        name: section.name().to_string(),
         port: state.config.server_port,
         read_only: state.config.read_only,
         link: LinkView {
@@ -129,7 +129,7 @@ fn section_view(section: &Section) -> SectionView {
             since_ms: state.link.since_ms,
         },
         poll: PollView {
-            period_ms: section.global.comm_loop_delay.as_millis() as u64,
+            period_ms: section.global().comm_loop_delay.as_millis() as u64,
             cycles: metrics.poll_cycle.count(),
             cycle_seconds_sum: metrics.poll_cycle.sum().as_secs_f64(),
             overruns: metrics.overruns.get(),
@@ -225,7 +225,7 @@ impl VarsQuery {
     /// The named section's latest snapshot and its variables the masks
     /// match.
     fn select(&self, state: &State, name: &str) -> Result<(Arc<Snapshot>, Vec<VarId>), ApiError> {
-        let snapshot = find(state, name)?.changes.latest();
+        let snapshot = find(state, name)?.latest();
         let ids = snapshot.table.matching(&self.masks());
         Ok((snapshot, ids))
     }

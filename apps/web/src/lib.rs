@@ -84,7 +84,7 @@ pub(crate) struct Shared {
 
 impl Shared {
     pub fn section(&self, name: &str) -> Option<&Arc<Section>> {
-        self.sections.iter().find(|s| s.name == name)
+        self.sections.iter().find(|s| s.name() == name)
     }
 }
 

@@ -56,7 +56,7 @@ pub async fn live(
         Err(refused) => return refused.into_response(),
     };
     let masks = parse_masks(query.vars.as_deref());
-    let count = section.changes.latest().table.matching(&masks).len();
+    let count = section.latest().table.matching(&masks).len();
     if count > MAX_LIVE {
         return error(
             StatusCode::BAD_REQUEST,
@@ -83,7 +83,7 @@ pub async fn live(
     };
     let stream = Stream {
         _permit: permit,
-        subscription: section.changes.subscribe(&masks),
+        subscription: section.subscribe(&masks),
         stop: state.0.stop.clone(),
         _guard: StreamGuard::new(state.0.web_metrics.clone()),
         metrics: state.0.web_metrics.clone(),

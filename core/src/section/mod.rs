@@ -6,17 +6,19 @@ pub mod run;
 pub mod write;
 
 use std::net::SocketAddr;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock};
 
 use plccoms_protocol::value::FormatOptions;
-use tokio::sync::watch;
+use tokio::sync::{oneshot, watch};
 use tokio_util::sync::CancellationToken;
 
-use crate::changes::ChangeStream;
+use crate::changes::{ChangeStream, Snapshot, Snapshots, Subscription};
 use crate::config::Global;
+use crate::driver::ReadRequest;
+use crate::link::files::{FileJob, FileReply};
 use crate::link::state::SectionState;
-use crate::link::LinkHandle;
+use crate::link::{ConfChange, LinkHandle, LinkState, ReadReply, ReconfReply};
 use crate::metrics::{Gauge, SectionMetrics};
 
 /// A connected client, for GETINFO's NETWORK list and the web page.
@@ -40,26 +42,31 @@ pub struct ClientStats {
     pub queued: Gauge,
 }
 
+/// A running section, as every app sees it: its settings and live state,
+/// its change stream (subscribe), reads and file jobs through its link,
+/// the one write path (`write`, in write.rs), its clients and its GETINFO
+/// lines. Apps never reach the link or the backend behind it.
 pub struct Section {
-    pub name: String,
-    pub global: Arc<Global>,
-    pub format: FormatOptions,
-    pub link: LinkHandle,
-    pub changes: ChangeStream,
+    name: String,
+    global: Arc<Global>,
+    format: FormatOptions,
+    link: LinkHandle,
+    changes: ChangeStream,
     state: watch::Receiver<Arc<SectionState>>,
-    pub metrics: Arc<SectionMetrics>,
+    metrics: Arc<SectionMetrics>,
     /// Cancelled when the server stops: sessions answer what they have and
     /// close.
-    pub shutdown: CancellationToken,
+    shutdown: CancellationToken,
     /// The folder local files (names beginning with `.`) live in: FILES_ROOT
     /// or the configuration file's folder, or its `<section name>` subfolder
     /// with PUBFILE_WRITE = Yes.
-    pub root: PathBuf,
+    root: PathBuf,
     /// The configuration file's folder (public files are found from it).
-    pub config_dir: PathBuf,
+    config_dir: PathBuf,
     clients: Mutex<Clients>,
-    /// The historian's figures, when it records this section (GETINFO).
-    pub history: OnceLock<Arc<dyn InfoLines>>,
+    /// An app's figures for GETINFO (the historian's, when it records this
+    /// section).
+    info_lines: OnceLock<Arc<dyn InfoLines>>,
 }
 
 /// An app's own GETINFO lines for a section (the historian's figures): the
@@ -107,8 +114,94 @@ impl Section {
             root,
             config_dir,
             clients: Mutex::new(Clients::default()),
-            history: OnceLock::new(),
+            info_lines: OnceLock::new(),
         }
+    }
+
+    /// The section's name, as in its `[section]` header.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The global settings (`[*]`).
+    pub fn global(&self) -> &Arc<Global> {
+        &self.global
+    }
+
+    /// How values print (the global settings' number and date forms).
+    pub fn format(&self) -> &FormatOptions {
+        &self.format
+    }
+
+    pub fn metrics(&self) -> &Arc<SectionMetrics> {
+        &self.metrics
+    }
+
+    /// The folder clients' local files (names beginning with `.`) live in.
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    /// Cancelled when the server stops: sessions answer what they have and
+    /// close.
+    pub fn shutdown(&self) -> &CancellationToken {
+        &self.shutdown
+    }
+
+    /// The latest snapshot of the change stream.
+    pub fn latest(&self) -> Arc<Snapshot> {
+        self.changes.latest()
+    }
+
+    /// Every snapshot from now on (a session's view of the change stream).
+    pub fn snapshots(&self) -> Snapshots {
+        self.changes.receiver()
+    }
+
+    /// The changes of the variables matching `masks` (`*` wildcards, case
+    /// insensitive), each with its quality, for as long as the
+    /// subscription lives.
+    pub fn subscribe<M: AsRef<[u8]>>(&self, masks: &[M]) -> Subscription {
+        self.changes.subscribe(masks)
+    }
+
+    /// As [`Section::subscribe`], with masks that mean the project's
+    /// variables: the system (`__`) variables only for masks beginning with
+    /// `__`.
+    pub fn subscribe_names<M: AsRef<[u8]>>(&self, masks: &[M]) -> Subscription {
+        self.changes.subscribe_names(masks)
+    }
+
+    /// Reads blocks of PLC memory through the link (batched with whatever
+    /// else waits); refused at once while the link is lost.
+    pub fn read(&self, requests: Vec<ReadRequest>) -> oneshot::Receiver<ReadReply> {
+        self.link.read(requests)
+    }
+
+    /// A file job (read, write, list, information) through the link.
+    pub fn file(&self, job: FileJob) -> oneshot::Receiver<FileReply> {
+        self.link.file(job)
+    }
+
+    /// SETCONF: applied by the link, undone when it fails.
+    pub fn reconfigure(&self, change: ConfChange) -> oneshot::Receiver<ReconfReply> {
+        self.link.reconfigure(change)
+    }
+
+    /// The link's state now.
+    pub fn link_state(&self) -> LinkState {
+        self.link.state()
+    }
+
+    /// Sets the app's GETINFO lines for this section (once; a second app's
+    /// are refused: `false`).
+    pub fn set_info_lines(&self, lines: Arc<dyn InfoLines>) -> bool {
+        self.info_lines.set(lines).is_ok()
+    }
+
+    /// The app's GETINFO lines, if an app set them.
+    pub fn info_lines(&self) -> Option<Vec<(&'static str, String)>> {
+        self.info_lines.get().map(|lines| lines.getinfo())
     }
 
     /// The live state: settings as SETCONF left them, and the link.

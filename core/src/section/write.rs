@@ -174,7 +174,7 @@ impl Section {
     /// the value read back, published to every client; or refused, and then
     /// never applied later. The write path of every app.
     pub async fn write(&self, name: &[u8], text: &[u8]) -> Result<Written, WriteRefusal> {
-        let table = self.changes.latest().table.clone();
+        let table = self.latest().table.clone();
         let pending = self.start_write(&table, name, text)?;
         let reply = pending.reply.await.unwrap_or(Err(LinkError::Offline));
         pending.target.confirm(reply)

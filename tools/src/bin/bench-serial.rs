@@ -105,7 +105,7 @@ async fn measure(
     let server = plccoms::startup::start(&loaded.config)
         .await
         .expect("start");
-    let metrics = server.sections[0].section.metrics.clone();
+    let metrics = server.sections[0].section.metrics().clone();
     let mut client = TcpStream::connect(("127.0.0.1", port)).await.unwrap();
     client.write_all(b"EN:*\n").await.unwrap();
     // Drain DIFFs in the background.

@@ -70,7 +70,7 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
         complete(cx, then, Ok(Vec::new()), out);
         return Reply::Done;
     }
-    Reply::read(cx.section.link.read(requests), then)
+    Reply::read(cx.section.read(requests), then)
 }
 
 /// One variable whose polled value is fresh, and no SET of this client
@@ -107,13 +107,13 @@ fn direct(cx: &mut Cx<'_>, args: &[u8], out: &mut Vec<u8>) -> Reply {
         name: cp1250::to_upper(args),
         address,
     };
-    Reply::read(cx.section.link.read(vec![request]), then)
+    Reply::read(cx.section.read(vec![request]), then)
 }
 
 /// Writes a GET's answer once the PLC answered.
 pub fn complete(cx: &mut Cx<'_>, then: ReadThen, reply: ReadReply, out: &mut Vec<u8>) {
     let eol = cx.client.eol;
-    let format = &cx.section.format;
+    let format = cx.section.format();
     let answers = match reply {
         Ok(answers) => answers,
         Err(err) => return link_error(err, ErrorCode::GetData, eol, out),

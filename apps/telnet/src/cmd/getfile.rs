@@ -88,7 +88,7 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
                 Ok(entries) => {
                     let eol = cx.client.eol;
                     let data = localfs::format_listing(&entries, eol);
-                    let blksize = cx.section.global.ffile_blksize;
+                    let blksize = cx.section.global().ffile_blksize;
                     super::write_blocks(out, b"GETFILE", name, &data, blksize, eol);
                     Reply::Done
                 }
@@ -106,7 +106,7 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
         }));
     }
     if listing {
-        let rx = cx.section.link.file(FileJob::List {
+        let rx = cx.section.file(FileJob::List {
             path: name.to_vec(),
         });
         let then = FileThen::List {
@@ -127,7 +127,7 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
 }
 
 fn blksize(cx: &Cx<'_>) -> usize {
-    cx.section.global.ffile_blksize.clamp(1, 65536)
+    cx.section.global().ffile_blksize.clamp(1, 65536)
 }
 
 /// Asks the link for the next block of a PLC file, unless a request is out.
@@ -140,7 +140,7 @@ fn request_next(cx: &Cx<'_>, stream: &mut Stream) {
                 offset: stream.offset,
                 len,
             };
-            *rx = Some(cx.section.link.file(job));
+            *rx = Some(cx.section.file(job));
         }
     }
 }

@@ -26,7 +26,7 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
             None => error(cx, ErrorCode::FileInfo, name, out),
         };
     }
-    let rx = cx.section.link.file(FileJob::Info {
+    let rx = cx.section.file(FileJob::Info {
         path: name.to_vec(),
     });
     let then = FileThen::Info {

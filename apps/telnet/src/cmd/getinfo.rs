@@ -31,7 +31,7 @@ const KEYS: &[&str] = &[
 pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> Reply {
     let eol = cx.client.eol;
     let mut text = String::new();
-    let history = cx.section.history.get().map(|stats| stats.getinfo());
+    let history = cx.section.info_lines();
     if args.is_empty() {
         for key in KEYS {
             lines(cx, key, &mut text, true);
@@ -146,7 +146,7 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
             );
         }
         "NETWORK" => {
-            let max = cx.section.global.net_connect_max;
+            let max = cx.section.global().net_connect_max;
             for (i, client) in cx.section.clients().iter().enumerate() {
                 let ip = client.peer.ip().to_string();
                 line(

@@ -49,7 +49,7 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
         name: name.to_vec(),
         size,
     };
-    Reply::read(cx.section.link.read(vec![request]), then)
+    Reply::read(cx.section.read(vec![request]), then)
 }
 
 /// Writes the blocks once the PLC answered.
@@ -58,7 +58,7 @@ pub fn complete(cx: &Cx<'_>, name: &[u8], reply: ReadReply, out: &mut Vec<u8>) {
     match reply {
         Ok(answers) => match answers.into_iter().next() {
             Some(Ok(bytes)) => {
-                let blksize = cx.section.global.mem_blksize;
+                let blksize = cx.section.global().mem_blksize;
                 super::write_blocks(out, b"GETMEM", name, &bytes, blksize, eol);
             }
             _ => {

@@ -388,7 +388,7 @@ pub fn local_path(cx: &Cx<'_>, name: &[u8], access: Access) -> Option<PathBuf> {
         Access::Write => cx.section.public_files(),
         Access::Read => Vec::new(),
     };
-    match localfs::resolve_for(&cx.section.root, name, access, &extra) {
+    match localfs::resolve_for(cx.section.root(), name, access, &extra) {
         Ok(path) => Some(path),
         Err(err @ (LocalError::Outside | LocalError::Protected)) => {
             log_file_refusal(
@@ -413,7 +413,7 @@ pub fn log_file_refusal(
 ) {
     if let Some(quiet) = limiter.admit() {
         warn!(
-            section = %cx.section.name,
+            section = %cx.section.name(),
             client = %cx.client.peer,
             name = %String::from_utf8_lossy(name),
             "{what}{}",
@@ -469,7 +469,7 @@ fn complete_file(cx: &mut Cx<'_>, then: FileThen, reply: FileReply, out: &mut Ve
         }
         (FileThen::List { name }, FileOutput::List(entries)) => {
             let listing = plccoms_core::localfs::format_listing(&entries, eol);
-            let blksize = cx.section.global.ffile_blksize;
+            let blksize = cx.section.global().ffile_blksize;
             write_blocks(out, b"GETFILE", &name, &listing, blksize, eol);
         }
         (FileThen::Write { name }, FileOutput::Done) => ok_line(out, b"WRITEFILE:", &name, eol),

@@ -83,7 +83,7 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
     let then = ConfThen {
         context: context.to_vec(),
     };
-    Reply::conf(cx.section.link.reconfigure(change), then)
+    Reply::conf(cx.section.reconfigure(change), then)
 }
 
 /// The answer to a section-wide SETCONF. A public file it loaded is told by

@@ -100,7 +100,7 @@ fn write_block(cx: &mut Cx<'_>, name: Vec<u8>, data: Vec<u8>, out: &mut Vec<u8>)
     if data.is_empty() {
         return finish(cx, name, out);
     }
-    let deadline = Instant::now() + cx.section.global.ffile_timeout_wr;
+    let deadline = Instant::now() + cx.section.global().ffile_timeout_wr;
     let upload = match cx.client.upload.take() {
         Some(upload) => upload,
         None => Upload {
@@ -132,8 +132,8 @@ fn write_block(cx: &mut Cx<'_>, name: Vec<u8>, data: Vec<u8>, out: &mut Vec<u8>)
 /// logged, rate-limited (a client can cause it at will).
 fn within_quota(cx: &Cx<'_>, name: &[u8], len: usize) -> bool {
     static REFUSED: RateLimited = RateLimited::new(std::time::Duration::from_secs(1));
-    let quota = cx.section.global.files_quota;
-    match files_quota::admit(&cx.section.root, quota, len as u64) {
+    let quota = cx.section.global().files_quota;
+    match files_quota::admit(cx.section.root(), quota, len as u64) {
         Ok(()) => true,
         Err(over) => {
             log_file_refusal(
@@ -176,7 +176,7 @@ fn finish(cx: &mut Cx<'_>, name: Vec<u8>, out: &mut Vec<u8>) -> Reply {
                 path: name.clone(),
                 data,
             };
-            Reply::file(cx.section.link.file(job), FileThen::Write { name })
+            Reply::file(cx.section.file(job), FileThen::Write { name })
         }
         Target::Failed => error(cx, ErrorCode::WriteFile, &name, out),
         Target::TimedOut => error(cx, ErrorCode::WriteTimeout, &name, out),
@@ -195,7 +195,7 @@ pub fn timed_out(cx: &mut Cx<'_>, out: &mut Vec<u8>) {
     error(cx, ErrorCode::WriteTimeout, &upload.name, out);
     // Dropping a staging file removes it.
     upload.target = Target::TimedOut;
-    upload.deadline = Instant::now() + cx.section.global.ffile_timeout_wr * 12;
+    upload.deadline = Instant::now() + cx.section.global().ffile_timeout_wr * 12;
     // Stray blocks of the abandoned transfer are ignored for a while, then
     // the name is free again.
     cx.client.upload = Some(upload);
@@ -222,5 +222,5 @@ fn write_info(cx: &mut Cx<'_>, name: Vec<u8>, data: &[u8], out: &mut Vec<u8>) ->
         path: name.clone(),
         info,
     };
-    Reply::file(cx.section.link.file(job), FileThen::WriteInfo { name })
+    Reply::file(cx.section.file(job), FileThen::WriteInfo { name })
 }

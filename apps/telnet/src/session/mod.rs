@@ -132,11 +132,11 @@ pub struct Session {
 
 impl Session {
     pub fn new(section: Arc<Section>, stream: TcpStream, peer: SocketAddr) -> Session {
-        let mut snapshots = section.changes.receiver();
+        let mut snapshots = section.snapshots();
         let snapshot = snapshots.borrow_and_update().clone();
-        let mut newest_rx = section.changes.receiver();
+        let mut newest_rx = section.snapshots();
         let newest = newest_rx.borrow_and_update().clone();
-        let global = &section.global;
+        let global = section.global();
         let client = ClientState {
             vars: ClientTable::new(&snapshot, !global.pf_var_disabled),
             diff: global.diff_var_enabled,
@@ -160,7 +160,7 @@ impl Session {
             over_soft_since: None,
             dropped: None,
             stats: Arc::default(),
-            stop: Box::pin(section.shutdown.clone().cancelled_owned()),
+            stop: Box::pin(section.shutdown().clone().cancelled_owned()),
             turn_used: false,
             holding: None,
             turn_now: None,
@@ -175,7 +175,7 @@ impl Session {
     pub async fn serve_client(section: Arc<Section>, stream: TcpStream, client: ClientInfo) {
         tokio::select! {
             _ = section.ready() => {}
-            _ = section.shutdown.cancelled() => return,
+            _ = section.shutdown().cancelled() => return,
         }
         let mut session = Session::new(section, stream, client.peer);
         session.stats = client.stats;
@@ -187,7 +187,7 @@ impl Session {
     /// Serves the client until it leaves. Returns whether it held a lot of
     /// memory (freed by now).
     pub async fn run(mut self) -> bool {
-        let section = self.section.name.clone();
+        let section = self.section.name().to_string();
         let peer = self.client.peer;
         debug!(section = %section, client = %peer, "client connected");
         if let Err(err) = self.serve().await {
@@ -202,7 +202,7 @@ impl Session {
         }
         // A client that asked to close but does not read what it is owed
         // gets as long as a soft-limit stall.
-        let grace = self.section.global.output_soft_timeout;
+        let grace = self.section.global().output_soft_timeout;
         let _ = tokio::time::timeout(grace, self.conn.flush()).await;
         let _ = self.conn.writer.shutdown().await;
         debug!(section = %section, client = %peer, "client disconnected");
@@ -228,7 +228,7 @@ impl Session {
     /// Applies OUTPUT_HARD_LIMIT and OUTPUT_SOFT_LIMIT; `Some(why)` when the
     /// client must go.
     fn check_output_limits(&mut self) -> Option<String> {
-        let global = &self.section.global;
+        let global = self.section.global();
         let queued = self.queued_output();
         if queued > global.output_hard_limit {
             return Some(format!(
@@ -291,11 +291,11 @@ impl Session {
                 && self.ahead() < OUTPUT_HIGH_WATER;
             // Snapshots also carry public-file changes, so every client takes
             // them, DIFF lines on or off; never inside a streamed answer.
-            let want_diffs = backlog < self.section.global.output_soft_limit && !streaming;
+            let want_diffs = backlog < self.section.global().output_soft_limit && !streaming;
             let closing = self.close || self.stopping;
             let soft_deadline = self
                 .over_soft_since
-                .map(|since| since + self.section.global.output_soft_timeout);
+                .map(|since| since + self.section.global().output_soft_timeout);
             let Session {
                 conn,
                 queue,
@@ -407,7 +407,7 @@ impl Session {
                     self.answer_error(ErrorCode::BadRequest, &context);
                 }
                 Frame::Close => {
-                    info!(section = %self.section.name, client = %self.client.peer, "client closed the session (Ctrl+D)");
+                    info!(section = %self.section.name(), client = %self.client.peer, "client closed the session (Ctrl+D)");
                     self.close = true;
                 }
             }
@@ -535,7 +535,7 @@ impl Session {
     /// When the WRITEFILE transfer times out: data of a block stopped
     /// arriving, or no next block came.
     fn write_deadline(&self) -> Option<tokio::time::Instant> {
-        let wait = self.section.global.ffile_timeout_wr;
+        let wait = self.section.global().ffile_timeout_wr;
         if self.conn.pending_block().is_some() {
             return Some(self.conn.last_input + wait);
         }
@@ -639,17 +639,18 @@ impl Session {
             ..
         } = self;
         let before = conn.out.len();
-        let lines = client
-            .vars
-            .collect_diffs(snapshot, &section.format, client.eol, &mut conn.out);
+        let lines =
+            client
+                .vars
+                .collect_diffs(snapshot, section.format(), client.eol, &mut conn.out);
         if lines > 0 {
             #[cfg(feature = "fanout-trace")]
             if let Some(polled) = snapshot.polled {
                 self.traced.push((snapshot.seq, polled.at));
             }
-            section.metrics.diff_lines.add(lines as u64);
+            section.metrics().diff_lines.add(lines as u64);
             section
-                .metrics
+                .metrics()
                 .diff_bytes
                 .add((conn.out.len() - before) as u64);
         }
@@ -659,7 +660,7 @@ impl Session {
     /// file).
     fn sync_vars(&mut self) {
         if !Arc::ptr_eq(&self.snapshot.table, self.client.vars.table()) {
-            let all_enabled = !self.section.global.pf_var_disabled;
+            let all_enabled = !self.section.global().pf_var_disabled;
             self.client.vars = self.client.vars.remap(&self.snapshot, all_enabled);
         }
     }
