@@ -15,7 +15,9 @@
 //! - `history_source` is recorded history as the apps read it (the
 //!   historian implements it, the web page reads it, the binary wires them);
 //! - `localfs` and `files_quota` are the clients' local files; `metrics`,
-//!   `ratelimit` and `logring` serve the apps' reports.
+//!   `ratelimit` and `logring` serve the apps' reports; `present` is a value
+//!   in the user's terms (ISO 8601 times, numbers as numbers) for every face
+//!   but the telnet port.
 
 pub mod changes;
 pub mod config;
@@ -26,6 +28,7 @@ pub mod link;
 pub mod localfs;
 pub mod logring;
 pub mod metrics;
+pub mod present;
 pub mod ratelimit;
 pub mod section;
 pub mod vars;

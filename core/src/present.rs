@@ -1,0 +1,299 @@
+//! A value in the user's terms, for every face but the telnet port: MQTT,
+//! Home Assistant, the web page, the JSON API and the exports. The telnet
+//! port prints the vendor's forms (a DT as the 64 bits of its binary64
+//! seconds, a REAL with six decimals); everywhere else a number is a number
+//! as short as it round-trips, a BOOL is true or false, and times are
+//! ISO 8601:
+//!
+//! | type | presented as | example |
+//! |---|---|---|
+//! | BOOL | boolean | `true` |
+//! | integers | integer | `-12` |
+//! | REAL, LREAL | number, shortest form that reads back the same (NaN and infinities as the strings `nan`, `inf`, `-inf`) | `22.3` |
+//! | STRING | text (control bytes stay escaped as `\xHH`) | `"Hall 2"` |
+//! | DATE | calendar date, UTC | `"2026-11-25"` |
+//! | DT (and a Modbus TS48) | date and time, UTC, milliseconds | `"2026-11-25T10:15:00.123Z"` |
+//! | TOD | time of day, milliseconds | `"10:15:00.123"` |
+//! | TIME | ISO 8601 duration, milliseconds | `"PT1H2M3.456S"` |
+//!
+//! The input is the text the protocol prints (what the change stream holds),
+//! read back with the section's number settings, so every face shows the
+//! value the telnet port shows, in its own form.
+
+use std::fmt::Write as _;
+
+use chrono::{DateTime, Utc};
+use plccoms_protocol::cp1250;
+use plccoms_protocol::value::{FormatOptions, Value};
+use plccoms_protocol::IecType;
+use serde::{Serialize, Serializer};
+
+/// A value as a user reads it.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Presented {
+    Bool(bool),
+    Signed(i64),
+    Unsigned(u64),
+    /// REAL or LREAL; a REAL widened from its shortest decimal form, so
+    /// 22.3f32 is 22.3, not 22.299999237060547.
+    Number(f64),
+    Text(String),
+    /// DATE, `YYYY-MM-DD`.
+    Date(String),
+    /// DT, `YYYY-MM-DDTHH:MM:SS.mmmZ`.
+    DateTime(String),
+    /// TOD, `HH:MM:SS.mmm`.
+    TimeOfDay(String),
+    /// TIME, `PT..H..M..S`.
+    Duration(String),
+}
+
+impl Presented {
+    /// The value of a variable of type `ty` whose protocol text is `text`
+    /// (printed with `opts`). A text that does not read back (it cannot
+    /// happen for a text the server printed) is presented as text.
+    pub fn of(ty: IecType, text: &[u8], opts: &FormatOptions) -> Presented {
+        if let IecType::String(_) = ty {
+            let inner = match text {
+                [b'"', inner @ .., b'"'] => inner,
+                other => other,
+            };
+            return Presented::Text(cp1250::decode(inner).into_owned());
+        }
+        match Value::parse(ty, text, opts) {
+            Ok(value) => Presented::of_value(ty, &value),
+            Err(_) => Presented::Text(cp1250::decode(text).into_owned()),
+        }
+    }
+
+    /// A decoded value of type `ty`.
+    pub fn of_value(ty: IecType, value: &Value) -> Presented {
+        match (ty, value) {
+            (IecType::Bool, v) => Presented::Bool(v.as_f64() != 0.0),
+            (IecType::Real, Value::Real(x)) => Presented::Number(shortest_f32(*x)),
+            (IecType::Real | IecType::Lreal, v) => Presented::Number(v.as_f64()),
+            (IecType::Date, v) => Presented::Date(date(v.as_f64())),
+            (IecType::Dt, v) => Presented::DateTime(date_time(v.as_f64())),
+            (IecType::Tod, Value::Time(ms)) => Presented::TimeOfDay(time_of_day(*ms)),
+            (IecType::Time, Value::Time(ms)) => Presented::Duration(duration(*ms)),
+            (_, Value::Signed(n)) => Presented::Signed(*n),
+            (_, Value::Unsigned(n)) => Presented::Unsigned(*n),
+            (_, Value::Str(bytes)) => Presented::Text(cp1250::decode(bytes).into_owned()),
+            (_, v) => Presented::Number(v.as_f64()),
+        }
+    }
+
+    /// The value as plain text: numbers in their shortest form, times as
+    /// ISO 8601, `true`/`false`.
+    pub fn text(&self) -> String {
+        match self {
+            Presented::Bool(b) => b.to_string(),
+            Presented::Signed(n) => n.to_string(),
+            Presented::Unsigned(n) => n.to_string(),
+            Presented::Number(x) => number_text(*x),
+            Presented::Text(s)
+            | Presented::Date(s)
+            | Presented::DateTime(s)
+            | Presented::TimeOfDay(s)
+            | Presented::Duration(s) => s.clone(),
+        }
+    }
+
+    /// The value as a number, where it is one (BOOL as 0 or 1): what a
+    /// numeric column or a chart takes.
+    pub fn as_number(&self) -> Option<f64> {
+        match self {
+            Presented::Bool(b) => Some(f64::from(u8::from(*b))),
+            Presented::Signed(n) => Some(*n as f64),
+            Presented::Unsigned(n) => Some(*n as f64),
+            Presented::Number(x) if x.is_finite() => Some(*x),
+            _ => None,
+        }
+    }
+}
+
+impl Serialize for Presented {
+    fn serialize<S: Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        match self {
+            Presented::Bool(b) => serializer.serialize_bool(*b),
+            Presented::Signed(n) => serializer.serialize_i64(*n),
+            Presented::Unsigned(n) => serializer.serialize_u64(*n),
+            Presented::Number(x) if x.is_finite() => serializer.serialize_f64(*x),
+            // JSON has no NaN or infinity.
+            Presented::Number(x) => serializer.serialize_str(&number_text(*x)),
+            Presented::Text(s)
+            | Presented::Date(s)
+            | Presented::DateTime(s)
+            | Presented::TimeOfDay(s)
+            | Presented::Duration(s) => serializer.serialize_str(s),
+        }
+    }
+}
+
+/// 22.3f32 as 22.3: the shortest decimal that reads back as the same f32,
+/// widened.
+fn shortest_f32(x: f32) -> f64 {
+    if !x.is_finite() {
+        return f64::from(x);
+    }
+    format!("{x}").parse().unwrap_or(f64::from(x))
+}
+
+fn number_text(x: f64) -> String {
+    if x.is_nan() {
+        "nan".into()
+    } else if x.is_infinite() {
+        if x > 0.0 { "inf" } else { "-inf" }.into()
+    } else {
+        format!("{x}")
+    }
+}
+
+fn utc(seconds: f64) -> Option<DateTime<Utc>> {
+    if !seconds.is_finite() {
+        return None;
+    }
+    DateTime::<Utc>::from_timestamp_millis((seconds * 1000.0).round() as i64)
+}
+
+/// `YYYY-MM-DD` of seconds since 1970, UTC.
+fn date(seconds: f64) -> String {
+    utc(seconds).map_or_else(
+        || number_text(seconds),
+        |t| t.format("%Y-%m-%d").to_string(),
+    )
+}
+
+/// `YYYY-MM-DDTHH:MM:SS.mmmZ` of seconds since 1970.
+fn date_time(seconds: f64) -> String {
+    utc(seconds).map_or_else(
+        || number_text(seconds),
+        |t| t.format("%Y-%m-%dT%H:%M:%S%.3fZ").to_string(),
+    )
+}
+
+/// `HH:MM:SS.mmm` of milliseconds since midnight (a day and more wraps
+/// as the PLC's clock would not; shown as hours past 24).
+fn time_of_day(ms: u32) -> String {
+    let (h, m, s, ms) = (ms / 3_600_000, ms / 60_000 % 60, ms / 1000 % 60, ms % 1000);
+    format!("{h:02}:{m:02}:{s:02}.{ms:03}")
+}
+
+/// ISO 8601 duration of milliseconds: `PT1H2M3.456S`, `PT0S`.
+fn duration(ms: u32) -> String {
+    let (h, m, s, ms) = (ms / 3_600_000, ms / 60_000 % 60, ms / 1000 % 60, ms % 1000);
+    let mut out = String::from("PT");
+    if h > 0 {
+        let _ = write!(out, "{h}H");
+    }
+    if m > 0 {
+        let _ = write!(out, "{m}M");
+    }
+    if s > 0 || ms > 0 || (h == 0 && m == 0) {
+        let _ = write!(out, "{s}");
+        if ms > 0 {
+            let _ = write!(out, ".{ms:03}");
+            while out.ends_with('0') {
+                out.pop();
+            }
+        }
+        out.push('S');
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn printed(ty: IecType, value: Value) -> Vec<u8> {
+        let mut out = Vec::new();
+        value.format(ty, &FormatOptions::default(), &mut out);
+        out
+    }
+
+    fn of(ty: IecType, value: Value) -> Presented {
+        Presented::of(ty, &printed(ty, value), &FormatOptions::default())
+    }
+
+    #[test]
+    fn times_are_iso_8601() {
+        // 2026-11-25T10:15:00.123Z
+        let t = 1_795_601_700.123;
+        let dt = printed(IecType::Dt, Value::Date(t));
+        assert!(dt.iter().all(u8::is_ascii_digit), "telnet keeps the bits");
+        assert_eq!(
+            of(IecType::Dt, Value::Date(t)),
+            Presented::DateTime("2026-11-25T10:15:00.123Z".into())
+        );
+        assert_eq!(
+            of(IecType::Date, Value::Date(1_795_564_800.0)),
+            Presented::Date("2026-11-25".into())
+        );
+        assert_eq!(
+            of(IecType::Tod, Value::Time(36_900_123)),
+            Presented::TimeOfDay("10:15:00.123".into())
+        );
+        assert_eq!(
+            of(IecType::Time, Value::Time(3_723_456)),
+            Presented::Duration("PT1H2M3.456S".into())
+        );
+        assert_eq!(of(IecType::Time, Value::Time(0)).text(), "PT0S");
+        assert_eq!(of(IecType::Time, Value::Time(120_500)).text(), "PT2M0.5S");
+        assert_eq!(of(IecType::Time, Value::Time(7_200_000)).text(), "PT2H");
+    }
+
+    #[test]
+    fn with_date_time_decimal_the_seconds_read_back_too() {
+        let opts = FormatOptions {
+            date_time_decimal: true,
+            ..FormatOptions::default()
+        };
+        let mut text = Vec::new();
+        Value::Date(1_795_601_700.5).format(IecType::Dt, &opts, &mut text);
+        assert_eq!(
+            Presented::of(IecType::Dt, &text, &opts),
+            Presented::DateTime("2026-11-25T10:15:00.500Z".into())
+        );
+    }
+
+    #[test]
+    fn numbers_are_numbers_in_their_shortest_form() {
+        assert_eq!(printed(IecType::Real, Value::Real(22.3)), b"22.299999");
+        let real = of(IecType::Real, Value::Real(22.3));
+        assert_eq!(real, Presented::Number(22.3));
+        assert_eq!(serde_json::to_string(&real).unwrap(), "22.3");
+        assert_eq!(real.text(), "22.3");
+        assert_eq!(
+            serde_json::to_string(&of(IecType::Int, Value::Signed(-12))).unwrap(),
+            "-12"
+        );
+        assert_eq!(
+            serde_json::to_string(&of(IecType::Ulint, Value::Unsigned(u64::MAX))).unwrap(),
+            "18446744073709551615"
+        );
+        assert_eq!(of(IecType::Bool, Value::Bool(true)), Presented::Bool(true));
+        assert_eq!(of(IecType::Bool, Value::Bool(true)).as_number(), Some(1.0));
+        let nan = of(IecType::Lreal, Value::LReal(f64::NAN));
+        assert_eq!(serde_json::to_string(&nan).unwrap(), "\"nan\"");
+        assert_eq!(nan.as_number(), None);
+    }
+
+    #[test]
+    fn strings_lose_their_quotes_and_keep_their_escapes() {
+        let ty = IecType::String(16);
+        let text = printed(ty, Value::Str(b"Hall \x01\x9a".to_vec()));
+        assert_eq!(
+            Presented::of(ty, &text, &FormatOptions::default()),
+            Presented::Text("Hall \\x01š".into())
+        );
+    }
+
+    #[test]
+    fn a_text_that_does_not_read_back_is_text() {
+        assert_eq!(
+            Presented::of(IecType::Int, b"abc", &FormatOptions::default()),
+            Presented::Text("abc".into())
+        );
+    }
+}
