@@ -388,6 +388,7 @@ proptest! {
                     ty: v.ty,
                     codec: Codec::Native,
                     writable: true,
+                    info: None,
                 },
                 line: i + 2,
             })

@@ -22,4 +22,4 @@ pub use epsnet::Exception;
 pub use files::{DirEntry, FileInfo};
 pub use memory::{MemoryImage, MemoryMap, WriteData};
 pub use refusal::Refusal;
-pub use var::Var;
+pub use var::{Var, VarInfo};

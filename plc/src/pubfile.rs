@@ -313,6 +313,7 @@ fn parse_var(fields: &[&[u8]], line: usize) -> Result<VarDef, String> {
             ty,
             codec: Codec::Native,
             writable: true,
+            info: None,
         },
         line,
     })
@@ -496,6 +497,7 @@ mod tests {
                         ty: IecType::Bool,
                         codec: Codec::Native,
                         writable: true,
+                        info: None,
                     },
                     line: 1,
                 },
@@ -508,6 +510,7 @@ mod tests {
                         ty: IecType::Dword,
                         codec: Codec::Native,
                         writable: true,
+                        info: None,
                     },
                     line: 2,
                 },

@@ -26,6 +26,32 @@ pub struct Var {
     pub codec: Codec,
     /// Whether a SET may write it (a Modbus tag may be read-only).
     pub writable: bool,
+    /// What a tag file says of it beyond its place (`None` for a public
+    /// file's variables): boxed, so a table of 100,000 variables without
+    /// it pays a pointer each.
+    pub info: Option<Box<VarInfo>>,
+}
+
+/// What a tag file tells of a variable for people: its unit, description,
+/// range and decimals. The telnet port shows none of it; the other faces
+/// (MQTT, Home Assistant, the web page) do.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct VarInfo {
+    /// As written (`°C`, `kWh`); empty when not given.
+    pub unit: String,
+    pub description: String,
+    /// The range a writer may set, when the file gives one.
+    pub min: Option<f64>,
+    pub max: Option<f64>,
+    /// Decimals to print the value with, when the file gives them.
+    pub decimals: Option<u8>,
+}
+
+impl VarInfo {
+    /// `None` when nothing is said.
+    pub fn boxed(self) -> Option<Box<VarInfo>> {
+        (self != VarInfo::default()).then(|| Box::new(self))
+    }
 }
 
 impl Var {

@@ -360,6 +360,7 @@ mod tests {
             ty,
             codec: Codec::Native,
             writable: true,
+            info: None,
         }
     }
 

@@ -201,6 +201,7 @@ impl Section {
                 ty: address.ty,
                 codec: Codec::Native,
                 writable: true,
+                info: None,
             };
             (var, None)
         } else {

@@ -3,8 +3,9 @@
 //! columns (any order, any case):
 //!
 //! ```text
-//! name,type,table,address,bit,order,scale,offset,access,unit,description
-//! Temperature,INT,input,0,,,0.1,,,°C,"Outdoor, north wall"
+//! name,type,table,address,bit,order,scale,offset,access,unit,description,min,max,decimals
+//! Temperature,INT,input,0,,,0.1,,,°C,"Outdoor, north wall",,,1
+//! Setpoint,INT,holding,10,,,0.1,,,°C,Heating setpoint,5,30,1
 //! Energy,UDINT,holding,100,,CDAB
 //! Pump,BOOL,coil,3
 //! Alarm,BOOL,holding,20,15
@@ -23,7 +24,10 @@
 //! - `scale`, `offset`: the client sees raw x scale + offset as REAL.
 //! - `access`: `ro` or `rw`; default rw for coils and holding registers, ro
 //!   for the others (which cannot be written).
-//! - `unit`, `description`: kept, shown nowhere yet.
+//! - `unit`, `description`: for people (MQTT, Home Assistant, the web
+//!   page); the telnet port shows neither.
+//! - `min`, `max`: the range a writer may set (Home Assistant's number
+//!   entities); `decimals`: 0-15, how many decimals the value is printed with.
 //!
 //! Lines starting with `#` are comments; fields may be quoted; a value past
 //! the header's last column makes its line bad (empty trailing fields are
@@ -54,8 +58,8 @@ pub struct Tag {
     pub bit: Option<u8>,
     pub codec: Codec,
     pub writable: bool,
-    pub unit: String,
-    pub description: String,
+    /// Unit, description, range and decimals.
+    pub info: crate::VarInfo,
     /// 1-based line in the file.
     pub line: usize,
 }
@@ -83,6 +87,7 @@ impl Tag {
             ty: self.ty,
             codec: self.codec,
             writable: self.writable,
+            info: self.info.clone().boxed(),
         }
     }
 
@@ -153,9 +158,12 @@ enum Column {
     Access,
     Unit,
     Description,
+    Min,
+    Max,
+    Decimals,
 }
 
-const COLUMNS: [(&str, Column); 11] = [
+const COLUMNS: [(&str, Column); 14] = [
     ("name", Column::Name),
     ("type", Column::Type),
     ("table", Column::Table),
@@ -167,6 +175,9 @@ const COLUMNS: [(&str, Column); 11] = [
     ("access", Column::Access),
     ("unit", Column::Unit),
     ("description", Column::Description),
+    ("min", Column::Min),
+    ("max", Column::Max),
+    ("decimals", Column::Decimals),
 ];
 
 const REQUIRED: [Column; 4] = [Column::Name, Column::Type, Column::Table, Column::Address];
@@ -496,6 +507,27 @@ fn tag(
         }
     };
 
+    let min = number(Column::Min)?;
+    let max = number(Column::Max)?;
+    if let (Some(lo), Some(hi)) = (min, max) {
+        if lo > hi {
+            return Err((field(Column::Max).1, format!("max {hi} is below min {lo}")));
+        }
+    }
+    let (decimals_text, decimals_col) = field(Column::Decimals);
+    let decimals = match decimals_text {
+        "" => None,
+        text => match text.parse::<u8>() {
+            Ok(n) if n <= 15 => Some(n),
+            _ => {
+                return Err((
+                    decimals_col,
+                    format!("decimals '{text}' is not a whole number 0-15"),
+                ))
+            }
+        },
+    };
+
     let (access_text, access_col) = field(Column::Access);
     let writable = match access_text.to_ascii_lowercase().as_str() {
         "" => table.writable(),
@@ -532,8 +564,13 @@ fn tag(
         bit,
         codec,
         writable,
-        unit: field(Column::Unit).0.to_string(),
-        description: field(Column::Description).0.to_string(),
+        info: crate::VarInfo {
+            unit: field(Column::Unit).0.to_string(),
+            description: field(Column::Description).0.to_string(),
+            min,
+            max,
+            decimals,
+        },
         line,
     };
     if u32::from(address) + tag.span() > 65_536 {
@@ -614,12 +651,40 @@ mod tests {
         assert_eq!(energy.codec.byte_len(energy.ty), 4);
         let t = one("T,INT,input,0,,,0.1,-40,,°C,\"Outdoor, north\"").unwrap();
         assert_eq!(t.ty, IecType::Real);
-        assert_eq!(t.unit, "°C");
-        assert_eq!(t.description, "Outdoor, north");
+        assert_eq!(t.info.unit, "°C");
+        assert_eq!(t.info.description, "Outdoor, north");
         let ts = one("Stamp,TS48,holding,10").unwrap();
         assert_eq!((ts.ty, ts.span()), (IecType::Dt, 3));
         let s = one("Text,STRING[5],holding,50,,BADC").unwrap();
         assert_eq!(s.span(), 3);
+    }
+
+    #[test]
+    fn range_and_decimals_reach_the_variable() {
+        let file = parse(
+            "name,type,table,address,scale,unit,description,min,max,decimals\n\
+             Setpoint,INT,holding,10,0.1,°C,Heating setpoint,5,30,1\n\
+             Plain,INT,holding,11\n\
+             Bad,INT,holding,12,,,,30,5\n\
+             Worse,INT,holding,13,,,,,,16\n"
+                .as_bytes(),
+        );
+        let setpoint = file.tags[0].var();
+        let info = setpoint.info.as_deref().expect("info");
+        assert_eq!(
+            (info.unit.as_str(), info.min, info.max, info.decimals),
+            ("°C", Some(5.0), Some(30.0), Some(1))
+        );
+        assert_eq!(info.description, "Heating setpoint");
+        assert_eq!(file.tags[1].var().info, None, "nothing said, nothing kept");
+        let warnings: Vec<String> = file.warnings.iter().map(|w| w.to_string()).collect();
+        assert_eq!(
+            warnings,
+            [
+                "line 4, column 9: max 5 is below min 30",
+                "line 5, column 10: decimals '16' is not a whole number 0-15"
+            ]
+        );
     }
 
     #[test]
