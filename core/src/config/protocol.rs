@@ -1,11 +1,11 @@
-//! `PROTOCOL`: which backend a section talks through.
+//! `PROTOCOL`: which driver a section talks through.
 
 use std::fmt;
 
-/// A section's backend, as its `PROTOCOL` key names it. Adding a backend is
+/// A section's backend, as its `PROTOCOL` key names it. A new driver adds
 /// one variant here (listed in [`Protocol::ALL`], named in
-/// [`Protocol::name`]) and one arm in `backend::open`; the key table's
-/// choices follow, and the compiler points at every other match.
+/// [`Protocol::name`]) and claims it in its `open` (see CONTRIBUTING.md);
+/// the key table's choices follow, and the compiler points at every match.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Protocol {
     /// Teco's EPSNET, over UDP, serial line or shared memory (the default).
