@@ -35,7 +35,7 @@ pub fn apply(config: &Section, change: &ConfChange) -> (Section, bool) {
             true
         }
         ConfChange::SerialDevice(device) => {
-            // The section's PLC is now on this line (see `backend::open`).
+            // The section's PLC is now on this line (see the epsnet driver's `open`).
             config.serial_device = Some(device.clone());
             config.simulator = None;
             true
