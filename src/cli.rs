@@ -21,6 +21,9 @@ pub const DEFAULT_LOG: &str = "PLCComS.log";
     version,
     about,
     after_help = crate::demo::HELP,
+    // `plccoms help history` adds nothing to `plccoms history --help`, and
+    // the man page would name a plccoms-help(8) that does not exist.
+    disable_help_subcommand = true,
     override_usage = "plccoms [-dtvh] [-c <configuration_file>] [-l <log_file>]"
 )]
 pub struct Cli {

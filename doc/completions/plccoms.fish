@@ -32,7 +32,6 @@ complete -c plccoms -n "__fish_plccoms_needs_command" -s v -l verbose -d 'Verbos
 complete -c plccoms -n "__fish_plccoms_needs_command" -s h -l help -d 'Print help'
 complete -c plccoms -n "__fish_plccoms_needs_command" -s V -l version -d 'Print version'
 complete -c plccoms -n "__fish_plccoms_needs_command" -f -a "history" -d 'Write out what the historian recorded (CSV, JSON or Parquet)'
-complete -c plccoms -n "__fish_plccoms_needs_command" -f -a "help" -d 'Print this message or the help of the given subcommand(s)'
 complete -c plccoms -n "__fish_plccoms_using_subcommand history" -l section -d 'Section whose history is read' -r
 complete -c plccoms -n "__fish_plccoms_using_subcommand history" -l vars -d 'Variables: names or masks with *, comma-separated' -r
 complete -c plccoms -n "__fish_plccoms_using_subcommand history" -l from -d 'Start (included): ISO 8601 UTC (2026-05-01T12:00:00Z, 2026-05-01) or relative (-1h, -7d)' -r
@@ -44,5 +43,3 @@ complete -c plccoms -n "__fish_plccoms_using_subcommand history" -l out -d 'Outp
 complete -c plccoms -n "__fish_plccoms_using_subcommand history" -s c -l config -d 'Configuration file' -r -F
 complete -c plccoms -n "__fish_plccoms_using_subcommand history" -l wide -d 'One row per time and one column per variable, instead of one row per sample'
 complete -c plccoms -n "__fish_plccoms_using_subcommand history" -s h -l help -d 'Print help'
-complete -c plccoms -n "__fish_plccoms_using_subcommand help; and not __fish_seen_subcommand_from history help" -f -a "history" -d 'Write out what the historian recorded (CSV, JSON or Parquet)'
-complete -c plccoms -n "__fish_plccoms_using_subcommand help; and not __fish_seen_subcommand_from history help" -f -a "help" -d 'Print this message or the help of the given subcommand(s)'

@@ -79,6 +79,22 @@ fn documents() -> std::io::Result<Vec<(PathBuf, Vec<u8>)>> {
             .render(&mut page)?;
         page.extend_from_slice(more.as_bytes());
         files.push((PathBuf::from(format!("man/{name}.{section}")), page));
+        // Each subcommand its own page, as the main page's SUBCOMMANDS
+        // section names it (`plccoms-history(8)`).
+        for sub in command.get_subcommands() {
+            let sub_name = format!("{name}-{}", sub.get_name());
+            let mut page = Vec::new();
+            clap_mangen::Man::new(
+                sub.clone()
+                    .display_name(sub_name.clone())
+                    .bin_name(format!("{name} {}", sub.get_name()))
+                    .version(env!("CARGO_PKG_VERSION")),
+            )
+            .section(section)
+            .render(&mut page)?;
+            page.extend_from_slice(format!(".SH SEE ALSO\n\\fB{name}\\fR({section})\n").as_bytes());
+            files.push((PathBuf::from(format!("man/{sub_name}.{section}")), page));
+        }
         for (shell, file) in [
             (Shell::Bash, name.clone()),
             (Shell::Zsh, format!("_{name}")),
