@@ -12,6 +12,8 @@ use plccoms_historian::command::HistoryArgs;
 
 /// Log file used with `-d` when `-l` is not given.
 pub const DEFAULT_LOG: &str = "PLCComS.log";
+/// Pid file used with `-d` when `--pid-file` is not given.
+pub const DEFAULT_PID_FILE: &str = "PLCComS.pid";
 
 /// Parsed command line. `Cli::parse()` in `main`; `Cli::parse_from` or
 /// `Cli::try_parse_from` in tests.
@@ -53,6 +55,10 @@ pub struct Cli {
     #[arg(short, long, value_name = "log_file")]
     pub log: Option<PathBuf>,
 
+    /// Pid file, locked while the server runs (with -d: PLCComS.pid unless given; a file left by a crash is taken over)
+    #[arg(long, value_name = "pid_file")]
+    pub pid_file: Option<PathBuf>,
+
     #[command(subcommand)]
     pub command: Option<Command>,
 }
@@ -65,6 +71,16 @@ pub enum Command {
 }
 
 impl Cli {
+    /// Where the pid goes: `--pid-file`, else `PLCComS.pid` when running as
+    /// a daemon, else `None`.
+    pub fn pid_path(&self) -> Option<PathBuf> {
+        match &self.pid_file {
+            Some(path) => Some(path.clone()),
+            None if self.daemon => Some(PathBuf::from(DEFAULT_PID_FILE)),
+            None => None,
+        }
+    }
+
     /// Where reports go: the `-l` file, else `PLCComS.log` when running as a
     /// daemon, else `None` (the terminal).
     pub fn log_path(&self) -> Option<PathBuf> {
@@ -98,6 +114,7 @@ mod tests {
                 verbose: 0,
                 config: PathBuf::from("PLCComS.ini"),
                 log: None,
+                pid_file: None,
                 command: None,
             }
         );
@@ -125,6 +142,7 @@ mod tests {
             "--config",
             "/etc/plccoms/PLCComS.ini",
             "--log=/var/log/plccoms.log",
+            "--pid-file=/run/plccoms.pid",
         ]);
         assert_eq!(
             c,
@@ -134,9 +152,13 @@ mod tests {
                 verbose: 1,
                 config: PathBuf::from("/etc/plccoms/PLCComS.ini"),
                 log: Some(PathBuf::from("/var/log/plccoms.log")),
+                pid_file: Some(PathBuf::from("/run/plccoms.pid")),
                 command: None,
             }
         );
+        assert_eq!(c.pid_path(), Some(PathBuf::from("/run/plccoms.pid")));
+        assert_eq!(cli(&["-d"]).pid_path(), Some(PathBuf::from("PLCComS.pid")));
+        assert_eq!(cli(&[]).pid_path(), None);
         let c = cli(&["-c", "a.ini", "-l", "a.log"]);
         assert_eq!((c.config, c.log), ("a.ini".into(), Some("a.log".into())));
     }

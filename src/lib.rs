@@ -2,7 +2,7 @@
 //! of Tecomat PLCs, and a gateway around PLCs.
 //!
 //! This crate is the binary's: command line (`cli`), running detached
-//! (`daemon`), the log file (`logfile`), watching the configuration
+//! (`daemon`), the log file (`logfile`), the pid file (`pidfile`), watching the configuration
 //! (`watch`), the built-in demo (`demo`) and start-up (`startup`), which
 //! wires the south drivers ([`DRIVERS`]) and the north apps to the core. It
 //! is the only crate that names concrete drivers and apps; the layers below
@@ -13,6 +13,7 @@ pub mod cli;
 pub mod daemon;
 pub mod demo;
 pub mod logfile;
+pub mod pidfile;
 pub mod startup;
 pub mod watch;
 

@@ -115,6 +115,24 @@ fn log_diagnostic(diagnostic: &Diagnostic) {
 }
 
 async fn run(cli: Cli, mut notifier: Notifier, log: Option<Arc<LogFile>>) -> ExitCode {
+    // Held (locked) until the server ends; written after -d forked, so it
+    // names the server, not the parent that waits for its start.
+    let _pid_file = match cli
+        .pid_path()
+        .map(|path| plccoms::pidfile::PidFile::create(&path))
+    {
+        Some(Ok(pid_file)) => {
+            // Clients never write it (WRITEFILE:./PLCComS.pid).
+            plccoms_core::localfs::protect(pid_file.path(), false);
+            Some(pid_file)
+        }
+        Some(Err(message)) => {
+            error!("{message}");
+            notifier.fail(&message);
+            return ExitCode::FAILURE;
+        }
+        None => None,
+    };
     // SIGHUP reopens the log (logrotate) instead of ending the server.
     if let Err(err) = logfile::reopen_on_hangup(log) {
         let message = format!("cannot handle SIGHUP: {err}");
@@ -186,9 +204,10 @@ async fn run(cli: Cli, mut notifier: Notifier, log: Option<Arc<LogFile>>) -> Exi
             }
         };
     info!(
-        "plccoms {} running, {} section(s)",
+        "plccoms {} running, {} section(s), pid {}",
         env!("CARGO_PKG_VERSION"),
-        server.sections.len()
+        server.sections.len(),
+        std::process::id()
     );
     notifier.ready();
     let config_changed = async {

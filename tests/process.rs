@@ -548,6 +548,60 @@ fn peer_closed(mut stream: UnixStream) -> bool {
 
 // ------------------------------------------------------------------ tests --
 
+/// `-d` in `dir` with `site`'s configuration: the parent's exit status and
+/// what it printed on stderr.
+fn daemon_start_in(site: &Site, dir: &Path) -> (ExitStatus, String) {
+    let err = site.dir.path().join("parent.err");
+    let mut command = site.command(&["-d"]);
+    command
+        .current_dir(dir)
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&err).unwrap());
+    let status = Proc::spawn(&mut command).exit();
+    (status, read(&err))
+}
+
+#[test]
+fn the_daemon_holds_its_pid_file_and_one_left_by_a_crash_does_not_block() {
+    become_subreaper();
+    let first = Site::new();
+    first.simulated();
+    let second = Site::new();
+    second.simulated();
+    // Both started in the first site's folder: the same default pid file.
+    let dir = first.dir.path();
+    let pid_file = dir.join("PLCComS.pid");
+    let (status, err) = daemon_start_in(&first, dir);
+    assert!(status.success(), "{err}");
+    let daemon = Daemon::find(&first.ini()).expect("the first daemon");
+    assert_eq!(read(&pid_file).trim(), daemon.pid.to_string());
+    first.wait_log(&format!("pid {}", daemon.pid));
+
+    let (status, err) = daemon_start_in(&second, dir);
+    assert!(
+        !status.success(),
+        "a second server with the same pid file starts"
+    );
+    assert!(
+        err.contains(&format!(
+            "another plccoms (pid {}) is running with it",
+            daemon.pid
+        )),
+        "{err}"
+    );
+    assert!(Daemon::find(&second.ini()).is_none());
+
+    // A crash leaves the file behind; the next start takes it over.
+    drop(daemon);
+    assert!(pid_file.exists(), "SIGKILL leaves the file");
+    let (status, err) = daemon_start_in(&second, dir);
+    assert!(status.success(), "a stale pid file blocks the start: {err}");
+    let daemon = Daemon::find(&second.ini()).expect("the second daemon");
+    assert_eq!(read(&pid_file).trim(), daemon.pid.to_string());
+    assert_eq!(daemon.terminate(), 0);
+    assert!(!pid_file.exists(), "removed at a clean stop");
+}
+
 #[test]
 fn daemon_starts_listening_and_appends_to_its_log() {
     become_subreaper();

@@ -1,6 +1,6 @@
 # Print an optspec for argparse to handle cmd's options that are independent of any subcommand.
 function __fish_plccoms_global_optspecs
-    string join \n d/daemon t/terminate v/verbose c/config= l/log= h/help V/version
+    string join \n d/daemon t/terminate v/verbose c/config= l/log= pid-file= h/help V/version
 end
 
 function __fish_plccoms_needs_command
@@ -26,6 +26,7 @@ end
 
 complete -c plccoms -n "__fish_plccoms_needs_command" -s c -l config -d 'Configuration file' -r -F
 complete -c plccoms -n "__fish_plccoms_needs_command" -s l -l log -d 'Log file (without it, reports go to the terminal unless -d is given)' -r -F
+complete -c plccoms -n "__fish_plccoms_needs_command" -l pid-file -d 'Pid file, locked while the server runs (with -d: PLCComS.pid unless given; a file left by a crash is taken over)' -r -F
 complete -c plccoms -n "__fish_plccoms_needs_command" -s d -l daemon -d 'Run in the background; reports go to the log file (PLCComS.log unless -l is given)'
 complete -c plccoms -n "__fish_plccoms_needs_command" -s t -l terminate -d 'Terminate if the configuration file was changed'
 complete -c plccoms -n "__fish_plccoms_needs_command" -s v -l verbose -d 'Verbose mode (multiple -v options increase the verbosity)'
