@@ -19,6 +19,35 @@ pub mod watch;
 
 use plccoms_core::driver::Drivers;
 
+/// The crates whose reports `-v` and `-vv` raise; the libraries under them
+/// (tokio's `mio::poll`, hyper, rustls) stay at `info`, so a trace shows
+/// the server's work, not the I/O loop's. `tests/layers.rs` checks that
+/// every crate of the workspace that runs in the server is listed.
+pub const OUR_CRATES: &[&str] = &[
+    "plccoms",
+    "plccoms_protocol",
+    "plccoms_plc",
+    "plccoms_core",
+    "plccoms_driver_epsnet",
+    "plccoms_driver_modbus",
+    "plccoms_driver_plugin",
+    "plccoms_telnet",
+    "plccoms_historian",
+    "plccoms_mqtt",
+    "plccoms_web",
+    "plcsim",
+];
+
+/// The log filter for `level` (`info`, `debug`, `trace`): our crates at
+/// that level, every other at `info`.
+pub fn log_filter(level: &str) -> String {
+    let mut filter = String::from("info");
+    for name in OUR_CRATES {
+        filter.push_str(&format!(",{name}={level}"));
+    }
+    filter
+}
+
 /// The south drivers of this build: adding a driver is its crate and one
 /// line here (and its cargo feature in Cargo.toml).
 pub const DRIVERS: Drivers = Drivers(&[

@@ -73,7 +73,7 @@ fn init_logging(cli: &Cli) -> Result<Option<Arc<LogFile>>, String> {
     use tracing_subscriber::layer::SubscriberExt;
     use tracing_subscriber::util::SubscriberInitExt;
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(plccoms::log_filter(level)));
     // The log, and the last warnings and errors kept for the web page.
     let registry = tracing_subscriber::registry()
         .with(filter)

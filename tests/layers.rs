@@ -277,3 +277,30 @@ fn wrong_arrows_are_named() {
         ["drivers/a: plccoms-driver-a (Driver) may not depend on plcsim (Simulator)"]
     );
 }
+
+/// `-v`/`-vv` raise the reports of the crates plccoms::OUR_CRATES lists
+/// and keep the libraries' at info: every crate the server runs is there.
+#[test]
+fn every_crate_the_server_runs_is_raised_by_verbose() {
+    let root_dir = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let root = std::fs::read_to_string(root_dir.join("Cargo.toml")).unwrap();
+    for dir in members(&root) {
+        let manifest = if dir == "." {
+            root.clone()
+        } else {
+            std::fs::read_to_string(root_dir.join(&dir).join("Cargo.toml")).unwrap()
+        };
+        let name = package_name(&manifest);
+        if matches!(layer_of(&dir, &name), Layer::Outside | Layer::PluginAbi) {
+            continue;
+        }
+        let lib = name.replace('-', "_");
+        assert!(
+            plccoms::OUR_CRATES.contains(&lib.as_str()),
+            "{lib} is not in plccoms::OUR_CRATES: -vv would not show its reports"
+        );
+    }
+    let filter = plccoms::log_filter("trace");
+    assert!(filter.starts_with("info,"), "{filter}");
+    assert!(filter.contains(",plccoms_core=trace"), "{filter}");
+}

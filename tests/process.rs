@@ -602,6 +602,36 @@ fn the_daemon_holds_its_pid_file_and_one_left_by_a_crash_does_not_block() {
     assert!(!pid_file.exists(), "removed at a clean stop");
 }
 
+/// `-vv`: the server's own trace, without the I/O loop's (`mio::poll`) or
+/// other libraries' below info.
+#[test]
+fn verbose_traces_the_server_and_not_its_libraries() {
+    let site = Site::new();
+    site.simulated();
+    let server = site.run(&["-vv"]);
+    let mut c = site.client();
+    c.ask("GET:__PLC_RUN\n", "GET:__PLC_RUN,1");
+    drop(c);
+    drop(server);
+    let log = site.log_text();
+    let debug_or_trace: Vec<&str> = log
+        .lines()
+        .filter(|l| l.contains(" TRACE ") || l.contains(" DEBUG "))
+        .collect();
+    assert!(
+        debug_or_trace.iter().any(|l| l.contains(" plccoms")),
+        "no trace of the server's own:\n{log}"
+    );
+    let foreign: Vec<&&str> = debug_or_trace
+        .iter()
+        .filter(|l| !(l.contains(" plccoms") || l.contains(" plcsim")))
+        .collect();
+    assert!(
+        foreign.is_empty(),
+        "libraries' debug or trace lines: {foreign:#?}"
+    );
+}
+
 #[test]
 fn daemon_starts_listening_and_appends_to_its_log() {
     become_subreaper();
