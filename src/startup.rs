@@ -347,9 +347,7 @@ fn start_web(
 /// files; else `dir` itself (empty), the configuration's folder, as the
 /// vendor's server.
 fn files_root(global: &plccoms_core::config::Global, dir: &Path) -> Result<PathBuf, String> {
-    let state = std::env::var_os("STATE_DIRECTORY")
-        .and_then(|dirs| std::env::split_paths(&dirs).next())
-        .filter(|d| d.is_absolute());
+    let state = plccoms_core::config::systemd_state_dir();
     // As given (relative: from `dir`, which the sections join).
     let root = match (&global.files_root, state) {
         (Some(root), _) => root.clone(),

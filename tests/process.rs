@@ -632,6 +632,50 @@ fn verbose_traces_the_server_and_not_its_libraries() {
     );
 }
 
+/// Under systemd the configuration's folder is read-only (`/etc/plccoms`,
+/// `ProtectSystem=strict`): what the server writes, the history and the
+/// MQTT queues, goes to `$STATE_DIRECTORY`; run by hand, beside the
+/// configuration, as before.
+#[test]
+fn written_state_goes_to_the_state_directory_under_systemd() {
+    let broker = common::mqtt::Broker::anonymous();
+    for systemd in [true, false] {
+        let site = Site::new();
+        let state = tempfile::tempdir().unwrap();
+        site.write_ini(&format!(
+            "[*]\nCOMM_LOOP_DELAY = 20\nMQTT_URL = {}\n[Demo]\nSIMULATOR = Yes\n\
+             SIMULATOR_PROGRAM = demo\nIPADDR_LOCAL = 127.0.0.1\nSERVER_PORT = {}\n\
+             PUBFILE = //demo.pub\nHISTORY = COUNTER\n",
+            broker.url(),
+            site.port
+        ));
+        let mut command = site.command(&[]);
+        if systemd {
+            command.env("STATE_DIRECTORY", state.path());
+        } else {
+            command.env_remove("STATE_DIRECTORY");
+        }
+        let server = Proc::spawn(command.stdout(Stdio::null()).stderr(Stdio::null()));
+        site.wait_log("running");
+        let (written, clean) = if systemd {
+            (state.path(), site.dir.path())
+        } else {
+            (site.dir.path(), state.path())
+        };
+        wait_for("the history and the MQTT queue folders", || {
+            written.join("history").is_dir() && written.join("mqtt-spool").is_dir()
+        });
+        for folder in ["history", "mqtt-spool"] {
+            assert!(
+                !clean.join(folder).exists(),
+                "systemd {systemd}: {folder} in {}",
+                clean.display()
+            );
+        }
+        drop(server);
+    }
+}
+
 #[test]
 fn daemon_starts_listening_and_appends_to_its_log() {
     become_subreaper();

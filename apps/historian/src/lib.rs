@@ -62,7 +62,7 @@ pub const MAX_QUEUED: u64 = 500_000;
 /// The folder of the history files: HISTORY_DIR, relative to the
 /// configuration file's folder, by default `history` there.
 pub fn history_dir(config_path: &Path, global: &Global) -> PathBuf {
-    global.history_dir(&plccoms_core::config::config_dir(config_path))
+    global.history_dir(&plccoms_core::config::state_dir(config_path))
 }
 
 /// Whether the historian writes.

@@ -91,7 +91,8 @@ impl Settings {
             prefix: mqtt.prefix.clone(),
             tls,
             buffer: mqtt.buffer,
-            spool: dir.join(&mqtt.spool),
+            // Written: under systemd the configuration's folder is read-only.
+            spool: config::state_dir(config_path).join(&mqtt.spool),
         }))
     }
 

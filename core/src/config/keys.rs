@@ -643,7 +643,7 @@ static KEYS: &[Key] = &[
         Setter::Global(|g, v| g.http_key = Some(v.text()))),
     // The historian (issue 13).
     row("HISTORY_DIR", None, Kind::Path(PathUse::State),
-        "folder of the history files (default: history beside the configuration file)",
+        "folder of the history files, relative to $STATE_DIRECTORY under systemd, else to the configuration's folder (default: history)",
         Setter::Global(|g, v| g.history_dir = Some(v.text()))),
     row("HISTORY_RETENTION", None, Kind::Form(Form::Retention),
         "history kept: days and/or a size; older day files are deleted (default: all)",
@@ -682,7 +682,7 @@ static KEYS: &[Key] = &[
         "unsent messages kept on disk per section; over it the oldest are dropped",
         Setter::Global(|g, v| g.mqtt.buffer = v.number())),
     row("MQTT_SPOOL", Some("mqtt-spool"), Kind::Path(PathUse::State),
-        "folder of the on-disk queues (relative to the configuration file)",
+        "folder of the on-disk queues, relative to $STATE_DIRECTORY under systemd, else to the configuration's folder",
         Setter::Global(|g, v| g.mqtt.spool = v.text())),
 
     // A PLC section.

@@ -69,6 +69,22 @@ pub fn config_dir(path: &Path) -> PathBuf {
     }
 }
 
+/// The folder systemd gives the service for its state (`StateDirectory=` in
+/// the shipped unit: `/var/lib/plccoms`), when it runs under systemd.
+pub fn systemd_state_dir() -> Option<PathBuf> {
+    std::env::var_os("STATE_DIRECTORY")
+        .and_then(|dirs| std::env::split_paths(&dirs).next())
+        .filter(|d| d.is_absolute())
+}
+
+/// Where a relative path of a key the server writes (HISTORY_DIR,
+/// MQTT_SPOOL) starts: the state directory under systemd, where the
+/// configuration's folder (`/etc/plccoms`) is read-only; else the
+/// configuration's folder, for a server run by hand.
+pub fn state_dir(config_path: &Path) -> PathBuf {
+    systemd_state_dir().unwrap_or_else(|| config_dir(config_path))
+}
+
 /// A file or folder the configuration names, where it is on this machine.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct OwnPath {
@@ -86,6 +102,7 @@ impl Config {
     /// FILES_ROOT, the clients' own folder, is not among them.
     pub fn own_paths(&self) -> Vec<OwnPath> {
         let dir = config_dir(&self.path);
+        let state = state_dir(&self.path);
         let mut own = Vec::new();
         let mut add = |key, section: Option<&Section>, path, used| {
             if used != PathUse::ClientFiles {
@@ -98,12 +115,17 @@ impl Config {
             }
         };
         for p in &self.global.paths {
-            add(p.key, None, dir.join(&p.text), p.used);
+            let base = if p.used == PathUse::State {
+                &state
+            } else {
+                &dir
+            };
+            add(p.key, None, base.join(&p.text), p.used);
         }
         add(
             "HISTORY_DIR",
             None,
-            self.global.history_dir(&dir),
+            self.global.history_dir(&state),
             PathUse::State,
         );
         for section in &self.sections {
@@ -116,8 +138,8 @@ impl Config {
 }
 
 impl Global {
-    /// The history folder: HISTORY_DIR, relative to `dir` (the
-    /// configuration's folder), by default `history` there.
+    /// The history folder: HISTORY_DIR, relative to `dir` (the state
+    /// folder, [`state_dir`]), by default `history` there.
     pub fn history_dir(&self, dir: &Path) -> PathBuf {
         dir.join(self.history_dir.as_deref().unwrap_or("history"))
     }
