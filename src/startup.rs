@@ -379,17 +379,8 @@ async fn start_one(
     info!(
         section = %section.name,
         variables = table.len(),
-        "public files loaded: {}{}{}",
-        source.fixed_name,
-        user.as_ref().map(|u| format!(", {}", u.name)).unwrap_or_default(),
-        if from_plc {
-            format!(
-                "; {} is read from the PLC when it answers",
-                source.kind.name(section).map_or("", String::as_str)
-            )
-        } else {
-            String::new()
-        }
+        "{}",
+        source.loaded_line(section, user.as_ref(), from_plc)
     );
     let bind_ip = section.ipaddr_local.unwrap_or(Ipv4Addr::UNSPECIFIED);
     let bind = SocketAddr::new(IpAddr::V4(bind_ip), section.server_port);

@@ -158,6 +158,27 @@ async fn an_edited_tag_file_is_loaded_with_settings_carried_over() {
         .await;
     c.wait_for_line(b"DIFF:SETPOINT,2.500000\r\n", Duration::from_secs(5))
         .await;
+    // The log speaks of the tag file, not of a PLC program or public file.
+    let want = "tag file tags.csv loaded: new variable table";
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    let log = loop {
+        let log = server.log();
+        if log.contains(want) {
+            break log;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{want:?} not in:\n{log}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert!(
+        log.contains("tag file changed, reloading (__PF_CRC "),
+        "{log}"
+    );
+    for epsnet in ["public file", "program", "FIXED.pub"] {
+        assert!(!log.contains(epsnet), "{epsnet:?} in the log:\n{log}");
+    }
 }
 
 #[tokio::test]

@@ -109,7 +109,8 @@ async fn every_type_order_and_table() {
         ("GET:flag15", "GET:FLAG15,1".into()),
         ("GET:flag0", "GET:FLAG0,1".into()),
         ("GET:flag7", "GET:FLAG7,0".into()),
-        ("GET:temp", "GET:TEMP,25.000000".into()),
+        // Scaled: a double in its shortest form (650 x 0.1 - 40).
+        ("GET:temp", "GET:TEMP,25".into()),
         ("GET:time_a", "GET:TIME_A,123456".into()),
         ("GET:in_int", "GET:IN_INT,321".into()),
         ("GET:in_real", "GET:IN_REAL,9.750000".into()),
@@ -124,7 +125,7 @@ async fn every_type_order_and_table() {
              'MISSING: Modbus exception 2 (illegal data address)'"
                 .into(),
         ),
-        ("LIST:temp", "LIST:TEMP,REAL*\r\nLIST:".into()),
+        ("LIST:temp", "LIST:TEMP,LREAL*\r\nLIST:".into()),
     ] {
         c.ask(&format!("{request}\r\n"), &format!("{answer}\r\n"))
             .await;
@@ -134,7 +135,7 @@ async fn every_type_order_and_table() {
     for (request, answer) in [
         ("SET:rw_int,-42", "DIFF:RW_INT,-42"),
         ("SET:rw_real,12.25", "DIFF:RW_REAL,12.250000"),
-        ("SET:rw_scaled,10.5", "DIFF:RW_SCALED,10.500000"),
+        ("SET:rw_scaled,10.5", "DIFF:RW_SCALED,10.5"),
         ("SET:rw_bit,1", "DIFF:RW_BIT,1"),
         ("GET:rw_word", "GET:RW_WORD,8"),
         ("SET:rw_bit,0", "DIFF:RW_BIT,0"),
@@ -150,7 +151,7 @@ async fn every_type_order_and_table() {
             "SET:rw_scaled,100000",
             "ERROR:35 Wrong parameter value in request: 'SET:rw_scaled,100000'",
         ),
-        ("GET:rw_scaled", "GET:RW_SCALED,10.500000"),
+        ("GET:rw_scaled", "GET:RW_SCALED,10.5"),
         (
             "SET:text5,\"Too long\"",
             "ERROR:35 Wrong parameter value in request: 'SET:text5,\"Too long\"'",
@@ -187,11 +188,120 @@ async fn every_type_order_and_table() {
         "GETINFO:IPADDR,127.0.0.1".into(),
         format!("GETINFO:MODBUS_PORT,{}", device.port),
         "GETINFO:MODBUS_UNIT,1".into(),
-        "GETINFO:PUBFILE,2/33 [FIXED.pub,tags.csv]".into(),
+        "GETINFO:MODBUS_TAGS,2/33 [tags.csv]".into(),
     ] {
         assert!(info.contains(&want), "{want} not in {info:?}");
     }
-    assert!(!info.iter().any(|l| l.starts_with("GETINFO:EPSPORT")));
+    // Nothing of EPSNET's: no EPSNET version, address or port, no
+    // FIXED.pub.
+    for epsnet in ["VERSION_EPSNET", "EPSADDR", "EPSPORT", "PUBFILE"] {
+        let key = format!("GETINFO:{epsnet},");
+        assert!(!info.iter().any(|l| l.starts_with(&key)), "{info:?}");
+    }
+    assert!(!info.iter().any(|l| l.contains("FIXED")), "{info:?}");
+    // Asked by name, PUBFILE names the tag file, as SETCONF:pubfile does.
+    c.ask("GETINFO:pubfile\r\n", "GETINFO:PUBFILE,2/33 [tags.csv]\r\n")
+        .await;
+}
+
+/// The log, once it has `want` (lines are written as the server goes).
+async fn log_with(server: &common::process::ServerProcess, want: &str) -> String {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    loop {
+        let log = server.log();
+        if log.contains(want) {
+            return log;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{want:?} not in the log:\n{log}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// What an S7-1200 user behind MB_SERVER found: `scale 0.1` printed 22.3
+/// as 22.299999, and `Temperature,REAL,holding,40001` was refused with
+/// "illegal data address" and no hint. Now: the value as written (or
+/// with the tag file's decimals), and the hint at load and at the refusal.
+#[tokio::test]
+async fn scaled_values_print_as_meant_and_a_reference_is_explained() {
+    let mut h = vec![223, 223, 1234];
+    h.extend(words(&22.3f32.to_be_bytes()));
+    let image = Image {
+        holding: vec![(0, h)],
+        ..Image::default()
+    };
+    let device = Pymodbus::start(free_port(), &image);
+    let dir = tempfile::tempdir().unwrap();
+    let tags = "name,type,table,address,scale,decimals\n\
+                tenths,INT,holding,0,0.1\n\
+                two,INT,holding,1,0.1,2\n\
+                milli,INT,holding,2,0.001\n\
+                real,REAL,holding,3,,1\n\
+                Temperature,REAL,holding,40001\n";
+    let server = modbus_server(dir.path(), device.port, tags, "");
+    let mut c = Client::connect(server.addr).await;
+    for (request, answer) in [
+        ("GET:tenths", "GET:TENTHS,22.3"),
+        ("GET:two", "GET:TWO,22.30"),
+        ("GET:milli", "GET:MILLI,1.234"),
+        ("GET:real", "GET:REAL,22.3"),
+        ("LIST:tenths", "LIST:TENTHS,LREAL*\r\nLIST:"),
+        ("LIST:real", "LIST:REAL,REAL*\r\nLIST:"),
+        ("SET:tenths,22.4", "DIFF:TENTHS,22.4"),
+        ("SET:two,-0.5", "DIFF:TWO,-0.50"),
+        (
+            "GET:temperature",
+            "ERROR:80 Unable to get data from address: \
+             'TEMPERATURE: Modbus exception 2 (illegal data address)'",
+        ),
+        (
+            "SET:temperature,20",
+            "ERROR:81 Unable to set data in to address: \
+             'TEMPERATURE: Modbus exception 2 (illegal data address)'",
+        ),
+    ] {
+        c.ask(&format!("{request}\r\n"), &format!("{answer}\r\n"))
+            .await;
+    }
+    // Polled: the DIFF carries the same text as GET.
+    c.ask(
+        "EN:tenths\r\n",
+        "WARNING:252 Changed active variables in public file: '[3/7]'\r\n",
+    )
+    .await;
+    c.expect(b"DIFF:TENTHS,22.4\r\n").await;
+    c.ask(
+        "EN:temperature\r\n",
+        "WARNING:252 Changed active variables in public file: '[4/7]'\r\n",
+    )
+    .await;
+
+    let hint = "holding 40001 looks like the 1-based reference 40001, which is holding 0 \
+                (addresses are 0-based)";
+    let log = log_with(
+        &server,
+        &format!(
+            "TEMPERATURE: the PLC refuses to read it (Modbus exception 2 (illegal data address)); \
+             polled alone, the others go on; {hint}"
+        ),
+    )
+    .await;
+    for want in [
+        format!("tag file tags.csv: line 6, column 4: {hint}; the tag loads as written"),
+        format!(
+            "write of holding 40001 refused: Modbus exception 2 (illegal data address); {hint}"
+        ),
+        "tag file loaded: tags.csv".to_string(),
+    ] {
+        assert!(log.contains(&want), "{want:?} not in the log:\n{log}");
+    }
+    // A refusal that is not about an address like a reference has no hint.
+    assert_eq!(log.matches("looks like").count(), 3, "{log}");
+    for epsnet in ["public file", "FIXED.pub", "program"] {
+        assert!(!log.contains(epsnet), "{epsnet:?} in the log:\n{log}");
+    }
 }
 
 #[tokio::test]

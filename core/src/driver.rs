@@ -102,6 +102,13 @@ pub trait PlcBackend: Send {
         1
     }
 
+    /// What may explain `refusal` of a read or write at `area`/`offset`, for
+    /// the log line that reports it (a Modbus tag naming the 1-based
+    /// reference 40001 where the device has holding 0).
+    fn refusal_hint(&self, _area: Area, _offset: u32, _refusal: &Refusal) -> Option<String> {
+        None
+    }
+
     /// Pause after the first failed connection attempt of an outage, and
     /// the longest it doubles to (see `link::health`).
     fn probe_backoff(&self) -> (std::time::Duration, std::time::Duration) {

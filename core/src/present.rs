@@ -279,6 +279,36 @@ mod tests {
         assert_eq!(nan.as_number(), None);
     }
 
+    /// A Modbus tag's text (a scaled value in its shortest form, a REAL with
+    /// the tag file's decimals) reads back as the value meant.
+    #[test]
+    fn a_tag_files_printed_values_read_back() {
+        let file = plccoms_plc::modbus::tags::parse(
+            b"name,type,table,address,scale,decimals\n\
+              tenths,INT,holding,0,0.1\n\
+              two,INT,holding,1,0.1,2\n\
+              real,REAL,holding,2,,1\n",
+        );
+        let opts = FormatOptions::default();
+        let cases: [(usize, &[u8], &str, f64); 4] = [
+            (0, &223i16.to_be_bytes(), "22.3", 22.3),
+            (0, &250i16.to_be_bytes(), "25", 25.0),
+            (1, &223i16.to_be_bytes(), "22.30", 22.3),
+            (2, &22.3f32.to_be_bytes(), "22.3", 22.3),
+        ];
+        for (index, bytes, text, number) in cases {
+            let var = file.tags[index].var();
+            let mut printed = Vec::new();
+            var.format(&var.decode(bytes), &opts, &mut printed);
+            assert_eq!(printed, text.as_bytes());
+            assert_eq!(
+                Presented::of(var.ty, &printed, &opts),
+                Presented::Number(number),
+                "{text}"
+            );
+        }
+    }
+
     #[test]
     fn strings_lose_their_quotes_and_keep_their_escapes() {
         let ty = IecType::String(16);

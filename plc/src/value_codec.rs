@@ -11,12 +11,23 @@
 //!   two characters a register, high byte first; [`Raw::Ts48`] a 48-bit count
 //!   of milliseconds since 1970-01-01 UTC in three registers (shown as DT
 //!   with milliseconds). With a [`Scale`] the client sees `raw x factor +
-//!   offset` as REAL, and a value written is converted back, refused when
-//!   the raw value does not fit its type.
+//!   offset`, computed in double precision, as LREAL, and a value written is
+//!   converted back, refused when the raw value does not fit its type.
+//!
+//! Printing ([`Codec::format`]): the vendor's forms, except where a tag file
+//! says more. Its `decimals` give a REAL's or LREAL's decimals (a REAL at
+//! most 6); a scaled value without them prints in its shortest form within
+//! NUM_OF_DECIMALS (at most 15): the shortest decimal that reads back as
+//! the same double when it has no more decimals than that, else rounded to
+//! that many with trailing zeros dropped. So 223 x 0.1 is `22.3`, not
+//! `22.3000000000`, and 4294967295 x 0.001 is `4294967.295`, not
+//! `4294967.2949999999`; with SCIENT_NOTATION the mantissa is shortened
+//! alike (`2.5e+01`). The text reads back as the value printed
+//! (`core::present` reads it).
 
 use std::fmt;
 
-use plccoms_protocol::value::Value;
+use plccoms_protocol::value::{FormatOptions, Value};
 use plccoms_protocol::IecType;
 
 /// The order of a multi-register value's bytes on the wire, named by where
@@ -83,7 +94,7 @@ pub enum Raw {
     Ts48,
 }
 
-/// Client value = raw x `factor` + `offset`, shown as REAL.
+/// Client value = raw x `factor` + `offset`, shown as LREAL.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Scale {
     pub factor: f64,
@@ -179,8 +190,33 @@ impl Codec {
             }
         };
         match r.scale {
-            Some(scale) => Value::Real((raw.as_f64() * scale.factor + scale.offset) as f32),
+            Some(scale) => Value::LReal(raw.as_f64() * scale.factor + scale.offset),
             None => raw,
+        }
+    }
+
+    /// Appends the text GET and DIFF print for `value` of client type `ty`,
+    /// `decimals` being what a tag file states (see the module's doc).
+    pub fn format(
+        &self,
+        ty: IecType,
+        decimals: Option<u8>,
+        value: &Value,
+        opts: &FormatOptions,
+        out: &mut Vec<u8>,
+    ) {
+        let real = matches!(ty, IecType::Real | IecType::Lreal);
+        let scaled = matches!(self, Codec::Registers(Registers { scale: Some(_), .. }));
+        match decimals {
+            Some(n) if real => {
+                let opts = FormatOptions {
+                    num_of_decimals: n,
+                    ..*opts
+                };
+                value.format(ty, &opts, out);
+            }
+            None if real && scaled => shortest(value.as_f64(), opts, out),
+            _ => value.format(ty, opts, out),
         }
     }
 
@@ -232,6 +268,60 @@ impl Codec {
             }
         }
         Ok(out)
+    }
+}
+
+/// A double in its shortest form within NUM_OF_DECIMALS (see the module).
+fn shortest(x: f64, opts: &FormatOptions, out: &mut Vec<u8>) {
+    let decimals = opts.decimals(IecType::Lreal);
+    if x.is_finite() {
+        // Rust prints the shortest decimal that reads back as `x`; never -0.
+        let x = if x == 0.0 { 0.0 } else { x };
+        let text = if opts.scient_notation {
+            format!("{x:e}")
+        } else {
+            format!("{x}")
+        };
+        let (mantissa, exponent) = match text.split_once('e') {
+            Some((m, e)) => (m, Some(e)),
+            None => (text.as_str(), None),
+        };
+        if mantissa.split_once('.').map_or(0, |(_, f)| f.len()) <= decimals {
+            out.extend_from_slice(mantissa.as_bytes());
+            if let Some(exponent) = exponent {
+                // glibc's form: a sign and at least two digits.
+                let exponent: i32 = exponent.parse().unwrap_or(0);
+                let sign = if exponent < 0 { '-' } else { '+' };
+                out.extend_from_slice(format!("e{sign}{:02}", exponent.unsigned_abs()).as_bytes());
+            }
+            return;
+        }
+    }
+    let start = out.len();
+    Value::LReal(x).format(IecType::Lreal, opts, out);
+    drop_trailing_zeros(out, start);
+}
+
+/// `22.3000000000` as `22.3`, `5.0000000000` as `5`, `2.5000e+01` as
+/// `2.5e+01` (the number printed from `start` on); `-0` as `0`.
+fn drop_trailing_zeros(out: &mut Vec<u8>, start: usize) {
+    let text = &out[start..];
+    let mantissa_end = text.iter().position(|&b| b == b'e').unwrap_or(text.len());
+    if !text[..mantissa_end].contains(&b'.') {
+        return;
+    }
+    let mut end = mantissa_end;
+    while text[end - 1] == b'0' {
+        end -= 1;
+    }
+    if text[end - 1] == b'.' {
+        end -= 1;
+    }
+    let exponent = text[mantissa_end..].to_vec();
+    out.truncate(start + end);
+    out.extend_from_slice(&exponent);
+    if out[start..] == *b"-0" {
+        out.remove(start);
     }
 }
 
@@ -408,15 +498,138 @@ mod tests {
         });
         // raw 650 -> 25.0
         assert_eq!(
-            codec.decode(IecType::Real, &[0x02, 0x8A]),
-            Value::Real(25.0)
+            codec.decode(IecType::Lreal, &[0x02, 0x8A]),
+            Value::LReal(25.0)
         );
         assert_eq!(
-            codec.encode(IecType::Real, &Value::Real(25.0)).unwrap(),
+            codec.encode(IecType::Lreal, &Value::LReal(25.0)).unwrap(),
             [0x02, 0x8A]
         );
         // (4000 + 40) / 0.1 = 40400 > 32767
-        assert!(codec.encode(IecType::Real, &Value::Real(4000.0)).is_err());
+        assert!(codec.encode(IecType::Lreal, &Value::LReal(4000.0)).is_err());
+    }
+
+    fn printed(
+        codec: &Codec,
+        ty: IecType,
+        decimals: Option<u8>,
+        bytes: &[u8],
+        opts: &FormatOptions,
+    ) -> String {
+        let mut out = b"DIFF:X,".to_vec();
+        codec.format(ty, decimals, &codec.decode(ty, bytes), opts, &mut out);
+        String::from_utf8(out).unwrap()
+    }
+
+    /// The user's `scale 0.1`: raw 223 is 22.3, not 22.299999.
+    #[test]
+    fn a_scaled_value_prints_short_or_with_its_decimals() {
+        let tenths = |raw: Raw| {
+            Codec::Registers(Registers {
+                raw,
+                order: WordOrder::Abcd,
+                scale: Some(Scale {
+                    factor: 0.1,
+                    offset: 0.0,
+                }),
+            })
+        };
+        let int = tenths(Raw::Iec(IecType::Int));
+        let opts = FormatOptions::default();
+        let raw = |n: i16| n.to_be_bytes();
+        let ty = IecType::Lreal;
+        assert_eq!(printed(&int, ty, None, &raw(223), &opts), "DIFF:X,22.3");
+        assert_eq!(printed(&int, ty, None, &raw(3), &opts), "DIFF:X,0.3");
+        assert_eq!(printed(&int, ty, None, &raw(250), &opts), "DIFF:X,25");
+        assert_eq!(printed(&int, ty, None, &raw(-5), &opts), "DIFF:X,-0.5");
+        assert_eq!(printed(&int, ty, None, &raw(0), &opts), "DIFF:X,0");
+        assert_eq!(printed(&int, ty, Some(1), &raw(250), &opts), "DIFF:X,25.0");
+        assert_eq!(printed(&int, ty, Some(2), &raw(223), &opts), "DIFF:X,22.30");
+        assert_eq!(printed(&int, ty, Some(0), &raw(226), &opts), "DIFF:X,23");
+        // Within NUM_OF_DECIMALS: 2 decimals at most.
+        let two = FormatOptions {
+            num_of_decimals: 2,
+            ..opts
+        };
+        let hundredths = Codec::Registers(Registers {
+            raw: Raw::Iec(IecType::Int),
+            order: WordOrder::Abcd,
+            scale: Some(Scale {
+                factor: 0.001,
+                offset: 0.0,
+            }),
+        });
+        assert_eq!(
+            printed(&hundredths, ty, None, &raw(1234), &two),
+            "DIFF:X,1.23"
+        );
+        assert_eq!(printed(&hundredths, ty, None, &raw(-1), &two), "DIFF:X,0");
+        // A counter past what a REAL holds keeps its last digits.
+        let udint = Codec::Registers(Registers {
+            raw: Raw::Iec(IecType::Udint),
+            order: WordOrder::Abcd,
+            scale: Some(Scale {
+                factor: 0.001,
+                offset: 0.0,
+            }),
+        });
+        let wire = u32::MAX.to_be_bytes();
+        assert_eq!(
+            printed(&udint, ty, None, &wire, &opts),
+            "DIFF:X,4294967.295"
+        );
+        let scient = FormatOptions {
+            scient_notation: true,
+            ..opts
+        };
+        assert_eq!(
+            printed(&int, ty, None, &raw(250), &scient),
+            "DIFF:X,2.5e+01"
+        );
+    }
+
+    #[test]
+    fn decimals_apply_to_unscaled_reals_and_nothing_else() {
+        let real = regs(Raw::Iec(IecType::Real), WordOrder::Abcd);
+        let opts = FormatOptions::default();
+        let wire = 22.3f32.to_be_bytes();
+        assert_eq!(
+            printed(&real, IecType::Real, None, &wire, &opts),
+            "DIFF:X,22.299999"
+        );
+        assert_eq!(
+            printed(&real, IecType::Real, Some(1), &wire, &opts),
+            "DIFF:X,22.3"
+        );
+        assert_eq!(
+            printed(&real, IecType::Real, Some(9), &wire, &opts),
+            "DIFF:X,22.299999"
+        );
+        let lreal = regs(Raw::Iec(IecType::Lreal), WordOrder::Abcd);
+        let wire = 1.25f64.to_be_bytes();
+        assert_eq!(
+            printed(&lreal, IecType::Lreal, Some(3), &wire, &opts),
+            "DIFF:X,1.250"
+        );
+        assert_eq!(
+            printed(&lreal, IecType::Lreal, None, &wire, &opts),
+            "DIFF:X,1.2500000000"
+        );
+        let int = regs(Raw::Iec(IecType::Int), WordOrder::Abcd);
+        assert_eq!(
+            printed(&int, IecType::Int, Some(2), &[0, 7], &opts),
+            "DIFF:X,7"
+        );
+        assert_eq!(
+            printed(
+                &Codec::Native,
+                IecType::Real,
+                None,
+                &22.5f32.to_le_bytes(),
+                &opts
+            ),
+            "DIFF:X,22.500000"
+        );
     }
 
     #[test]

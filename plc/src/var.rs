@@ -4,7 +4,7 @@
 //! use ([`VarDef`], a public file's line), also made from a Modbus tag
 //! ([`crate::modbus::tags::Tag::var`]).
 
-use plccoms_protocol::value::Value;
+use plccoms_protocol::value::{FormatOptions, Value};
 use plccoms_protocol::{Area, IecType};
 
 use crate::memory::WriteData;
@@ -71,6 +71,15 @@ impl Var {
             (Some(bit), Value::Bool(on)) => Ok(WriteData::Bit { bit, value: *on }),
             _ => self.codec.encode(self.ty, value).map(WriteData::Bytes),
         }
+    }
+
+    /// Appends the text GET and DIFF print for `value`: the vendor's form,
+    /// or what the tag file's decimals and scale make it
+    /// ([`Codec::format`]). Every face prints through here, so the telnet
+    /// port, MQTT and the web page show the same value.
+    pub fn format(&self, value: &Value, opts: &FormatOptions, out: &mut Vec<u8>) {
+        let decimals = self.info.as_ref().and_then(|info| info.decimals);
+        self.codec.format(self.ty, decimals, value, opts, out);
     }
 
     /// Bytes read from PLC memory for this variable.

@@ -451,9 +451,9 @@ impl Publisher {
         };
         if changed {
             self.scratch.clear();
-            value
-                .unwrap_or_else(|| var.decode(bytes))
-                .format(ty, &self.format, &mut self.scratch);
+            // Through the variable: a tag file's decimals and scale count.
+            let value = value.unwrap_or_else(|| var.decode(bytes));
+            var.format(&value, &self.format, &mut self.scratch);
             slot.raw = raw;
             slot.text = Some(Arc::from(&self.scratch[..]));
             slot.changed_seq = seq;

@@ -40,8 +40,10 @@ pub struct Round {
 pub struct SystemEvents {
     /// `__PLC_RUN` went from HALT to RUN: the link is re-initialised.
     pub halt_to_run: bool,
-    /// `__PF_CRC` changed: the PLC runs another program.
-    pub program_changed: bool,
+    /// `__PF_CRC` changed (from, to): the PLC runs another program, or a
+    /// Modbus section's tag file was edited. The link logs it in its
+    /// backend's terms.
+    pub crc_changed: Option<(u64, u64)>,
     /// `__PF_CRC` as read, once known.
     pub pf_crc: Option<u64>,
 }
@@ -282,8 +284,7 @@ impl Cycle {
         };
         if let (Some(last), Some(now)) = (self.last_crc, crc) {
             if last != now {
-                info!(section = %self.section, "__PF_CRC changed ({last:08X} -> {now:08X}): the PLC's program changed, reloading the public file");
-                events.program_changed = true;
+                events.crc_changed = Some((last, now));
             }
         }
         self.last_crc = crc;

@@ -49,7 +49,7 @@ use health::{Connected, Failure, Health, SharedState};
 pub use jobs::SetItem;
 pub use reconf::ConfChange;
 use state::{LinkStatus, SectionState};
-use tables::{LoadError, NamedBy, PubSource, UserFile};
+use tables::{LoadError, NamedBy, PubSource, UserFile, UserKind};
 
 /// Why the link could not serve a request.
 #[derive(Debug, thiserror::Error)]
@@ -487,7 +487,11 @@ impl Link {
         }
         if self.tables.as_ref().is_some_and(|t| t.pending_fetch) {
             if let Err(err) = self.reload(NamedBy::Configuration).await {
-                warn!(section = %self.name, "{err}; serving the fixed variables only, tried again at the next connection");
+                let serving = match self.user_kind() {
+                    UserKind::PubFile => "the fixed variables",
+                    UserKind::ModbusTags => "__PLC_RUN and __PF_CRC",
+                };
+                warn!(section = %self.name, "{err}; serving {serving} only, tried again at the next connection");
             }
         }
         // After the table: sessions waiting for it see both at once.
@@ -578,12 +582,14 @@ impl Link {
                 Err(err) => return self.failed(&err),
             }
         }
-        if events.program_changed {
+        if let Some((last, now)) = events.crc_changed {
+            let kind = self.user_kind();
+            info!(section = %self.name, "{}", kind.changed(last, now));
             if let Some(tables) = self.tables.as_mut() {
                 tables.crc_checked = false;
             }
             if let Err(err) = self.reload(NamedBy::Configuration).await {
-                warn!(section = %self.name, "public file not reloaded: {err}");
+                warn!(section = %self.name, "{} not reloaded: {err}", kind.what());
             }
             return;
         }
@@ -608,10 +614,19 @@ impl Link {
         }
     }
 
+    /// What describes this section's variables: a public file, or a tag
+    /// file (its log lines say so).
+    fn user_kind(&self) -> UserKind {
+        self.tables
+            .as_ref()
+            .map_or_else(|| UserKind::of(&self.config()), |t| t.source.kind)
+    }
+
     /// PUBFILE_CRC: the user file's CRC trailer must match `__PF_CRC`. A
-    /// mismatch is logged once per file; the variables stay served.
+    /// mismatch is logged once per file; the variables stay served. Not for
+    /// a tag file: a Modbus section's `__PF_CRC` is that file's own CRC.
     fn check_crc(&mut self, pf_crc: u64) {
-        let check = self.state.borrow().config.pubfile_crc;
+        let check = self.state.borrow().config.pubfile_crc && self.user_kind() == UserKind::PubFile;
         let Some(tables) = self.tables.as_mut() else {
             return;
         };
@@ -693,7 +708,7 @@ impl Link {
         // A PLC that cannot be asked now is asked at its next connection.
         self.tables.as_mut().expect("checked above").pending_fetch = loaded.is_err();
         let (user, table) = loaded?;
-        if by == NamedBy::Client && config.pubfile_crc {
+        if by == NamedBy::Client && config.pubfile_crc && source.kind == UserKind::PubFile {
             let file = user.as_ref().map_or("", |u| u.name.as_str());
             let Some(crc) = user
                 .as_ref()
@@ -723,15 +738,16 @@ impl Link {
             .as_ref()
             .map_or_else(|| tables.source.fixed_name.clone(), |u| u.name.clone());
         let changed = user != tables.user;
+        let what = tables.source.kind.what();
         if changed {
-            info!(section = %self.name, variables = table.len(), "public file {name} loaded: new variable table");
+            info!(section = %self.name, variables = table.len(), "{what} {name} loaded: new variable table");
             self.publisher.replace_table(Arc::new(table));
             self.metrics.pubfile_reloads.inc();
             self.cycle.reset();
             tables.user = user;
             tables.crc_checked = false;
         } else {
-            info!(section = %self.name, "public file {name} reloaded: content unchanged");
+            info!(section = %self.name, "{what} {name} reloaded: content unchanged");
         }
         let notice = self.publisher.announce(changed, name);
         self.publisher.publish();
@@ -817,7 +833,8 @@ impl Link {
         } else {
             None
         };
-        info!(section = %self.name, "SETCONF: {change:?}");
+        let said = change.describe(tables.source.kind == UserKind::ModbusTags);
+        info!(section = %self.name, "SETCONF: {said}");
         self.set_config(config);
         let mut old_backend = None;
         if let Some(backend) = backend {
@@ -829,7 +846,7 @@ impl Link {
             self.relinked();
             if self.backend.is_none() || !self.probe().await {
                 let describe = describe(self.backend.as_deref());
-                warn!(section = %self.name, "SETCONF {change:?} refused: the PLC at {describe} does not answer; the section keeps its settings");
+                warn!(section = %self.name, "SETCONF {said} refused: the PLC at {describe} does not answer; the section keeps its settings");
                 self.undo(before, old_backend, pending_before);
                 return Err(ReconfError::Unreachable(describe));
             }
@@ -841,7 +858,7 @@ impl Link {
         match self.reload(by).await {
             Ok(notice) => Ok(ReconfOutcome { notice }),
             Err(err) => {
-                warn!(section = %self.name, "SETCONF {change:?} refused: {err}; the section keeps its settings");
+                warn!(section = %self.name, "SETCONF {said} refused: {err}; the section keeps its settings");
                 self.undo(before, old_backend, pending_before);
                 Err(ReconfError::PubFile(err))
             }

@@ -15,6 +15,23 @@ pub enum ConfChange {
     PubFile(String),
 }
 
+impl ConfChange {
+    /// As the client's SETCONF names it, for the log; on a section whose
+    /// variables come from a tag file `pubfile` names that file, and the log
+    /// says so rather than speak of a public file.
+    pub fn describe(&self, tag_file: bool) -> String {
+        match self {
+            ConfChange::IpAddr(ip) => format!("ipaddr,{ip}"),
+            ConfChange::EpsAddr(addr) => format!("epsaddr,{addr}"),
+            ConfChange::EpsPort(port) => format!("epsport,{port}"),
+            ConfChange::SerialDevice(device) => format!("serial_device,{device}"),
+            ConfChange::SerialSpeed(speed) => format!("serial_speed,{speed}"),
+            ConfChange::PubFile(name) if tag_file => format!("pubfile,{name} (the tag file)"),
+            ConfChange::PubFile(name) => format!("pubfile,{name}"),
+        }
+    }
+}
+
 /// `config` with `change` applied, and whether the link changes.
 pub fn apply(config: &Section, change: &ConfChange) -> (Section, bool) {
     let mut config = config.clone();

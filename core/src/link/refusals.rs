@@ -129,9 +129,15 @@ impl Split<'_> {
     fn refuse(&mut self, id: VarId, range: Range, exception: Refusal) {
         if self.refusals.alone.insert(id) {
             self.refusals.holes.push(range);
+            let var = self.table.var(id);
+            let hint = self
+                .backend
+                .refusal_hint(var.area, var.offset, &exception)
+                .map(|hint| format!("; {hint}"))
+                .unwrap_or_default();
             warn!(
                 section = %self.section,
-                "{}: the PLC refuses to read it ({exception}); polled alone, the others go on",
+                "{}: the PLC refuses to read it ({exception}); polled alone, the others go on{hint}",
                 name(self.table, id)
             );
         }

@@ -55,10 +55,25 @@ impl UserKind {
         }
     }
 
-    fn what(self) -> &'static str {
+    /// What logs call the file: each backend's own term.
+    pub fn what(self) -> &'static str {
         match self {
             UserKind::PubFile => "public file",
             UserKind::ModbusTags => "tag file",
+        }
+    }
+
+    /// The log line of a changed `__PF_CRC`: a Tecomat PLC runs another
+    /// program (the vendor's wording); a Modbus section's tag file was
+    /// edited (its `__PF_CRC` is the file's CRC).
+    pub fn changed(self, last: u64, now: u64) -> String {
+        match self {
+            UserKind::PubFile => format!(
+                "__PF_CRC changed ({last:08X} -> {now:08X}): the PLC's program changed, reloading the public file"
+            ),
+            UserKind::ModbusTags => {
+                format!("tag file changed, reloading (__PF_CRC {last:08X} -> {now:08X})")
+            }
         }
     }
 }
@@ -243,6 +258,37 @@ impl PubSource {
             warn!(section = %section, "{what}: {more} more problems not shown");
         }
         Ok(table)
+    }
+}
+
+impl PubSource {
+    /// The start-up log line of what was loaded: `public files loaded:
+    /// FIXED.pub, user.pub` (the user file maybe still to be read from the
+    /// PLC), or `tag file loaded: tags.csv` (no fixed file: a Modbus
+    /// backend answers the system variables itself).
+    pub fn loaded_line(
+        &self,
+        section: &Section,
+        user: Option<&UserFile>,
+        from_plc: bool,
+    ) -> String {
+        if self.kind == UserKind::ModbusTags {
+            return match user {
+                Some(user) => format!("tag file loaded: {}", user.name),
+                None => "no tag file: __PLC_RUN and __PF_CRC only".to_string(),
+            };
+        }
+        let mut line = format!("public files loaded: {}", self.fixed_name);
+        if let Some(user) = user {
+            line.push_str(&format!(", {}", user.name));
+        }
+        if from_plc {
+            line.push_str(&format!(
+                "; {} is read from the PLC when it answers",
+                self.kind.name(section).map_or("", String::as_str)
+            ));
+        }
+        line
     }
 }
 

@@ -158,7 +158,7 @@ impl WriteTarget {
         })?;
         let value = self.var.decode(&bytes);
         let mut text = Vec::new();
-        value.format(self.var.ty, &self.format, &mut text);
+        self.var.format(&value, &self.format, &mut text);
         Ok(Written {
             name: self.var.name.to_vec(),
             value,

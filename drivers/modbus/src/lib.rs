@@ -57,7 +57,9 @@ use plccoms_core::driver::{Driver, Opened};
 use plccoms_core::metrics::BackendCounters;
 use plccoms_plc::memory::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
 use plccoms_plc::modbus::frame::Request;
-use plccoms_plc::modbus::{ExceptionCode, Table, INPUT_BASE, MAX_WRITE_BITS, MAX_WRITE_REGISTERS};
+use plccoms_plc::modbus::{
+    ExceptionCode, Reference, Table, INPUT_BASE, MAX_WRITE_BITS, MAX_WRITE_REGISTERS,
+};
 
 /// Settings of one Modbus link (the section's keys).
 #[derive(Debug, Clone)]
@@ -416,6 +418,16 @@ impl PlcBackend for ModbusBackend {
         BACKOFF
     }
 
+    /// "Illegal data address" for a tag at 10000 or more that reads as a
+    /// 1-based reference (40001): say what it maps to (holding 0).
+    fn refusal_hint(&self, area: Area, offset: u32, refusal: &Refusal) -> Option<String> {
+        if *refusal != Refusal::Modbus(ExceptionCode::ILLEGAL_DATA_ADDRESS) {
+            return None;
+        }
+        let (table, address) = Table::locate(area, offset)?;
+        Reference::of_address(address).map(|r| r.hint(table, address))
+    }
+
     fn max_file_block(&self) -> u32 {
         1024
     }
@@ -499,7 +511,11 @@ impl PlcBackend for ModbusBackend {
                 let place = Table::locate(write.area, write.offset)
                     .map(|(table, address)| format!("{table} {address}"))
                     .unwrap_or_else(|| format!("{}{}", write.area, write.offset));
-                warn!(device = %self.config.device, "write of {place} refused: {e}");
+                let hint = self
+                    .refusal_hint(write.area, write.offset, e)
+                    .map(|hint| format!("; {hint}"))
+                    .unwrap_or_default();
+                warn!(device = %self.config.device, "write of {place} refused: {e}{hint}");
             }
             answers.push(answer);
         }

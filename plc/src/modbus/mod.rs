@@ -121,6 +121,61 @@ impl fmt::Display for Table {
     }
 }
 
+/// A 1-based reference as device manuals give it (`40001`), which is not
+/// the 0-based address on the wire (holding 0): the usual mistake in a tag
+/// file, answered by the device with "illegal data address".
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Reference {
+    /// As written (`40001`, `00017`, `400001`).
+    pub text: String,
+    /// What it names.
+    pub table: Table,
+    pub address: u16,
+}
+
+impl Reference {
+    /// `text` read as a reference: five digits (00001-09999 coil, with its
+    /// leading 0; 10001-19999 discrete; 30001-39999 input; 40001-49999
+    /// holding) or six (000001-065536, 100001-165536, 300001-365536,
+    /// 400001-465536).
+    pub fn parse(text: &str) -> Option<Reference> {
+        if !matches!(text.len(), 5 | 6) || !text.bytes().all(|b| b.is_ascii_digit()) {
+            return None;
+        }
+        let table = match text.as_bytes()[0] {
+            b'0' => Table::Coil,
+            b'1' => Table::Discrete,
+            b'3' => Table::Input,
+            b'4' => Table::Holding,
+            _ => return None,
+        };
+        let index: u32 = text[1..].parse().ok()?;
+        let address = u16::try_from(index.checked_sub(1)?).ok()?;
+        Some(Reference {
+            text: text.to_string(),
+            table,
+            address,
+        })
+    }
+
+    /// The reference a 0-based `address` may have been meant as: one of
+    /// 10000 or more that reads as one (a coil's 0xxxx has fewer digits).
+    pub fn of_address(address: u16) -> Option<Reference> {
+        (address >= 10_000)
+            .then(|| Reference::parse(&address.to_string()))
+            .flatten()
+    }
+
+    /// How `table address` (as a tag names it) maps if it was meant as this
+    /// reference.
+    pub fn hint(&self, table: Table, address: u16) -> String {
+        format!(
+            "{table} {address} looks like the 1-based reference {}, which is {} {} (addresses are 0-based)",
+            self.text, self.table, self.address
+        )
+    }
+}
+
 /// An exception code a device answered with.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub struct ExceptionCode(pub u8);
@@ -179,5 +234,30 @@ mod tests {
             }
         }
         assert_eq!(Table::locate(Area::S, 2), None);
+    }
+
+    #[test]
+    fn references_map_to_zero_based_addresses() {
+        let of = |text: &str| Reference::parse(text).map(|r| (r.table, r.address));
+        assert_eq!(of("40001"), Some((Table::Holding, 0)));
+        assert_eq!(of("49999"), Some((Table::Holding, 9998)));
+        assert_eq!(of("30010"), Some((Table::Input, 9)));
+        assert_eq!(of("10001"), Some((Table::Discrete, 0)));
+        assert_eq!(of("00017"), Some((Table::Coil, 16)));
+        assert_eq!(of("400001"), Some((Table::Holding, 0)));
+        assert_eq!(of("465536"), Some((Table::Holding, 65535)));
+        for not in [
+            "40000", "465537", "20001", "50001", "4001", "4000a", "", "0040001",
+        ] {
+            assert_eq!(of(not), None, "{not}");
+        }
+        assert_eq!(Reference::of_address(17), None);
+        assert_eq!(Reference::of_address(9999), None);
+        assert_eq!(Reference::of_address(20001), None);
+        let r = Reference::of_address(40001).unwrap();
+        assert_eq!(
+            r.hint(Table::Holding, 40001),
+            "holding 40001 looks like the 1-based reference 40001, which is holding 0 (addresses are 0-based)"
+        );
     }
 }

@@ -14,35 +14,45 @@
 //! - `name`, `type`, `table`, `address` are required; the rest optional.
 //! - `table`: `coil`, `discrete`, `input` or `holding`; `address` 0-based
 //!   (the 1-based reference 40001 is holding address 0, 30001 input 0,
-//!   10001 discrete 0, 00001 coil 0).
+//!   10001 discrete 0, 00001 coil 0). An address that reads as such a
+//!   reference (`40001`, `00017`) loads as written, with a warning saying
+//!   what it maps to; a six-digit one past 65535 (`400001`) is refused,
+//!   with the same hint.
 //! - `type`: every IEC type a public file has, `STRING[n]` (two characters a
 //!   register, high byte first) and `TS48` (milliseconds since 1970 UTC in
 //!   three registers, most significant first; clients see DT). Coils and
 //!   discrete inputs are BOOL; a BOOL in a register needs `bit` 0-15.
 //! - `order`: ABCD (default), CDAB, BADC or DCBA for values of two or more
 //!   registers (a STRING: ABCD or BADC).
-//! - `scale`, `offset`: the client sees raw x scale + offset as REAL.
+//! - `scale`, `offset`: the client sees raw x scale + offset, computed in
+//!   double precision, as LREAL.
 //! - `access`: `ro` or `rw`; default rw for coils and holding registers, ro
 //!   for the others (which cannot be written).
 //! - `unit`, `description`: for people (MQTT, Home Assistant, the web
 //!   page); the telnet port shows neither.
 //! - `min`, `max`: the range a writer may set (Home Assistant's number
-//!   entities); `decimals`: 0-15, how many decimals the value is printed with.
+//!   entities); `decimals`: 0-15, how many decimals a REAL, an LREAL or a
+//!   scaled value is printed with (a REAL at most 6; for other types it is
+//!   ignored, with a warning). A scaled value without it prints in its
+//!   shortest form within NUM_OF_DECIMALS (see [`crate::value_codec`]).
 //!
 //! Lines starting with `#` are comments; fields may be quoted; a value past
 //! the header's last column makes its line bad (empty trailing fields are
 //! fine). A file that
 //! is valid UTF-8 is read as UTF-8 (names are stored in cp1250, as public
 //! files'), any other as cp1250. A line that does not fit is skipped with a
-//! [`TagWarning`] naming its line and column; the rest loads. Pure: bytes
+//! [`TagWarning`] naming its line and column; the rest loads. A line that
+//! loads but is likely a mistake (an address that reads as a 1-based
+//! reference, decimals that do not apply) gets a warning too. Pure: bytes
 //! in, tags out.
 
 use std::collections::HashMap;
 use std::fmt;
 
+use plccoms_protocol::value::REAL_MAX_DECIMALS;
 use plccoms_protocol::{cp1250, Area, IecType};
 
-use super::Table;
+use super::{Reference, Table};
 use crate::value_codec::{Codec, Raw, Registers, Scale, WordOrder};
 
 /// One tag.
@@ -50,7 +60,7 @@ use crate::value_codec::{Codec, Raw, Registers, Scale, WordOrder};
 pub struct Tag {
     /// cp1250 bytes, case as written.
     pub name: Box<[u8]>,
-    /// The type clients see (REAL when scaled, DT for TS48).
+    /// The type clients see (LREAL when scaled, DT for TS48).
     pub ty: IecType,
     pub table: Table,
     pub address: u16,
@@ -249,7 +259,9 @@ pub fn parse(bytes: &[u8]) -> TagFile {
                 (fields.get(i).map_or("", String::as_str), i + 1)
             })
         };
-        match tag(&field, line, utf8, record.get(columns[&Column::Name])) {
+        let mut notes = Vec::new();
+        let raw_name = record.get(columns[&Column::Name]);
+        match tag(&field, line, utf8, raw_name, &mut notes) {
             Ok(tag) => {
                 let folded = cp1250::to_upper(&tag.name);
                 if let Some(&first) = seen.get(&folded) {
@@ -267,6 +279,13 @@ pub fn parse(bytes: &[u8]) -> TagFile {
                 } else {
                     seen.insert(folded, line);
                     file.tags.push(tag);
+                    for (column, message) in notes {
+                        file.warn(TagWarning {
+                            line,
+                            column: Some(column),
+                            message,
+                        });
+                    }
                 }
             }
             Err((column, message)) => file.warn(TagWarning {
@@ -377,11 +396,14 @@ fn header(
 
 type Field<'a> = dyn Fn(Column) -> (&'a str, usize) + 'a;
 
+/// The tag of one line, or the column at fault and why; `notes` gets
+/// (column, message) for what loads but is likely a mistake.
 fn tag(
     field: &Field<'_>,
     line: usize,
     utf8: bool,
     raw_name: Option<&[u8]>,
+    notes: &mut Vec<(usize, String)>,
 ) -> Result<Tag, (usize, String)> {
     let (name_text, name_col) = field(Column::Name);
     let name = name_bytes(name_text, utf8, raw_name.unwrap_or_default())
@@ -409,11 +431,30 @@ fn tag(
 
     let (address_text, address_col) = field(Column::Address);
     let address: u16 = address_text.parse().map_err(|_| {
+        let reference = Reference::parse(address_text)
+            .map(|r| {
+                format!(
+                    ": the 1-based reference {} is {} {}",
+                    r.text, r.table, r.address
+                )
+            })
+            .unwrap_or_default();
         (
             address_col,
-            format!("bad address '{address_text}' (0 to 65535, 0-based)"),
+            format!("bad address '{address_text}' (0 to 65535, 0-based){reference}"),
         )
     })?;
+    // 40001 in a manual is holding 0 on the wire; a device without
+    // register 40001 answers "illegal data address" and nothing more.
+    if let Some(reference) = Reference::parse(address_text) {
+        notes.push((
+            address_col,
+            format!(
+                "{}; the tag loads as written",
+                reference.hint(table, address)
+            ),
+        ));
+    }
 
     let (bit_text, bit_col) = field(Column::Bit);
     let bit = if bit_text.is_empty() {
@@ -550,11 +591,30 @@ fn tag(
         (IecType::Bool, Codec::Native)
     } else {
         let ty = match (raw, scale) {
-            (_, Some(_)) => IecType::Real,
+            // Computed in double precision: a REAL would turn 223 x 0.1
+            // into 22.299999 and lose a large counter's last digits.
+            (_, Some(_)) => IecType::Lreal,
             (Raw::Ts48, None) => IecType::Dt,
             (Raw::Iec(ty), None) => ty,
         };
         (ty, Codec::Registers(Registers { raw, order, scale }))
+    };
+    let decimals = match (decimals, ty) {
+        (Some(n), IecType::Real) if n > REAL_MAX_DECIMALS => {
+            notes.push((
+                decimals_col,
+                format!("a REAL shows at most {REAL_MAX_DECIMALS} decimals, not {n}; {REAL_MAX_DECIMALS} are printed"),
+            ));
+            Some(REAL_MAX_DECIMALS)
+        }
+        (Some(_), IecType::Real | IecType::Lreal) | (None, _) => decimals,
+        (Some(_), ty) => {
+            notes.push((
+                decimals_col,
+                format!("decimals apply to REAL, LREAL and scaled values, not to {ty}; ignored"),
+            ));
+            None
+        }
     };
     let tag = Tag {
         name,
@@ -650,7 +710,7 @@ mod tests {
         assert_eq!(energy.place(), (Area::R, 200, None));
         assert_eq!(energy.codec.byte_len(energy.ty), 4);
         let t = one("T,INT,input,0,,,0.1,-40,,°C,\"Outdoor, north\"").unwrap();
-        assert_eq!(t.ty, IecType::Real);
+        assert_eq!(t.ty, IecType::Lreal);
         assert_eq!(t.info.unit, "°C");
         assert_eq!(t.info.description, "Outdoor, north");
         let ts = one("Stamp,TS48,holding,10").unwrap();
@@ -683,6 +743,83 @@ mod tests {
             [
                 "line 4, column 9: max 5 is below min 30",
                 "line 5, column 10: decimals '16' is not a whole number 0-15"
+            ]
+        );
+    }
+
+    /// The S7 user's `Temperature,REAL,holding,40001`: it loads, and the
+    /// warning says what 40001 means on the wire.
+    #[test]
+    fn an_address_like_a_reference_loads_with_its_mapping() {
+        let file = parse(
+            "name,type,table,address\n\
+             Temperature,REAL,holding,40001\n\
+             Level,INT,input,30010\n\
+             Switch,BOOL,coil,00017\n\
+             Wrong,INT,holding,10001\n\
+             Plain,INT,holding,40000\n\
+             Low,INT,holding,9999\n\
+             Six,INT,holding,400001\n"
+                .as_bytes(),
+        );
+        let names: Vec<&[u8]> = file.tags.iter().map(|t| &t.name[..]).collect();
+        assert_eq!(
+            names,
+            [
+                &b"Temperature"[..],
+                b"Level",
+                b"Switch",
+                b"Wrong",
+                b"Plain",
+                b"Low"
+            ]
+        );
+        assert_eq!(file.tags[0].address, 40001, "loaded as written");
+        let shown: Vec<String> = file.warnings.iter().map(|w| w.to_string()).collect();
+        assert_eq!(
+            shown,
+            [
+                "line 2, column 4: holding 40001 looks like the 1-based reference 40001, \
+                 which is holding 0 (addresses are 0-based); the tag loads as written",
+                "line 3, column 4: input 30010 looks like the 1-based reference 30010, \
+                 which is input 9 (addresses are 0-based); the tag loads as written",
+                "line 4, column 4: coil 17 looks like the 1-based reference 00017, \
+                 which is coil 16 (addresses are 0-based); the tag loads as written",
+                "line 5, column 4: holding 10001 looks like the 1-based reference 10001, \
+                 which is discrete 0 (addresses are 0-based); the tag loads as written",
+                "line 8, column 4: bad address '400001' (0 to 65535, 0-based): \
+                 the 1-based reference 400001 is holding 0",
+            ]
+        );
+    }
+
+    #[test]
+    fn scaled_values_are_lreal_and_decimals_apply_to_reals() {
+        let file = parse(
+            "name,type,table,address,scale,decimals\n\
+             Scaled,INT,holding,0,0.1,1\n\
+             Real,REAL,holding,1,,8\n\
+             Long,LREAL,holding,3,,12\n\
+             Count,INT,holding,7,,2\n"
+                .as_bytes(),
+        );
+        let decimals: Vec<(IecType, Option<u8>)> =
+            file.tags.iter().map(|t| (t.ty, t.info.decimals)).collect();
+        assert_eq!(
+            decimals,
+            [
+                (IecType::Lreal, Some(1)),
+                (IecType::Real, Some(6)),
+                (IecType::Lreal, Some(12)),
+                (IecType::Int, None)
+            ]
+        );
+        let shown: Vec<String> = file.warnings.iter().map(|w| w.to_string()).collect();
+        assert_eq!(
+            shown,
+            [
+                "line 3, column 6: a REAL shows at most 6 decimals, not 8; 6 are printed",
+                "line 5, column 6: decimals apply to REAL, LREAL and scaled values, not to INT; ignored",
             ]
         );
     }

@@ -154,7 +154,7 @@ pub fn complete(cx: &mut Cx<'_>, then: ReadThen, reply: ReadReply, out: &mut Vec
                     out.extend_from_slice(text);
                 } else {
                     match answers.next() {
-                        Some(Ok(bytes)) => var.decode(&bytes).format(var.ty, format, out),
+                        Some(Ok(bytes)) => var.format(&var.decode(&bytes), format, out),
                         Some(Err(Refusal::Modbus(code))) => {
                             // The device's exception, named in the context.
                             out.truncate(start);

@@ -2,8 +2,12 @@
 //! The bare form lists every key in the vendor's order and ends with
 //! `GETINFO:`; a named key answers one line (NETWORK its list, terminated).
 //! A Modbus section lists PROTOCOL, MODBUS_PORT and MODBUS_UNIT in place of
-//! EPSADDR and EPSPORT; an EPSNET section's list is the vendor's (its
-//! PROTOCOL answers when asked by name).
+//! EPSADDR and EPSPORT, MODBUS_TAGS (`2/33 [tags.csv]`: the system
+//! variables, all variables, the tag file) in place of PUBFILE, and no
+//! VERSION_EPSNET: nothing EPSNET speaks for it. Asked by name, those keys
+//! still answer (PUBFILE as MODBUS_TAGS: no FIXED.pub is read). An EPSNET
+//! section's list is the vendor's (its PROTOCOL answers when asked by
+//! name).
 
 use std::fmt::Write;
 
@@ -25,6 +29,7 @@ const KEYS: &[&str] = &[
     "MODBUS_UNIT",
     "SERIAL_DEVICE",
     "PUBFILE",
+    "MODBUS_TAGS",
     "NETWORK",
 ];
 
@@ -89,8 +94,8 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
     let modbus = config.protocol == Protocol::ModbusTcp;
     // The full list shows what the section's protocol has.
     let shown = match key {
-        "PROTOCOL" | "MODBUS_PORT" | "MODBUS_UNIT" => modbus,
-        "EPSADDR" | "EPSPORT" => !modbus,
+        "PROTOCOL" | "MODBUS_PORT" | "MODBUS_UNIT" | "MODBUS_TAGS" => modbus,
+        "VERSION_EPSNET" | "EPSADDR" | "EPSPORT" | "PUBFILE" => !modbus,
         _ => true,
     };
     if listing_all && !shown {
@@ -133,11 +138,15 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
                 line(text, key, "");
             }
         }
-        "PUBFILE" => {
+        // Asked by name on an EPSNET section: it has no tag file.
+        "MODBUS_TAGS" if !modbus => line(text, key, ""),
+        "PUBFILE" | "MODBUS_TAGS" => {
             let table = cx.client.vars.table();
-            let files = match &table.user_file {
-                Some(user) => format!("{},{}", table.fixed_file, user),
-                None => table.fixed_file.clone(),
+            let files = match (&table.user_file, modbus) {
+                (Some(user), false) => format!("{},{}", table.fixed_file, user),
+                (None, false) => table.fixed_file.clone(),
+                // The backend answers the system variables: no fixed file.
+                (user, true) => user.clone().unwrap_or_default(),
             };
             line(
                 text,
