@@ -387,6 +387,39 @@ async fn continuation_lines_repeat_the_command() {
     c.ask("GETINFO:version_plc\nv_byte\n", "GETINFO:VERSION_PLC,CP1000    SIM 1.0 1.0\r\nERROR:32 Unknown command name in request: 'v_byte'\r\n").await;
 }
 
+/// HELP is `HELP:`, as in the vendor's manual (`HELP:\n`): every command
+/// ends in its colon. A bare `HELP` is a line without one, which continues
+/// the command before it (after `GET:a`, `GET:HELP`: a variable may be
+/// called HELP) and is an unknown command when none came before.
+#[tokio::test]
+async fn help_is_answered_with_its_colon_and_a_bare_help_is_a_continuation() {
+    let server = start("").await;
+    let mut c = server.client().await;
+    c.send(b"help:\n").await;
+    let mut lines = Vec::new();
+    loop {
+        let line = String::from_utf8(c.line().await).unwrap();
+        if line == "HELP:\r\n" {
+            break;
+        }
+        assert!(line.starts_with("HELP:"), "{line:?}");
+        lines.push(line);
+    }
+    assert_eq!(lines.len(), 15, "{lines:?}");
+    assert!(lines[0].starts_with("HELP:LIST:[mask]"), "{lines:?}");
+    assert!(lines[14].starts_with("HELP:HELP: "), "{lines:?}");
+    c.ask(
+        "HELP\n",
+        "ERROR:32 Unknown command name in request: 'HELP'\r\n",
+    )
+    .await;
+    c.ask(
+        "GET:test_1\nHELP\n",
+        "GET:TEST_1,0\r\nERROR:33 Unknown variable name in request: 'GET:HELP'\r\n",
+    )
+    .await;
+}
+
 #[tokio::test]
 async fn unknown_commands_bad_lines_and_empty_lines() {
     let server = start("").await;
