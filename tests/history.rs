@@ -351,31 +351,52 @@ def check(label, series_by_name, kind_override=None):
         for g, w in zip(got[1:], want):
             assert same(kind, g, w), (label, name, g, w)
 
-long = pd.read_csv(d + "/long.csv", dtype={"value": str}, keep_default_na=False)
-assert list(long.columns) == ["time", "name", "value", "quality"]
-assert set(long["quality"]) == {"good"}, set(long["quality"])
+def column(n):
+    """Numbers are in `value`, strings and times in `text`."""
+    return "text" if expected[n]["kind"] == "str" else "value"
+
+# As text, for exact integers beyond 2^53; then as pandas types it.
+long = pd.read_csv(d + "/long.csv", dtype={"value": str, "text": str}, keep_default_na=False)
+assert list(long.columns) == ["time", "name", "value", "text", "quality"]
+samples = long[~long["name"].str.startswith("__")]
+assert set(samples["quality"]) == {"good"}, set(samples["quality"])
+server = long[long["name"] == "__SERVER"]
+assert list(server["text"]) == ["start", "stop"] and set(server["quality"]) == {"stopped"}, server
 pd.to_datetime(long["time"], format="ISO8601", utc=True)
-check("csv", lambda n: list(long[long["name"] == n]["value"]))
+check("csv", lambda n: list(long[long["name"] == n][column(n)]))
+typed = pd.read_csv(d + "/long.csv", parse_dates=["time"])
+assert str(typed["value"].dtype) == "float64", typed.dtypes
+assert str(typed["time"].dtype).startswith("datetime64"), typed.dtypes
 
 wide = pd.read_csv(d + "/wide.csv", dtype=str, keep_default_na=False)
+assert list(wide.columns[:2]) == ["time", "quality"], list(wide.columns)
+assert set(wide["quality"]) == {"good", "stopped"}, set(wide["quality"])
 # An empty string and no value read alike in pandas: V_STR is checked in
 # the other forms.
 saved = expected
 expected = {k: v for k, v in saved.items() if k != "V_STR"}
 check("wide csv", lambda n: [v for v in wide[n] if v != ""])
 expected = saved
+typed = pd.read_csv(d + "/wide.csv")
+for n, spec in expected.items():
+    if n == "V_ULINT":
+        continue  # above 2^63 with gaps: pandas needs its dtype named
+    numeric = pd.api.types.is_numeric_dtype(typed[n])
+    assert numeric == (spec["kind"] != "str"), (n, typed[n].dtype)
+typed = pd.read_csv(d + "/wide.csv", dtype={"V_ULINT": "UInt64"})
+assert 18446744073709551615 in list(typed["V_ULINT"].dropna()), typed["V_ULINT"]
 
 js = json.load(open(d + "/long.json"))
-check("json", lambda n: [r["value"] for r in js if r["name"] == n])
+assert all(list(r) == ["time", "name", "value", "text", "quality"] for r in js), js[0]
+check("json", lambda n: [r[column(n)] for r in js if r["name"] == n])
+assert all(isinstance(r["value"], (int, float)) for r in js if r["name"] == "V_LREAL")
 
 lp = pq.read_table(d + "/long.parquet").to_pandas()
 assert str(lp["time"].dtype).startswith("datetime64"), lp["time"].dtype
 def long_parquet(n):
     rows = lp[lp["name"] == n]
-    if expected[n]["kind"] == "str" and n != "V_DT":
+    if expected[n]["kind"] == "str":
         return list(rows["text"].fillna(""))
-    if n == "V_DT":
-        return [pd.Timestamp(int(v), unit="ms", tz="UTC").strftime("%Y-%m-%dT%H:%M:%S.000Z") for v in rows["value"]]
     return list(rows["value"])
 expected_long = {k: v for k, v in expected.items() if k != "V_ULINT"}  # beyond 2^53 in a double
 saved = expected
@@ -385,6 +406,7 @@ expected = saved
 
 wp = pq.read_table(d + "/wide.parquet")
 types = {f.name: str(f.type) for f in wp.schema}
+assert types["quality"] == "string", types
 assert types["V_REAL"] == "float", types
 assert types["V_ULINT"] == "uint64", types
 assert types["V_BOOL"] == "bool", types
@@ -499,8 +521,13 @@ fn values_recorded_with_poll_time_and_read_back_exactly_by_pandas() {
     }
     // Standard output works too, and the masks select.
     let csv = history(dir.path(), &["--vars", "v_int", "--from", "-1h"]);
-    assert!(csv.starts_with("time,name,value,quality\n"));
-    assert!(csv.lines().skip(1).all(|l| l.contains(",V_INT,")), "{csv}");
+    assert!(csv.starts_with("time,name,value,text,quality\n"));
+    assert!(
+        csv.lines()
+            .skip(1)
+            .all(|l| l.contains(",V_INT,") || l.contains(",__SERVER,")),
+        "{csv}"
+    );
     let expected: serde_json::Map<String, serde_json::Value> = values
         .iter()
         .map(|(name, kind, _, want)| {
@@ -651,7 +678,8 @@ fn packing_under_heavy_writing_survives_kill_9_and_loses_nothing() {
     let csv = history(dir.path(), &["--vars", "*", "--from", "-1d", "--to", "now"]);
     let mut last: std::collections::HashMap<&str, &str> = Default::default();
     let (mut n, mut sum) = (0i64, 0u128);
-    for line in csv.lines().skip(1) {
+    // (The gap rows, `__SERVER` and the like, are no samples.)
+    for line in csv.lines().skip(1).filter(|l| !l.contains(",__")) {
         let mut fields = line.split(',');
         let (time, name) = (fields.next().unwrap(), fields.next().unwrap());
         sum += fields.next().unwrap().parse::<u128>().unwrap();
@@ -686,20 +714,140 @@ assert all(a[0] <= b[0] for a, b in zip(s, s[1:]))
     );
 }
 
+/// `GET path` on the web port; the body, its chunks joined.
+fn http_get(port: u16, path: &str) -> String {
+    use std::io::Read;
+    let mut stream = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    stream.set_read_timeout(Some(DEADLINE)).unwrap();
+    write!(
+        stream,
+        "GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut answer = Vec::new();
+    stream.read_to_end(&mut answer).unwrap();
+    let answer = String::from_utf8(answer).unwrap();
+    let (head, mut rest) = answer.split_once("\r\n\r\n").unwrap();
+    assert!(head.starts_with("HTTP/1.1 200"), "{head}");
+    if !head
+        .to_ascii_lowercase()
+        .contains("transfer-encoding: chunked")
+    {
+        return rest.to_string();
+    }
+    let mut body = String::new();
+    loop {
+        let (size, after) = rest.split_once("\r\n").unwrap();
+        let size = usize::from_str_radix(size.trim(), 16).unwrap();
+        if size == 0 {
+            return body;
+        }
+        body.push_str(&after[..size]);
+        rest = &after[size + 2..];
+    }
+}
+
+/// The ISO 8601 form of UTC ms, as `--from`/`--to` take it.
+fn iso(ms: i64) -> String {
+    chrono::DateTime::from_timestamp_millis(ms)
+        .unwrap()
+        .format("%Y-%m-%dT%H:%M:%S%.3fZ")
+        .to_string()
+}
+
+/// The README's recipe (History, "Gaps"), run on the exports of a
+/// recording with a link outage and a server stop and start: pandas reads
+/// the values as numbers, the outage rows are there, and a forward fill
+/// that keeps to good stretches leaves NaN across every gap (a plain one
+/// would not). duckdb and polars, where installed, type `value` as numbers
+/// too.
+const CHECK_GAPS: &str = r#"
+import sys
+import pandas as pd
+d = sys.argv[1]
+
+# Long CSV: typed as read; the gaps as rows.
+long = pd.read_csv(d + "/long.csv", parse_dates=["time"])
+assert str(long["value"].dtype) in ("int64", "float64"), long.dtypes
+assert str(long["time"].dtype).startswith("datetime64"), long.dtypes
+link = long[long["name"] == "__LINK"]
+assert list(link["text"]) == ["link_lost", "link_restored"], link
+assert set(link["quality"]) == {"link_lost"} and link["value"].isna().all(), link
+server = long[long["name"] == "__SERVER"]
+assert list(server["text"]) == ["start", "stop", "start", "stop"], server
+assert set(server["quality"]) == {"stopped"} and server["value"].isna().all(), server
+lost = long[(long["name"] == "ANIM_00003") & (long["quality"] == "link_lost")]
+assert len(lost) == 1, lost
+
+def recipe(wide):
+    """The README's recipe: gaps NaN by quality, forward fill within good
+    stretches only."""
+    values = wide.columns.drop(["time", "quality"])
+    gap = wide["quality"] != "good"
+    wide.loc[gap, values] = float("nan")
+    return wide[values].groupby(gap.cumsum()).ffill(), values
+
+def check_wide(wide, label):
+    filled, values = recipe(wide.copy())
+    for c in values:
+        assert pd.api.types.is_numeric_dtype(wide[c]), (label, c, wide[c].dtype)
+    gaps = wide.index[wide["quality"] != "good"]
+    assert list(wide.loc[gaps, "quality"]) == \
+        ["stopped", "link_lost", "link_lost", "stopped", "stopped", "stopped"], (label, wide.loc[gaps])
+    # From each gap's start to its end, the fill leaves NaN (a plain fill
+    # carries the last value across).
+    for start, end in [(gaps[1], gaps[2]), (gaps[3], gaps[4])]:
+        inside = filled.loc[start:end]
+        assert inside.isna().all().all(), (label, inside)
+        assert not wide[values].ffill().loc[start:end].isna().all().all(), label
+    # After each gap the next good row has every value again.
+    for g in gaps[[0, 2, 4]]:
+        after = filled.loc[g + 1]
+        assert wide.loc[g + 1, "quality"] == "good" and after.notna().all(), (label, wide.loc[g:g + 2])
+
+check_wide(pd.read_csv(d + "/wide.csv", parse_dates=["time"]), "wide csv")
+
+# Parquet: the same rows, typed.
+lp = pd.read_parquet(d + "/long.parquet")
+assert str(lp["value"].dtype) == "float64", lp.dtypes
+assert list(lp[lp["name"] == "__SERVER"]["text"]) == ["start", "stop", "start", "stop"]
+assert list(lp[lp["name"] == "__LINK"]["quality"]) == ["link_lost", "link_lost"]
+assert len(lp) == len(long)
+check_wide(pd.read_parquet(d + "/wide.parquet"), "wide parquet")
+
+try:
+    import duckdb
+except ImportError:
+    print("duckdb is not installed: its check is skipped")
+else:
+    kind, top = duckdb.sql(
+        f"SELECT typeof(max(value)), max(value) FROM read_csv_auto('{d}/long.csv')").fetchone()
+    assert kind in ("BIGINT", "DOUBLE"), kind
+    assert top == long["value"].max(), (top, long["value"].max())
+try:
+    import polars as pl
+except ImportError:
+    print("polars is not installed: its check is skipped")
+else:
+    p = pl.read_csv(d + "/long.csv", try_parse_dates=True)
+    assert p["value"].dtype.is_numeric() and p["text"].dtype == pl.Utf8, p.schema
+print("ok")
+"#;
+
+/// A link outage and a server stop and start are gaps in every export, as
+/// rows a forward fill cannot mistake for a flat line; `/api/history` gives
+/// the rows of `plccoms history` byte for byte.
 #[test]
-fn an_outage_is_recorded_as_one() {
+fn outages_and_server_downtime_are_gaps_in_every_export() {
     let dir = tempfile::tempdir().unwrap();
+    let began = now_ms();
     let plc = Plc::start(
         dir.path(),
         &animated_pub(10),
         &["--program", "idle", "--animate", "ANIM_*"],
     );
-    let server = Server::start(
-        dir.path(),
-        &plc,
-        "HISTORY = ANIM_*\nEPSTOUT = 200\nEPSTOUT_STEP = 0",
-        "",
-    );
+    let section = "HISTORY = ANIM_*\nEPSTOUT = 200\nEPSTOUT_STEP = 0";
+    let server = Server::start(dir.path(), &plc, section, "");
     std::thread::sleep(Duration::from_millis(500));
     plc.control("loss 1");
     wait_for("the link to be declared lost", || {
@@ -712,31 +860,47 @@ fn an_outage_is_recorded_as_one() {
     });
     std::thread::sleep(Duration::from_millis(500));
     server.stop();
-    let csv = history(dir.path(), &["--from", "-1h", "--vars", "ANIM_00003"]);
-    let qualities: Vec<&str> = csv
-        .lines()
-        .skip(1)
-        .map(|l| l.rsplit(',').next().unwrap())
-        .collect();
-    // good ... link_lost, then good again: the gap is visible.
-    let lost = qualities
-        .iter()
-        .position(|q| *q == "link_lost")
-        .expect("a link_lost sample");
-    assert!(
-        qualities[..lost].iter().all(|q| *q == "good"),
-        "{qualities:?}"
+    let stopped = now_ms();
+    std::thread::sleep(Duration::from_millis(300));
+    let http = free_port();
+    let server = Server::start(dir.path(), &plc, section, &format!("HTTP_PORT = {http}"));
+    std::thread::sleep(Duration::from_millis(500));
+    // The first run, written and closed: the web's rows are the export's.
+    let web = http_get(
+        http,
+        &format!("/api/history?section=Hist&from={began}&to={stopped}&format=csv"),
     );
-    assert!(qualities[lost + 1..].contains(&"good"), "{qualities:?}");
-    // The wide form leaves the cell empty at the loss.
-    let wide = history(
+    let from = iso(began);
+    let to = iso(stopped + 1); // --to excludes its end; the web's to does not.
+    let cli = history(dir.path(), &["--from", &from, "--to", &to]);
+    assert_eq!(web, cli);
+    assert!(cli.contains(",__LINK,,link_lost,link_lost\n"), "{cli}");
+    let web_json = http_get(
+        http,
+        &format!("/api/history?section=Hist&from={began}&to={stopped}"),
+    );
+    let cli_json = history(
         dir.path(),
-        &["--from", "-1h", "--vars", "ANIM_00003", "--wide"],
+        &["--from", &from, "--to", &to, "--format", "json"],
     );
-    assert!(
-        wide.lines().any(|l| l.ends_with('Z') || l.ends_with("Z,")),
-        "{wide}"
-    );
+    assert_eq!(web_json, cli_json);
+    server.stop();
+
+    let out = dir.path().join("out");
+    std::fs::create_dir(&out).unwrap();
+    for (format, wide, file) in [
+        ("csv", false, "long.csv"),
+        ("csv", true, "wide.csv"),
+        ("parquet", false, "long.parquet"),
+        ("parquet", true, "wide.parquet"),
+    ] {
+        let path = out.join(file).to_string_lossy().into_owned();
+        let mut args = vec!["--from", &from, "--format", format, "--out", &path];
+        if wide {
+            args.push("--wide");
+        }
+        history(dir.path(), &args);
+    }
     let file = day_files(dir.path()).pop().unwrap();
     let events: Vec<String> = rusqlite::Connection::open(&file)
         .unwrap()
@@ -746,7 +910,18 @@ fn an_outage_is_recorded_as_one() {
         .unwrap()
         .collect::<Result<_, _>>()
         .unwrap();
-    assert_eq!(events, ["start", "link_lost", "link_restored", "stop"]);
+    assert_eq!(
+        events,
+        [
+            "start",
+            "link_lost",
+            "link_restored",
+            "stop",
+            "start",
+            "stop"
+        ]
+    );
+    python(CHECK_GAPS, &[&out.to_string_lossy()]);
 }
 
 /// A tmpfs of `kib` KiB at a new folder, unmounted on drop; `None` when
@@ -996,7 +1171,7 @@ fn a_stalled_history_reader_holds_no_snapshot_and_is_cut_off() {
     }
     let tail = String::from_utf8_lossy(&rest[rest.len().saturating_sub(400)..]).into_owned();
     assert!(
-        tail.contains("# error:") && tail.contains("HISTORY_QUERY_TIMEOUT"),
+        tail.contains(",__ERROR,,") && tail.contains("HISTORY_QUERY_TIMEOUT"),
         "{tail}"
     );
     server.stop();

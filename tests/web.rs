@@ -628,12 +628,17 @@ fn the_history_api_reads_what_the_historian_recorded() {
         csv = String::from_utf8_lossy(&body).into_owned();
         status == 200 && csv.lines().filter(|l| l.contains("SINUS")).count() >= 3
     });
+    // The rows of `plccoms history` (README, "Reading it back").
     let mut lines = csv.lines();
-    assert_eq!(lines.next(), Some("unix_ms,time,name,value,quality"));
+    assert_eq!(lines.next(), Some("time,name,value,text,quality"));
+    assert_eq!(
+        lines.next().map(|l| &l[24..]),
+        Some(",__SERVER,,start,stopped")
+    );
     let sample: Vec<&str> = lines.next().unwrap().split(',').collect();
-    assert_eq!(sample[2], "SINUS");
-    assert!(sample[3].parse::<f64>().is_ok(), "{sample:?}");
-    assert_eq!(sample[4], "good");
+    assert_eq!(sample[1], "SINUS");
+    assert!(sample[2].parse::<f64>().is_ok(), "{sample:?}");
+    assert_eq!((sample[3], sample[4]), ("", "good"));
     assert!(!csv.contains("TEXT"), "only the masks asked for");
     let (status, body) = request(
         web.http,

@@ -1,14 +1,18 @@
-//! Writing samples out: CSV, JSON and Parquet (zstd), long (one row per
-//! sample: time, name, value, quality) or wide (one row per time, one
-//! column per variable). Everything streams from [`query::rows`]: CSV and
-//! JSON row by row, Parquet a row group at a time.
+//! Writing history out: CSV, JSON and Parquet (zstd), long (one row per
+//! sample: `time,name,value,text,quality`, the shape
+//! [`plccoms_core::history_source::csv_row`] writes, /api/history's too)
+//! or wide (one row per time: `time,quality` and a column per variable).
+//! Everything streams from [`query::records`]: CSV and JSON row by row,
+//! Parquet a row group at a time.
 //!
-//! Values are exact: integers in full (ULINT/LWORD above 2^63 too), REAL as
-//! the shortest text that reads back as the same 32-bit float, LREAL as the
-//! shortest that reads back as the same double, DATE and DT as ISO 8601
-//! UTC, TIME and TOD in ms, BOOL as 0/1, NaN and infinities as `NaN`,
-//! `inf`, `-inf`. In the wide form a sample whose quality is not `good` (an
-//! outage) leaves its cell empty, so a gap shows as one.
+//! Values are typed as read: numbers (BOOL as 0/1, integers in full, REAL
+//! and LREAL in the shortest form that reads back the same) in `value`,
+//! strings, DATE, DT, TOD and TIME in `text`, in the forms of
+//! [`Presented`] (ISO 8601). Gaps are rows: the link's loss and return,
+//! the server's stop and start and a damaged block's range are marker rows
+//! (`__LINK`, `__SERVER`, `__DAMAGED`; wide: a row of empty cells) whose
+//! quality is not `good`, so a reader who forward-fills within good
+//! stretches never carries a value across one.
 
 use std::cell::RefCell;
 use std::io::{self, Write};
@@ -24,11 +28,13 @@ use parquet::file::writer::SerializedFileWriter;
 use parquet::schema::types::Type;
 use plccoms_protocol::IecType;
 
-use super::query::{self, Query, QueryError, Row, Variable};
-use super::sample::{quality_code, Stored};
+use super::query::{self, Mark, Query, QueryError, Record, Row, Variable};
+use super::sample::Stored;
 use super::time::iso;
 use plccoms_core::changes::Quality;
-use plccoms_core::history_source::runs_as_formula;
+use plccoms_core::history_source::{self as shape, RowQuality, Split};
+use plccoms_core::present::Presented;
+use plccoms_protocol::value::Value;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Format {
@@ -57,7 +63,7 @@ pub fn export<W: Write + Send>(
     wide: bool,
     out: W,
 ) -> Result<u64, ExportError> {
-    let rows = query::rows(query)?;
+    let rows = query::records(query)?;
     let columns = rows.variables().to_vec();
     let damaged = Rc::new(RefCell::new(Vec::new()));
     let rows = Intact {
@@ -80,15 +86,16 @@ pub fn export<W: Write + Send>(
     }
 }
 
-/// The rows of a query without the samples of damaged blocks: each such
-/// range is named in `damaged`, and the export goes on after it.
+/// The records of a query without the samples of damaged blocks: each such
+/// range is named in `damaged` (and marked by its `__DAMAGED` rows), and
+/// the export goes on after it.
 struct Intact {
-    rows: query::Rows,
+    rows: query::Records,
     damaged: Rc<RefCell<Vec<String>>>,
 }
 
 impl Iterator for Intact {
-    type Item = Result<Row, QueryError>;
+    type Item = Result<Record, QueryError>;
 
     fn next(&mut self) -> Option<Self::Item> {
         loop {
@@ -152,63 +159,52 @@ impl Write for ChannelWriter {
 }
 
 // ---------------------------------------------------------------------------
-// Values as text.
+// Values.
 
-/// How a value is written.
-pub(crate) enum Written {
-    Number,
-    Text,
-    Missing,
+/// A stored value of a variable of type `ty` as [`Presented`] shows it;
+/// `None`: no value. A REAL or LREAL stored as NULL was a NaN.
+pub fn presented(value: &Stored, ty: Option<IecType>) -> Option<Presented> {
+    use IecType::*;
+    let Some(ty) = ty else {
+        return match value {
+            Stored::Int(i) => Some(Presented::Signed(*i)),
+            Stored::Real(f) => Some(Presented::Number(*f)),
+            Stored::Text(s) => Some(Presented::Text(s.clone())),
+            Stored::Null => None,
+        };
+    };
+    let value = match (value, ty) {
+        (Stored::Text(s), _) => return Some(Presented::Text(s.clone())),
+        (Stored::Null, Real) => Value::Real(f32::NAN),
+        (Stored::Null, Lreal) => Value::LReal(f64::NAN),
+        (Stored::Null, _) => return None,
+        (Stored::Int(i), Bool) => Value::Bool(*i != 0),
+        // ULINT and LWORD above 2^63 are stored as their two's complement.
+        (Stored::Int(i), Usint | Byte | Uint | Word | Udint | Dword | Ulint | Lword) => {
+            Value::Unsigned(*i as u64)
+        }
+        (Stored::Int(i), Time | Tod) => match u32::try_from(*i) {
+            Ok(ms) => Value::Time(ms),
+            Err(_) => Value::Signed(*i),
+        },
+        (Stored::Int(ms), Date | Dt) => Value::Date(*ms as f64 / 1000.0),
+        (Stored::Real(ms), Date | Dt) => Value::Date(ms / 1000.0),
+        (Stored::Int(i), _) => Value::Signed(*i),
+        (Stored::Real(f), Real) => Value::Real(*f as f32),
+        (Stored::Real(f), _) => Value::LReal(*f),
+    };
+    Some(Presented::of_value(ty, &value))
 }
 
-fn is_date(ty: Option<IecType>) -> bool {
-    matches!(ty, Some(IecType::Dt | IecType::Date))
+/// A marker row's value: its event in `text`.
+fn mark_text(mark: &Mark) -> Presented {
+    Presented::Text(mark.gap.text().into())
 }
 
-/// Appends the value's text; says whether it is a number, text or missing.
-pub(crate) fn value_text(value: &Stored, ty: Option<IecType>, out: &mut Vec<u8>) -> Written {
-    let mut ryu = ryu::Buffer::new();
-    match value {
-        Stored::Int(ms) if is_date(ty) => {
-            iso(*ms, out);
-            Written::Text
-        }
-        Stored::Real(ms) if is_date(ty) && ms.is_finite() => {
-            iso(ms.round() as i64, out);
-            Written::Text
-        }
-        Stored::Int(i) if matches!(ty, Some(IecType::Ulint | IecType::Lword)) => {
-            let _ = write!(out, "{}", *i as u64);
-            Written::Number
-        }
-        Stored::Int(i) => {
-            let _ = write!(out, "{i}");
-            Written::Number
-        }
-        Stored::Real(f) if ty == Some(IecType::Real) => {
-            out.extend_from_slice(ryu.format(*f as f32).as_bytes());
-            Written::Number
-        }
-        Stored::Real(f) => {
-            out.extend_from_slice(ryu.format(*f).as_bytes());
-            Written::Number
-        }
-        Stored::Null if matches!(ty, Some(IecType::Real | IecType::Lreal)) => {
-            out.extend_from_slice(b"NaN");
-            Written::Number
-        }
-        Stored::Null => Written::Missing,
-        Stored::Text(s) => {
-            out.extend_from_slice(s.as_bytes());
-            Written::Text
-        }
-    }
-}
-
-/// The header of a wide export: time, then per variable its column (and
-/// its PLC time's, when stamped).
+/// The header of a wide export: time, quality, then per variable its
+/// column (and its PLC time's, when stamped).
 fn wide_header(columns: &[Arc<Variable>]) -> Vec<String> {
-    let mut header = vec!["time".to_string()];
+    let mut header = vec!["time".to_string(), "quality".to_string()];
     for var in columns {
         header.push(var.name.clone());
         if var.stamped {
@@ -218,12 +214,31 @@ fn wide_header(columns: &[Arc<Variable>]) -> Vec<String> {
     header
 }
 
-/// Groups consecutive rows of the same poll time; each group as cells per
-/// column of [`wide_header`] (minus time): the rows by column index.
+/// The record's poll time, by which records are merged and grouped.
+fn poll_time(record: &Record) -> i64 {
+    match record {
+        Record::Sample(row) => row.t,
+        Record::Mark(mark) => mark.t,
+    }
+}
+
+/// Groups the records of one poll time into wide rows: the gap row (the
+/// worst quality among the marks and samples that are not good: all its
+/// cells empty), then the row of the good samples, by column index.
 struct Wide {
-    /// Column index of each variable (by pointer) in the header.
+    /// Column index of each variable (by pointer), from 0 after `quality`.
     index: Vec<(*const Variable, usize)>,
     width: usize,
+}
+
+/// One time's wide rows.
+struct Group {
+    t: i64,
+    /// The gap row's quality, if the time has one.
+    gap: Option<RowQuality>,
+    /// The good samples by column; none: no good row.
+    cells: Vec<Option<Row>>,
+    any_good: bool,
 }
 
 impl Wide {
@@ -242,93 +257,91 @@ impl Wide {
         self.index.iter().find(|(q, _)| *q == p).map(|(_, i)| *i)
     }
 
-    /// Reads the next group (rows of one time) from `rows` into `cells`
-    /// (one per column, `None`: no value).
+    /// Reads the records of the next poll time into `group`; `false` at
+    /// the end.
     fn next_group(
         &self,
         rows: &mut std::iter::Peekable<Intact>,
-        cells: &mut Vec<Option<Row>>,
-    ) -> Result<Option<i64>, QueryError> {
-        cells.clear();
-        cells.resize(self.width, None);
+        group: &mut Group,
+    ) -> Result<bool, QueryError> {
+        group.cells.clear();
+        group.cells.resize(self.width, None);
+        group.gap = None;
+        group.any_good = false;
         let Some(first) = rows.next() else {
-            return Ok(None);
+            return Ok(false);
         };
         let first = first?;
-        let t = first.t;
-        let mut put = |row: Row| {
-            if let Some(i) = self.column(&row.var) {
-                cells[i] = Some(row);
+        group.t = poll_time(&first);
+        let mut put = |record: Record| match record {
+            Record::Mark(mark) => group.gap = group.gap.max(Some(mark.gap.quality())),
+            Record::Sample(row) if row.quality != Quality::Good => {
+                group.gap = group.gap.max(Some(row.quality.into()))
+            }
+            Record::Sample(row) => {
+                if let Some(i) = self.column(&row.var) {
+                    group.cells[i] = Some(row);
+                    group.any_good = true;
+                }
             }
         };
         put(first);
         while let Some(Ok(next)) = rows.peek() {
-            if next.t != t {
+            if poll_time(next) != group.t {
                 break;
             }
-            if let Some(Ok(row)) = rows.next() {
-                put(row);
+            if let Some(Ok(record)) = rows.next() {
+                put(record);
             }
         }
-        Ok(Some(t))
+        Ok(true)
     }
 }
 
 // ---------------------------------------------------------------------------
 // CSV.
 
-/// Appends a CSV field: quoted when it holds a comma, a quote or a line
-/// end, and always when it is a text value (so an empty string differs
-/// from no value).
-fn csv_field(field: &[u8], quote: bool, out: &mut Vec<u8>) {
-    let needs = quote
-        || field
-            .iter()
-            .any(|b| matches!(b, b',' | b'"' | b'\r' | b'\n'));
-    if !needs {
-        out.extend_from_slice(field);
-        return;
-    }
-    out.push(b'"');
-    for &b in field {
-        if b == b'"' {
-            out.push(b'"');
-        }
-        out.push(b);
-    }
-    out.push(b'"');
-}
-
-/// A CSV field of text: guarded against formulas, then as [`csv_field`].
-fn csv_text(field: &[u8], quote: bool, out: &mut Vec<u8>) {
-    if runs_as_formula(field) {
-        let mut guarded = Vec::with_capacity(field.len() + 1);
-        guarded.push(b'\'');
-        guarded.extend_from_slice(field);
-        csv_field(&guarded, quote, out);
-    } else {
-        csv_field(field, quote, out);
+/// A wide cell: a number, or text guarded against formulas.
+fn csv_cell(row: &Row, out: &mut Vec<u8>) {
+    match presented(&row.value, row.var.ty) {
+        None => {}
+        Some(value) => match shape::split(&value) {
+            Split::Number(v) => shape::number_text(v, out),
+            Split::Text(v) => shape::csv_text(v.text().as_bytes(), out),
+        },
     }
 }
 
-fn csv_value(row: &Row, out: &mut Vec<u8>, scratch: &mut Vec<u8>) {
-    scratch.clear();
-    let kind = value_text(&row.value, row.var.ty, scratch);
-    let is_string = matches!(row.var.ty, Some(IecType::String(_))) && matches!(kind, Written::Text);
-    if matches!(kind, Written::Text) {
-        csv_text(scratch, is_string && scratch.is_empty(), out);
-    } else {
-        csv_field(scratch, false, out);
-    }
-}
-
-/// The output buffered, a line and a value being built.
-fn text_buffers<W: Write>(out: W) -> (io::BufWriter<W>, Vec<u8>, Vec<u8>) {
+/// The output buffered, and a line being built.
+fn text_buffers<W: Write>(out: W) -> (io::BufWriter<W>, Vec<u8>) {
     (
         io::BufWriter::with_capacity(256 * 1024, out),
         Vec::with_capacity(256),
-        Vec::with_capacity(64),
     )
+}
+
+/// One long row of a record, as [`shape::csv_row`] or [`shape::json_row`].
+fn long_row(
+    record: &Record,
+    out: &mut Vec<u8>,
+    write: fn(i64, &str, Option<&Presented>, RowQuality, &mut Vec<u8>),
+) {
+    match record {
+        Record::Sample(row) => write(
+            row.time(),
+            &row.var.name,
+            presented(&row.value, row.var.ty).as_ref(),
+            row.quality.into(),
+            out,
+        ),
+        Record::Mark(mark) => write(
+            mark.t,
+            mark.gap.name(),
+            Some(&mark_text(mark)),
+            mark.gap.quality(),
+            out,
+        ),
+    }
 }
 
 fn write_csv<W: Write>(
@@ -337,21 +350,13 @@ fn write_csv<W: Write>(
     wide: bool,
     out: W,
 ) -> Result<u64, ExportError> {
-    let (mut out, mut line, mut scratch) = text_buffers(out);
+    let (mut out, mut line) = text_buffers(out);
     let mut count = 0u64;
     if !wide {
-        out.write_all(b"time,name,value,quality\n")?;
-        for row in rows.by_ref() {
-            let row = row?;
+        out.write_all(shape::CSV_HEADER)?;
+        for record in rows.by_ref() {
             line.clear();
-            iso(row.time(), &mut line);
-            line.push(b',');
-            csv_text(row.var.name.as_bytes(), false, &mut line);
-            line.push(b',');
-            csv_value(&row, &mut line, &mut scratch);
-            line.push(b',');
-            line.extend_from_slice(row.quality.as_str().as_bytes());
-            line.push(b'\n');
+            long_row(&record?, &mut line, shape::csv_row);
             out.write_all(&line)?;
             count += 1;
         }
@@ -362,21 +367,40 @@ fn write_csv<W: Write>(
             if i > 0 {
                 line.push(b',');
             }
-            csv_text(name.as_bytes(), false, &mut line);
+            shape::csv_text(name.as_bytes(), &mut line);
         }
         line.push(b'\n');
         out.write_all(&line)?;
         let wide = Wide::new(columns);
         let mut rows = rows.peekable();
-        let mut cells = Vec::new();
-        while let Some(t) = wide.next_group(&mut rows, &mut cells)? {
-            line.clear();
-            iso(t, &mut line);
-            for var in columns {
-                let cell = wide.column(var).and_then(|i| cells[i].as_ref());
+        let mut group = Group {
+            t: 0,
+            gap: None,
+            cells: Vec::new(),
+            any_good: false,
+        };
+        while wide.next_group(&mut rows, &mut group)? {
+            if let Some(quality) = group.gap {
+                line.clear();
+                iso(group.t, &mut line);
                 line.push(b',');
-                if let Some(row) = cell.filter(|r| r.quality == Quality::Good) {
-                    csv_value(row, &mut line, &mut scratch);
+                line.extend_from_slice(quality.as_str().as_bytes());
+                line.extend(std::iter::repeat_n(b',', wide.width));
+                line.push(b'\n');
+                out.write_all(&line)?;
+                count += 1;
+            }
+            if !group.any_good {
+                continue;
+            }
+            line.clear();
+            iso(group.t, &mut line);
+            line.extend_from_slice(b",good");
+            for var in columns {
+                let cell = wide.column(var).and_then(|i| group.cells[i].as_ref());
+                line.push(b',');
+                if let Some(row) = cell {
+                    csv_cell(row, &mut line);
                 }
                 if var.stamped {
                     line.push(b',');
@@ -397,28 +421,16 @@ fn write_csv<W: Write>(
 // ---------------------------------------------------------------------------
 // JSON.
 
-fn json_value(row: &Row, out: &mut Vec<u8>, scratch: &mut Vec<u8>) -> io::Result<()> {
-    scratch.clear();
-    match value_text(&row.value, row.var.ty, scratch) {
-        Written::Missing => out.extend_from_slice(b"null"),
-        Written::Number
-            if scratch
-                .first()
-                .is_some_and(|b| b.is_ascii_digit() || *b == b'-')
-                && !scratch.ends_with(b"inf") =>
-        {
-            out.extend_from_slice(scratch)
-        }
-        // NaN and infinities have no JSON number: as text.
-        Written::Number | Written::Text => {
-            serde_json::to_writer(&mut *out, &String::from_utf8_lossy(scratch))?
-        }
+/// A wide cell: a JSON number, or a string (NaN and infinities too: JSON
+/// has no number for them), or null.
+fn json_cell(row: Option<&Row>, out: &mut Vec<u8>) {
+    match row.and_then(|row| presented(&row.value, row.var.ty)) {
+        None => out.extend_from_slice(b"null"),
+        Some(value) => match shape::split(&value) {
+            Split::Number(v) => shape::number_text(v, out),
+            Split::Text(v) => shape::json_string(&v.text(), out),
+        },
     }
-    Ok(())
-}
-
-fn json_string(text: &str, out: &mut Vec<u8>) -> io::Result<()> {
-    serde_json::to_writer(out, text).map_err(io::Error::from)
 }
 
 fn write_json<W: Write>(
@@ -427,24 +439,15 @@ fn write_json<W: Write>(
     wide: bool,
     out: W,
 ) -> Result<u64, ExportError> {
-    let (mut out, mut line, mut scratch) = text_buffers(out);
+    let (mut out, mut line) = text_buffers(out);
     let mut count = 0u64;
     out.write_all(b"[")?;
     let mut separator: &[u8] = b"\n";
     if !wide {
-        for row in rows.by_ref() {
-            let row = row?;
+        for record in rows.by_ref() {
             line.clear();
             line.extend_from_slice(separator);
-            line.extend_from_slice(b"{\"time\":\"");
-            iso(row.time(), &mut line);
-            line.extend_from_slice(b"\",\"name\":");
-            json_string(&row.var.name, &mut line)?;
-            line.extend_from_slice(b",\"value\":");
-            json_value(&row, &mut line, &mut scratch)?;
-            line.extend_from_slice(b",\"quality\":\"");
-            line.extend_from_slice(row.quality.as_str().as_bytes());
-            line.extend_from_slice(b"\"}");
+            long_row(&record?, &mut line, shape::json_row);
             out.write_all(&line)?;
             separator = b",\n";
             count += 1;
@@ -453,40 +456,53 @@ fn write_json<W: Write>(
         let wide = Wide::new(columns);
         let names = wide_header(columns);
         let mut rows = rows.peekable();
-        let mut cells = Vec::new();
-        while let Some(t) = wide.next_group(&mut rows, &mut cells)? {
-            line.clear();
-            line.extend_from_slice(separator);
-            line.extend_from_slice(b"{\"time\":\"");
-            iso(t, &mut line);
-            line.push(b'"');
-            for var in columns {
-                let i = wide.column(var).unwrap_or(0);
-                line.push(b',');
-                json_string(&names[i + 1], &mut line)?;
-                line.push(b':');
-                match cells[i].as_ref().filter(|r| r.quality == Quality::Good) {
-                    Some(row) => json_value(row, &mut line, &mut scratch)?,
-                    None => line.extend_from_slice(b"null"),
-                }
-                if var.stamped {
+        let mut group = Group {
+            t: 0,
+            gap: None,
+            cells: Vec::new(),
+            any_good: false,
+        };
+        while wide.next_group(&mut rows, &mut group)? {
+            let mut lines: [(Option<RowQuality>, bool); 2] =
+                [(group.gap, true), (Some(RowQuality::Good), false)];
+            if !group.any_good {
+                lines[1].0 = None;
+            }
+            for (quality, empty) in lines {
+                let Some(quality) = quality else { continue };
+                line.clear();
+                line.extend_from_slice(separator);
+                line.extend_from_slice(b"{\"time\":\"");
+                iso(group.t, &mut line);
+                line.extend_from_slice(b"\",\"quality\":\"");
+                line.extend_from_slice(quality.as_str().as_bytes());
+                line.push(b'"');
+                for var in columns {
+                    let i = wide.column(var).unwrap_or(0);
+                    let cell = group.cells[i].as_ref().filter(|_| !empty);
                     line.push(b',');
-                    json_string(&names[i + 2], &mut line)?;
+                    shape::json_string(&names[i + 2], &mut line);
                     line.push(b':');
-                    match cells[i].as_ref().and_then(|r| r.plc_time) {
-                        Some(plc) => {
-                            line.push(b'"');
-                            iso(plc, &mut line);
-                            line.push(b'"');
+                    json_cell(cell, &mut line);
+                    if var.stamped {
+                        line.push(b',');
+                        shape::json_string(&names[i + 3], &mut line);
+                        line.push(b':');
+                        match cell.and_then(|r| r.plc_time) {
+                            Some(plc) => {
+                                line.push(b'"');
+                                iso(plc, &mut line);
+                                line.push(b'"');
+                            }
+                            None => line.extend_from_slice(b"null"),
                         }
-                        None => line.extend_from_slice(b"null"),
                     }
                 }
+                line.push(b'}');
+                out.write_all(&line)?;
+                separator = b",\n";
+                count += 1;
             }
-            line.push(b'}');
-            out.write_all(&line)?;
-            separator = b",\n";
-            count += 1;
         }
     }
     out.write_all(b"\n]\n")?;
@@ -686,6 +702,25 @@ fn group_rows(columns: usize) -> usize {
     (1_000_000 / columns.max(1)).clamp(1024, 1 << 17)
 }
 
+/// The quality strings, shared by the rows that hold them.
+fn quality_bytes() -> impl Fn(RowQuality) -> bytes::Bytes {
+    let all = [
+        RowQuality::Good,
+        RowQuality::Stale,
+        RowQuality::LinkLost,
+        RowQuality::Stopped,
+        RowQuality::Damaged,
+        RowQuality::Error,
+    ]
+    .map(|q| (q, bytes::Bytes::from_static(q.as_str().as_bytes())));
+    move |q| {
+        all.iter()
+            .find(|(k, _)| *k == q)
+            .map(|(_, b)| b.clone())
+            .unwrap_or_default()
+    }
+}
+
 fn write_parquet<W: Write + Send>(
     rows: Intact,
     columns: &[Arc<Variable>],
@@ -695,6 +730,8 @@ fn write_parquet<W: Write + Send>(
     let mut fields = vec![field("time", Physical::INT64, timestamp(), false)?];
     let mut fill = vec![Filling::new(Column::I64(Vec::new()), false)];
     if wide {
+        fields.push(field("quality", Physical::BYTE_ARRAY, string(), false)?);
+        fill.push(Filling::new(Column::Bytes(Vec::new()), false));
         for var in columns {
             let (f, c) = typed_column(&var.name, var.ty)?;
             fields.push(f);
@@ -746,69 +783,103 @@ fn write_parquet<W: Write + Send>(
         group.close()?;
         Ok(())
     };
+    let quality = quality_bytes();
+    // A row done: a row group written when full.
+    let mut row_done = |fill: &mut Vec<Filling>,
+                        writer: &mut SerializedFileWriter<W>|
+     -> Result<(), ExportError> {
+        count += 1;
+        in_group += 1;
+        if in_group == per_group {
+            flush(fill, writer)?;
+            in_group = 0;
+        }
+        Ok(())
+    };
     if wide {
         let layout = Wide::new(columns);
         let mut rows = rows.peekable();
-        let mut cells = Vec::new();
-        while let Some(t) = layout.next_group(&mut rows, &mut cells)? {
-            fill[0].push_i64(t);
+        let mut group = Group {
+            t: 0,
+            gap: None,
+            cells: Vec::new(),
+            any_good: false,
+        };
+        while layout.next_group(&mut rows, &mut group)? {
+            if let Some(gap) = group.gap {
+                fill[0].push_i64(group.t);
+                fill[1].push_shared(quality(gap));
+                for column in &mut fill[2..] {
+                    column.null();
+                }
+                row_done(&mut fill, &mut writer)?;
+            }
+            if !group.any_good {
+                continue;
+            }
+            fill[0].push_i64(group.t);
+            fill[1].push_shared(quality(RowQuality::Good));
             for var in columns {
                 let Some(i) = layout.column(var) else {
                     continue;
                 };
-                let cell = cells[i].as_ref();
-                match cell.filter(|r| r.quality == Quality::Good) {
-                    Some(row) => fill[i + 1].push_value(&row.value, row.var.ty),
-                    None => fill[i + 1].null(),
+                let cell = group.cells[i].as_ref();
+                match cell {
+                    Some(row) => fill[i + 2].push_value(&row.value, row.var.ty),
+                    None => fill[i + 2].null(),
                 }
                 if var.stamped {
                     match cell.and_then(|r| r.plc_time) {
-                        Some(ms) => fill[i + 2].push_i64(ms),
-                        None => fill[i + 2].null(),
+                        Some(ms) => fill[i + 3].push_i64(ms),
+                        None => fill[i + 3].null(),
                     }
                 }
             }
-            count += 1;
-            in_group += 1;
-            if in_group == per_group {
-                flush(&mut fill, &mut writer)?;
-                in_group = 0;
-            }
+            row_done(&mut fill, &mut writer)?;
         }
     } else {
         let mut names: Vec<(*const Variable, bytes::Bytes)> = Vec::new();
-        let qualities = [Quality::Good, Quality::Stale, Quality::LinkLost]
-            .map(|q| bytes::Bytes::from_static(q.as_str().as_bytes()));
-        for row in rows {
-            let row = row?;
-            fill[0].push_i64(row.time());
-            let key = Arc::as_ptr(&row.var);
-            let name = match names.iter().find(|(p, _)| *p == key) {
-                Some((_, name)) => name.clone(),
-                None => {
-                    let name = bytes::Bytes::from(row.var.name.clone());
-                    names.push((key, name.clone()));
-                    name
+        for record in rows {
+            match record? {
+                Record::Sample(row) => {
+                    fill[0].push_i64(row.time());
+                    let key = Arc::as_ptr(&row.var);
+                    let name = match names.iter().find(|(p, _)| *p == key) {
+                        Some((_, name)) => name.clone(),
+                        None => {
+                            let name = bytes::Bytes::from(row.var.name.clone());
+                            names.push((key, name.clone()));
+                            name
+                        }
+                    };
+                    fill[1].push_shared(name);
+                    match presented(&row.value, row.var.ty) {
+                        None => {
+                            fill[2].null();
+                            fill[3].null();
+                        }
+                        Some(value) => match shape::split(&value) {
+                            Split::Number(v) => {
+                                fill[2].push_f64(number(v));
+                                fill[3].null();
+                            }
+                            Split::Text(v) => {
+                                fill[2].null();
+                                fill[3].push_bytes(v.text().as_bytes());
+                            }
+                        },
+                    }
+                    fill[4].push_shared(quality(row.quality.into()));
                 }
-            };
-            fill[1].push_shared(name);
-            match &row.value {
-                Stored::Text(s) => {
+                Record::Mark(mark) => {
+                    fill[0].push_i64(mark.t);
+                    fill[1].push_shared(bytes::Bytes::from_static(mark.gap.name().as_bytes()));
                     fill[2].null();
-                    fill[3].push_bytes(s.as_bytes());
-                }
-                value => {
-                    fill[2].push_value(value, row.var.ty);
-                    fill[3].null();
+                    fill[3].push_shared(bytes::Bytes::from_static(mark.gap.text().as_bytes()));
+                    fill[4].push_shared(quality(mark.gap.quality()));
                 }
             }
-            fill[4].push_shared(qualities[quality_code(row.quality) as usize].clone());
-            count += 1;
-            in_group += 1;
-            if in_group == per_group {
-                flush(&mut fill, &mut writer)?;
-                in_group = 0;
-            }
+            row_done(&mut fill, &mut writer)?;
         }
     }
     if in_group > 0 || count == 0 {
@@ -818,21 +889,31 @@ fn write_parquet<W: Write + Send>(
     Ok(count)
 }
 
+/// A number of the `value` column as a double (BOOL 0/1).
+fn number(value: &Presented) -> f64 {
+    match value {
+        Presented::Bool(b) => f64::from(u8::from(*b)),
+        Presented::Signed(n) => *n as f64,
+        Presented::Unsigned(n) => *n as f64,
+        Presented::Number(x) => *x,
+        _ => f64::NAN,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn text(value: Stored, ty: IecType) -> String {
-        let mut out = Vec::new();
-        value_text(&value, Some(ty), &mut out);
-        String::from_utf8(out).unwrap()
+        presented(&value, Some(ty)).map_or(String::new(), |v| v.text())
     }
 
     #[test]
     fn exact_value_texts() {
         assert_eq!(text(Stored::Real(f64::from(0.1f32)), IecType::Real), "0.1");
         assert_eq!(text(Stored::Real(0.1), IecType::Lreal), "0.1");
-        assert_eq!(text(Stored::Null, IecType::Lreal), "NaN");
+        assert_eq!(text(Stored::Null, IecType::Lreal), "nan");
+        assert_eq!(text(Stored::Null, IecType::Int), "");
         assert_eq!(text(Stored::Real(f64::INFINITY), IecType::Lreal), "inf");
         assert_eq!(
             text(Stored::Int(-1), IecType::Ulint),
@@ -840,46 +921,62 @@ mod tests {
         );
         assert_eq!(text(Stored::Int(-1), IecType::Lint), "-1");
         assert_eq!(
-            text(Stored::Int(1_700_000_000_000), IecType::Dt),
-            "2023-11-14T22:13:20.000Z"
+            presented(&Stored::Int(1), Some(IecType::Bool)),
+            Some(Presented::Bool(true))
         );
-        for (text, guarded) in [
-            ("=1+2", true),
-            ("+CMD", true),
-            ("@A1", true),
-            ("\tx", true),
-            ("\rx", true),
-            ("-1+2", true),
-            ("-5", false),
-            ("-1.5e3", false),
-            ("+inf", false),
-            ("a=b", false),
-            ("", false),
-        ] {
-            assert_eq!(runs_as_formula(text.as_bytes()), guarded, "{text:?}");
+    }
+
+    /// A stored value is presented as `Presented` presents the value it was
+    /// stored from: the web page, MQTT and the exports show one form.
+    #[test]
+    fn the_forms_of_presented() {
+        let cases = [
+            (IecType::Dt, Value::Date(1_795_601_700.123)),
+            (IecType::Dt, Value::Date(0.0)),
+            (IecType::Date, Value::Date(1_795_564_800.0)),
+            (IecType::Tod, Value::Time(36_900_123)),
+            (IecType::Time, Value::Time(3_723_456)),
+            (IecType::Time, Value::Time(0)),
+            (IecType::Real, Value::Real(22.3)),
+            (IecType::Real, Value::Real(f32::NAN)),
+            (IecType::Lreal, Value::LReal(-1.0e-300)),
+            (IecType::Bool, Value::Bool(false)),
+            (IecType::Udint, Value::Unsigned(4_000_000_000)),
+            (IecType::Sint, Value::Signed(-128)),
+            (IecType::String(8), Value::Str(b"P\xF8\xEDli\x9A".to_vec())),
+        ];
+        for (ty, value) in cases {
+            let want = Presented::of_value(ty, &value);
+            let got = presented(&Stored::from_value(&value), Some(ty)).unwrap();
+            // (A NaN is no equal of itself: compared as text and number.)
+            assert_eq!(
+                (got.text(), got.as_number()),
+                (want.text(), want.as_number()),
+                "{ty:?} {value:?}"
+            );
         }
-        let mut out = Vec::new();
-        csv_text(b"=a,b", false, &mut out);
-        assert_eq!(out, b"\"'=a,b\"");
-        let mut out = Vec::new();
-        csv_field(b"a,\"b\"", false, &mut out);
-        csv_field(b"", true, &mut out);
-        assert_eq!(out, b"\"a,\"\"b\"\"\"\"\"");
     }
 }
 
 #[cfg(test)]
 mod stream_tests {
     use super::*;
-    use crate::sample::Sample;
+    use crate::sample::{Event, EventKind, Sample};
     use crate::store::{day_of, DayFile};
     use plccoms_core::vars::table_of;
 
-    /// A day file with A (INT) and B (LREAL, stamped), an outage sample
-    /// and a sample of C that the masks leave out.
+    /// A day file with A (INT), B (LREAL, stamped), D (DT), S (STRING), a
+    /// link outage, a server stop and start, and a sample of C that the
+    /// masks leave out.
     fn history() -> (tempfile::TempDir, Query) {
         let dir = tempfile::tempdir().unwrap();
-        let table = Arc::new(table_of(&[("A", "INT"), ("B", "LREAL"), ("C", "INT")]));
+        let table = Arc::new(table_of(&[
+            ("A", "INT"),
+            ("B", "LREAL"),
+            ("C", "INT"),
+            ("D", "DT"),
+            ("S", "STRING[8]"),
+        ]));
         let id = |n: &str| table.lookup(n.as_bytes()).unwrap();
         let t = 1_700_000_000_000;
         let sample = |var, dt: i64, value, quality, plc_time| Sample {
@@ -893,57 +990,112 @@ mod stream_tests {
             sample(id("A"), 0, Stored::Int(1), Quality::Good, None),
             sample(id("B"), 0, Stored::Real(0.5), Quality::Good, Some(t - 7)),
             sample(id("C"), 0, Stored::Int(9), Quality::Good, None),
+            sample(id("D"), 0, Stored::Int(t), Quality::Good, None),
+            sample(id("S"), 0, Stored::Text("x,y".into()), Quality::Good, None),
             sample(id("A"), 100, Stored::Int(1), Quality::LinkLost, None),
-            sample(id("B"), 100, Stored::Null, Quality::Good, None),
+            sample(id("B"), 100, Stored::Real(0.5), Quality::LinkLost, None),
+            sample(id("A"), 300, Stored::Int(2), Quality::Good, None),
+            sample(id("B"), 300, Stored::Null, Quality::Good, None),
+        ];
+        let event = |dt: i64, kind| Event {
+            t: t + dt,
+            kind,
+            detail: String::new(),
+        };
+        let events = [
+            event(100, EventKind::LinkLost),
+            event(300, EventKind::LinkRestored),
+            event(400, EventKind::Stop),
+            event(500, EventKind::Table),
+            event(600, EventKind::Start),
         ];
         let mut file = DayFile::open(dir.path(), "S", day_of(t)).unwrap();
-        file.write(&[(&table, &samples)], &[]).unwrap();
+        file.write(&[(&table, &samples)], &events).unwrap();
         file.close();
         let query = Query {
             dir: dir.path().to_path_buf(),
             section: "S".into(),
-            masks: vec!["a".into(), "B".into()],
+            masks: vec!["a".into(), "B".into(), "D".into(), "S".into()],
             from_ms: t,
             to_ms: t + 1000,
         };
         (dir, query)
     }
 
-    fn csv(query: &Query, wide: bool) -> String {
+    fn export_text(query: &Query, format: Format, wide: bool) -> String {
         let mut out = Vec::new();
-        export(query, Format::Csv, wide, &mut out).unwrap();
+        export(query, format, wide, &mut out).unwrap();
         String::from_utf8(out).unwrap()
     }
 
+    fn csv(query: &Query, wide: bool) -> String {
+        export_text(query, Format::Csv, wide)
+    }
+
     #[test]
-    fn long_and_wide_with_quality_stamps_and_nan() {
+    fn long_and_wide_typed_with_gaps_stamps_and_nan() {
         let (_dir, query) = history();
         assert_eq!(
             csv(&query, false),
-            "time,name,value,quality\n\
-             2023-11-14T22:13:20.000Z,A,1,good\n\
-             2023-11-14T22:13:19.993Z,B,0.5,good\n\
-             2023-11-14T22:13:20.100Z,A,1,link_lost\n\
-             2023-11-14T22:13:20.100Z,B,NaN,good\n"
+            "time,name,value,text,quality\n\
+             2023-11-14T22:13:20.000Z,A,1,,good\n\
+             2023-11-14T22:13:19.993Z,B,0.5,,good\n\
+             2023-11-14T22:13:20.000Z,D,,2023-11-14T22:13:20.000Z,good\n\
+             2023-11-14T22:13:20.000Z,S,,\"x,y\",good\n\
+             2023-11-14T22:13:20.100Z,__LINK,,link_lost,link_lost\n\
+             2023-11-14T22:13:20.100Z,A,1,,link_lost\n\
+             2023-11-14T22:13:20.100Z,B,0.5,,link_lost\n\
+             2023-11-14T22:13:20.300Z,__LINK,,link_restored,link_lost\n\
+             2023-11-14T22:13:20.300Z,A,2,,good\n\
+             2023-11-14T22:13:20.300Z,B,,nan,good\n\
+             2023-11-14T22:13:20.400Z,__SERVER,,stop,stopped\n\
+             2023-11-14T22:13:20.600Z,__SERVER,,start,stopped\n"
         );
         assert_eq!(
             csv(&query, true),
-            "time,A,B,B.plc_time\n\
-             2023-11-14T22:13:20.000Z,1,0.5,2023-11-14T22:13:19.993Z\n\
-             2023-11-14T22:13:20.100Z,,NaN,\n"
+            "time,quality,A,B,B.plc_time,D,S\n\
+             2023-11-14T22:13:20.000Z,good,1,0.5,2023-11-14T22:13:19.993Z,2023-11-14T22:13:20.000Z,\"x,y\"\n\
+             2023-11-14T22:13:20.100Z,link_lost,,,,,\n\
+             2023-11-14T22:13:20.300Z,link_lost,,,,,\n\
+             2023-11-14T22:13:20.300Z,good,2,nan,,,\n\
+             2023-11-14T22:13:20.400Z,stopped,,,,,\n\
+             2023-11-14T22:13:20.600Z,stopped,,,,,\n"
         );
-        let mut json = Vec::new();
-        export(&query, Format::Json, false, &mut json).unwrap();
-        let rows: serde_json::Value = serde_json::from_slice(&json).unwrap();
-        assert_eq!(rows[3]["value"], "NaN");
-        assert_eq!(rows[2]["quality"], "link_lost");
+        let rows: serde_json::Value =
+            serde_json::from_str(&export_text(&query, Format::Json, false)).unwrap();
+        assert_eq!(
+            rows[0],
+            serde_json::json!({"time": "2023-11-14T22:13:20.000Z", "name": "A", "value": 1,
+                               "text": null, "quality": "good"})
+        );
+        assert_eq!(rows[3]["text"], "x,y");
+        assert_eq!(
+            rows[4],
+            serde_json::json!({"time": "2023-11-14T22:13:20.100Z", "name": "__LINK", "value": null,
+                               "text": "link_lost", "quality": "link_lost"})
+        );
+        assert_eq!(
+            (&rows[9]["value"], &rows[9]["text"]),
+            (&serde_json::Value::Null, &serde_json::json!("nan"))
+        );
+        let wide: serde_json::Value =
+            serde_json::from_str(&export_text(&query, Format::Json, true)).unwrap();
+        assert_eq!(
+            wide[0],
+            serde_json::json!({"time": "2023-11-14T22:13:20.000Z", "quality": "good", "A": 1, "B": 0.5,
+                               "B.plc_time": "2023-11-14T22:13:19.993Z", "D": "2023-11-14T22:13:20.000Z", "S": "x,y"})
+        );
+        assert_eq!(wide[1]["quality"], "link_lost");
+        assert_eq!(wide[1]["A"], serde_json::Value::Null);
+        assert_eq!(wide[3]["B"], "nan");
+        assert_eq!(wide.as_array().unwrap().len(), 6);
         // Nothing of the range: none; an unknown section: an error naming it.
         let empty = Query {
             from_ms: query.to_ms,
             to_ms: query.to_ms + 1,
             ..query.clone()
         };
-        assert_eq!(csv(&empty, false), "time,name,value,quality\n");
+        assert_eq!(csv(&empty, false), "time,name,value,text,quality\n");
         let other = Query {
             section: "T".into(),
             ..query

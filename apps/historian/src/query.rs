@@ -34,6 +34,7 @@ use super::key::{day_of, DAY_MS, VAR_BITS, VAR_MASK};
 use super::sample::{quality_from_code, Stored};
 use super::store;
 use plccoms_core::changes::Quality;
+use plccoms_core::history_source::{self, RowQuality};
 
 /// Rows read from a file at a time.
 pub const CHUNK: usize = 8192;
@@ -534,6 +535,173 @@ impl Iterator for Rows {
                     Err(e) => return Some(Err(e)),
                 },
             }
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Gaps: the events a reader must see, merged with the samples.
+
+/// Something in the record that is a gap for every variable: from the day
+/// files' `events` table (link and server), or a damaged block left out.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Gap {
+    LinkLost,
+    LinkRestored,
+    /// The server stopped (a kill or power loss records none).
+    Stop,
+    Start,
+    /// The first and the last time of a damaged block's samples.
+    DamagedFrom,
+    DamagedTo,
+}
+
+impl Gap {
+    /// The marker row's name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Gap::LinkLost | Gap::LinkRestored => history_source::LINK,
+            Gap::Stop | Gap::Start => history_source::SERVER,
+            Gap::DamagedFrom | Gap::DamagedTo => history_source::DAMAGED,
+        }
+    }
+
+    pub fn quality(self) -> RowQuality {
+        match self {
+            Gap::LinkLost | Gap::LinkRestored => RowQuality::LinkLost,
+            Gap::Stop | Gap::Start => RowQuality::Stopped,
+            Gap::DamagedFrom | Gap::DamagedTo => RowQuality::Damaged,
+        }
+    }
+
+    /// The marker row's `text`: the event, as the `events` table names it.
+    pub fn text(self) -> &'static str {
+        match self {
+            Gap::LinkLost => "link_lost",
+            Gap::LinkRestored => "link_restored",
+            Gap::Stop => "stop",
+            Gap::Start => "start",
+            Gap::DamagedFrom => "damaged_from",
+            Gap::DamagedTo => "damaged_to",
+        }
+    }
+}
+
+/// A gap at a time (UTC ms).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Mark {
+    pub t: i64,
+    pub gap: Gap,
+}
+
+/// The link and server events of the range, in time order.
+pub fn marks(query: &Query) -> Result<Vec<Mark>, QueryError> {
+    let mut marks = Vec::new();
+    for (_, path) in files(query)? {
+        let conn = open(&path)?;
+        if !store::has_table(&conn, "events").map_err(file_error(&path))? {
+            continue;
+        }
+        let mut stmt = conn
+            .prepare(
+                "SELECT time, kind FROM events WHERE time >= ?1 AND time < ?2 \
+                 AND kind IN ('link_lost', 'link_restored', 'stop', 'start') ORDER BY time, id",
+            )
+            .map_err(file_error(&path))?;
+        let rows = stmt
+            .query_map([query.from_ms, query.to_ms], |r| {
+                Ok((r.get::<_, i64>(0)?, r.get::<_, String>(1)?))
+            })
+            .map_err(file_error(&path))?;
+        for row in rows {
+            let (t, kind) = row.map_err(file_error(&path))?;
+            let gap = match kind.as_str() {
+                "link_lost" => Gap::LinkLost,
+                "link_restored" => Gap::LinkRestored,
+                "stop" => Gap::Stop,
+                _ => Gap::Start,
+            };
+            marks.push(Mark { t, gap });
+        }
+    }
+    // Day files hold their own day's events: in order already, but a clock
+    // set back must not unsort the merge.
+    marks.sort_by_key(|m| m.t);
+    Ok(marks)
+}
+
+/// One item of [`records`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum Record {
+    Sample(Row),
+    Mark(Mark),
+}
+
+/// The samples of [`rows`] and the gaps of [`marks`], merged by poll time;
+/// a mark before the samples of its time (a link's return is recorded at
+/// the time of the fresh samples, which begin the next good stretch). A
+/// damaged block is, besides its error item, a `DamagedFrom` and a
+/// `DamagedTo` mark at its first and last time.
+pub fn records(query: &Query) -> Result<Records, QueryError> {
+    Ok(Records {
+        rows: rows(query)?,
+        marks: marks(query)?.into(),
+        next: None,
+    })
+}
+
+pub struct Records {
+    rows: Rows,
+    marks: VecDeque<Mark>,
+    /// A row read ahead.
+    next: Option<Row>,
+}
+
+impl Records {
+    pub fn variables(&self) -> &[Arc<Variable>] {
+        self.rows.variables()
+    }
+
+    fn insert(&mut self, mark: Mark) {
+        let at = self.marks.partition_point(|m| m.t <= mark.t);
+        self.marks.insert(at, mark);
+    }
+}
+
+impl Iterator for Records {
+    type Item = Result<Record, QueryError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        if self.next.is_none() {
+            match self.rows.next() {
+                Some(Ok(row)) => self.next = Some(row),
+                Some(Err(e)) => {
+                    if let QueryError::Damaged {
+                        first_ms, last_ms, ..
+                    } = &e
+                    {
+                        let (first, last) = (*first_ms, *last_ms);
+                        self.insert(Mark {
+                            t: first,
+                            gap: Gap::DamagedFrom,
+                        });
+                        self.insert(Mark {
+                            t: last,
+                            gap: Gap::DamagedTo,
+                        });
+                    }
+                    return Some(Err(e));
+                }
+                None => {}
+            }
+        }
+        match (&self.next, self.marks.front()) {
+            (Some(row), Some(mark)) if mark.t <= row.t => {
+                self.marks.pop_front().map(Record::Mark).map(Ok)
+            }
+            (Some(_), _) => self.next.take().map(Record::Sample).map(Ok),
+            (None, Some(_)) => self.marks.pop_front().map(Record::Mark).map(Ok),
+            (None, None) => None,
         }
     }
 }

@@ -16,11 +16,12 @@ use std::time::Duration;
 
 use futures::StreamExt;
 
-use super::export::{value_text, Written};
-use super::query::{self, Query, QueryError, Row};
+use super::export::presented;
+use super::query::{self, Query, QueryError, Record};
 use plccoms_core::history_source::{
     HistoryError, HistoryQuery, HistorySource, Sample, SampleStream,
 };
+use plccoms_core::present::Presented;
 
 /// Rows read ahead of the page's writer, at most.
 const AHEAD: usize = 256;
@@ -39,17 +40,21 @@ impl Source {
     }
 }
 
-fn sample(row: Row) -> Sample {
-    let mut text = Vec::new();
-    let value = match value_text(&row.value, row.var.ty, &mut text) {
-        Written::Missing => None,
-        Written::Number | Written::Text => Some(String::from_utf8_lossy(&text).into_owned()),
-    };
-    Sample {
-        unix_ms: row.t,
-        name: Arc::from(row.var.name.as_str()),
-        value,
-        quality: row.quality,
+/// A record as the row every export writes (`plccoms history`'s long form).
+fn sample(record: Record) -> Sample {
+    match record {
+        Record::Sample(row) => Sample {
+            unix_ms: row.time(),
+            name: Arc::from(row.var.name.as_str()),
+            value: presented(&row.value, row.var.ty),
+            quality: row.quality.into(),
+        },
+        Record::Mark(mark) => Sample {
+            unix_ms: mark.t,
+            name: Arc::from(mark.gap.name()),
+            value: Some(Presented::Text(mark.gap.text().into())),
+            quality: mark.gap.quality(),
+        },
     }
 }
 
@@ -78,7 +83,7 @@ fn send_by(
 impl HistorySource for Source {
     fn samples(&self, query: HistoryQuery) -> Result<SampleStream, HistoryError> {
         let section = query.section.clone();
-        let rows = query::rows(&Query {
+        let rows = query::records(&Query {
             dir: self.dir.clone(),
             section: query.section,
             masks: query.masks,
@@ -101,7 +106,8 @@ impl HistorySource for Source {
         let runtime = tokio::runtime::Handle::current();
         let read_all = complete.clone();
         tokio::task::spawn_blocking(move || {
-            // Damaged ranges are left out and named at the end.
+            // Damaged ranges are left out (their `__DAMAGED` rows mark
+            // them) and named at the end.
             let mut damaged = Vec::new();
             for row in rows {
                 let item = match row {
@@ -201,7 +207,18 @@ mod tests {
             .await;
         let (last, samples) = items.split_last().unwrap();
         assert!(samples.iter().all(Result::is_ok));
-        assert_eq!(samples.len(), 2 * 65_536);
+        // The block's samples are left out, its range marked by two rows.
+        assert_eq!(samples.len(), 2 * 65_536 + 2);
+        let marked: Vec<_> = samples
+            .iter()
+            .flatten()
+            .filter(|s| &*s.name == "__DAMAGED")
+            .map(|s| (s.unix_ms, s.quality.as_str()))
+            .collect();
+        assert_eq!(
+            marked,
+            [(at(65_536), "damaged"), (at(2 * 65_536 - 1), "damaged")]
+        );
         let Err(HistoryError::Failed(message)) = last else {
             panic!("{last:?}");
         };

@@ -8,17 +8,15 @@
 //!
 //! `from`/`to`: UTC milliseconds since 1970, or a time as `plccoms history`
 //! takes it (`now`, `-1h`, `-7d`, `2026-11-30T12:00:00Z`); `to` defaults to
-//! now, `from` to an hour before `to`. Output, oldest first:
-//! - CSV: `unix_ms,time,name,value,quality`, one line per sample (values as
-//!   the protocol prints them; quoted as RFC 4180 when needed; a name or
-//!   value beginning with = + - @ TAB or CR that is not a number gets a `'`
-//!   before it, so a spreadsheet does not run it as a formula);
-//! - JSON: `{"section":S,"from_ms":f,"to_ms":t,"samples":[{"t":ms,
-//!   "name":N,"value":V|null,"quality":Q},..]}`.
+//! now, `from` to an hour before `to`. Output, oldest first: the long form
+//! of `plccoms history` byte for byte (README, "Reading it back"), the rows
+//! `time,name,value,text,quality` as CSV, or as a JSON array of
+//! `{"time","name","value","text","quality"}`, gaps (`__LINK`, `__SERVER`,
+//! `__DAMAGED`) included.
 //!
 //! An error after the first bytes went out cannot change the status: it
-//! ends the body, as a last CSV line `# error: ...` or a JSON `"error"`
-//! member after `samples`. So do the historian's time limit for an answer
+//! ends the body as a last row named `__ERROR`, quality `error`, its
+//! message in `text`. So do the historian's time limit for an answer
 //! (HISTORY_QUERY_TIMEOUT, a stalled reader included) and the damaged
 //! ranges it left out.
 
@@ -27,13 +25,14 @@ use axum::extract::Query;
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use futures::stream::StreamExt;
-use serde::{Deserialize, Serialize};
+use serde::Deserialize;
 
 use super::api::error;
 use super::State;
 use plccoms_core::history_source::{
-    HistoryError, HistoryQuery, HistorySource, Sample, SampleStream,
+    self as shape, HistoryError, HistoryQuery, HistorySource, RowQuality, Sample, SampleStream,
 };
+use plccoms_core::present::Presented;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Format {
@@ -148,11 +147,7 @@ pub(super) async fn history(state: State, Query(params): Query<HistoryParams>) -
 
 /// The response for `query` from `source`.
 pub fn respond(source: &dyn HistorySource, query: HistoryQuery, format: Format) -> Response {
-    let head = Head {
-        section: query.section.clone(),
-        from_ms: query.from_ms,
-        to_ms: query.to_ms,
-    };
+    let from_ms = query.from_ms;
     let samples = match source.samples(query) {
         Ok(samples) => samples,
         Err(e @ HistoryError::UnknownSection(_)) => {
@@ -164,54 +159,36 @@ pub fn respond(source: &dyn HistorySource, query: HistoryQuery, format: Format) 
         Format::Csv => "text/csv; charset=utf-8",
         Format::Json => "application/json",
     };
-    let body = Body::from_stream(encode(samples, format, head));
+    let body = Body::from_stream(encode(samples, format, from_ms));
     ([(header::CONTENT_TYPE, content_type)], body).into_response()
-}
-
-#[derive(Serialize)]
-struct Head {
-    section: String,
-    from_ms: i64,
-    to_ms: i64,
-}
-
-#[derive(Serialize)]
-struct JsonSample<'a> {
-    t: i64,
-    name: &'a str,
-    value: Option<&'a str>,
-    quality: &'static str,
 }
 
 struct Encoder {
     samples: SampleStream,
     format: Format,
-    /// Samples written so far (JSON needs commas between them).
+    /// Rows written so far (JSON needs commas between them).
     written: u64,
+    /// The last row's time: an `__ERROR` row's.
+    last_ms: i64,
     done: bool,
 }
 
-/// The body: the format's head, the samples in chunks of about [`CHUNK`]
+/// The body: the format's head, the rows in chunks of about [`CHUNK`]
 /// bytes, and its tail.
 fn encode(
     samples: SampleStream,
     format: Format,
-    head: Head,
+    from_ms: i64,
 ) -> impl futures::Stream<Item = Result<Bytes, std::io::Error>> {
-    let mut start = Vec::new();
-    match format {
-        Format::Csv => start.extend_from_slice(b"unix_ms,time,name,value,quality\r\n"),
-        Format::Json => {
-            // `{"section":..,"from_ms":..,"to_ms":..` then the samples.
-            let head = serde_json::to_vec(&head).unwrap_or_else(|_| b"{}".to_vec());
-            start.extend_from_slice(&head[..head.len() - 1]);
-            start.extend_from_slice(b",\"samples\":[");
-        }
-    }
+    let start = match format {
+        Format::Csv => shape::CSV_HEADER.to_vec(),
+        Format::Json => b"[".to_vec(),
+    };
     let encoder = Encoder {
         samples,
         format,
         written: 0,
+        last_ms: from_ms,
         done: false,
     };
     futures::stream::unfold((encoder, start), |(mut enc, mut buf)| async move {
@@ -241,73 +218,42 @@ fn encode(
 impl Encoder {
     fn write(&mut self, sample: &Sample, out: &mut Vec<u8>) {
         match self.format {
-            Format::Csv => {
-                let time = chrono::DateTime::from_timestamp_millis(sample.unix_ms)
-                    .map(|t| t.format("%Y-%m-%dT%H:%M:%S%.3fZ").to_string())
-                    .unwrap_or_default();
-                out.extend_from_slice(sample.unix_ms.to_string().as_bytes());
-                out.push(b',');
-                out.extend_from_slice(time.as_bytes());
-                out.push(b',');
-                csv_field(&sample.name, out);
-                out.push(b',');
-                csv_field(sample.value.as_deref().unwrap_or(""), out);
-                out.push(b',');
-                out.extend_from_slice(sample.quality.as_str().as_bytes());
-                out.extend_from_slice(b"\r\n");
-            }
+            Format::Csv => shape::csv_row(
+                sample.unix_ms,
+                &sample.name,
+                sample.value.as_ref(),
+                sample.quality,
+                out,
+            ),
             Format::Json => {
-                if self.written > 0 {
-                    out.push(b',');
-                }
-                let _ = serde_json::to_writer(
-                    &mut *out,
-                    &JsonSample {
-                        t: sample.unix_ms,
-                        name: &sample.name,
-                        value: sample.value.as_deref(),
-                        quality: sample.quality.as_str(),
-                    },
+                out.extend_from_slice(if self.written > 0 { b",\n" } else { b"\n" });
+                shape::json_row(
+                    sample.unix_ms,
+                    &sample.name,
+                    sample.value.as_ref(),
+                    sample.quality,
+                    out,
                 );
             }
         }
+        self.last_ms = sample.unix_ms;
         self.written += 1;
     }
 
     fn finish(&mut self, failure: Option<&str>, out: &mut Vec<u8>) {
-        self.done = true;
-        match (self.format, failure) {
-            (Format::Csv, None) => {}
-            (Format::Csv, Some(message)) => {
-                out.extend_from_slice(format!("# error: {message}\r\n").as_bytes());
-            }
-            (Format::Json, None) => out.extend_from_slice(b"]}"),
-            (Format::Json, Some(message)) => {
-                out.extend_from_slice(b"],\"error\":");
-                let _ = serde_json::to_writer(&mut *out, message);
-                out.push(b'}');
-            }
+        if let Some(message) = failure {
+            let row = Sample {
+                unix_ms: self.last_ms,
+                name: shape::ERROR.into(),
+                value: Some(Presented::Text(message.into())),
+                quality: RowQuality::Error,
+            };
+            self.write(&row, out);
         }
-    }
-}
-
-/// A CSV field, quoted when it holds a comma, quote or line break; text a
-/// spreadsheet would run as a formula (see
-/// [`plccoms_core::history_source::runs_as_formula`]) with a `'` before it.
-fn csv_field(text: &str, out: &mut Vec<u8>) {
-    let guarded;
-    let text = if plccoms_core::history_source::runs_as_formula(text.as_bytes()) {
-        guarded = format!("'{text}");
-        &guarded
-    } else {
-        text
-    };
-    if text.contains([',', '"', '\r', '\n']) {
-        out.push(b'"');
-        out.extend_from_slice(text.replace('"', "\"\"").as_bytes());
-        out.push(b'"');
-    } else {
-        out.extend_from_slice(text.as_bytes());
+        self.done = true;
+        if self.format == Format::Json {
+            out.extend_from_slice(b"\n]\n");
+        }
     }
 }
 
@@ -342,22 +288,37 @@ mod tests {
         }
     }
 
-    fn sample(unix_ms: i64, name: &str, value: Option<&str>, quality: Quality) -> Sample {
+    fn sample(unix_ms: i64, name: &str, value: Option<Presented>, quality: Quality) -> Sample {
         Sample {
             unix_ms,
             name: name.into(),
-            value: value.map(String::from),
-            quality,
+            value,
+            quality: quality.into(),
         }
+    }
+
+    fn text(text: &str) -> Option<Presented> {
+        Some(Presented::Text(text.into()))
     }
 
     fn recorded(failure: Option<HistoryError>) -> Recorded {
         Recorded(
             vec![
-                sample(1_000, "SINUS", Some("0.5"), Quality::Good),
-                sample(1_000, "TEXT", Some("\"a, \"b\"\""), Quality::Good),
-                sample(2_000, "SINUS", None, Quality::LinkLost),
-                sample(9_000, "SINUS", Some("0.7"), Quality::Good),
+                sample(1_000, "SINUS", Some(Presented::Number(0.5)), Quality::Good),
+                sample(1_000, "TEXT", text("\"a, \"b\"\""), Quality::Good),
+                sample(
+                    2_000,
+                    "SINUS",
+                    Some(Presented::Number(0.5)),
+                    Quality::LinkLost,
+                ),
+                Sample {
+                    unix_ms: 2_000,
+                    name: "__LINK".into(),
+                    value: text("link_lost"),
+                    quality: RowQuality::LinkLost,
+                },
+                sample(9_000, "SINUS", Some(Presented::Number(0.7)), Quality::Good),
             ],
             failure,
         )
@@ -379,36 +340,35 @@ mod tests {
         (status, String::from_utf8(bytes.to_vec()).unwrap())
     }
 
+    /// The rows of `plccoms history`'s long form: `time,name,value,text,
+    /// quality`, numbers in `value`, strings in `text`, gaps as rows.
     #[tokio::test]
     async fn csv_and_json_of_a_range() {
         let source = recorded(None);
         let (status, csv) = body(
             &source,
-            "section=Demo&vars=s*,text&from=0&to=5000&format=csv",
+            "section=Demo&vars=s*,text,__link&from=0&to=5000&format=csv",
         )
         .await;
         assert_eq!(status, StatusCode::OK);
         assert_eq!(
             csv,
-            "unix_ms,time,name,value,quality\r\n\
-             1000,1970-01-01T00:00:01.000Z,SINUS,0.5,good\r\n\
-             1000,1970-01-01T00:00:01.000Z,TEXT,\"\"\"a, \"\"b\"\"\"\"\",good\r\n\
-             2000,1970-01-01T00:00:02.000Z,SINUS,,link_lost\r\n"
+            "time,name,value,text,quality\n\
+             1970-01-01T00:00:01.000Z,SINUS,0.5,,good\n\
+             1970-01-01T00:00:01.000Z,TEXT,,\"\"\"a, \"\"b\"\"\"\"\",good\n\
+             1970-01-01T00:00:02.000Z,SINUS,0.5,,link_lost\n\
+             1970-01-01T00:00:02.000Z,__LINK,,link_lost,link_lost\n"
         );
         let (_, json) = body(&source, "section=Demo&vars=sinus&from=1970-01-01T00:00:01Z").await;
-        let parsed: serde_json::Value = serde_json::from_str(&json).unwrap();
-        assert_eq!(parsed["section"], "Demo");
+        let rows: serde_json::Value = serde_json::from_str(&json).unwrap();
+        let rows = rows.as_array().unwrap();
+        assert_eq!(rows.len(), 3);
         assert_eq!(
-            (parsed["from_ms"].as_i64(), parsed["to_ms"].as_i64()),
-            (Some(1000), Some(10_000))
+            rows[0],
+            serde_json::json!({"time": "1970-01-01T00:00:01.000Z", "name": "SINUS", "value": 0.5,
+                               "text": null, "quality": "good"})
         );
-        let samples = parsed["samples"].as_array().unwrap();
-        assert_eq!(samples.len(), 3);
-        assert_eq!(
-            samples[0],
-            serde_json::json!({"t": 1000, "name": "SINUS", "value": "0.5", "quality": "good"})
-        );
-        assert_eq!(samples[1]["value"], serde_json::Value::Null);
+        assert_eq!(rows[1]["quality"], "link_lost");
     }
 
     /// Names and values a spreadsheet would run as formulas get a `'`
@@ -417,33 +377,45 @@ mod tests {
     async fn csv_cells_a_spreadsheet_would_run_are_escaped() {
         let source = Recorded(
             vec![
-                sample(1_000, "+CMD", Some("-3.5"), Quality::Good),
-                sample(1_000, "TEXT", Some("=HYPERLINK(\"x\",1)"), Quality::Good),
-                sample(1_000, "TEXT", Some("@SUM(A1)"), Quality::Good),
+                sample(1_000, "+CMD", Some(Presented::Number(-3.5)), Quality::Good),
+                sample(1_000, "TEXT", text("=HYPERLINK(\"x\",1)"), Quality::Good),
+                sample(1_000, "TEXT", text("@SUM(A1)"), Quality::Good),
+                sample(1_000, "TEXT", text("-5"), Quality::Good),
             ],
             None,
         );
         let (_, csv) = body(&source, "section=Demo&from=0&to=5000&format=csv").await;
         assert_eq!(
             csv,
-            "unix_ms,time,name,value,quality\r\n\
-             1000,1970-01-01T00:00:01.000Z,'+CMD,-3.5,good\r\n\
-             1000,1970-01-01T00:00:01.000Z,TEXT,\"'=HYPERLINK(\"\"x\"\",1)\",good\r\n\
-             1000,1970-01-01T00:00:01.000Z,TEXT,'@SUM(A1),good\r\n"
+            "time,name,value,text,quality\n\
+             1970-01-01T00:00:01.000Z,'+CMD,-3.5,,good\n\
+             1970-01-01T00:00:01.000Z,TEXT,,\"'=HYPERLINK(\"\"x\"\",1)\",good\n\
+             1970-01-01T00:00:01.000Z,TEXT,,'@SUM(A1),good\n\
+             1970-01-01T00:00:01.000Z,TEXT,,-5,good\n"
         );
     }
 
+    /// A failure after the start ends the body with an `__ERROR` row at
+    /// the last row's time (the range's start if none came).
     #[tokio::test]
     async fn a_failure_after_the_start_ends_the_body_saying_so() {
         let source = recorded(Some(HistoryError::Failed("disk read error".into())));
         let (_, json) = body(&source, "section=Demo&vars=TEXT&from=0").await;
-        let parsed: serde_json::Value = serde_json::from_str(&json).unwrap();
-        assert_eq!(parsed["samples"].as_array().unwrap().len(), 1);
-        assert_eq!(parsed["error"], "disk read error");
-        let (_, csv) = body(&source, "section=Demo&vars=nothing&format=csv").await;
+        let rows: serde_json::Value = serde_json::from_str(&json).unwrap();
+        assert_eq!(
+            rows,
+            serde_json::json!([
+                {"time": "1970-01-01T00:00:01.000Z", "name": "TEXT", "value": null,
+                 "text": "\"a, \"b\"\"", "quality": "good"},
+                {"time": "1970-01-01T00:00:01.000Z", "name": "__ERROR", "value": null,
+                 "text": "disk read error", "quality": "error"}
+            ])
+        );
+        let (_, csv) = body(&source, "section=Demo&vars=nothing&from=500&format=csv").await;
         assert_eq!(
             csv,
-            "unix_ms,time,name,value,quality\r\n# error: disk read error\r\n"
+            "time,name,value,text,quality\n\
+             1970-01-01T00:00:00.500Z,__ERROR,,disk read error,error\n"
         );
         let (status, _) = body(&source, "section=Other").await;
         assert_eq!(status, StatusCode::NOT_FOUND);

@@ -530,30 +530,47 @@
     const to = new Date($("to").value).getTime();
     $("chart-status").textContent = "loading…";
     const q = new URLSearchParams({ section: st.section.name, vars: st.charted.join(","), from: String(from), to: String(to), format: "json" });
-    let body;
+    let rows;
     try {
-      body = await api(`/api/history?${q}`);
+      // The rows of `plccoms history` (README, "Reading it back"): time
+      // (ISO 8601 UTC), name, value (a number or null), text, quality.
+      rows = await api(`/api/history?${q}`);
     } catch (e) {
       buildPlot([[], ...st.charted.map(() => [])]);
       $("chart-status").textContent = e.message;
       return;
     }
+    // A row that is not good (a variable's, or a gap's: __LINK, __SERVER,
+    // __DAMAGED, __ERROR for all) breaks the line until the next good value.
+    const gap = (r) => r.name.startsWith("__");
     const tables = st.charted.map((name) => {
       const xs = [];
       const ys = [];
-      const type = (st.vars.get(name) || {}).type || "REAL";
-      for (const s of body.samples) {
-        if (s.name !== name) continue;
-        const x = s.t / 1000;
-        if (xs.length && x <= xs[xs.length - 1]) continue;
+      for (const r of rows) {
+        if (r.name !== name && !gap(r)) continue;
+        let x = Date.parse(r.time) / 1000;
+        const y = r.quality === "good" && typeof r.value === "number" ? r.value : null;
+        if (xs.length && x <= xs[xs.length - 1]) {
+          // One point per time: a break wins; a value right after a break
+          // (a link's return is marked at its first values' time) goes
+          // a microsecond after it.
+          if (y === null) {
+            ys[ys.length - 1] = null;
+            continue;
+          }
+          if (ys[ys.length - 1] !== null) continue;
+          x = xs[xs.length - 1] + 1e-6;
+        }
         xs.push(x);
-        ys.push(s.quality === "link_lost" ? null : numeric(type, s.value));
+        ys.push(y);
       }
       return [xs, ys];
     });
     const data = uPlot.join(tables);
     buildPlot(data);
-    $("chart-status").textContent = `${body.samples.length} samples${body.error ? ` · ${body.error}` : ""}`;
+    const failed = rows.find((r) => r.name === "__ERROR");
+    const samples = rows.filter((r) => !gap(r)).length;
+    $("chart-status").textContent = `${samples} samples${failed ? ` · ${failed.text}` : ""}`;
   }
 
   start().catch((e) => notice(`The page could not start: ${e.message}`));
