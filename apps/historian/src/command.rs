@@ -26,6 +26,13 @@ FILE only when it ran to the end; until then FILE stays as it was, and an export
 that fails or is killed leaves no FILE that looks complete (a killed one leaves \
 its .tmp file). A FILE that is a symbolic link is refused.
 
+Long form: time,name,value,text,quality (time ISO 8601 UTC with ms; value a \
+number, BOOL 0/1; text a string, DATE, DT, TOD or TIME in ISO 8601). Wide \
+form: time,quality and a column per variable. Gaps are rows whose quality is \
+not good: __LINK (link_lost), __SERVER (stopped), __DAMAGED; wide, a row of \
+empty cells. README, History, describes the forms and a forward fill that \
+keeps to good stretches.
+
 CSV: a name or text value beginning with = + - @ TAB or CR that does not read \
 as a number is written with a ' before it, so that a spreadsheet shows it as text \
 instead of running it as a formula; numbers, negative ones included, are never \
