@@ -19,6 +19,7 @@
 //! The input is the text the protocol prints (what the change stream holds),
 //! read back with the section's number settings, so every face shows the
 //! value the telnet port shows, in its own form.
+//! [`protocol_text`] is the way back, for writes given in these forms.
 
 use std::fmt::Write as _;
 
@@ -202,6 +203,145 @@ fn duration(ms: u32) -> String {
     out
 }
 
+/// A value as a user writes it (the forms [`Presented`] shows) as the text
+/// the protocol reads, for `Section::write`: a DATE as `2026-11-25`, a DT
+/// as RFC 3339 (`2026-11-25T10:15:00.123Z`; without an offset, UTC), a TOD
+/// as `10:15:00.123`, a TIME as an ISO 8601 duration (`PT1H2M3.456S`,
+/// `P1DT2H`). Anything else, and a time type's protocol form (digits),
+/// passes unchanged: the protocol's parser judges it, as it does a SET's.
+pub fn protocol_text(ty: IecType, text: &str, opts: &FormatOptions) -> Result<Vec<u8>, String> {
+    let text = text.trim();
+    let protocol_form = !text.is_empty()
+        && text
+            .bytes()
+            .all(|b| b.is_ascii_digit() || (opts.date_time_decimal && b == b'.'));
+    let value = match ty {
+        IecType::Date | IecType::Dt if !protocol_form => {
+            let ms = parse_date_time(text).ok_or_else(|| {
+                format!("'{text}' is not a date and time (e.g. 2026-11-25T10:15:00Z)")
+            })?;
+            // A DATE holds the day's midnight.
+            let ms = if ty == IecType::Date {
+                ms.div_euclid(86_400_000) * 86_400_000
+            } else {
+                ms
+            };
+            Value::Date(ms as f64 / 1000.0)
+        }
+        IecType::Tod if !protocol_form => Value::Time(
+            parse_time_of_day(text)
+                .ok_or_else(|| format!("'{text}' is not a time of day (e.g. 10:15:00.123)"))?,
+        ),
+        IecType::Time if !protocol_form => Value::Time(
+            parse_duration(text)
+                .ok_or_else(|| format!("'{text}' is not a duration (e.g. PT1H2M3.5S)"))?,
+        ),
+        _ => return Ok(cp1250::encode(text).into_owned()),
+    };
+    let mut out = Vec::new();
+    value.format(ty, opts, &mut out);
+    Ok(out)
+}
+
+/// UTC milliseconds of an RFC 3339 time, a date and time without an offset
+/// (UTC), or a date (its midnight, UTC).
+fn parse_date_time(text: &str) -> Option<i64> {
+    if let Ok(t) = DateTime::parse_from_rfc3339(text) {
+        return Some(t.timestamp_millis());
+    }
+    for format in [
+        "%Y-%m-%dT%H:%M:%S%.f",
+        "%Y-%m-%d %H:%M:%S%.f",
+        "%Y-%m-%dT%H:%M",
+    ] {
+        if let Ok(t) = chrono::NaiveDateTime::parse_from_str(text, format) {
+            return Some(t.and_utc().timestamp_millis());
+        }
+    }
+    let day = chrono::NaiveDate::parse_from_str(text, "%Y-%m-%d").ok()?;
+    Some(day.and_hms_opt(0, 0, 0)?.and_utc().timestamp_millis())
+}
+
+/// Milliseconds since midnight of `HH:MM`, `HH:MM:SS` or `HH:MM:SS.fff`.
+fn parse_time_of_day(text: &str) -> Option<u32> {
+    let mut parts = text.split(':');
+    let (h, m) = (parts.next()?, parts.next()?);
+    let s = parts.next().unwrap_or("0");
+    if parts.next().is_some() {
+        return None;
+    }
+    let whole = |t: &str, max: u32| -> Option<u32> {
+        (!t.is_empty() && t.len() <= 2 && t.bytes().all(|b| b.is_ascii_digit()))
+            .then(|| t.parse().ok())
+            .flatten()
+            .filter(|n| *n <= max)
+    };
+    let (h, m) = (whole(h, 23)?, whole(m, 59)?);
+    let (s, frac) = s.split_once('.').unwrap_or((s, ""));
+    let ms = milliseconds(frac)?;
+    Some(h * 3_600_000 + m * 60_000 + whole(s, 59)? * 1000 + ms)
+}
+
+/// Milliseconds of a fraction's digits (`5` is 500, `123` 123; more
+/// digits are rounded off); `""` is 0.
+fn milliseconds(digits: &str) -> Option<u32> {
+    if !digits.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    let mut padded: String = digits.chars().take(4).collect();
+    while padded.len() < 4 {
+        padded.push('0');
+    }
+    let tenths_of_ms: u32 = padded.parse().ok()?;
+    Some((tenths_of_ms + 5) / 10)
+}
+
+/// Milliseconds of an ISO 8601 duration of days, hours, minutes and
+/// seconds (`P1DT2H`, `PT1H2M3.456S`, `PT0S`); `None` past a TIME's range.
+fn parse_duration(text: &str) -> Option<u32> {
+    let upper = text.to_ascii_uppercase();
+    let rest = upper.strip_prefix('P')?;
+    let (days, time) = match rest.split_once('T') {
+        Some((days, time)) => (days, Some(time)),
+        None => (rest, None),
+    };
+    let mut total: u64 = 0;
+    let mut any = false;
+    if !days.is_empty() {
+        let n: u64 = days.strip_suffix('D')?.parse().ok()?;
+        total = n.checked_mul(86_400_000)?;
+        any = true;
+    }
+    if let Some(mut time) = time {
+        for (unit, scale) in [('H', 3_600_000u64), ('M', 60_000)] {
+            if let Some((n, after)) = time.split_once(unit) {
+                if n.is_empty() || !n.bytes().all(|b| b.is_ascii_digit()) {
+                    return None;
+                }
+                total = total.checked_add(n.parse::<u64>().ok()?.checked_mul(scale)?)?;
+                time = after;
+                any = true;
+            }
+        }
+        if !time.is_empty() {
+            let seconds = time.strip_suffix('S')?;
+            let (whole, frac) = seconds.split_once('.').unwrap_or((seconds, ""));
+            if whole.is_empty() || !whole.bytes().all(|b| b.is_ascii_digit()) {
+                return None;
+            }
+            let ms = whole.parse::<u64>().ok()?.checked_mul(1000)?;
+            total = total
+                .checked_add(ms)?
+                .checked_add(u64::from(milliseconds(frac)?))?;
+            any = true;
+        }
+    }
+    if !any {
+        return None;
+    }
+    u32::try_from(total).ok()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -325,5 +465,66 @@ mod tests {
             Presented::of(IecType::Int, b"abc", &FormatOptions::default()),
             Presented::Text("abc".into())
         );
+    }
+
+    fn back(ty: IecType, text: &str) -> Result<Vec<u8>, String> {
+        protocol_text(ty, text, &FormatOptions::default())
+    }
+
+    #[test]
+    fn iso_times_go_back_to_the_protocols_text() {
+        let opts = FormatOptions::default();
+        for (ty, user) in [
+            (IecType::Dt, "2026-11-25T10:15:00.123Z"),
+            (IecType::Date, "2026-11-25"),
+            (IecType::Tod, "10:15:00.123"),
+            (IecType::Time, "PT1H2M3.456S"),
+            (IecType::Time, "PT0S"),
+            (IecType::Time, "PT2M0.5S"),
+        ] {
+            let text = back(ty, user).unwrap();
+            assert_eq!(Presented::of(ty, &text, &opts).text(), user, "{ty}");
+        }
+        // Other offsets, no offset, a bare date; days in a duration.
+        let dt = |t: &str| Presented::of(IecType::Dt, &back(IecType::Dt, t).unwrap(), &opts);
+        assert_eq!(
+            dt("2026-11-25T11:15:00+01:00").text(),
+            "2026-11-25T10:15:00.000Z"
+        );
+        assert_eq!(dt("2026-11-25 10:15:00").text(), "2026-11-25T10:15:00.000Z");
+        assert_eq!(dt("2026-11-25").text(), "2026-11-25T00:00:00.000Z");
+        let date = back(IecType::Date, "2026-11-25T23:59:59Z").unwrap();
+        assert_eq!(
+            Presented::of(IecType::Date, &date, &opts).text(),
+            "2026-11-25"
+        );
+        assert_eq!(back(IecType::Time, "P1DT2H").unwrap(), b"93600000");
+        assert_eq!(back(IecType::Tod, "10:15").unwrap(), b"36900000");
+    }
+
+    #[test]
+    fn other_text_passes_and_bad_times_are_named() {
+        // The protocol's own forms, and every other type, pass unchanged.
+        assert_eq!(
+            back(IecType::Dt, "4745317952616660992").unwrap(),
+            b"4745317952616660992"
+        );
+        assert_eq!(back(IecType::Time, "1500").unwrap(), b"1500");
+        assert_eq!(back(IecType::Real, "20.5").unwrap(), b"20.5");
+        assert_eq!(back(IecType::Bool, "true").unwrap(), b"true");
+        for (ty, bad) in [
+            (IecType::Dt, "yesterday"),
+            (IecType::Date, "2026-13-01"),
+            (IecType::Tod, "24:00:00"),
+            (IecType::Tod, "10:15:00:00"),
+            (IecType::Time, "PT"),
+            (IecType::Time, "P1H"),
+            (IecType::Time, "PT-1S"),
+            (IecType::Time, "P50D"),
+            (IecType::Dt, ""),
+        ] {
+            let error = back(ty, bad).unwrap_err();
+            assert!(error.contains(&format!("'{bad}'")), "{ty} {bad}: {error}");
+        }
     }
 }
