@@ -308,9 +308,25 @@ fn page_in_chromium_shows_live_values_and_a_chart_and_writes_with_the_token() {
         seen["chart_pixels"].as_u64().unwrap() > 20,
         "the chart drew no line: {seen:#}"
     );
-    assert_eq!(seen["write_result"], "✓ 21.500000");
-    let refused = seen["bad_write_result"].as_str().unwrap();
-    assert!(refused.starts_with("ERROR:35 "), "{refused}");
+    // Values in the user's terms: 21.5, not 21.500000; a refusal says why.
+    assert_eq!(seen["write_result"], "✓ 21.5");
+    assert_eq!(
+        seen["bad_write_result"],
+        "not written: 'hot' is not a number (REAL)"
+    );
+    // Logging in reloads the page; the ticked trend stays.
+    assert_eq!(
+        seen["trend_after_login"],
+        serde_json::json!(["SINUS", "SETPOINT"])
+    );
+    assert_eq!(seen["boxes_after_login"], 2);
+    // Every variable the page shows is polled for it: none stays stale.
+    assert_eq!(
+        seen["qualities"],
+        serde_json::json!({"good": 29}),
+        "{seen:#}"
+    );
+    assert_eq!(seen["legend"], "quality: good not polled stale link lost");
     assert_eq!(
         seen["range_status"],
         "historian not enabled: no history is recorded by this server"
@@ -459,22 +475,21 @@ fn off_loopback_every_request_needs_the_token_and_writes_always_do() {
         (status, &body),
         (
             200,
-            &serde_json::json!({"name": "SETPOINT", "value": "20.250000"})
+            &serde_json::json!({"name": "SETPOINT", "value": 20.25, "text": "20.25"})
         )
     );
-    // SET's own validation and errors.
+    // SET's own validation, refused in the user's words.
     let (status, body) = set(&bearer(), r#"{"name":"setpoint","value":"warm"}"#);
     assert_eq!(status, 400);
     assert_eq!(
-        body["error"],
-        "ERROR:35 Wrong parameter value in request: 'SET:setpoint,warm'"
+        body,
+        serde_json::json!({"error": "not written: 'warm' is not a number (REAL)", "reason": "bad_value"})
     );
-    assert_eq!(body["code"], 35);
     let (status, body) = set(&bearer(), r#"{"name":"nothing","value":"1"}"#);
     assert_eq!(status, 400);
-    assert!(
-        body["error"].as_str().unwrap().starts_with("ERROR:33 "),
-        "{body}"
+    assert_eq!(
+        body,
+        serde_json::json!({"error": "no variable named NOTHING in Demo", "reason": "unknown_variable"})
     );
     // The value is there for everyone.
     let values = json(
@@ -487,7 +502,7 @@ fn off_loopback_every_request_needs_the_token_and_writes_always_do() {
         )
         .1,
     );
-    assert_eq!(values["values"][0]["value"], "20.250000");
+    assert_eq!(values["values"][0]["value"], 20.25);
 }
 
 #[test]
@@ -524,11 +539,22 @@ fn a_read_only_section_refuses_writes_from_the_page_as_set_does() {
     );
     assert_eq!(status, 403);
     assert_eq!(
-        json(&body)["error"],
-        "ERROR:30 Bad client request: 'SET:SETPOINT,1'"
+        json(&body),
+        serde_json::json!({"error": "the section is READ_ONLY: nothing in Demo is written", "reason": "read_only"})
     );
     let sections = json(&request(web.http, "GET", "/api/sections", &[], None).1);
     assert_eq!(sections[0]["read_only"], true);
+    // The API says so of every variable: the page offers no Set box.
+    let vars = json(&request(web.http, "GET", "/api/sections/Demo/vars", &[], None).1);
+    assert_eq!(vars["total"], 29);
+    assert!(
+        vars["vars"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|v| v["writable"] == false),
+        "{vars}"
+    );
 }
 
 #[test]
@@ -552,15 +578,17 @@ fn the_api_lists_sections_clients_variables_and_values_and_streams_live_values()
     assert_eq!(
         vars,
         serde_json::json!({"total": 4, "vars": [
-            {"name": "SINUS", "type": "LREAL"}, {"name": "SETPOINT", "type": "REAL"},
-            {"name": "SWITCH", "type": "BOOL"}, {"name": "COUNTER", "type": "INT"}]})
+            {"name": "SINUS", "type": "LREAL", "writable": true},
+            {"name": "SETPOINT", "type": "REAL", "writable": true},
+            {"name": "SWITCH", "type": "BOOL", "writable": true},
+            {"name": "COUNTER", "type": "INT", "writable": true}]})
     );
     wait_until("TEXT is polled for the client", || {
         let values = get_json(http, "/api/sections/Demo/values?vars=TEXT");
         values["values"][0]["quality"] == "good"
     });
     let values = get_json(http, "/api/sections/Demo/values?vars=TEXT");
-    assert_eq!(values["values"][0]["value"], "\"Have a nice day\"");
+    assert_eq!(values["values"][0]["value"], "Have a nice day");
     // Live: SINUS changes every poll.
     let mut stream = TcpStream::connect(http).unwrap();
     stream
@@ -586,6 +614,9 @@ fn the_api_lists_sections_clients_variables_and_values_and_streams_live_values()
     let event = json(event.as_bytes());
     assert_eq!(event["values"][0][0], "SINUS");
     assert_eq!(event["values"][0][2], "good");
+    // The value in the user's terms (a number), and as text.
+    let sinus = event["values"][0][1].as_f64().expect("SINUS is a number");
+    assert_eq!(event["values"][0][4], sinus.to_string().as_str());
     assert_eq!(event["online"], true);
     // A mask too wide for one browser is refused, saying why.
     let (status, body) = request(http, "GET", "/api/sections/Nope/values", &[], None);
@@ -1164,4 +1195,331 @@ fn thousands_of_live_streams_leave_memory_where_it_was() {
         "VmRSS {before} kB after the first 250 live streams asked for, {after} kB after 5,000"
     );
     eprintln!("VmRSS {before} kB -> {after} kB over 5,000 live streams asked for");
+}
+
+/// A tag file for the simulated Modbus device of section M: units,
+/// descriptions, a variable the file marks read-only, a DT.
+const TAGS: &str = "name,type,table,address,access,unit,description\n\
+    setpoint,REAL,holding,26,,°C,the heating setpoint\n\
+    locked,INT,holding,30,ro,bar,set at the plant only\n\
+    when,DT,holding,32,,,\n";
+
+/// The demo section (its historian recording SINUS), section M (a
+/// simulated Modbus device on [`TAGS`]) and section Gone (a Modbus device
+/// nobody answers for), with the token.
+fn start_three() -> (Web, tempfile::TempDir) {
+    let dir = tempfile::tempdir().unwrap();
+    let tags = dir.path().join("tags.csv");
+    std::fs::write(&tags, TAGS).unwrap();
+    let closed = free_port();
+    let extra = format!(
+        "HISTORY = SINUS\n\n\
+         [M]\nPROTOCOL = MODBUS_TCP\nSIMULATOR = Yes\nSERVER_PORT = {}\nMODBUS_TAGS = {tags}\n\n\
+         [Gone]\nPROTOCOL = MODBUS_TCP\nIPADDR = 127.0.0.1\nMODBUS_PORT = {closed}\n\
+         SERVER_PORT = {}\nMODBUS_TAGS = {tags}\n",
+        free_port(),
+        free_port(),
+        tags = tags.display()
+    );
+    let web = start(&format!("HTTP_TOKEN = {TOKEN}\nHISTORY_SYNC = 1"), &extra);
+    wait_until("section M's table is loaded", || {
+        get_json(web.http, "/api/sections/M/vars")["total"].as_u64() > Some(0)
+    });
+    (web, dir)
+}
+
+/// A value of `/values` by name.
+fn value_of(http: SocketAddr, section: &str, name: &str) -> Value {
+    let list = get_json(http, &format!("/api/sections/{section}/values?vars={name}"));
+    list["values"][0].clone()
+}
+
+#[test]
+fn values_are_in_the_users_terms_with_units_quality_and_writability() {
+    let (web, _dir) = start_three();
+    let http = web.http;
+    // Nobody polls the demo's variables yet: not_polled, not stale. The
+    // system variables are always polled.
+    let v = value_of(http, "Demo", "V_DT");
+    assert_eq!(
+        (&v["quality"], &v["value"]),
+        (&"not_polled".into(), &Value::Null)
+    );
+    assert_eq!(value_of(http, "Demo", "__PLC_RUN")["quality"], "good");
+    assert_eq!(value_of(http, "Demo", "__PLC_RUN")["writable"], false);
+    // A device that never answers: link_lost.
+    assert_eq!(value_of(http, "Gone", "SETPOINT")["quality"], "link_lost");
+    let _client = client_with_everything_enabled(web.server.port());
+    wait_until("the client's variables are polled", || {
+        value_of(http, "Demo", "V_DT")["quality"] == "good"
+    });
+    let set = |section: &str, body: Value| {
+        let (status, body) = request(
+            http,
+            "POST",
+            &format!("/api/sections/{section}/set"),
+            &bearer(),
+            Some(&body.to_string()),
+        );
+        (status, json(&body))
+    };
+    // Numbers, booleans and ISO 8601 times are taken, and read back as such.
+    for (name, given, shown) in [
+        ("SETPOINT", serde_json::json!(22.3), serde_json::json!(22.3)),
+        (
+            "SETPOINT",
+            serde_json::json!("20.5"),
+            serde_json::json!(20.5),
+        ),
+        ("COUNTER", serde_json::json!(-12), serde_json::json!(-12)),
+        ("SWITCH", serde_json::json!(true), serde_json::json!(true)),
+        (
+            "V_DT",
+            serde_json::json!("2026-11-25T11:15:00.123+01:00"),
+            serde_json::json!("2026-11-25T10:15:00.123Z"),
+        ),
+        (
+            "V_TOD",
+            serde_json::json!("10:15:00.5"),
+            serde_json::json!("10:15:00.500"),
+        ),
+        (
+            "V_ULINT",
+            serde_json::json!(u64::MAX),
+            serde_json::json!(u64::MAX),
+        ),
+    ] {
+        let (status, body) = set("Demo", serde_json::json!({"name": name, "value": given}));
+        assert_eq!(
+            (status, &body["value"]),
+            (200, &shown),
+            "{name} {given}: {body}"
+        );
+        wait_until("the value is published", || {
+            value_of(http, "Demo", name)["value"] == shown
+        });
+    }
+    // TIME as an ISO duration; the demo program keeps TIM running, so the
+    // value read back is checked.
+    let (status, body) = set(
+        "Demo",
+        serde_json::json!({"name": "tim", "value": "PT1H2M3.456S"}),
+    );
+    assert_eq!((status, &body["value"]), (200, &"PT1H2M3.456S".into()));
+    // Exact as text where a JSON reader's numbers are not.
+    assert_eq!(
+        value_of(http, "Demo", "V_ULINT")["text"],
+        "18446744073709551615"
+    );
+    assert_eq!(value_of(http, "Demo", "TEXT")["value"], "Have a nice day");
+    // DATE as a date; the demo program keeps DAT at today, so the value
+    // read back is checked.
+    let (status, body) = set(
+        "Demo",
+        serde_json::json!({"name": "dat", "value": "2026-11-25"}),
+    );
+    assert_eq!((status, &body["value"]), (200, &"2026-11-25".into()));
+    // Refusals say why in the user's words, never as ERROR: lines.
+    for (section, body, status_wanted, error, reason) in [
+        (
+            "M",
+            serde_json::json!({"name": "locked", "value": 3}),
+            403,
+            "LOCKED is read-only: the tag file marks it ro",
+            "read_only",
+        ),
+        (
+            "Demo",
+            serde_json::json!({"name": "__PLC_RUN", "value": false}),
+            403,
+            "__PLC_RUN is a system variable: the PLC's own state is not written from here",
+            "system_variable",
+        ),
+        (
+            "Demo",
+            serde_json::json!({"name": "setpoint", "value": "hot"}),
+            400,
+            "not written: 'hot' is not a number (REAL)",
+            "bad_value",
+        ),
+        (
+            "Demo",
+            serde_json::json!({"name": "v_dt", "value": "yesterday"}),
+            400,
+            "not written: 'yesterday' is not a date and time (e.g. 2026-11-25T10:15:00Z)",
+            "bad_value",
+        ),
+        (
+            "Demo",
+            serde_json::json!({"name": "v_dt", "value": 1795601700}),
+            400,
+            "not written: a DT is written as ISO 8601 text (2026-11-25T10:15:00Z), not as a number",
+            "bad_value",
+        ),
+        (
+            "Demo",
+            serde_json::json!({"name": "setpoint", "value": [1]}),
+            400,
+            "not written: the value is a number, true or false, or text",
+            "bad_value",
+        ),
+        (
+            "Gone",
+            serde_json::json!({"name": "setpoint", "value": 1}),
+            502,
+            "not written: there is no link to the PLC",
+            "unreachable",
+        ),
+    ] {
+        let (status, body) = set(section, body.clone());
+        assert_eq!(
+            (status, body),
+            (
+                status_wanted,
+                serde_json::json!({"error": error, "reason": reason})
+            ),
+            "{section}"
+        );
+    }
+    // Units and descriptions from the tag file, and what may be written.
+    let vars = get_json(http, "/api/sections/M/vars?mask=setpoint,locked,when");
+    assert_eq!(
+        vars["vars"],
+        serde_json::json!([
+            {"name": "SETPOINT", "type": "REAL", "unit": "°C",
+             "description": "the heating setpoint", "writable": true},
+            {"name": "LOCKED", "type": "INT", "unit": "bar",
+             "description": "set at the plant only", "writable": false},
+            {"name": "WHEN", "type": "DT", "writable": true}])
+    );
+    let (status, body) = set("M", serde_json::json!({"name": "setpoint", "value": 19.5}));
+    assert_eq!(
+        (status, body),
+        (
+            200,
+            serde_json::json!({"name": "SETPOINT", "value": 19.5, "text": "19.5", "unit": "°C"})
+        )
+    );
+    let m = value_of(http, "M", "SETPOINT");
+    assert_eq!(
+        (&m["unit"], &m["description"]),
+        (&"°C".into(), &"the heating setpoint".into())
+    );
+}
+
+#[test]
+fn the_api_answers_an_index_of_itself() {
+    let web = start("", "");
+    for path in ["/api", "/api/"] {
+        let (status, body) = request(web.http, "GET", path, &[], None);
+        assert_eq!(status, 200, "{path}");
+        let index = json(&body);
+        let endpoints = index["endpoints"].as_array().unwrap();
+        let set = endpoints
+            .iter()
+            .find(|e| e["path"] == "/api/sections/{section}/set")
+            .expect("set is listed");
+        assert_eq!(set["methods"], serde_json::json!(["POST"]));
+        for e in endpoints {
+            assert!(!e["description"].as_str().unwrap().is_empty(), "{e}");
+        }
+        assert!(endpoints.len() >= 12, "{index:#}");
+    }
+    assert_eq!(request(web.http, "GET", "/api/nothing", &[], None).0, 404);
+}
+
+/// Runs `node tests/web/<script> <args>`: the JSON line it prints.
+fn run_page_script(script: &str, args: &[String]) -> Value {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/web")
+        .join(script);
+    let mut node = ChildGuard::spawn(
+        "node tests/web script",
+        Command::new("node")
+            .arg(&path)
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped()),
+    );
+    let stdout = node.child().stdout.take().unwrap();
+    let stderr = node.child().stderr.take().unwrap();
+    let out = common::process::Capture::start(stdout);
+    let err = common::process::Capture::start(stderr);
+    let status = node
+        .wait_timeout(Duration::from_secs(120))
+        .expect("the browser run ends within 2 minutes");
+    let (out, err) = (out.finish(), err.finish());
+    assert!(
+        status.success(),
+        "node {script} failed: {}{}",
+        String::from_utf8_lossy(&out),
+        String::from_utf8_lossy(&err)
+    );
+    let line = String::from_utf8_lossy(&out);
+    json(line.lines().last().unwrap_or("").as_bytes())
+}
+
+#[test]
+fn page_in_chromium_shows_values_units_and_set_boxes_in_the_users_terms() {
+    let (web, _dir) = start_three();
+    let http = web.http;
+    // Known values to show, and history recorded before the page opens.
+    let _client = client_with_everything_enabled(web.server.port());
+    for (name, value) in [("V_DT", "2026-11-25T10:15:00.123Z"), ("SETPOINT", "22.3")] {
+        let body = serde_json::json!({"name": name, "value": value}).to_string();
+        let (status, _) = request(
+            http,
+            "POST",
+            "/api/sections/Demo/set",
+            &bearer(),
+            Some(&body),
+        );
+        assert_eq!(status, 200);
+    }
+    wait_until("the historian recorded SINUS", || {
+        let (status, body) = request(
+            http,
+            "GET",
+            "/api/history?section=Demo&vars=SINUS&from=-1h&format=csv",
+            &[],
+            None,
+        );
+        status == 200 && String::from_utf8_lossy(&body).lines().count() > 5
+    });
+    let seen = run_page_script("terms.mjs", &[format!("http://{http}"), TOKEN.to_string()]);
+    assert_eq!(seen["failure"], Value::Null, "{seen:#}");
+    assert_eq!(seen["page_errors"], serde_json::json!([]), "{seen:#}");
+    assert_eq!(seen["console_errors"], serde_json::json!([]), "{seen:#}");
+    let demo = &seen["demo"];
+    assert_eq!(demo["V_DT"], "2026-11-25T10:15:00.123Z");
+    assert_eq!(demo["SETPOINT"], "22.3");
+    assert_eq!(demo["TEXT"], "Have a nice day");
+    let iso = |text: &Value, pattern: &[&str]| {
+        let text = text.as_str().unwrap();
+        let shape: String = text
+            .chars()
+            .map(|c| if c.is_ascii_digit() { '9' } else { c })
+            .collect();
+        assert!(pattern.contains(&shape.as_str()), "{text}");
+    };
+    iso(&demo["DAT"], &["9999-99-99"]);
+    iso(&demo["V_TOD"], &["99:99:99.999"]);
+    assert!(demo["TIM"].as_str().unwrap().starts_with("PT"), "{demo}");
+    // The trend of a recorded variable starts from its history.
+    assert!(
+        seen["seeded_before_tick"].as_u64().unwrap() >= 3,
+        "{seen:#}"
+    );
+    let m = &seen["m"];
+    assert!(
+        m["setpoint_value"].as_str().unwrap().ends_with(" °C"),
+        "{m}"
+    );
+    assert_eq!(m["setpoint_title"], "the heating setpoint");
+    assert_eq!(m["setpoint_set_box"], 1);
+    assert_eq!(m["locked_set_box"], 0);
+    assert_eq!(m["locked_write_cell"], "read-only");
+    assert_eq!(m["plc_run_set_box"], 0);
+    assert_eq!(m["when_write"], "✓ 2026-11-25T10:15:00.123Z");
+    assert_eq!(m["when_value"], "2026-11-25T10:15:00.123Z");
 }

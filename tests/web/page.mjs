@@ -43,6 +43,18 @@ try {
   result.value_changed_ms = Date.now() - started;
   result.quality = await page.locator('#vars tr[data-name="SINUS"] td.quality').textContent();
   result.link_state = await page.locator("#link-state").textContent();
+  // The live stream polls every row it shows: each turns good, whether
+  // its value changes or not.
+  await page.waitForFunction(() => {
+    const cells = [...document.querySelectorAll("#vars td.quality")];
+    return cells.length > 0 && cells.every((c) => c.textContent === "good");
+  }).catch(() => {});
+  result.qualities = await page.evaluate(() => {
+    const counts = {};
+    for (const c of document.querySelectorAll("#vars td.quality")) counts[c.textContent] = (counts[c.textContent] || 0) + 1;
+    return counts;
+  });
+  result.legend = (await page.locator("#legend").textContent()).replace(/\s+/g, " ").trim();
   result.ident = await page.locator("#ident").textContent();
 
   // Chart SINUS (and SETPOINT, so two series) and wait for points.
@@ -69,6 +81,9 @@ try {
     await Promise.all([page.waitForEvent("load"), page.locator("#login button").click()]);
     const row = page.locator('#vars tr[data-name="SETPOINT"]');
     await row.locator("input.write").waitFor();
+    await page.waitForFunction(() => window.plccoms.charted.length > 0).catch(() => {});
+    result.trend_after_login = await page.evaluate(() => window.plccoms.charted);
+    result.boxes_after_login = await page.locator("#vars td.chart input:checked").count();
     await row.locator("input.write").fill("21.5");
     await row.locator("td.write button").click();
     await page.waitForFunction(() => {

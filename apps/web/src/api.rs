@@ -1,7 +1,8 @@
 //! `/api/...` JSON: sections (PLC state, identification, cycle time),
-//! clients, variables, values, writes and the log. Names and values are the
-//! protocol's (upper-case names; values printed as `DIFF:` lines print
-//! them), decoded from cp1250; every value comes with its quality.
+//! clients, variables, values, writes and the log. Names are the
+//! protocol's (upper case, decoded from cp1250); values are in the user's
+//! terms (`Presented`: numbers, booleans, ISO 8601 times), each with its
+//! quality, unit and description; writes are refused in the user's words.
 
 use std::sync::Arc;
 
@@ -9,12 +10,14 @@ use axum::extract::{Path, Query};
 use axum::http::{HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
+use plccoms_protocol::address::parse_direct;
 use plccoms_protocol::answer::ErrorCode;
-use plccoms_protocol::cp1250;
+use plccoms_protocol::{cp1250, IecType};
 use serde::{Deserialize, Serialize};
 
 use super::State;
-use plccoms_core::changes::Snapshot;
+use plccoms_core::changes::{Quality, Snapshot};
+use plccoms_core::present::{self, Presented};
 use plccoms_core::section::write::WriteRefusal;
 use plccoms_core::section::Section;
 use plccoms_core::vars::VarId;
@@ -37,6 +40,97 @@ pub fn error(status: StatusCode, message: impl Into<String>) -> Response {
         }),
     )
         .into_response()
+}
+
+/// One line of the API's index.
+#[derive(Serialize)]
+pub struct Endpoint {
+    pub path: &'static str,
+    pub methods: &'static [&'static str],
+    pub description: &'static str,
+}
+
+/// What `/api` lists: every endpoint, its methods, one line each.
+pub const ENDPOINTS: &[Endpoint] = &[
+    Endpoint {
+        path: "/api/session",
+        methods: &["GET"],
+        description: "version; whether reading needs the token, writing is possible, this request carries the token, a historian records",
+    },
+    Endpoint {
+        path: "/api/login",
+        methods: &["POST"],
+        description: "{\"token\": T}: a session cookie for the page",
+    },
+    Endpoint {
+        path: "/api/logout",
+        methods: &["POST"],
+        description: "ends the page's session",
+    },
+    Endpoint {
+        path: "/api/sections",
+        methods: &["GET"],
+        description: "every section: link state, identification, poll cycle, clients, variables",
+    },
+    Endpoint {
+        path: "/api/sections/{section}",
+        methods: &["GET"],
+        description: "one section, as in /api/sections",
+    },
+    Endpoint {
+        path: "/api/sections/{section}/clients",
+        methods: &["GET"],
+        description: "the line protocol's clients: address, since, variables enabled, output queued",
+    },
+    Endpoint {
+        path: "/api/sections/{section}/vars?mask=A*,B&limit=N",
+        methods: &["GET"],
+        description: "variables: name, type, unit and description where known, writable",
+    },
+    Endpoint {
+        path: "/api/sections/{section}/values?vars=A*,B&limit=N",
+        methods: &["GET"],
+        description: "last known values in the user's terms, with text, unit, quality (good, not_polled, stale, link_lost) and changed_ms",
+    },
+    Endpoint {
+        path: "/api/sections/{section}/live?vars=A*,B",
+        methods: &["GET"],
+        description: "server-sent events: values as they change, polled while the stream is open (2,000 variables at most)",
+    },
+    Endpoint {
+        path: "/api/sections/{section}/set",
+        methods: &["POST"],
+        description: "{\"name\": N, \"value\": V} with the token: V a number, true/false or text (ISO 8601 for times); the value read back, or why not",
+    },
+    Endpoint {
+        path: "/api/history?section=S&vars=A*,B&from=T&to=T&format=json|csv",
+        methods: &["GET"],
+        description: "what the historian recorded (503 when none records)",
+    },
+    Endpoint {
+        path: "/api/log",
+        methods: &["GET"],
+        description: "the last warnings and errors, oldest first",
+    },
+    Endpoint {
+        path: "/metrics",
+        methods: &["GET"],
+        description: "Prometheus text of every section and the web server",
+    },
+];
+
+#[derive(Serialize)]
+pub struct Index {
+    pub version: &'static str,
+    pub endpoints: &'static [Endpoint],
+}
+
+/// `GET /api`: the index of the API.
+pub async fn index() -> Json<Index> {
+    Json(Index {
+        version: env!("CARGO_PKG_VERSION"),
+        endpoints: ENDPOINTS,
+    })
 }
 
 pub async fn not_found() -> Response {
@@ -231,11 +325,48 @@ impl VarsQuery {
     }
 }
 
+/// What the API tells of a variable besides its value: its type, unit and
+/// description (from a tag file), and whether a write could succeed.
+#[derive(Serialize)]
+pub struct VarFacts {
+    #[serde(rename = "type")]
+    pub ty: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub unit: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub description: Option<String>,
+    /// The page offers a Set box only where this is true.
+    pub writable: bool,
+}
+
+/// A system variable (`__PLC_RUN`): the PLC's or the server's own state.
+pub fn is_system(name: &[u8]) -> bool {
+    name.starts_with(b"__")
+}
+
+/// Whether a write to `var` could succeed: the section is not READ_ONLY,
+/// the tag file does not mark it read-only, and it is not a system
+/// variable.
+pub fn may_be_written(section: &Section, var: &plccoms_core::vars::Var) -> bool {
+    !section.read_only() && var.writable && !is_system(&var.name)
+}
+
+pub fn var_facts(section: &Section, snapshot: &Snapshot, id: VarId) -> VarFacts {
+    let var = snapshot.table.var(id);
+    let said = |text: &str| (!text.is_empty()).then(|| text.to_string());
+    VarFacts {
+        ty: var.ty.to_string(),
+        unit: var.info.as_ref().and_then(|i| said(&i.unit)),
+        description: var.info.as_ref().and_then(|i| said(&i.description)),
+        writable: may_be_written(section, var),
+    }
+}
+
 #[derive(Serialize)]
 pub struct VarView {
     pub name: String,
-    #[serde(rename = "type")]
-    pub ty: String,
+    #[serde(flatten)]
+    pub facts: VarFacts,
 }
 
 #[derive(Serialize)]
@@ -245,22 +376,21 @@ pub struct VarList {
     pub vars: Vec<VarView>,
 }
 
-/// `GET /api/sections/{section}/vars?mask=A*,B&limit=N`: names and types.
+/// `GET /api/sections/{section}/vars?mask=A*,B&limit=N`: names, types,
+/// units, descriptions and whether they may be written.
 pub async fn vars(
     state: State,
     Path(name): Path<String>,
     Query(query): Query<VarsQuery>,
 ) -> Result<Json<VarList>, ApiError> {
+    let section = find(&state, &name)?;
     let (snapshot, ids) = query.select(&state, &name)?;
     let vars = ids
         .iter()
         .take(query.limit())
-        .map(|&id| {
-            let var = snapshot.table.var(id);
-            VarView {
-                name: cp1250::decode(&var.name).into_owned(),
-                ty: var.ty.to_string(),
-            }
+        .map(|&id| VarView {
+            name: cp1250::decode(&snapshot.table.var(id).name).into_owned(),
+            facts: var_facts(&section, &snapshot, id),
         })
         .collect();
     Ok(Json(VarList {
@@ -269,14 +399,41 @@ pub async fn vars(
     }))
 }
 
+/// How far a shown value can be trusted, in four words: `good` (read by
+/// the last poll), `not_polled` (no client or subscriber enabled it, so
+/// nobody reads it: the value is whatever was read last, if ever),
+/// `stale` (polled, but the last poll did not read it, or that poll is
+/// older than a GET would serve) and `link_lost`.
+pub fn quality_of(snapshot: &Snapshot, id: VarId, now: tokio::time::Instant) -> &'static str {
+    if !snapshot.online {
+        return Quality::LinkLost.as_str();
+    }
+    if !snapshot.table.is_fixed(id) && !snapshot.interest.is_wanted(id) {
+        return "not_polled";
+    }
+    snapshot.quality_at(id, now).as_str()
+}
+
+/// The value of `id` in the user's terms (JSON: numbers, booleans, ISO 8601
+/// times), and as text in the same form (exact where a JSON reader's
+/// numbers are not: 64-bit integers).
+pub fn presented(section: &Section, snapshot: &Snapshot, id: VarId) -> Option<(Presented, String)> {
+    let text = snapshot.slot(id).text()?;
+    let value = Presented::of(snapshot.table.var(id).ty, text, section.format());
+    let text = value.text();
+    Some((value, text))
+}
+
 #[derive(Serialize)]
 pub struct ValueView {
     pub name: String,
-    #[serde(rename = "type")]
-    pub ty: String,
-    /// As the protocol prints it; `null` until first read.
-    pub value: Option<String>,
-    /// `good`, `stale` or `link_lost`.
+    #[serde(flatten)]
+    pub facts: VarFacts,
+    /// In the user's terms (`Presented`); `null` until first read.
+    pub value: Option<Presented>,
+    /// The value as text, in the same form.
+    pub text: Option<String>,
+    /// `good`, `not_polled`, `stale` or `link_lost` ([`quality_of`]).
     pub quality: &'static str,
     /// UTC milliseconds of the poll that read the value as it is.
     pub changed_ms: Option<i64>,
@@ -292,32 +449,40 @@ pub struct ValueList {
 }
 
 /// `now`: the quality is the one GET would act on at that instant.
-pub fn value_view(snapshot: &Snapshot, id: VarId, now: tokio::time::Instant) -> ValueView {
-    let var = snapshot.table.var(id);
+pub fn value_view(
+    section: &Section,
+    snapshot: &Snapshot,
+    id: VarId,
+    now: tokio::time::Instant,
+) -> ValueView {
     let slot = snapshot.slot(id);
+    let (value, text) = presented(section, snapshot, id).unzip();
     ValueView {
-        name: cp1250::decode(&var.name).into_owned(),
-        ty: var.ty.to_string(),
-        value: slot.text().map(|t| cp1250::decode(t).into_owned()),
-        quality: snapshot.quality_at(id, now).as_str(),
+        name: cp1250::decode(&snapshot.table.var(id).name).into_owned(),
+        facts: var_facts(section, snapshot, id),
+        value,
+        text,
+        quality: quality_of(snapshot, id, now),
         changed_ms: slot.text().map(|_| slot.changed_ms),
     }
 }
 
 /// `GET /api/sections/{section}/values?vars=A*,B&limit=N`: the last known
-/// values with their quality. Variables nobody polls are `stale` (or have
-/// no value yet): the live stream polls what it shows.
+/// values with their quality. This request does not poll anything:
+/// variables nobody polls are `not_polled`; the live stream polls what it
+/// shows.
 pub async fn values(
     state: State,
     Path(name): Path<String>,
     Query(query): Query<VarsQuery>,
 ) -> Result<Json<ValueList>, ApiError> {
+    let section = find(&state, &name)?;
     let (snapshot, ids) = query.select(&state, &name)?;
     let now = tokio::time::Instant::now();
     let values = ids
         .iter()
         .take(query.limit())
-        .map(|&id| value_view(&snapshot, id, now))
+        .map(|&id| value_view(&section, &snapshot, id, now))
         .collect();
     Ok(Json(ValueList {
         total: ids.len(),
@@ -330,26 +495,121 @@ pub async fn values(
 #[derive(Deserialize)]
 pub struct Write {
     name: String,
-    value: String,
+    /// A number, true/false, or text (ISO 8601 for the time types).
+    value: serde_json::Value,
 }
 
 #[derive(Serialize)]
 pub struct Written {
     pub name: String,
-    /// The value read back from the PLC, as the protocol prints it.
-    pub value: String,
+    /// The value read back from the PLC, in the user's terms.
+    pub value: Presented,
+    pub text: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub unit: Option<String>,
 }
 
+/// A write refused: why, in the user's words, and as a word for scripts.
 #[derive(Serialize)]
 struct WriteFailed {
-    /// The error line a client's SET would have got.
     error: String,
-    code: u16,
+    /// `read_only`, `system_variable`, `unknown_variable`, `bad_address`,
+    /// `bad_value`, `unreachable`, `failed`, `timed_out`, `refused`.
+    reason: &'static str,
 }
 
-/// `POST /api/sections/{section}/set {"name": "...", "value": "..."}`: a
-/// SET, with its validation and errors (READ_ONLY included), confirmed with
-/// the value read back. Needs the token.
+fn write_failed(status: StatusCode, reason: &'static str, error: String) -> Response {
+    (status, Json(WriteFailed { error, reason })).into_response()
+}
+
+/// The protocol text of a write of `value` to a variable of type `ty`
+/// (`None`: no such variable; the write path says so).
+fn write_text(
+    ty: Option<IecType>,
+    value: &serde_json::Value,
+    section: &Section,
+) -> Result<Vec<u8>, String> {
+    use serde_json::Value as Json;
+    match (value, ty) {
+        (Json::String(text), Some(ty)) => present::protocol_text(ty, text, section.format()),
+        (Json::String(text), None) => Ok(cp1250::encode(text).into_owned()),
+        (Json::Number(_), Some(ty @ (IecType::Date | IecType::Dt))) => Err(format!(
+            "a {ty} is written as ISO 8601 text (2026-11-25T10:15:00Z), not as a number"
+        )),
+        (Json::Number(n), _) => Ok(n.to_string().into_bytes()),
+        (Json::Bool(b), Some(IecType::String(_))) => Ok(b.to_string().into_bytes()),
+        (Json::Bool(b), _) => Ok(if *b { b"1".to_vec() } else { b"0".to_vec() }),
+        _ => Err("the value is a number, true or false, or text".into()),
+    }
+}
+
+/// A refusal of the write path in the user's words.
+fn refusal_response(refusal: &WriteRefusal, section: &Section, name: &str) -> Response {
+    let (status, reason, message) = match refusal {
+        WriteRefusal::ReadOnly if section.read_only() => (
+            StatusCode::FORBIDDEN,
+            "read_only",
+            format!(
+                "the section is READ_ONLY: nothing in {} is written",
+                section.name()
+            ),
+        ),
+        WriteRefusal::ReadOnly => (
+            StatusCode::FORBIDDEN,
+            "read_only",
+            format!("{name} is read-only: the tag file marks it ro"),
+        ),
+        WriteRefusal::UnknownVariable => (
+            StatusCode::BAD_REQUEST,
+            "unknown_variable",
+            format!("no variable named {name} in {}", section.name()),
+        ),
+        WriteRefusal::BadAddress => (
+            StatusCode::BAD_REQUEST,
+            "bad_address",
+            format!("{name} is not an address this server understands"),
+        ),
+        WriteRefusal::BadValue(why) => (
+            StatusCode::BAD_REQUEST,
+            "bad_value",
+            format!("not written: {why}"),
+        ),
+        WriteRefusal::Unreachable => (
+            StatusCode::BAD_GATEWAY,
+            "unreachable",
+            "not written: there is no link to the PLC".to_string(),
+        ),
+        WriteRefusal::Failed => (
+            StatusCode::BAD_GATEWAY,
+            "failed",
+            "the link to the PLC failed during the write: it may not have been applied".to_string(),
+        ),
+        WriteRefusal::TimedOut => (
+            StatusCode::BAD_GATEWAY,
+            "timed_out",
+            "not written: the write waited too long to be sent (EPSTOUT)".to_string(),
+        ),
+        WriteRefusal::Refused { refusal: why, .. } => {
+            // The device refusing a value or an address is the request's
+            // fault, as the code it answers says.
+            let status = match refusal.code() {
+                ErrorCode::WrongValue | ErrorCode::MemSet => StatusCode::BAD_REQUEST,
+                _ => StatusCode::BAD_GATEWAY,
+            };
+            (
+                status,
+                "refused",
+                format!("the PLC refused the write of {name}: {why}"),
+            )
+        }
+    };
+    write_failed(status, reason, message)
+}
+
+/// `POST /api/sections/{section}/set {"name": "...", "value": V}`: a write
+/// through the one write path (`Section::write`), V a number, true/false or
+/// text (ISO 8601 for DATE, DT, TOD and TIME), confirmed with the value
+/// read back, or refused saying why. Needs the token.
 pub async fn set(
     state: State,
     axum::extract::ConnectInfo(peer): axum::extract::ConnectInfo<std::net::SocketAddr>,
@@ -364,39 +624,56 @@ pub async fn set(
         Ok(section) => section,
         Err(refused) => return refused.into_response(),
     };
-    let var = cp1250::encode(&write.name);
-    let value = cp1250::encode(&write.value);
-    match section.write(&var, &value).await {
-        Ok(written) => Json(Written {
-            name: cp1250::decode(&written.name).into_owned(),
-            value: cp1250::decode(&written.text).into_owned(),
-        })
-        .into_response(),
-        Err(refusal) => {
-            let status = match refusal {
-                WriteRefusal::ReadOnly => StatusCode::FORBIDDEN,
-                WriteRefusal::UnknownVariable
-                | WriteRefusal::BadValue(_)
-                | WriteRefusal::BadAddress => StatusCode::BAD_REQUEST,
-                // The device refusing a value or an address is the
-                // request's fault, as the code it answers says.
-                WriteRefusal::Refused { .. } => match refusal.code() {
-                    ErrorCode::WrongValue | ErrorCode::MemSet => StatusCode::BAD_REQUEST,
-                    _ => StatusCode::BAD_GATEWAY,
-                },
-                WriteRefusal::Unreachable | WriteRefusal::Failed | WriteRefusal::TimedOut => {
-                    StatusCode::BAD_GATEWAY
-                }
-            };
-            (
-                status,
-                Json(WriteFailed {
-                    code: refusal.code().code(),
-                    error: refusal.line(&var, &value),
-                }),
+    let var = cp1250::encode(&write.name).into_owned();
+    let shown = cp1250::decode(&cp1250::to_upper(&var)).into_owned();
+    if is_system(&var) {
+        return write_failed(
+            StatusCode::FORBIDDEN,
+            "system_variable",
+            format!("{shown} is a system variable: the PLC's own state is not written from here"),
+        );
+    }
+    let snapshot = section.latest();
+    let ty = if var.first() == Some(&b'%') {
+        parse_direct(&var).map(|a| a.ty)
+    } else {
+        snapshot
+            .table
+            .lookup(&var)
+            .map(|id| snapshot.table.var(id).ty)
+    };
+    let text = match write_text(ty, &write.value, &section) {
+        Ok(text) => text,
+        Err(why) => {
+            return write_failed(
+                StatusCode::BAD_REQUEST,
+                "bad_value",
+                format!("not written: {why}"),
             )
-                .into_response()
         }
+    };
+    match section.write(&var, &text).await {
+        Ok(written) => {
+            let unit = written.var.as_ref().and_then(|(table, id)| {
+                let info = table.var(*id).info.as_ref()?;
+                (!info.unit.is_empty()).then(|| info.unit.clone())
+            });
+            let ty = written
+                .var
+                .as_ref()
+                .map(|(table, id)| table.var(*id).ty)
+                .or(ty)
+                .unwrap_or(IecType::Lreal);
+            let value = Presented::of(ty, &written.text, section.format());
+            Json(Written {
+                name: cp1250::decode(&written.name).into_owned(),
+                text: value.text(),
+                value,
+                unit,
+            })
+            .into_response()
+        }
+        Err(refusal) => refusal_response(&refusal, &section, &shown),
     }
 }
 

@@ -254,6 +254,8 @@ fn router(shared: Arc<Shared>) -> Router {
                 auth::require_read,
             )),
         )
+        .route("/api", get(api::index))
+        .route("/api/", get(api::index))
         .nest("/api", api)
         .fallback(api::not_found)
         .layer(axum::middleware::from_fn_with_state(

@@ -1,6 +1,8 @@
 //! `GET /api/sections/{section}/live?vars=<masks>`: live values as
-//! server-sent events, one `values` event per publish of the section's
-//! change stream that changed something shown (so at the poll rate).
+//! server-sent events, one `values` event per poll of the section that
+//! changed something shown: a value, or a quality (a variable the stream
+//! made the link poll turns `good` when first read, even if its value is
+//! the one already shown).
 //!
 //! Each stream is a [`Subscription`](plccoms_core::changes::Subscription): while it
 //! is open the link polls what it shows, and when the browser goes the
@@ -11,10 +13,12 @@
 //!
 //! Event data (JSON):
 //! `{"seq":n,"polled_ms":t|null,"online":b,"missed":n,"table_changed":b,
-//!   "link":"lost"|"restored"|null,"values":[[name,value,quality,changed_ms],..]}`.
-//! The first event holds every shown variable that has a value. After
-//! `table_changed` or a `link` event the page reads `/values` again for
-//! every quality.
+//!   "link":"lost"|"restored"|null,
+//!   "values":[[name,value,quality,changed_ms,text],..]}`, `value` in the
+//! user's terms (`Presented`, as `/values` has it) and `text` the same as
+//! text. The first event holds every shown variable that has a value.
+//! After `table_changed` or a `link` event the page reads `/values` again
+//! for every quality.
 
 use std::convert::Infallible;
 use std::sync::Arc;
@@ -30,11 +34,14 @@ use plccoms_protocol::cp1250;
 use serde::{Deserialize, Serialize};
 use tokio_util::sync::CancellationToken;
 
-use super::api::{error, find, parse_masks};
+use super::api::{error, find, parse_masks, presented, quality_of};
 use super::limits::{Permit, MAX_LIVE_STREAMS};
 use super::metrics::{StreamGuard, WebMetrics};
 use super::State;
 use plccoms_core::changes::{ChangeBatch, LinkEvent, Subscription};
+use plccoms_core::present::Presented;
+use plccoms_core::section::Section;
+use plccoms_core::vars::{VarId, VarTable};
 
 /// Most variables one stream shows: a mask matching more is refused (the
 /// link would poll all of them for one browser).
@@ -83,17 +90,26 @@ pub async fn live(
     };
     let stream = Stream {
         _permit: permit,
-        subscription: section.subscribe(&masks),
+        // A batch per poll, so qualities that change without their values
+        // are told too.
+        subscription: section.subscribe(&masks).every_poll(),
+        shown: Shown::default(),
+        section,
         stop: state.0.stop.clone(),
         _guard: StreamGuard::new(state.0.web_metrics.clone()),
         metrics: state.0.web_metrics.clone(),
     };
     let events = futures::stream::unfold(stream, |mut stream| async move {
-        let batch = tokio::select! {
-            _ = stream.stop.cancelled() => return None,
-            batch = stream.subscription.next() => batch?,
+        let data = loop {
+            let batch = tokio::select! {
+                _ = stream.stop.cancelled() => return None,
+                batch = stream.subscription.next() => batch?,
+            };
+            let wanted = stream.subscription.wanted().to_vec();
+            if let Some(data) = encode(&batch, &stream.section, &wanted, &mut stream.shown) {
+                break data;
+            }
         };
-        let data = encode(&batch);
         stream.metrics.events.inc();
         stream.metrics.event_bytes.add(data.len() as u64);
         Some((
@@ -109,9 +125,18 @@ pub async fn live(
 struct Stream {
     _permit: Permit,
     subscription: Subscription,
+    section: Arc<Section>,
+    shown: Shown,
     stop: CancellationToken,
     metrics: Arc<WebMetrics>,
     _guard: StreamGuard,
+}
+
+/// The quality last sent per shown variable, for the table it was sent of.
+#[derive(Default)]
+pub struct Shown {
+    table: Option<Arc<VarTable>>,
+    quality: std::collections::HashMap<VarId, &'static str>,
 }
 
 #[derive(Serialize)]
@@ -124,29 +149,60 @@ struct Batch<'a> {
     link: Option<&'static str>,
     values: Vec<(
         std::borrow::Cow<'a, str>,
-        std::borrow::Cow<'a, str>,
+        Presented,
         &'static str,
         i64,
+        String,
     )>,
 }
 
-/// The event data of a batch.
-pub fn encode(batch: &ChangeBatch) -> String {
+/// The event data of a batch: the values that changed and those whose
+/// quality did (`wanted`: the stream's variables); `None` when it has
+/// nothing to tell.
+pub fn encode(
+    batch: &ChangeBatch,
+    section: &Section,
+    wanted: &[VarId],
+    shown: &mut Shown,
+) -> Option<String> {
     let snapshot = &batch.snapshot;
-    let values = batch
-        .changes
-        .iter()
-        .filter_map(|&id| {
-            let slot = snapshot.slot(id);
-            let text = slot.text()?;
+    if !shown
+        .table
+        .as_ref()
+        .is_some_and(|t| Arc::ptr_eq(t, &snapshot.table))
+    {
+        shown.table = Some(snapshot.table.clone());
+        shown.quality.clear();
+    }
+    let now = tokio::time::Instant::now();
+    let mut ids: Vec<VarId> = batch.changes.clone();
+    for &id in wanted {
+        if snapshot.slot(id).text().is_some()
+            && shown.quality.get(&id) != Some(&quality_of(snapshot, id, now))
+        {
+            ids.push(id);
+        }
+    }
+    ids.sort_unstable();
+    ids.dedup();
+    let values: Vec<_> = ids
+        .into_iter()
+        .filter_map(|id| {
+            let (value, text) = presented(section, snapshot, id)?;
+            let quality = quality_of(snapshot, id, now);
+            shown.quality.insert(id, quality);
             Some((
                 cp1250::decode(&snapshot.table.var(id).name),
-                cp1250::decode(text),
-                snapshot.quality(id).as_str(),
-                slot.changed_ms,
+                value,
+                quality,
+                snapshot.slot(id).changed_ms,
+                text,
             ))
         })
         .collect();
+    if values.is_empty() && batch.link.is_none() && !batch.table_changed {
+        return None;
+    }
     let body = Batch {
         seq: snapshot.seq,
         polled_ms: snapshot.polled.map(|p| p.unix_ms),
@@ -159,5 +215,5 @@ pub fn encode(batch: &ChangeBatch) -> String {
         }),
         values,
     };
-    serde_json::to_string(&body).unwrap_or_default()
+    serde_json::to_string(&body).ok()
 }

@@ -9,13 +9,19 @@
   const $ = (id) => document.getElementById(id);
   const NUMERIC = /^(BOOL|SINT|INT|DINT|LINT|USINT|UINT|UDINT|ULINT|BYTE|WORD|DWORD|LWORD|REAL|LREAL|TIME|TIME_OF_DAY|TOD)$/;
   const MAX_POINTS = 20000;
+  const QUALITY = {
+    good: "read by the last poll",
+    not_polled: "nobody polls it (no client or page enabled it): the last value read, if any",
+    stale: "polled, but the last poll did not read it",
+    link_lost: "the link to the PLC is lost: the last value known",
+  };
   const COLORS = ["#2b6cb0", "#c53030", "#1f8a4c", "#b7791f", "#6b46c1", "#0987a0", "#d53f8c", "#4a5568"];
 
   const st = {
     session: null,
     sections: [],
     section: null,
-    vars: new Map(), // name -> {type, value, quality, changed, row}
+    vars: new Map(), // name -> {type, value, text, unit, description, writable, quality, changed, row}
     charted: [],     // names, in the order chosen
     source: null,
     live: { t: [], ys: new Map() },
@@ -78,6 +84,45 @@
   }
   const canWrite = () =>
     st.session && st.session.writes_possible && st.session.authenticated && st.section && !st.section.read_only;
+
+  // A presented value (JSON: number, boolean, ISO 8601 text) as a number
+  // for the live chart: TIME and TOD in seconds.
+  function chartValue(type, value) {
+    if (value == null || !NUMERIC.test(type)) return null;
+    if (typeof value === "number") return value;
+    if (typeof value === "boolean") return value ? 1 : 0;
+    const text = String(value);
+    let m = /^P(?:(\d+)D)?(?:T(?:(\d+)H)?(?:(\d+)M)?(?:(\d+(?:\.\d+)?)S)?)?$/.exec(text);
+    if (m && text !== "P" && text !== "PT") {
+      return Number(m[1] || 0) * 86400 + Number(m[2] || 0) * 3600 + Number(m[3] || 0) * 60 + Number(m[4] || 0);
+    }
+    m = /^(\d+):(\d\d):(\d\d(?:\.\d+)?)$/.exec(text);
+    if (m) return Number(m[1]) * 3600 + Number(m[2]) * 60 + Number(m[3]);
+    // The protocol's text (the history's older rows): TIME and TOD in ms.
+    const x = Number(text);
+    if (!Number.isFinite(x)) return null;
+    return /^(TIME|TIME_OF_DAY|TOD)$/.test(type) ? x / 1000 : x;
+  }
+
+  // The ticked trend variables of each section survive a reload (logging
+  // in reloads the page) for as long as the tab lives.
+  const trendKey = (section) => `plccoms.trend.${section}`;
+  function saveTrend() {
+    if (!st.section) return;
+    try {
+      sessionStorage.setItem(trendKey(st.section.name), JSON.stringify(st.charted));
+    } catch (e) {
+      // Storage off: the trend is not kept.
+    }
+  }
+  function savedTrend(section) {
+    try {
+      const names = JSON.parse(sessionStorage.getItem(trendKey(section)) || "[]");
+      return Array.isArray(names) ? names.filter((n) => typeof n === "string") : [];
+    } catch (e) {
+      return [];
+    }
+  }
 
   // ---------------------------------------------------------------- session
   async function start() {
@@ -188,6 +233,7 @@
     st.charted = [];
     resetLive();
     await loadVars();
+    await restoreTrend(savedTrend(name));
     refreshClients();
   }
 
@@ -263,7 +309,10 @@
     if (st.section !== s && st.section.name !== s.name) return;
     st.vars = new Map();
     const rows = list.values.map((v) => {
-      const entry = { type: v.type, value: v.value, quality: v.quality, changed: v.changed_ms };
+      const entry = {
+        type: v.type, value: v.value, text: v.text, unit: v.unit, description: v.description,
+        writable: v.writable, quality: v.quality, changed: v.changed_ms,
+      };
       st.vars.set(v.name, entry);
       return makeRow(v.name, entry);
     });
@@ -290,8 +339,16 @@
     box.addEventListener("change", () => toggleChart(name, box.checked));
     cells.chart.append(box);
     cells.name.textContent = name;
+    if (entry.description) {
+      cells.name.title = entry.description;
+      const line = document.createElement("div");
+      line.className = "description";
+      line.textContent = entry.description;
+      cells.name.append(line);
+    }
     cells.type.textContent = entry.type;
-    if (canWrite()) {
+    // A Set box only where a write can succeed.
+    if (canWrite() && entry.writable) {
       const input = document.createElement("input");
       input.className = "write";
       input.setAttribute("aria-label", `new value of ${name}`);
@@ -304,8 +361,11 @@
       button.addEventListener("click", send);
       input.addEventListener("keydown", (e) => { if (e.key === "Enter") send(); });
       cells.write.append(input, button, result);
-    } else {
+    } else if (!canWrite()) {
       cells.write.hidden = true;
+    } else {
+      cells.write.className = "write dim";
+      cells.write.textContent = "read-only";
     }
     entry.cells = cells;
     entry.row = tr;
@@ -315,9 +375,17 @@
 
   function paint(entry, flash) {
     const c = entry.cells;
-    c.value.textContent = entry.value == null ? "—" : entry.value;
-    c.value.title = entry.value == null ? "" : entry.value;
+    const shown = entry.text == null ? "—" : entry.text;
+    c.value.textContent = shown;
+    if (entry.unit && entry.text != null) {
+      const unit = document.createElement("span");
+      unit.className = "unit";
+      unit.textContent = ` ${entry.unit}`;
+      c.value.append(unit);
+    }
+    c.value.title = entry.text == null ? "" : `${shown}${entry.unit ? " " + entry.unit : ""}`;
     c.quality.textContent = entry.quality.replace("_", " ");
+    c.quality.title = QUALITY[entry.quality] || "";
     c.quality.className = `quality q-${entry.quality}`;
     c.changed.textContent = entry.changed ? clock(entry.changed) : "";
     entry.row.className = `q-${entry.quality}`;
@@ -336,7 +404,7 @@
         headers: { "content-type": "application/json" },
         body: JSON.stringify({ name, value }),
       });
-      result.textContent = `✓ ${done.value}`;
+      result.textContent = `✓ ${done.text}${done.unit ? " " + done.unit : ""}`;
     } catch (e) {
       result.className = "write-result err";
       result.textContent = e.message;
@@ -363,16 +431,18 @@
   function onValues(batch) {
     st.events += 1;
     const t = batch.polled_ms || Date.now();
-    for (const [name, value, quality, changed] of batch.values) {
+    for (const [name, value, quality, changed, text] of batch.values) {
       const entry = st.vars.get(name);
       if (entry) {
+        const flash = entry.changed !== changed;
         entry.value = value;
+        entry.text = text;
         entry.quality = quality;
         entry.changed = changed;
-        paint(entry, true);
+        paint(entry, flash);
       }
       const series = st.live.ys.get(name);
-      if (series) series.last = numeric(series.type, value);
+      if (series) series.last = chartValue(series.type, value);
     }
     if (!batch.online) {
       for (const entry of st.vars.values()) {
@@ -393,7 +463,7 @@
       for (const v of list.values) {
         const entry = st.vars.get(v.name);
         if (!entry) return loadVars();
-        Object.assign(entry, { value: v.value, quality: v.quality, changed: v.changed_ms });
+        Object.assign(entry, { value: v.value, text: v.text, quality: v.quality, changed: v.changed_ms });
         paint(entry, false);
       }
     } catch (e) {
@@ -406,18 +476,115 @@
     st.live = { t: [], ys: new Map() };
   }
 
+  function addSeries(name, entry) {
+    st.charted.push(name);
+    st.live.ys.set(name, { type: entry.type, last: chartValue(entry.type, entry.value), data: st.live.t.map(() => null) });
+  }
+
   function toggleChart(name, on) {
     const entry = st.vars.get(name);
     if (on && !st.charted.includes(name)) {
-      st.charted.push(name);
-      st.live.ys.set(name, { type: entry.type, last: numeric(entry.type, entry.value), data: st.live.t.map(() => null) });
+      addSeries(name, entry);
     } else if (!on) {
       st.charted = st.charted.filter((n) => n !== name);
       st.live.ys.delete(name);
     }
+    saveTrend();
     buildPlot();
     openLive($("mask").value.trim() || "*", true);
     if (st.mode === "range") loadRange();
+    else if (on) seedTrend([name]);
+  }
+
+  // The trend ticked before a reload, ticked again (types from the API for
+  // variables the mask does not show).
+  async function restoreTrend(names) {
+    if (names.length === 0) return;
+    const s = st.section;
+    const types = new Map();
+    try {
+      const list = await api(`/api/sections/${encodeURIComponent(s.name)}/vars?mask=${encodeURIComponent(names.join(","))}&limit=${names.length}`);
+      for (const v of list.vars) types.set(v.name, v.type);
+    } catch (e) {
+      return;
+    }
+    if (st.section !== s) return;
+    for (const name of names) {
+      const entry = st.vars.get(name) || (types.has(name) ? { type: types.get(name), value: null } : null);
+      if (!entry || !NUMERIC.test(entry.type) || st.charted.includes(name)) continue;
+      addSeries(name, entry);
+      const box = document.querySelector(`#vars tr[data-name="${CSS.escape(name)}"] td.chart input`);
+      if (box) box.checked = true;
+    }
+    saveTrend();
+    buildPlot();
+    openLive($("mask").value.trim() || "*", true);
+    seedTrend(st.charted.slice());
+  }
+
+  // The live trend of variables the historian records starts with the
+  // last minutes it recorded. Rows: {time: ISO, name, value: number} (or
+  // the older {t: ms, name, value: text}).
+  async function seedTrend(names) {
+    if (!st.session.historian || names.length === 0) return;
+    const s = st.section;
+    const to = Date.now();
+    const from = to - Number($("window").value) * 1000;
+    const q = new URLSearchParams({ section: s.name, vars: names.join(","), from: String(from), to: String(to), format: "json" });
+    let body;
+    try {
+      body = await api(`/api/history?${q}`);
+    } catch (e) {
+      return; // Not recorded, or the historian is busy: the trend starts live.
+    }
+    if (st.section !== s || !body) return;
+    const rows = Array.isArray(body) ? body : body.rows || body.samples || [];
+    const points = new Map(); // name -> [[x, y], ..] ascending
+    for (const r of rows) {
+      const series = st.live.ys.get(r.name);
+      if (!series || !names.includes(r.name)) continue;
+      const ms = r.time != null ? Date.parse(r.time) : Number(r.t);
+      if (!Number.isFinite(ms)) continue;
+      const y = r.quality === "link_lost" ? null : chartValue(series.type, r.value);
+      if (!points.has(r.name)) points.set(r.name, []);
+      const list = points.get(r.name);
+      if (list.length && ms / 1000 <= list[list.length - 1][0]) continue;
+      list.push([ms / 1000, y]);
+    }
+    if (points.size === 0) return;
+    mergeSeed(points);
+    if (st.mode === "live") drawLive();
+  }
+
+  // History points before the live ones; a seeded series' gaps in the live
+  // part filled with its recorded value then (the historian records
+  // changes).
+  function mergeSeed(points) {
+    const live = st.live;
+    const first = live.t.length ? live.t[0] : Infinity;
+    const before = new Set();
+    for (const list of points.values()) for (const [x] of list) if (x < first) before.add(x);
+    const head = [...before].sort((a, b) => a - b);
+    const times = head.concat(live.t);
+    for (const [name, series] of live.ys) {
+      const list = points.get(name);
+      if (!list) {
+        series.data = head.map(() => null).concat(series.data);
+        continue;
+      }
+      let i = 0;
+      let y = null;
+      series.data = times.map((x, k) => {
+        while (i < list.length && list[i][0] <= x) y = list[i++][1];
+        const old = k >= head.length ? series.data[k - head.length] : null;
+        return old != null ? old : y;
+      });
+    }
+    live.t = times;
+    if (live.t.length > MAX_POINTS) {
+      live.t.splice(0, live.t.length - MAX_POINTS);
+      for (const series of live.ys.values()) series.data.splice(0, series.data.length - MAX_POINTS);
+    }
   }
 
   function pushLive(t, online) {
