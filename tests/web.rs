@@ -1346,7 +1346,7 @@ fn values_are_in_the_users_terms_with_units_quality_and_writability() {
             "Demo",
             serde_json::json!({"name": "v_dt", "value": "yesterday"}),
             400,
-            "not written: 'yesterday' is not a date and time (e.g. 2026-11-25T10:15:00Z)",
+            "not written: 'yesterday': expected a date and time in ISO 8601 with its zone, as 2026-11-25T10:15:00.123Z",
             "bad_value",
         ),
         (

@@ -131,6 +131,154 @@ impl Serialize for Presented {
     }
 }
 
+/// The protocol text a SET takes for a value of type `ty` given in the
+/// user's terms (`input`, as [`Presented`] shows values): the reverse of
+/// [`Presented::of`] for MQTT's `/set` and other faces that write.
+///
+/// DATE, DT, TOD and TIME take only their ISO 8601 forms (parsed strictly:
+/// a DT needs its zone, `Z` or `+01:00`); an integer type also takes a
+/// number without a fraction (`5.0`, `1e3`), as Home Assistant sends a
+/// whole number; every other text goes to SET as it is, for SET's own
+/// checks. An error names the form expected.
+pub fn protocol_text<'a>(
+    ty: IecType,
+    input: &'a [u8],
+    opts: &FormatOptions,
+) -> Result<std::borrow::Cow<'a, [u8]>, &'static str> {
+    use std::borrow::Cow;
+    let text = std::str::from_utf8(input).ok().map(str::trim);
+    let value = match ty {
+        IecType::Dt => {
+            let t = text
+                .and_then(|t| DateTime::parse_from_rfc3339(t).ok())
+                .ok_or(EXPECTED_DT)?;
+            Value::Date(t.timestamp_millis() as f64 / 1000.0)
+        }
+        IecType::Date => {
+            let d = text
+                .filter(|t| t.len() == 10)
+                .and_then(|t| chrono::NaiveDate::parse_from_str(t, "%Y-%m-%d").ok())
+                .ok_or(EXPECTED_DATE)?;
+            Value::Date(d.and_time(chrono::NaiveTime::MIN).and_utc().timestamp() as f64)
+        }
+        IecType::Tod => Value::Time(text.and_then(parse_time_of_day).ok_or(EXPECTED_TOD)?),
+        IecType::Time => Value::Time(text.and_then(parse_duration).ok_or(EXPECTED_TIME)?),
+        ty if is_integer(ty) => match text.map(whole_number) {
+            Some(Some(n)) => return Ok(Cow::Owned(n.into_bytes())),
+            _ => return Ok(Cow::Borrowed(input)),
+        },
+        _ => return Ok(Cow::Borrowed(input)),
+    };
+    let mut out = Vec::new();
+    value.format(ty, opts, &mut out);
+    Ok(Cow::Owned(out))
+}
+
+/// What [`protocol_text`] expects of each time type.
+pub const EXPECTED_DT: &str =
+    "expected a date and time in ISO 8601 with its zone, as 2026-11-25T10:15:00.123Z";
+pub const EXPECTED_DATE: &str = "expected a date in ISO 8601, as 2026-11-25";
+pub const EXPECTED_TOD: &str = "expected a time of day, as 10:15:00.123 (HH:MM[:SS[.mmm]])";
+pub const EXPECTED_TIME: &str =
+    "expected an ISO 8601 duration, as PT1H2M3.456S (P[nD]T[nH][nM][n[.mmm]S])";
+
+fn is_integer(ty: IecType) -> bool {
+    !matches!(
+        ty,
+        IecType::Bool
+            | IecType::Real
+            | IecType::Lreal
+            | IecType::String(_)
+            | IecType::Date
+            | IecType::Dt
+            | IecType::Tod
+            | IecType::Time
+    )
+}
+
+/// `5.0`, `1e3` as `5`, `1000`: a number in JSON's grammar whose value is
+/// whole and within 64 bits; `None` for anything else (SET judges it).
+fn whole_number(text: &str) -> Option<String> {
+    if !text.contains(['.', 'e', 'E']) || text.starts_with('+') {
+        return None;
+    }
+    let x: f64 = text.parse().ok()?;
+    (x.is_finite() && x.fract() == 0.0 && x.abs() < 9.0e18).then(|| format!("{}", x as i64))
+}
+
+/// `HH:MM`, `HH:MM:SS` or `HH:MM:SS.f` (1 to 3 digits), before 24:00, as
+/// milliseconds since midnight.
+fn parse_time_of_day(text: &str) -> Option<u32> {
+    let two = |s: &str, max: u32| -> Option<u32> {
+        (s.len() == 2 && s.bytes().all(|b| b.is_ascii_digit()))
+            .then(|| s.parse().ok())
+            .flatten()
+            .filter(|&n| n <= max)
+    };
+    let mut parts = text.splitn(3, ':');
+    let h = two(parts.next()?, 23)?;
+    let m = two(parts.next()?, 59)?;
+    let ms = match parts.next() {
+        None => 0,
+        Some(rest) => {
+            let (s, frac) = rest
+                .split_once('.')
+                .map_or((rest, None), |(s, f)| (s, Some(f)));
+            two(s, 59)? * 1000 + frac.map_or(Some(0), millis)?
+        }
+    };
+    Some((h * 60 + m) * 60_000 + ms)
+}
+
+/// 1 to 3 digits after a decimal point as milliseconds.
+fn millis(frac: &str) -> Option<u32> {
+    if frac.is_empty() || frac.len() > 3 || !frac.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    Some(frac.parse::<u32>().ok()? * 10u32.pow(3 - frac.len() as u32))
+}
+
+/// `P[nD]T[nH][nM][n[.f]S]` (or `PnD`) as milliseconds, within TIME's 32
+/// bits; at least one part, a fraction only on the seconds.
+fn parse_duration(text: &str) -> Option<u32> {
+    let rest = text.strip_prefix('P')?;
+    let (days, time) = match rest.split_once('T') {
+        Some((d, t)) => (d, Some(t)),
+        None => (rest, None),
+    };
+    let mut total: u64 = 0;
+    let mut parts = 0;
+    let number = |s: &str| -> Option<u64> {
+        (!s.is_empty() && s.len() <= 10 && s.bytes().all(|b| b.is_ascii_digit()))
+            .then(|| s.parse().ok())
+            .flatten()
+    };
+    if !days.is_empty() {
+        total += number(days.strip_suffix('D')?)? * 86_400_000;
+        parts += 1;
+    }
+    if let Some(mut time) = time {
+        if time.is_empty() {
+            return None;
+        }
+        for (unit, ms) in [('H', 3_600_000), ('M', 60_000)] {
+            if let Some((n, after)) = time.split_once(unit) {
+                total += number(n)? * ms;
+                parts += 1;
+                time = after;
+            }
+        }
+        if !time.is_empty() {
+            let s = time.strip_suffix('S')?;
+            let (whole, frac) = s.split_once('.').map_or((s, None), |(w, f)| (w, Some(f)));
+            total += number(whole)? * 1000 + u64::from(frac.map_or(Some(0), millis)?);
+            parts += 1;
+        }
+    }
+    (parts > 0).then_some(())?;
+    u32::try_from(total).ok()
+}
+
 /// 22.3f32 as 22.3: the shortest decimal that reads back as the same f32,
 /// widened.
 fn shortest_f32(x: f32) -> f64 {
@@ -201,145 +349,6 @@ fn duration(ms: u32) -> String {
         out.push('S');
     }
     out
-}
-
-/// A value as a user writes it (the forms [`Presented`] shows) as the text
-/// the protocol reads, for `Section::write`: a DATE as `2026-11-25`, a DT
-/// as RFC 3339 (`2026-11-25T10:15:00.123Z`; without an offset, UTC), a TOD
-/// as `10:15:00.123`, a TIME as an ISO 8601 duration (`PT1H2M3.456S`,
-/// `P1DT2H`). Anything else, and a time type's protocol form (digits),
-/// passes unchanged: the protocol's parser judges it, as it does a SET's.
-pub fn protocol_text(ty: IecType, text: &str, opts: &FormatOptions) -> Result<Vec<u8>, String> {
-    let text = text.trim();
-    let protocol_form = !text.is_empty()
-        && text
-            .bytes()
-            .all(|b| b.is_ascii_digit() || (opts.date_time_decimal && b == b'.'));
-    let value = match ty {
-        IecType::Date | IecType::Dt if !protocol_form => {
-            let ms = parse_date_time(text).ok_or_else(|| {
-                format!("'{text}' is not a date and time (e.g. 2026-11-25T10:15:00Z)")
-            })?;
-            // A DATE holds the day's midnight.
-            let ms = if ty == IecType::Date {
-                ms.div_euclid(86_400_000) * 86_400_000
-            } else {
-                ms
-            };
-            Value::Date(ms as f64 / 1000.0)
-        }
-        IecType::Tod if !protocol_form => Value::Time(
-            parse_time_of_day(text)
-                .ok_or_else(|| format!("'{text}' is not a time of day (e.g. 10:15:00.123)"))?,
-        ),
-        IecType::Time if !protocol_form => Value::Time(
-            parse_duration(text)
-                .ok_or_else(|| format!("'{text}' is not a duration (e.g. PT1H2M3.5S)"))?,
-        ),
-        _ => return Ok(cp1250::encode(text).into_owned()),
-    };
-    let mut out = Vec::new();
-    value.format(ty, opts, &mut out);
-    Ok(out)
-}
-
-/// UTC milliseconds of an RFC 3339 time, a date and time without an offset
-/// (UTC), or a date (its midnight, UTC).
-fn parse_date_time(text: &str) -> Option<i64> {
-    if let Ok(t) = DateTime::parse_from_rfc3339(text) {
-        return Some(t.timestamp_millis());
-    }
-    for format in [
-        "%Y-%m-%dT%H:%M:%S%.f",
-        "%Y-%m-%d %H:%M:%S%.f",
-        "%Y-%m-%dT%H:%M",
-    ] {
-        if let Ok(t) = chrono::NaiveDateTime::parse_from_str(text, format) {
-            return Some(t.and_utc().timestamp_millis());
-        }
-    }
-    let day = chrono::NaiveDate::parse_from_str(text, "%Y-%m-%d").ok()?;
-    Some(day.and_hms_opt(0, 0, 0)?.and_utc().timestamp_millis())
-}
-
-/// Milliseconds since midnight of `HH:MM`, `HH:MM:SS` or `HH:MM:SS.fff`.
-fn parse_time_of_day(text: &str) -> Option<u32> {
-    let mut parts = text.split(':');
-    let (h, m) = (parts.next()?, parts.next()?);
-    let s = parts.next().unwrap_or("0");
-    if parts.next().is_some() {
-        return None;
-    }
-    let whole = |t: &str, max: u32| -> Option<u32> {
-        (!t.is_empty() && t.len() <= 2 && t.bytes().all(|b| b.is_ascii_digit()))
-            .then(|| t.parse().ok())
-            .flatten()
-            .filter(|n| *n <= max)
-    };
-    let (h, m) = (whole(h, 23)?, whole(m, 59)?);
-    let (s, frac) = s.split_once('.').unwrap_or((s, ""));
-    let ms = milliseconds(frac)?;
-    Some(h * 3_600_000 + m * 60_000 + whole(s, 59)? * 1000 + ms)
-}
-
-/// Milliseconds of a fraction's digits (`5` is 500, `123` 123; more
-/// digits are rounded off); `""` is 0.
-fn milliseconds(digits: &str) -> Option<u32> {
-    if !digits.bytes().all(|b| b.is_ascii_digit()) {
-        return None;
-    }
-    let mut padded: String = digits.chars().take(4).collect();
-    while padded.len() < 4 {
-        padded.push('0');
-    }
-    let tenths_of_ms: u32 = padded.parse().ok()?;
-    Some((tenths_of_ms + 5) / 10)
-}
-
-/// Milliseconds of an ISO 8601 duration of days, hours, minutes and
-/// seconds (`P1DT2H`, `PT1H2M3.456S`, `PT0S`); `None` past a TIME's range.
-fn parse_duration(text: &str) -> Option<u32> {
-    let upper = text.to_ascii_uppercase();
-    let rest = upper.strip_prefix('P')?;
-    let (days, time) = match rest.split_once('T') {
-        Some((days, time)) => (days, Some(time)),
-        None => (rest, None),
-    };
-    let mut total: u64 = 0;
-    let mut any = false;
-    if !days.is_empty() {
-        let n: u64 = days.strip_suffix('D')?.parse().ok()?;
-        total = n.checked_mul(86_400_000)?;
-        any = true;
-    }
-    if let Some(mut time) = time {
-        for (unit, scale) in [('H', 3_600_000u64), ('M', 60_000)] {
-            if let Some((n, after)) = time.split_once(unit) {
-                if n.is_empty() || !n.bytes().all(|b| b.is_ascii_digit()) {
-                    return None;
-                }
-                total = total.checked_add(n.parse::<u64>().ok()?.checked_mul(scale)?)?;
-                time = after;
-                any = true;
-            }
-        }
-        if !time.is_empty() {
-            let seconds = time.strip_suffix('S')?;
-            let (whole, frac) = seconds.split_once('.').unwrap_or((seconds, ""));
-            if whole.is_empty() || !whole.bytes().all(|b| b.is_ascii_digit()) {
-                return None;
-            }
-            let ms = whole.parse::<u64>().ok()?.checked_mul(1000)?;
-            total = total
-                .checked_add(ms)?
-                .checked_add(u64::from(milliseconds(frac)?))?;
-            any = true;
-        }
-    }
-    if !any {
-        return None;
-    }
-    u32::try_from(total).ok()
 }
 
 #[cfg(test)]
@@ -467,64 +476,72 @@ mod tests {
         );
     }
 
-    fn back(ty: IecType, text: &str) -> Result<Vec<u8>, String> {
-        protocol_text(ty, text, &FormatOptions::default())
-    }
-
     #[test]
-    fn iso_times_go_back_to_the_protocols_text() {
+    fn user_forms_back_to_protocol_text() {
         let opts = FormatOptions::default();
-        for (ty, user) in [
+        let back = |ty: IecType, input: &str| {
+            protocol_text(ty, input.as_bytes(), &opts).map(|t| Presented::of(ty, &t, &opts).text())
+        };
+        // Every form Presented shows reads back to the same value.
+        for (ty, shown) in [
             (IecType::Dt, "2026-11-25T10:15:00.123Z"),
             (IecType::Date, "2026-11-25"),
             (IecType::Tod, "10:15:00.123"),
+            (IecType::Tod, "00:00:00.000"),
             (IecType::Time, "PT1H2M3.456S"),
             (IecType::Time, "PT0S"),
+            (IecType::Time, "PT2H"),
             (IecType::Time, "PT2M0.5S"),
         ] {
-            let text = back(ty, user).unwrap();
-            assert_eq!(Presented::of(ty, &text, &opts).text(), user, "{ty}");
+            assert_eq!(back(ty, shown).as_deref(), Ok(shown), "{ty}");
         }
-        // Other offsets, no offset, a bare date; days in a duration.
-        let dt = |t: &str| Presented::of(IecType::Dt, &back(IecType::Dt, t).unwrap(), &opts);
+        // Other zones and shorter forms.
         assert_eq!(
-            dt("2026-11-25T11:15:00+01:00").text(),
-            "2026-11-25T10:15:00.000Z"
+            back(IecType::Dt, "2026-11-25T11:15:00+01:00").as_deref(),
+            Ok("2026-11-25T10:15:00.000Z")
         );
-        assert_eq!(dt("2026-11-25 10:15:00").text(), "2026-11-25T10:15:00.000Z");
-        assert_eq!(dt("2026-11-25").text(), "2026-11-25T00:00:00.000Z");
-        let date = back(IecType::Date, "2026-11-25T23:59:59Z").unwrap();
+        assert_eq!(back(IecType::Tod, "07:30").as_deref(), Ok("07:30:00.000"));
         assert_eq!(
-            Presented::of(IecType::Date, &date, &opts).text(),
-            "2026-11-25"
+            back(IecType::Time, "P1DT0.25S").as_deref(),
+            Ok("PT24H0.25S")
         );
-        assert_eq!(back(IecType::Time, "P1DT2H").unwrap(), b"93600000");
-        assert_eq!(back(IecType::Tod, "10:15").unwrap(), b"36900000");
-    }
-
-    #[test]
-    fn other_text_passes_and_bad_times_are_named() {
-        // The protocol's own forms, and every other type, pass unchanged.
-        assert_eq!(
-            back(IecType::Dt, "4745317952616660992").unwrap(),
-            b"4745317952616660992"
-        );
-        assert_eq!(back(IecType::Time, "1500").unwrap(), b"1500");
-        assert_eq!(back(IecType::Real, "20.5").unwrap(), b"20.5");
-        assert_eq!(back(IecType::Bool, "true").unwrap(), b"true");
-        for (ty, bad) in [
-            (IecType::Dt, "yesterday"),
-            (IecType::Date, "2026-13-01"),
-            (IecType::Tod, "24:00:00"),
-            (IecType::Tod, "10:15:00:00"),
-            (IecType::Time, "PT"),
-            (IecType::Time, "P1H"),
-            (IecType::Time, "PT-1S"),
-            (IecType::Time, "P50D"),
-            (IecType::Dt, ""),
+        // Strict: no zone, no time, out of range, the raw protocol text.
+        for (ty, bad, expected) in [
+            (IecType::Dt, "2026-11-25T10:15:00", EXPECTED_DT),
+            (IecType::Dt, "2026-11-25", EXPECTED_DT),
+            (IecType::Dt, "4745318240020496122", EXPECTED_DT),
+            (IecType::Date, "2026-11-5", EXPECTED_DATE),
+            (IecType::Date, "2026-02-30", EXPECTED_DATE),
+            (IecType::Tod, "24:00", EXPECTED_TOD),
+            (IecType::Tod, "7:30", EXPECTED_TOD),
+            (IecType::Tod, "10:15:00.1234", EXPECTED_TOD),
+            (IecType::Time, "PT", EXPECTED_TIME),
+            (IecType::Time, "P", EXPECTED_TIME),
+            (IecType::Time, "PT1.5M", EXPECTED_TIME),
+            (IecType::Time, "PT-1S", EXPECTED_TIME),
+            (IecType::Time, "P50D", EXPECTED_TIME),
+            (IecType::Time, "1000", EXPECTED_TIME),
+            (IecType::Time, "PT\u{ff}S", EXPECTED_TIME),
         ] {
-            let error = back(ty, bad).unwrap_err();
-            assert!(error.contains(&format!("'{bad}'")), "{ty} {bad}: {error}");
+            assert_eq!(back(ty, bad), Err(expected), "{bad}");
         }
+        assert_eq!(
+            protocol_text(IecType::Time, b"\xffPT1S", &opts),
+            Err(EXPECTED_TIME)
+        );
+        // Numbers: a whole number with a fraction part for an integer type;
+        // the rest as it came, for SET to judge.
+        let raw = |ty, input: &str| {
+            protocol_text(ty, input.as_bytes(), &opts)
+                .unwrap()
+                .into_owned()
+        };
+        assert_eq!(raw(IecType::Int, "5.0"), b"5");
+        assert_eq!(raw(IecType::Int, "-1e3"), b"-1000");
+        assert_eq!(raw(IecType::Int, "5.5"), b"5.5");
+        assert_eq!(raw(IecType::Int, "12"), b"12");
+        assert_eq!(raw(IecType::Real, "22.3"), b"22.3");
+        assert_eq!(raw(IecType::Bool, "true"), b"true");
+        assert_eq!(raw(IecType::String(8), "PT1S"), b"PT1S");
     }
 }

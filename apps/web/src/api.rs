@@ -531,7 +531,11 @@ fn write_text(
 ) -> Result<Vec<u8>, String> {
     use serde_json::Value as Json;
     match (value, ty) {
-        (Json::String(text), Some(ty)) => present::protocol_text(ty, text, section.format()),
+        (Json::String(text), Some(ty)) => {
+            present::protocol_text(ty, text.as_bytes(), section.format())
+                .map(std::borrow::Cow::into_owned)
+                .map_err(|expected| format!("'{text}': {expected}"))
+        }
         (Json::String(text), None) => Ok(cp1250::encode(text).into_owned()),
         (Json::Number(_), Some(ty @ (IecType::Date | IecType::Dt))) => Err(format!(
             "a {ty} is written as ISO 8601 text (2026-11-25T10:15:00Z), not as a number"
