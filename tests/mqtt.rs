@@ -131,15 +131,18 @@ fn values_plain_and_json_retained_with_escaped_and_cp1250_names() {
         let m = sub.wait(&format!("plccoms/Plain/{topic}"), |_| true);
         assert_eq!((m.payload.as_str(), m.retain), ("0", true), "{topic}");
     }
-    sub.wait_payload("plccoms/Plain/TEXT", "\"\"");
+    // Values in the user's terms: a REAL as a number, not GET's text.
     sub.wait(&format!("plccoms/Plain/TEPLOTA_KUCHYN{}", 'Ě'), |m| {
-        m.payload == "0.000000"
+        m.payload == "0"
     });
     // A write to an escaped name reaches the variable.
     broker.publish("plccoms/Plain/A%2FB/set", "-7", false);
     sub.wait_payload("plccoms/Plain/A%2FB", "-7");
     let mut line = Line::connect(plain);
     assert_eq!(line.ask("GET:a/b"), "GET:A/B,-7");
+    // A STRING's text without the quotes GET prints.
+    line.ask("SET:text,\"Hello\"");
+    sub.wait_payload("plccoms/Plain/TEXT", "Hello");
 
     // json: value, the poll's time in UTC with milliseconds, quality.
     let text = sub.wait("plccoms/Json/TEXT", |_| true).json();
@@ -199,7 +202,7 @@ fn writes_round_trip_and_refusals_never_applied_later() {
     let plc_process = plcsim(files.path(), udp);
     let (plc, ro) = (free_port(), free_port());
     let sections = format!(
-        "[Plc]\nIPADDR = 127.0.0.1\nEPSPORT = {udp}\nEPSTOUT = 200\nEPSTOUT_STEP = 0\nSERVER_PORT = {plc}\nPUBFILE = //demo.pub\nMQTT_PUBLISH = counter, sinus, note\nMQTT_WRITE = counter, note, setpoint\n{}",
+        "[Plc]\nIPADDR = 127.0.0.1\nEPSPORT = {udp}\nEPSTOUT = 200\nEPSTOUT_STEP = 0\nSERVER_PORT = {plc}\nPUBFILE = //demo.pub\nMQTT_PUBLISH = counter, sinus, note\nMQTT_WRITE = counter, note, setpoint, v_dt, dat, v_tod, tim, switch\n{}",
         sim_section("Ro", ro, "READ_ONLY = Yes\nMQTT_PUBLISH = counter\nMQTT_WRITE = *")
     );
     let server = ServerProcess::with_config(&config(&broker, "", &sections), plc);
@@ -213,9 +216,9 @@ fn writes_round_trip_and_refusals_never_applied_later() {
     broker.publish("plccoms/Plc/COUNTER/set", "42", false);
     sub.wait_payload("plccoms/Plc/COUNTER", "42");
     broker.publish("plccoms/Plc/setpoint/set", "21.5", false);
-    sub.wait_payload("plccoms/Plc/SETPOINT", "21.500000");
+    sub.wait_payload("plccoms/Plc/SETPOINT", "21.5");
     broker.publish("plccoms/Plc/NOTE/set", "Dobrý den", false);
-    sub.wait_payload("plccoms/Plc/NOTE", "\"Dobrý den\"");
+    sub.wait_payload("plccoms/Plc/NOTE", "Dobrý den");
     broker.publish("plccoms/Plc/NOTE/set", "Dobrý den", false);
     let confirmations = |topic: &str, payload: &str| {
         sub.on(topic)
@@ -224,8 +227,37 @@ fn writes_round_trip_and_refusals_never_applied_later() {
             .count()
     };
     sub.wait_for("the unchanged NOTE confirmed", || {
-        (confirmations("plccoms/Plc/NOTE", "\"Dobrý den\"") >= 2).then_some(())
+        (confirmations("plccoms/Plc/NOTE", "Dobrý den") >= 2).then_some(())
     });
+
+    // Times and BOOLs in the forms the value topics show: ISO 8601 read
+    // back as the protocol's text, published as ISO again.
+    for (name, value) in [
+        ("V_DT", "2026-11-25T10:15:00.123Z"),
+        ("DAT", "2026-11-25"),
+        ("V_TOD", "10:15:00.123"),
+        ("TIM", "PT1H2M3.456S"),
+        ("SWITCH", "true"),
+    ] {
+        broker.publish(&format!("plccoms/Plc/{name}/set"), value, false);
+        sub.wait_payload(&format!("plccoms/Plc/{name}"), value);
+    }
+    let mut line = Line::connect(plc);
+    assert_eq!(line.ask("GET:tim"), "GET:TIM,3723456");
+    // Another zone is the same instant; a form without one is refused,
+    // naming the form expected, and nothing is written.
+    broker.publish("plccoms/Plc/V_DT/set", "2026-11-25T12:00:00+01:00", false);
+    sub.wait_payload("plccoms/Plc/V_DT", "2026-11-25T11:00:00.000Z");
+    broker.publish("plccoms/Plc/V_DT/set", "2026-11-25 10:15", false);
+    sub.wait_payload(
+        "plccoms/Plc/V_DT/error",
+        "ERROR:35 Wrong parameter value in request: 'SET:V_DT,2026-11-25 10:15' (expected a date and time in ISO 8601 with its zone, as 2026-11-25T10:15:00.123Z)",
+    );
+    broker.publish("plccoms/Plc/TIM/set", "3723456", false);
+    sub.wait("plccoms/Plc/TIM/error", |m| {
+        m.payload.contains("expected an ISO 8601 duration")
+    });
+    assert_eq!(line.ask("GET:tim"), "GET:TIM,3723456");
 
     // Refusals on <VAR>/error, with SET's error lines.
     broker.publish("plccoms/Plc/counter/set", "abc", false);
@@ -247,12 +279,11 @@ fn writes_round_trip_and_refusals_never_applied_later() {
         "plccoms/Ro/COUNTER/error",
         "ERROR:30 Bad client request: 'SET:COUNTER,5'",
     );
-    let mut line = Line::connect(plc);
     assert_eq!(line.ask("GET:note"), "GET:NOTE,\"Dobrý den\"");
     // Each write published once, the refusals' time after.
     assert_eq!(confirmations("plccoms/Plc/COUNTER", "42"), 1);
-    assert_eq!(confirmations("plccoms/Plc/SETPOINT", "21.500000"), 1);
-    assert_eq!(confirmations("plccoms/Plc/NOTE", "\"Dobrý den\""), 2);
+    assert_eq!(confirmations("plccoms/Plc/SETPOINT", "21.5"), 1);
+    assert_eq!(confirmations("plccoms/Plc/NOTE", "Dobrý den"), 2);
     let log = server.log();
     assert!(log.contains("write refused: ERROR:35"), "{log}");
     assert!(
@@ -400,7 +431,7 @@ fn home_assistant_discovery_stable_ids_and_removed_configs_cleared() {
     let (_, switch) = config_of("switch", "SWITCH");
     assert_eq!(
         (switch["payload_on"].as_str(), switch["state_off"].as_str()),
-        (Some("1"), Some("0"))
+        (Some("true"), Some("false"))
     );
     // Home Assistant restarting asks for the configs again.
     let before = sub.messages().len();

@@ -34,7 +34,7 @@ use tokio::time::{Instant, MissedTickBehavior};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
 
-use super::discovery::{self, Device};
+use super::discovery::{self, Device, Maker};
 use super::settings::{SectionRules, Settings};
 use super::spool::{Message, Spool};
 use super::topics::Topics;
@@ -42,6 +42,7 @@ use super::writes::{self, Refused};
 use super::Metrics;
 use plccoms_core::changes::{ChangeBatch, Quality, Subscription};
 use plccoms_core::config::MqttFormat;
+use plccoms_core::present::Presented;
 use plccoms_core::ratelimit::{self, RateLimited};
 use plccoms_core::section::Section;
 use plccoms_core::vars::{VarId, VarTable};
@@ -142,6 +143,9 @@ pub(super) struct State {
     published_seq: Vec<u64>,
     plc_online: Option<bool>,
     announced: BTreeSet<String>,
+    /// The device's maker as last announced: announced again when the
+    /// PLC's identification becomes known or changes.
+    maker: Option<Maker>,
     /// The discovery announcement under way: one at a time, however many
     /// `online`s come while it is pending or running.
     announcing: Option<Announcement>,
@@ -462,6 +466,13 @@ impl Task {
             self.state
                 .direct
                 .push_back(plc_message(&self.topics, online));
+            if online && self.rules.ha_discovery {
+                let state = self.section.state();
+                let maker = Maker::of(&state.config, state.link.ident.as_deref());
+                if self.state.maker.as_ref() != Some(&maker) {
+                    self.announce();
+                }
+            }
         }
         if link_changed && self.rules.format == MqttFormat::Json && !batch.table_changed {
             // Every value's quality changed with the link.
@@ -521,9 +532,10 @@ impl Task {
                 *last = value;
             }
             self.state.published_seq[id as usize] = snapshot.seq;
+            let shown = Presented::of(table.var(id).ty, text, format);
             let payload = super::payload::value(
                 self.rules.format,
-                text,
+                &shown,
                 slot.changed_ms,
                 snapshot.quality(id),
             );
@@ -618,8 +630,12 @@ impl Task {
                     }
                 }
                 let now = plccoms_core::changes::unix_ms(std::time::SystemTime::now());
-                let payload =
-                    super::payload::value(self.rules.format, &confirmed.text, now, Quality::Good);
+                let shown = match &confirmed.var {
+                    Some((table, id)) => Presented::of_value(table.var(*id).ty, &confirmed.value),
+                    // A `%` address has no type: its text as printed.
+                    None => Presented::Text(cp1250::decode(&confirmed.text).into_owned()),
+                };
+                let payload = super::payload::value(self.rules.format, &shown, now, Quality::Good);
                 self.queue(vec![Message {
                     topic: self.topics.value(&confirmed.name),
                     payload,
@@ -661,6 +677,8 @@ impl Task {
         if !self.state.connected {
             return;
         }
+        let state = self.section.state();
+        self.state.maker = Some(Maker::of(&state.config, state.link.ident.as_deref()));
         let mut current = BTreeSet::new();
         for index in 0..self.state.wanted.len() {
             if let Some(topic) = self.discovery_config(index, true) {
@@ -692,8 +710,13 @@ impl Task {
             topics: &self.topics,
             format: self.rules.format,
             qos: self.rules.qos,
+            maker: self.state.maker.as_ref()?,
         };
-        let writable = !self.section.read_only() && self.rules.writable(&var.name);
+        let writable = discovery::writable(
+            var,
+            self.section.read_only(),
+            self.rules.writable(&var.name),
+        );
         Some(if topic_only {
             (discovery::config_topic(&device, var, writable), Vec::new())
         } else {

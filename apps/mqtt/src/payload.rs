@@ -1,28 +1,38 @@
-//! Message payloads, UTF-8.
+//! Message payloads, UTF-8, with values in the user's terms
+//! ([`Presented`]: what the web page and the exports show too, never the
+//! telnet port's vendor forms).
 //!
-//! A value in the `plain` format is the text GET and DIFF print for it
-//! (cp1250 turned into UTF-8; a STRING keeps its quotes). In the `json`
-//! format it is
+//! | type | `plain` | `json` `value` |
+//! |---|---|---|
+//! | BOOL | `true` / `false` | `true` / `false` |
+//! | integers | `-12` | `-12` |
+//! | REAL, LREAL | `22.3` (shortest form that reads back the same; `nan`, `inf`, `-inf`) | `22.3` (`"nan"`, `"inf"`, `"-inf"`) |
+//! | STRING | the text, without quotes (`\xHH` for control bytes) | `"the text"` |
+//! | DATE | `2026-11-25` | `"2026-11-25"` |
+//! | DT (and a Modbus TS48) | `2026-11-25T10:15:00.123Z` (UTC) | `"2026-11-25T10:15:00.123Z"` |
+//! | TOD | `10:15:00.123` | `"10:15:00.123"` |
+//! | TIME | `PT1H2M3.456S` (ISO 8601 duration) | `"PT1H2M3.456S"` |
+//!
+//! In the `json` format a value is
 //!
 //! ```json
 //! {"value": 21.5, "ts": "2026-11-22T10:15:00.100Z", "quality": "good"}
 //! ```
 //!
-//! `value` is a JSON number when the printed text is one (every integer,
-//! REAL and LREAL, BOOL as 0 or 1, DATE and DT as printed), else a string
-//! (a STRING's text without the quotes, `nan`, `inf`); `ts` is the time of
-//! the poll that read the value (UTC, milliseconds); `quality` is `good`,
-//! `stale` or `link_lost` (see `changes::Quality`).
+//! `ts` is the time of the poll that read the value (UTC, milliseconds);
+//! `quality` is `good`, `stale` or `link_lost` (see `changes::Quality`).
+//! A `plain` empty STRING is an empty message, which a broker takes as
+//! clearing the retained one: `json` tells an empty text from no value.
 //!
 //! A refused write's `error` payload is the ERROR line a client's SET would
 //! have got (plain), or `{"error": "<that line>", "code": 35, "ts": ".."}`.
 
 use chrono::{DateTime, SecondsFormat, Utc};
-use plccoms_protocol::cp1250;
 use serde_json::json;
 
 use plccoms_core::changes::Quality;
 use plccoms_core::config::MqttFormat;
+use plccoms_core::present::Presented;
 
 /// `2026-11-22T10:15:00.100Z`.
 pub fn iso_ms(unix_ms: i64) -> String {
@@ -31,75 +41,18 @@ pub fn iso_ms(unix_ms: i64) -> String {
         .to_rfc3339_opts(SecondsFormat::Millis, true)
 }
 
-/// The payload of a value printed as `text` (cp1250, as the protocol
-/// prints it), read at `unix_ms` with `quality`.
-pub fn value(format: MqttFormat, text: &[u8], unix_ms: i64, quality: Quality) -> Vec<u8> {
+/// The payload of `value`, read at `unix_ms` with `quality`.
+pub fn value(format: MqttFormat, value: &Presented, unix_ms: i64, quality: Quality) -> Vec<u8> {
     match format {
-        MqttFormat::Plain => cp1250::decode(text).into_owned().into_bytes(),
-        MqttFormat::Json => {
-            let value = json_value(text);
-            let mut out = Vec::with_capacity(text.len() + 64);
-            out.extend_from_slice(b"{\"value\":");
-            // Writing a Value to a Vec cannot fail.
-            let _ = serde_json::to_writer(&mut out, &value);
-            out.extend_from_slice(b",\"ts\":\"");
-            out.extend_from_slice(iso_ms(unix_ms).as_bytes());
-            out.extend_from_slice(b"\",\"quality\":\"");
-            out.extend_from_slice(quality.as_str().as_bytes());
-            out.extend_from_slice(b"\"}");
-            out
-        }
+        MqttFormat::Plain => value.text().into_bytes(),
+        MqttFormat::Json => json!({
+            "value": value,
+            "ts": iso_ms(unix_ms),
+            "quality": quality.as_str(),
+        })
+        .to_string()
+        .into_bytes(),
     }
-}
-
-/// The JSON form of a printed value: a number if the text is one, else the
-/// text (a STRING without its quotes).
-fn json_value(text: &[u8]) -> serde_json::Value {
-    if let [b'"', inner @ .., b'"'] = text {
-        return serde_json::Value::String(cp1250::decode(inner).into_owned());
-    }
-    let decoded = cp1250::decode(text);
-    if is_json_number(&decoded) {
-        if let Ok(number) = serde_json::from_str::<serde_json::Number>(&decoded) {
-            return serde_json::Value::Number(number);
-        }
-    }
-    serde_json::Value::String(decoded.into_owned())
-}
-
-/// JSON's number grammar: `-?(0|[1-9]\d*)(\.\d+)?([eE][+-]?\d+)?`. Checked
-/// here so that serde_json never rounds text it would also accept otherwise.
-fn is_json_number(text: &str) -> bool {
-    let b = text.as_bytes();
-    let mut i = usize::from(b.first() == Some(&b'-'));
-    let digits = |i: &mut usize| {
-        let start = *i;
-        while *i < b.len() && b[*i].is_ascii_digit() {
-            *i += 1;
-        }
-        *i - start
-    };
-    let int_start = i;
-    let n = digits(&mut i);
-    if n == 0 || (n > 1 && b[int_start] == b'0') {
-        return false;
-    }
-    if b.get(i) == Some(&b'.') {
-        i += 1;
-        if digits(&mut i) == 0 {
-            return false;
-        }
-    }
-    if matches!(b.get(i), Some(b'e' | b'E')) {
-        i += 1;
-        if matches!(b.get(i), Some(b'+' | b'-')) {
-            i += 1;
-        }
-        if digits(&mut i) == 0 {
-            return false;
-        }
-    }
-    i == b.len()
 }
 
 /// The payload of a refused write: `line` is the ERROR line (UTF-8).
@@ -115,54 +68,82 @@ pub fn error(format: MqttFormat, code: u16, line: &str, unix_ms: i64) -> Vec<u8>
 #[cfg(test)]
 mod tests {
     use super::*;
+    use plccoms_protocol::value::{FormatOptions, Value};
+    use plccoms_protocol::IecType;
 
-    fn json(text: &[u8]) -> serde_json::Value {
-        let payload = value(MqttFormat::Json, text, 1_763_806_500_100, Quality::Good);
-        serde_json::from_slice(&payload).unwrap()
+    /// The payloads of a value of `ty` as the protocol printed it.
+    fn payloads(ty: IecType, value: Value) -> (String, serde_json::Value) {
+        let opts = FormatOptions::default();
+        let mut text = Vec::new();
+        value.format(ty, &opts, &mut text);
+        let shown = Presented::of(ty, &text, &opts);
+        let plain = super::value(MqttFormat::Plain, &shown, 0, Quality::Good);
+        let json = super::value(MqttFormat::Json, &shown, 1_763_806_500_100, Quality::Good);
+        (
+            String::from_utf8(plain).unwrap(),
+            serde_json::from_slice(&json).unwrap(),
+        )
     }
 
     #[test]
-    fn plain_is_the_protocol_text_in_utf8() {
-        let t = value(MqttFormat::Plain, b"\"Dobr\xfd den\"", 0, Quality::Good);
-        assert_eq!(String::from_utf8(t).unwrap(), "\"Dobrý den\"");
-        assert_eq!(value(MqttFormat::Plain, b"-12", 0, Quality::Stale), b"-12");
-    }
-
-    #[test]
-    fn json_numbers_strings_time_and_quality() {
-        let v = json(b"21.500000");
-        assert_eq!(v["value"], serde_json::json!(21.5));
-        assert_eq!(v["ts"], "2025-11-22T10:15:00.100Z");
-        assert_eq!(v["quality"], "good");
-        assert_eq!(
-            json(b"18446744073709551615")["value"].to_string(),
-            "18446744073709551615"
-        );
-        assert_eq!(
-            json(b"-9223372036854775808")["value"].to_string(),
-            "-9223372036854775808"
-        );
-        assert_eq!(json(b"1.234560e+03")["value"], serde_json::json!(1234.56));
-        assert_eq!(json(b"1")["value"], serde_json::json!(1));
-        assert_eq!(json(b"\"a \\\"b\\\"\"")["value"], "a \\\"b\\\"");
-        assert_eq!(json(b"\"\"")["value"], "");
-        assert_eq!(json(b"nan")["value"], "nan");
-        assert_eq!(json(b"-inf")["value"], "-inf");
-        assert_eq!(json(b"007")["value"], "007");
-        let stale = value(MqttFormat::Json, b"1", 0, Quality::LinkLost);
-        assert!(String::from_utf8(stale)
-            .unwrap()
-            .ends_with("\"quality\":\"link_lost\"}"));
-    }
-
-    #[test]
-    fn json_number_grammar() {
-        for yes in ["0", "-0", "12", "1.5", "1e5", "1.5E-07", "-3.25e+10"] {
-            assert!(is_json_number(yes), "{yes}");
+    fn values_in_the_user_s_terms_in_both_formats() {
+        let cases = [
+            (IecType::Bool, Value::Bool(true), "true", json!(true)),
+            (IecType::Int, Value::Signed(-12), "-12", json!(-12)),
+            (IecType::Real, Value::Real(22.3), "22.3", json!(22.3)),
+            (
+                IecType::Ulint,
+                Value::Unsigned(u64::MAX),
+                "18446744073709551615",
+                json!(u64::MAX),
+            ),
+            (IecType::Lreal, Value::LReal(f64::NAN), "nan", json!("nan")),
+            (
+                IecType::String(20),
+                Value::Str(b"Dobr\xfd den".to_vec()),
+                "Dobrý den",
+                json!("Dobrý den"),
+            ),
+            (IecType::String(20), Value::Str(Vec::new()), "", json!("")),
+            (
+                IecType::Dt,
+                Value::Date(1_795_601_700.123),
+                "2026-11-25T10:15:00.123Z",
+                json!("2026-11-25T10:15:00.123Z"),
+            ),
+            (
+                IecType::Date,
+                Value::Date(1_795_564_800.0),
+                "2026-11-25",
+                json!("2026-11-25"),
+            ),
+            (
+                IecType::Tod,
+                Value::Time(36_900_123),
+                "10:15:00.123",
+                json!("10:15:00.123"),
+            ),
+            (
+                IecType::Time,
+                Value::Time(3_723_456),
+                "PT1H2M3.456S",
+                json!("PT1H2M3.456S"),
+            ),
+        ];
+        for (ty, v, plain, value) in cases {
+            let (p, j) = payloads(ty, v);
+            assert_eq!((p.as_str(), &j["value"]), (plain, &value), "{ty}");
+            assert_eq!(j["ts"], "2025-11-22T10:15:00.100Z");
+            assert_eq!(j["quality"], "good");
         }
-        for no in ["", "-", "01", "1.", ".5", "1e", "1e+", "+1", "inf", "1 "] {
-            assert!(!is_json_number(no), "{no}");
-        }
+        let stale = value(
+            MqttFormat::Json,
+            &Presented::Signed(1),
+            0,
+            Quality::LinkLost,
+        );
+        let stale: serde_json::Value = serde_json::from_slice(&stale).unwrap();
+        assert_eq!(stale["quality"], "link_lost");
     }
 
     #[test]

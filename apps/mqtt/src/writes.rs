@@ -26,6 +26,7 @@ use tokio::sync::mpsc;
 
 use super::settings::SectionRules;
 use super::topics::unlevel;
+use plccoms_core::present;
 use plccoms_core::section::write::{WriteRefusal, Written};
 use plccoms_core::section::Section;
 
@@ -169,8 +170,13 @@ pub async fn worker(
     outcomes: mpsc::Sender<Outcome>,
 ) {
     while let Some(request) = requests.recv().await {
-        let result = section.write(&request.name, &request.value).await;
-        let result = result.map_err(|refusal| Refused::of(refusal, &request));
+        let result = match in_protocol_terms(&section, &request) {
+            Ok(text) => section
+                .write(&request.name, &text)
+                .await
+                .map_err(|refusal| Refused::of(refusal, &request)),
+            Err(refused) => Err(refused),
+        };
         let outcome = Outcome {
             level: request.level,
             result,
@@ -179,6 +185,30 @@ pub async fn worker(
             break;
         }
     }
+}
+
+/// The value of `request` as SET takes it: a time type's ISO 8601 form
+/// (what the value topic shows) turned into the protocol's text, a whole
+/// number's `5.0` into `5`; refused, naming the form expected, when it is
+/// not one. A variable not in the table goes to SET as it came (SET
+/// answers for it).
+fn in_protocol_terms(section: &Section, request: &Request) -> Result<Vec<u8>, Refused> {
+    let snapshot = section.latest();
+    let Some(id) = snapshot.table.lookup(&request.name) else {
+        return Ok(request.value.clone());
+    };
+    let ty = snapshot.table.var(id).ty;
+    present::protocol_text(ty, &request.value, section.format())
+        .map(|text| text.into_owned())
+        .map_err(|expected| {
+            let value = cp1250::decode(&request.value);
+            refusal(
+                ErrorCode::WrongValue,
+                &request.level,
+                value.as_bytes(),
+                expected,
+            )
+        })
 }
 
 #[cfg(test)]
