@@ -3,7 +3,9 @@
 //! in order, handles `/set` writes (`writes.rs`), the `status` and `plc`
 //! topics and Home Assistant discovery.
 //!
-//! rumqttc is the transport (MQTT codec, TLS, keep-alive). Delivery is this
+//! rumqttc is the transport (MQTT 5: codec, TLS, keep-alive). MQTT 5
+//! because only its Retain As Published tells a retained `/set` from a live
+//! one while subscribed, so that every retained write is refused. Delivery is this
 //! task's: every QoS 1 message is in the spool before it is handed to
 //! rumqttc and leaves it when the broker acknowledges it (matched through
 //! rumqttc's `Outgoing::Publish(pkid)` events, which come in the order the
@@ -24,10 +26,12 @@ use std::time::Duration;
 
 use plccoms_protocol::cp1250;
 use plccoms_protocol::value::Value;
-use rumqttc::{
-    AsyncClient, ConnectReturnCode, ConnectionError, Event, LastWill, MqttOptions, Outgoing,
-    Packet, QoS, StateError, SubscribeReasonCode, TlsConfiguration, Transport,
+use rumqttc::v5::mqttbytes::v5::{
+    ConnectReturnCode, Filter, LastWill, Packet, SubscribeReasonCode,
 };
+use rumqttc::v5::mqttbytes::{self, QoS};
+use rumqttc::v5::{AsyncClient, ConnectionError, Event, MqttOptions, StateError};
+use rumqttc::{Outgoing, TlsConfiguration, Transport};
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 use tokio::time::{Instant, MissedTickBehavior};
@@ -50,14 +54,13 @@ use plccoms_core::vars::{VarId, VarTable};
 /// Publishes handed to rumqttc and not yet acknowledged (or, QoS 0,
 /// written), at most.
 const WINDOW: usize = 256;
-/// The largest message sent.
-const MAX_PACKET: usize = 1 << 20;
-/// The largest message taken from the broker. rumqttc cannot skip a bigger
-/// one: it drops the connection, and a retained one comes back at every
-/// subscription. So it is generous, far above any write (`/set` values of
-/// more than [`writes::MAX_VALUE`] bytes are refused), and still a bound on
-/// what one message can make this process hold. Beyond it the broker's own
-/// `max_packet_size` is the remedy (the log line says so).
+/// The largest message taken from the broker, announced to it as MQTT 5's
+/// maximum packet size: the broker drops a bigger one for this client
+/// rather than send it (before MQTT 5 a retained one, too big for the
+/// client, broke every connection at its subscription). Generous, far above
+/// any write (`/set` values of more than [`writes::MAX_VALUE`] bytes are
+/// refused), and still a bound on what one message can make this process
+/// hold.
 const MAX_INCOMING: usize = 16 << 20;
 const KEEP_ALIVE: Duration = Duration::from_secs(15);
 const RETRY_FIRST: Duration = Duration::from_millis(250);
@@ -200,14 +203,17 @@ impl Task {
         let mut options = MqttOptions::new(&self.client_id, &broker.host, broker.port);
         options
             .set_keep_alive(KEEP_ALIVE)
-            .set_clean_session(true)
-            .set_inflight((WINDOW + 8) as u16)
-            .set_max_packet_size(MAX_INCOMING, MAX_PACKET)
+            .set_clean_start(true)
+            .set_outgoing_inflight_upper_limit((WINDOW + 8) as u16)
+            // The broker sends nothing larger (MQTT 5's maximum packet
+            // size): a huge retained message cannot break the connection.
+            .set_max_packet_size(Some(MAX_INCOMING as u32))
             .set_last_will(LastWill::new(
                 self.topics.status(),
                 "offline",
                 QoS::AtLeastOnce,
                 true,
+                None,
             ));
         if let Some((user, password)) = &self.settings.credentials {
             options.set_credentials(user, password);
@@ -268,10 +274,13 @@ impl Task {
                 }
             }
             Ok(Event::Incoming(Packet::Publish(publish))) => {
-                self.on_message(&publish.topic, &publish.payload, publish.retain)
+                let topic = String::from_utf8_lossy(&publish.topic);
+                self.on_message(&topic, &publish.payload, publish.retain)
             }
             Ok(Event::Incoming(Packet::SubAck(ack))) => {
-                if ack.return_codes.contains(&SubscribeReasonCode::Failure) {
+                let failed =
+                    |code: &SubscribeReasonCode| !matches!(code, SubscribeReasonCode::Success(_));
+                if ack.return_codes.iter().any(failed) {
                     error!(section = %self.section.name(), "MQTT: the broker refused a subscription (to {} or {}): writes or discovery refreshes will not arrive; check the broker's ACL", self.topics.set_filter(), discovery::HA_STATUS);
                 }
             }
@@ -306,9 +315,13 @@ impl Task {
         self.metrics.connects.inc();
         if let Some(link) = &self.state.link {
             if !self.rules.write.is_empty() {
-                let _ = link
-                    .client
-                    .try_subscribe(self.topics.set_filter(), QoS::AtLeastOnce);
+                // Retain As Published: a retained `/set` comes marked
+                // retained also while subscribed, so it is refused
+                // whenever it comes (MQTT 3.1.1 marks only those sent at
+                // subscription).
+                let mut filter = Filter::new(self.topics.set_filter(), QoS::AtLeastOnce);
+                filter.preserve_retain = true;
+                let _ = link.client.try_subscribe_many([filter]);
             }
             if self.rules.ha_discovery {
                 let _ = link
@@ -596,6 +609,11 @@ impl Task {
         let Some(level) = self.topics.set_level(topic) else {
             return;
         };
+        if retained && payload.is_empty() {
+            // Someone clearing a retained `/set`, as its refusal asks:
+            // nothing to write, nothing to say.
+            return;
+        }
         let checked = writes::check(&self.rules, level, payload, retained);
         let request = match checked {
             Ok(request) => request,
@@ -789,8 +807,9 @@ impl Task {
                 let sent = link
                     .client
                     .try_publish(status.topic, QoS::AtLeastOnce, true, status.payload)
-                    .and_then(|_| link.client.try_disconnect());
-                if sent.is_ok() {
+                    .is_ok()
+                    && link.client.try_disconnect().is_ok();
+                if sent {
                     let deadline = Instant::now() + STOP_WAIT;
                     self.state.submitted.push_back(None);
                     while let Ok(event) =
@@ -839,12 +858,18 @@ fn describe(e: &ConnectionError) -> String {
             ConnectReturnCode::NotAuthorized => {
                 "not authorized (check MQTT_USER, MQTT_PASSWORD and the broker's ACL)".into()
             }
-            ConnectReturnCode::BadClientId => "client id refused (check MQTT_CLIENT_ID)".into(),
+            ConnectReturnCode::BadClientId | ConnectReturnCode::ClientIdentifierNotValid => {
+                "client id refused (check MQTT_CLIENT_ID)".into()
+            }
+            ConnectReturnCode::RefusedProtocolVersion
+            | ConnectReturnCode::UnsupportedProtocolVersion => {
+                "the broker does not speak MQTT 5, which plccoms needs (Mosquitto 1.6 or later, EMQX, HiveMQ, ...)".into()
+            }
             other => format!("{other:?}"),
         },
         ConnectionError::Tls(e) => format!("TLS: {e} (check MQTT_CA, MQTT_CERT, MQTT_KEY)"),
         ConnectionError::MqttState(StateError::Deserialization(
-            rumqttc::Error::PayloadSizeLimitExceeded(size),
+            mqttbytes::Error::PayloadSizeLimitExceeded { pkt_size: size, .. },
         )) => format!(
             "the broker sent a message of {size} bytes, over the limit of {MAX_INCOMING} bytes (a retained one on a /set topic or on {}? clear it; the broker's max_packet_size keeps such messages out)",
             discovery::HA_STATUS

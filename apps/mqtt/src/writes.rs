@@ -4,8 +4,16 @@
 //! A write goes through exactly SET's validation and errors
 //! (`Section::write`, READ_ONLY included), after this server's own checks:
 //! the variable must match MQTT_WRITE, the message must not be a retained
-//! one (a retained `/set` would be written again at every reconnection, long
-//! after it was sent), and the name and value must have a cp1250 form.
+//! one, and the name and value must have a cp1250 form. A retained `/set`
+//! is always refused, whether it arrives while subscribed (MQTT 5's Retain
+//! As Published marks it) or at a new subscription: otherwise it would be
+//! written again at every reconnection, long after it was sent. The empty
+//! retained message that clears it is taken silently (`connection.rs`).
+//!
+//! The value is the form the value topic shows (`payload.rs`): a time
+//! type's ISO 8601 form is turned into the protocol's text before SET
+//! ([`present::protocol_text`]); numbers and `true`/`false` go as they
+//! are.
 //! Writes of a section are made one at a time, in the order they arrive.
 //!
 //! A confirmed write is published on the value topic (the value read back
@@ -113,7 +121,7 @@ pub fn check(
             ErrorCode::BadRequest,
             level,
             payload,
-            "a retained /set message is never written",
+            "a retained /set message is never written: clear it with an empty retained message on this topic",
         ));
     }
     if payload.len() > MAX_VALUE {
