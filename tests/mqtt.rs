@@ -10,6 +10,7 @@
 
 mod common;
 
+use std::collections::BTreeSet;
 use std::io::{BufRead, BufReader, Write};
 use std::net::TcpStream;
 use std::process::{Command, Stdio};
@@ -558,6 +559,468 @@ fn discovery_follows_a_new_public_file() {
             (&kept.topic, kept.json()["unique_id"].clone())
         );
     }
+}
+
+/// Keys Home Assistant's MQTT platforms take (its discovery schemas; any
+/// other key is refused or dropped), per platform.
+fn allowed_keys(platform: &str) -> Vec<&'static str> {
+    let mut keys = vec![
+        "name",
+        "unique_id",
+        "state_topic",
+        "qos",
+        "value_template",
+        "availability",
+        "availability_mode",
+        "device",
+        "origin",
+        "entity_category",
+        "icon",
+        "enabled_by_default",
+        "json_attributes_topic",
+        "json_attributes_template",
+        "encoding",
+    ];
+    keys.extend_from_slice(match platform {
+        "sensor" => &[
+            "device_class",
+            "unit_of_measurement",
+            "state_class",
+            "suggested_display_precision",
+            "expire_after",
+            "force_update",
+        ][..],
+        "binary_sensor" => &[
+            "device_class",
+            "payload_on",
+            "payload_off",
+            "expire_after",
+            "force_update",
+            "off_delay",
+        ],
+        "number" => &[
+            "device_class",
+            "command_topic",
+            "command_template",
+            "min",
+            "max",
+            "step",
+            "mode",
+            "unit_of_measurement",
+            "optimistic",
+            "retain",
+        ],
+        "switch" => &[
+            "device_class",
+            "command_topic",
+            "command_template",
+            "payload_on",
+            "payload_off",
+            "state_on",
+            "state_off",
+            "optimistic",
+            "retain",
+        ],
+        "text" => &[
+            "command_topic",
+            "command_template",
+            "min",
+            "max",
+            "mode",
+            "pattern",
+            "optimistic",
+            "retain",
+        ],
+        other => panic!("a platform not announced: {other}"),
+    });
+    keys
+}
+
+/// The units Home Assistant takes for a device class (the classes this
+/// server announces).
+fn units_of(class: &str) -> Option<&'static [&'static str]> {
+    Some(match class {
+        "temperature" => &["°C", "°F", "K"],
+        "power" => &["W", "kW"],
+        "energy" => &["Wh", "kWh", "MWh"],
+        "voltage" => &["V"],
+        "current" => &["A"],
+        "pressure" => &["Pa", "hPa", "bar"],
+        "frequency" => &["Hz"],
+        _ => return None,
+    })
+}
+
+/// Every config announced for a section with every IEC type (all
+/// writable), a READ_ONLY one, and a Modbus device whose tags have units,
+/// descriptions, ranges, decimals, read-only tables and `access ro`, system
+/// variables in each: checked against what Home Assistant's platforms
+/// accept, and against the values actually published on their state
+/// topics.
+#[test]
+fn every_announced_config_is_one_home_assistant_accepts() {
+    let broker = Broker::anonymous();
+    let dir = tempfile::tempdir().unwrap();
+    let tags =
+        "name,type,table,address,bit,order,scale,offset,access,unit,description,min,max,decimals\n\
+        t_room,REAL,holding,0,,,,,,°C,Room temperature,5,30,1\n\
+        power,REAL,holding,2,,,,,,kW,,,,2\n\
+        energy,LREAL,holding,4,,,,,,kWh,Energy meter,,,\n\
+        current,UINT,holding,8,,,,,ro,A,,,,\n\
+        pressure,INT,holding,9,,,,,,hPa,,900,1100,\n\
+        freq,UINT,holding,10,,,,,,Hz,,,,\n\
+        humidity,UINT,holding,11,,,,,,%,Humidity,0,100,\n\
+        stamp,TS48,holding,12,,,,,,,Last event,,,\n\
+        day,DATE,holding,16,,,,,,,,,,\n\
+        label,STRING[16],holding,20,,,,,,,,,,\n\
+        kelvin,REAL,holding,30,,,,,,K,,,,\n\
+        voltage,INT,input,0,,,0.1,,,V,Mains voltage,,,1\n\
+        running,BOOL,coil,0,,,,,,,Pump running,,,\n\
+        alarm,BOOL,discrete,0,,,,,,,,,,\n";
+    let tags_path = dir.path().join("tags.csv");
+    write(&tags_path, tags);
+    let device_port = free_port();
+    let _device = ChildGuard::spawn(
+        "plcsim",
+        Command::new(plcsim_bin())
+            .args(["--modbus", &format!("127.0.0.1:{device_port}")])
+            .arg("--tags")
+            .arg(&tags_path)
+            .args(["--program", "idle"])
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null()),
+    );
+    let (all, ro, mb) = (free_port(), free_port(), free_port());
+    let keys = "MQTT_FORMAT = json\nMQTT_HA_DISCOVERY = Yes\nMQTT_WRITE = *, __*";
+    let sections = format!(
+        "{}{}[Mb]\nPROTOCOL = MODBUS_TCP\nIPADDR = 127.0.0.1\nMODBUS_PORT = {device_port}\nMODBUS_UNIT = 7\nMODBUS_TAGS = {}\nSERVER_PORT = {mb}\nMQTT_PUBLISH = *, __*\n{keys}\n",
+        sim_section("All", all, &format!("MQTT_PUBLISH = *, __*\n{keys}")),
+        sim_section("Ro", ro, &format!("READ_ONLY = Yes\nMQTT_PUBLISH = counter, switch, setpoint, note, __*\n{keys}")),
+        tags_path.display()
+    );
+    let sub = broker.subscribe(&["homeassistant/#", "plccoms/#"]);
+    let _server = ServerProcess::with_config(&config(&broker, "", &sections), all);
+    let names =
+        |list: &str| -> Vec<String> { list.split_whitespace().map(str::to_uppercase).collect() };
+    let expected = [
+        ("All", names("dat tim sinus cosinus c positive text setpoint switch counter note v_byte v_word v_dword v_lword v_sint v_dint v_lint v_usint v_uint v_udint v_ulint v_tod v_dt flag_a flag_b __PLC_RUN __PF_CRC")),
+        ("Ro", names("counter switch setpoint note __PLC_RUN")),
+        ("Mb", names("t_room power energy current pressure freq humidity stamp day label kelvin voltage running alarm __PLC_RUN __PF_CRC")),
+    ];
+    // Every expected variable has its config and its value.
+    let configs = sub.wait_for("every config and value", || {
+        let messages = sub.messages();
+        let configs: Vec<Received> = messages
+            .iter()
+            .filter(|m| m.topic.starts_with("homeassistant/") && !m.payload.is_empty())
+            .cloned()
+            .collect();
+        let complete = expected.iter().all(|(section, names)| {
+            names.iter().all(|name| {
+                let state = format!("plccoms/{section}/{name}");
+                configs
+                    .iter()
+                    .any(|c| c.json()["state_topic"] == state.as_str())
+                    && messages.iter().any(|m| m.topic == state)
+            })
+        });
+        complete.then_some(configs)
+    });
+    let messages = sub.messages();
+    let value_of = |state: &str| -> serde_json::Value {
+        let m = messages
+            .iter()
+            .rev()
+            .find(|m| m.topic == state)
+            .unwrap_or_else(|| panic!("no value on {state}"));
+        m.json()["value"].clone()
+    };
+    let mut ids = BTreeSet::new();
+    let mut seen = BTreeSet::new();
+    for m in &configs {
+        let c = m.json();
+        let object = c.as_object().expect("a JSON object");
+        let parts: Vec<&str> = m.topic.split('/').collect();
+        let [_, platform, id, "config"] = parts[..] else {
+            panic!("{}: not homeassistant/<platform>/<id>/config", m.topic)
+        };
+        let what = format!("{}: {c}", m.topic);
+        // Keys, ids, topics.
+        let allowed = allowed_keys(platform);
+        for key in object.keys() {
+            assert!(
+                allowed.contains(&key.as_str()),
+                "{key} not a {platform} key: {what}"
+            );
+        }
+        assert_eq!(c["unique_id"], id, "{what}");
+        assert!(id
+            .chars()
+            .all(|ch| ch.is_ascii_alphanumeric() || ch == '_' || ch == '-'));
+        if !ids.insert((platform.to_string(), id.to_string())) {
+            // Sent again (Home Assistant online, a new connection): the same.
+            continue;
+        }
+        assert!(c["name"].as_str().is_some_and(|n| !n.is_empty()), "{what}");
+        let state = c["state_topic"].as_str().expect("state_topic");
+        assert!(!state.contains(['+', '#']), "{what}");
+        let (section, name) = state
+            .strip_prefix("plccoms/")
+            .and_then(|rest| rest.split_once('/'))
+            .expect("plccoms/<section>/<name>");
+        seen.insert((section.to_string(), name.to_string()));
+        assert!(matches!(c["qos"].as_u64(), Some(0..=2)), "{what}");
+        assert_eq!(
+            c["value_template"]
+                .as_str()
+                .map(|t| t.contains("value_json.value")),
+            Some(true),
+            "{what}"
+        );
+        assert_eq!(c["availability_mode"], "all", "{what}");
+        assert_eq!(
+            c["availability"].as_array().map(Vec::len),
+            Some(2),
+            "{what}"
+        );
+        // The device, by its backend.
+        let device = &c["device"];
+        assert_eq!(device["name"], section, "{what}");
+        assert!(device["identifiers"]
+            .as_array()
+            .is_some_and(|a| !a.is_empty()));
+        if section == "Mb" {
+            assert_eq!(device["manufacturer"], "Modbus TCP device", "{what}");
+            assert_eq!(
+                device["model"],
+                format!("127.0.0.1:{device_port} unit 7"),
+                "{what}"
+            );
+            assert!(!device.to_string().contains("Teco"), "{what}");
+        } else {
+            assert_eq!(
+                (device["manufacturer"].as_str(), device["model"].as_str()),
+                (Some("Teco"), Some("Tecomat PLC")),
+                "{what}"
+            );
+        }
+        // Writable entities only where a write can succeed.
+        let writable = matches!(platform, "number" | "switch" | "text");
+        assert_eq!(c.get("command_topic").is_some(), writable, "{what}");
+        if writable {
+            assert_eq!(c["command_topic"], format!("{state}/set"), "{what}");
+            assert!(section == "All" || section == "Mb", "READ_ONLY: {what}");
+            assert!(!name.starts_with("__"), "system variable: {what}");
+            assert!(
+                !["CURRENT", "VOLTAGE", "ALARM"].contains(&name),
+                "a read-only tag: {what}"
+            );
+        }
+        // System variables: diagnostic, no state class.
+        if name.starts_with("__") {
+            assert_eq!(c["entity_category"], "diagnostic", "{what}");
+            assert!(c.get("state_class").is_none(), "{what}");
+        } else {
+            assert!(c.get("entity_category").is_none(), "{what}");
+        }
+        if name == "__PLC_RUN" {
+            assert_eq!(
+                (platform, c["device_class"].as_str()),
+                ("binary_sensor", Some("running"))
+            );
+        }
+        // What the state will be, as the template renders the value.
+        let value = value_of(state);
+        let class = c["device_class"].as_str();
+        match platform {
+            "binary_sensor" | "switch" => {
+                assert!(value.is_boolean(), "{what}: {value}");
+                assert_eq!(
+                    (c["payload_on"].as_str(), c["payload_off"].as_str()),
+                    (Some("true"), Some("false"))
+                );
+                assert!(
+                    c["value_template"].as_str().unwrap().contains("'true'"),
+                    "a JSON boolean renders as True without it: {what}"
+                );
+                if platform == "switch" {
+                    assert_eq!(
+                        (c["state_on"].as_str(), c["state_off"].as_str()),
+                        (Some("true"), Some("false"))
+                    );
+                    assert!(class.is_none());
+                } else {
+                    assert!(class.is_none() || class == Some("running"), "{what}");
+                }
+            }
+            "number" => {
+                assert!(value.is_number(), "{what}: {value}");
+                let (min, max, step) = (
+                    c["min"].as_f64().unwrap(),
+                    c["max"].as_f64().unwrap(),
+                    c["step"].as_f64().unwrap(),
+                );
+                assert!(min < max, "{what}");
+                assert!(step >= 0.001, "{what}");
+                assert!(
+                    max.abs() < 1e30 && min.abs() < 1e30,
+                    "an absurd range: {what}"
+                );
+                assert!(
+                    ["auto", "box", "slider"].contains(&c["mode"].as_str().unwrap()),
+                    "{what}"
+                );
+            }
+            "text" => {
+                assert!(value.is_string(), "{what}: {value}");
+                let max = c["max"].as_u64().unwrap_or(255);
+                assert!(max <= 255, "{what}");
+            }
+            "sensor" => match class {
+                Some("timestamp") => {
+                    let text = value.as_str().expect("a timestamp is text");
+                    assert!(
+                        chrono::DateTime::parse_from_rfc3339(text).is_ok(),
+                        "{what}: {text}"
+                    );
+                    assert!(
+                        c.get("state_class").is_none() && c.get("unit_of_measurement").is_none()
+                    );
+                }
+                Some("date") => {
+                    let text = value.as_str().expect("a date is text");
+                    assert!(
+                        chrono::NaiveDate::parse_from_str(text, "%Y-%m-%d").is_ok(),
+                        "{what}"
+                    );
+                    assert!(
+                        c.get("state_class").is_none() && c.get("unit_of_measurement").is_none()
+                    );
+                }
+                _ => {
+                    let numeric = c.get("state_class").is_some()
+                        || c.get("unit_of_measurement").is_some()
+                        || class.is_some();
+                    if numeric {
+                        assert!(value.is_number(), "numeric sensor, value {value}: {what}");
+                    }
+                    if let Some(state_class) = c["state_class"].as_str() {
+                        let allowed: &[&str] = if class == Some("energy") {
+                            &["total", "total_increasing"]
+                        } else {
+                            &["measurement", "total", "total_increasing"]
+                        };
+                        assert!(allowed.contains(&state_class), "{what}");
+                        assert!(!name.contains("CRC"), "{what}");
+                    }
+                }
+            },
+            _ => unreachable!(),
+        }
+        if let Some(class) = class.filter(|c| !["timestamp", "date", "running"].contains(c)) {
+            let units = units_of(class).unwrap_or_else(|| panic!("device class {class}: {what}"));
+            assert!(
+                units.contains(&c["unit_of_measurement"].as_str().unwrap_or("")),
+                "{what}"
+            );
+        }
+    }
+    // Everything expected was announced, and a few in particular.
+    let total: usize = expected.iter().map(|(_, names)| names.len()).sum();
+    assert!(seen.len() >= total, "{} of {total}: {seen:?}", seen.len());
+    for (section, names) in &expected {
+        for name in names {
+            assert!(
+                seen.contains(&(section.to_string(), name.clone())),
+                "{section}/{name}"
+            );
+        }
+    }
+    let config = |section: &str, name: &str| -> (String, serde_json::Value) {
+        let state = format!("plccoms/{section}/{name}");
+        let m = configs
+            .iter()
+            .find(|m| m.json()["state_topic"] == state.as_str())
+            .unwrap();
+        (m.topic.split('/').nth(1).unwrap().to_string(), m.json())
+    };
+    let (platform, c) = config("All", "V_DT");
+    assert_eq!(
+        (platform.as_str(), c["device_class"].as_str()),
+        ("sensor", Some("timestamp"))
+    );
+    let (platform, c) = config("All", "DAT");
+    assert_eq!(
+        (platform.as_str(), c["device_class"].as_str()),
+        ("sensor", Some("date"))
+    );
+    for name in ["TIM", "V_TOD"] {
+        let (platform, c) = config("All", name);
+        assert_eq!(
+            (platform.as_str(), c.get("device_class")),
+            ("sensor", None),
+            "{name}"
+        );
+    }
+    let (platform, c) = config("All", "SETPOINT");
+    assert_eq!(platform, "number");
+    assert_eq!(
+        (c["min"].as_f64(), c["max"].as_f64(), c["mode"].as_str()),
+        (Some(-1e9), Some(1e9), Some("box"))
+    );
+    let (platform, c) = config("Ro", "SETPOINT");
+    assert_eq!(
+        (platform.as_str(), c["state_class"].as_str()),
+        ("sensor", Some("measurement"))
+    );
+    let (platform, c) = config("Mb", "T_ROOM");
+    assert_eq!(platform, "number");
+    assert_eq!(
+        (
+            c["name"].as_str(),
+            c["unit_of_measurement"].as_str(),
+            c["device_class"].as_str()
+        ),
+        (Some("Room temperature"), Some("°C"), Some("temperature"))
+    );
+    assert_eq!(
+        (c["min"].as_f64(), c["max"].as_f64(), c["step"].as_f64()),
+        (Some(5.0), Some(30.0), Some(0.1))
+    );
+    let (_, c) = config("Mb", "HUMIDITY");
+    assert_eq!(
+        (c["unit_of_measurement"].as_str(), c.get("device_class")),
+        (Some("%"), None)
+    );
+    let (platform, c) = config("Mb", "VOLTAGE");
+    assert_eq!(
+        (
+            platform.as_str(),
+            c["device_class"].as_str(),
+            c["state_class"].as_str()
+        ),
+        ("sensor", Some("voltage"), Some("measurement"))
+    );
+    assert_eq!(c["suggested_display_precision"].as_u64(), Some(1));
+    let (platform, c) = config("Mb", "CURRENT");
+    assert_eq!(
+        (platform.as_str(), c["device_class"].as_str()),
+        ("sensor", Some("current"))
+    );
+    let (platform, _) = config("Mb", "ALARM");
+    assert_eq!(platform, "binary_sensor");
+    let (platform, c) = config("Mb", "STAMP");
+    assert_eq!(
+        (
+            platform.as_str(),
+            c["name"].as_str(),
+            c["device_class"].as_str()
+        ),
+        ("sensor", Some("Last event"), Some("timestamp"))
+    );
+    let (_, c) = config("Mb", "__PF_CRC");
+    assert!(c.get("state_class").is_none());
 }
 
 // ---------------------------------------------------------------- the will
