@@ -820,8 +820,9 @@ try:
 except ImportError:
     print("duckdb is not installed: its check is skipped")
 else:
-    kind, top = duckdb.sql(
-        f"SELECT typeof(max(value)), max(value) FROM read_csv_auto('{d}/long.csv')").fetchone()
+    # fetchall: duckdb 2 dropped fetchone from relations.
+    [(kind, top)] = duckdb.sql(
+        f"SELECT typeof(max(value)), max(value) FROM read_csv_auto('{d}/long.csv')").fetchall()
     assert kind in ("BIGINT", "DOUBLE"), kind
     assert top == long["value"].max(), (top, long["value"].max())
 try:
