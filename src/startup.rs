@@ -232,70 +232,94 @@ pub async fn start(config: &Config) -> Result<Server, String> {
         ));
     }
     let sections: Vec<_> = server.sections.iter().map(|r| r.section.clone()).collect();
-    start_historian(config, &sections, &mut server);
-    start_mqtt(config, &dir, &sections, &mut server);
-    start_web(config, &global, &dir, sections, &mut server);
+    start_historian(config, &sections, &mut server)?;
+    start_mqtt(config, &dir, &sections, &mut server)?;
+    start_web(config, &global, &dir, sections, &mut server)?;
     Ok(server)
 }
 
-// The north apps. Each is a cargo feature (on by default); in a build
-// without one, a configuration that asks for it is told so and the PLC
-// sections serve on, as when an app cannot start.
+// The north apps. A configured app that cannot work at start (a folder it
+// cannot write, an unreadable password, key or certificate, a port in use,
+// or left out of this build) stops the start with one line naming the key
+// and the fix: the server never says "running" while a configured part is
+// dead. What can heal at run time (a full disk, a broker away) does not
+// stop it; the app says what it waits for.
 
-/// Part of a configuration this build cannot serve: said once, at start.
+/// Part of a configuration this build cannot serve.
 #[cfg(not(all(feature = "historian", feature = "mqtt", feature = "web")))]
-fn left_out(what: &str, feature: &str) {
-    error!("{what} not started: this build has no {feature} (built without the cargo feature `{feature}`)");
+fn left_out(what: &str, feature: &str) -> String {
+    format!("{what}: this build has no {feature} (built without the cargo feature `{feature}`); remove the key or use a build with it")
 }
 
 #[cfg(feature = "historian")]
-fn start_historian(config: &Config, sections: &[SectionRef], server: &mut Server) {
-    server.historian = plccoms_historian::Historian::start(config, sections);
+fn start_historian(
+    config: &Config,
+    sections: &[SectionRef],
+    server: &mut Server,
+) -> Result<(), String> {
+    server.historian = plccoms_historian::Historian::start(config, sections)
+        .map_err(|message| format!("history not started: {message}"))?;
     if let Some(historian) = &server.historian {
         server.metrics.add_source(historian.metrics());
     }
+    Ok(())
 }
 
 #[cfg(not(feature = "historian"))]
-fn start_historian(_config: &Config, sections: &[SectionRef], _server: &mut Server) {
+fn start_historian(
+    _config: &Config,
+    sections: &[SectionRef],
+    _server: &mut Server,
+) -> Result<(), String> {
     if sections
         .iter()
         .any(|section| section.state().config.history.enabled())
     {
-        left_out("HISTORY", "historian");
+        return Err(format!(
+            "history not started: {}",
+            left_out("HISTORY", "historian")
+        ));
     }
+    Ok(())
 }
 
-/// Like the web page, an MQTT north side that cannot start (a queue folder
-/// locked by another process, an unreadable password or CA file) is
-/// reported and the PLC sections serve on.
 #[cfg(feature = "mqtt")]
-fn start_mqtt(config: &Config, dir: &Path, sections: &[SectionRef], server: &mut Server) {
+fn start_mqtt(
+    config: &Config,
+    dir: &Path,
+    sections: &[SectionRef],
+    server: &mut Server,
+) -> Result<(), String> {
     let mqtt = plccoms_mqtt::settings::Settings::load(&config.global.mqtt, dir, &config.path)
         .and_then(|settings| {
             settings
                 .map(|settings| plccoms_mqtt::start(settings, sections))
                 .transpose()
-        });
-    match mqtt {
-        Ok(Some(mqtt)) => {
-            server.metrics.add_source(mqtt.source.clone());
-            server.mqtt = Some(mqtt);
-        }
-        Ok(None) => {}
-        Err(message) => error!("MQTT not started: {message}"),
+        })
+        .map_err(|message| format!("MQTT not started: {message}"))?;
+    if let Some(mqtt) = mqtt {
+        server.metrics.add_source(mqtt.source.clone());
+        server.mqtt = Some(mqtt);
     }
+    Ok(())
 }
 
 #[cfg(not(feature = "mqtt"))]
-fn start_mqtt(config: &Config, _dir: &Path, _sections: &[SectionRef], _server: &mut Server) {
+fn start_mqtt(
+    config: &Config,
+    _dir: &Path,
+    _sections: &[SectionRef],
+    _server: &mut Server,
+) -> Result<(), String> {
     if config.global.mqtt.url.is_some() {
-        left_out("MQTT", "mqtt");
+        return Err(format!(
+            "MQTT not started: {}",
+            left_out("MQTT_URL", "mqtt")
+        ));
     }
+    Ok(())
 }
 
-/// Like a section that cannot listen, a page that cannot is reported and
-/// the PLC sections serve on.
 #[cfg(feature = "web")]
 fn start_web(
     config: &Config,
@@ -303,9 +327,9 @@ fn start_web(
     dir: &Path,
     sections: Vec<SectionRef>,
     server: &mut Server,
-) {
+) -> Result<(), String> {
     let Some(web) = plccoms_web::WebConfig::from_global(global, dir) else {
-        return;
+        return Ok(());
     };
     // /api/history and the chart's range mode read the historian's files;
     // without one they answer "historian not enabled".
@@ -321,10 +345,10 @@ fn start_web(
         let _ = config;
         None
     };
-    match plccoms_web::start(&web, sections, server.metrics.clone(), history) {
-        Ok(running) => server.web = Some(running),
-        Err(message) => error!("web page not started: {message}"),
-    }
+    let running = plccoms_web::start(&web, sections, server.metrics.clone(), history)
+        .map_err(|message| format!("web page not started: {message}"))?;
+    server.web = Some(running);
+    Ok(())
 }
 
 #[cfg(not(feature = "web"))]
@@ -334,10 +358,14 @@ fn start_web(
     _dir: &Path,
     _sections: Vec<SectionRef>,
     _server: &mut Server,
-) {
+) -> Result<(), String> {
     if global.http_port.is_some() {
-        left_out("HTTP_PORT: the web page", "web");
+        return Err(format!(
+            "web page not started: {}",
+            left_out("HTTP_PORT", "web")
+        ));
     }
+    Ok(())
 }
 
 /// The folder of clients' own files (names beginning with `.`), created if

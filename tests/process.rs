@@ -676,6 +676,45 @@ fn written_state_goes_to_the_state_directory_under_systemd() {
     }
 }
 
+/// A configured consumer that cannot write its folder stops the start with
+/// one line naming the key, the path and the fix (tests run as root, so
+/// the folder is a file: a permission would not stop root). With -d the
+/// parent prints it and exits 1.
+#[test]
+fn a_consumer_that_cannot_write_its_folder_stops_the_start() {
+    become_subreaper();
+    let broker = common::mqtt::Broker::anonymous();
+    for (key, extra) in [
+        ("HISTORY_DIR", String::new()),
+        ("MQTT_SPOOL", format!("MQTT_URL = {}\n", broker.url())),
+    ] {
+        let site = Site::new();
+        std::fs::write(site.dir.path().join("blocked"), "a file, not a folder").unwrap();
+        site.write_ini(&format!(
+            "[*]\nCOMM_LOOP_DELAY = 20\n{key} = blocked/inner\n{extra}[Demo]\n\
+             SIMULATOR = Yes\nSIMULATOR_PROGRAM = demo\nIPADDR_LOCAL = 127.0.0.1\n\
+             SERVER_PORT = {}\nPUBFILE = //demo.pub\nHISTORY = COUNTER\n",
+            site.port
+        ));
+        let (status, err) = daemon_start_in(&site, site.dir.path());
+        assert_eq!(status.code(), Some(1), "{key}: {err}");
+        let blocked = site.dir.path().join("blocked/inner");
+        assert!(
+            err.contains(&format!("{key} {}", blocked.display()))
+                && err.contains(&format!(
+                    "make the folder writable by the server's user, or set {key}"
+                )),
+            "{key}: {err}"
+        );
+        assert!(
+            !site.log_text().contains("section(s)"),
+            "said running:\n{}",
+            site.log_text()
+        );
+        assert!(Daemon::find(&site.ini()).is_none(), "{key}: a server runs");
+    }
+}
+
 #[test]
 fn daemon_starts_listening_and_appends_to_its_log() {
     become_subreaper();

@@ -65,6 +65,15 @@ pub fn history_dir(config_path: &Path, global: &Global) -> PathBuf {
     global.history_dir(&plccoms_core::config::state_dir(config_path))
 }
 
+/// Creates `dir` if missing and proves a file can be made in it.
+fn writable(dir: &Path) -> std::io::Result<()> {
+    std::fs::create_dir_all(dir)?;
+    tempfile::Builder::new()
+        .prefix(".plccoms-write-check")
+        .tempfile_in(dir)
+        .map(drop)
+}
+
 /// Whether the historian writes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[repr(u8)]
@@ -178,8 +187,10 @@ pub struct Historian {
 
 impl Historian {
     /// Starts recording the sections whose HISTORY is set; `None` when
-    /// there are none.
-    pub fn start(config: &Config, sections: &[Arc<Section>]) -> Option<Historian> {
+    /// there are none; an error naming the key and the fix when the history
+    /// folder cannot be written (a configured historian that records nothing
+    /// must not start).
+    pub fn start(config: &Config, sections: &[Arc<Section>]) -> Result<Option<Historian>, String> {
         let recording: Vec<(&Arc<Section>, History)> = sections
             .iter()
             .filter_map(|section| {
@@ -188,9 +199,15 @@ impl Historian {
             })
             .collect();
         if recording.is_empty() {
-            return None;
+            return Ok(None);
         }
         let dir = history_dir(&config.path, &config.global);
+        writable(&dir).map_err(|e| {
+            format!(
+                "HISTORY_DIR {}: {e}; make the folder writable by the server's user, or set HISTORY_DIR to one that is (a relative path starts in $STATE_DIRECTORY under systemd, else beside the configuration)",
+                dir.display()
+            )
+        })?;
         let (tx, rx) = std::sync::mpsc::channel();
         let stop = CancellationToken::new();
         let mut outs = Vec::new();
@@ -229,15 +246,14 @@ impl Historian {
         let writer = std::thread::Builder::new()
             .name("historian".into())
             .spawn(move || writer::run(rx, outs, settings))
-            .map_err(|e| warn!("history: cannot start the writer thread: {e}"))
-            .ok()?;
-        Some(Historian {
+            .map_err(|e| format!("cannot start the writer thread: {e}"))?;
+        Ok(Some(Historian {
             stop,
             recorders,
             writer: Some(writer),
             tx,
             sections: stats_list,
-        })
+        }))
     }
 
     /// Stops recording: what is queued is committed and the files closed.

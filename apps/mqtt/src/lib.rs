@@ -191,7 +191,7 @@ pub fn start(settings: Settings, sections: &[Arc<Section>]) -> Result<Mqtt, Stri
         let spool_dir = settings.spool.join(id_safe(&client_id));
         let (spool, recovered) = Spool::open(&spool_dir, settings.buffer).map_err(|e| {
             format!(
-                "[{}] MQTT queue {}: {e}",
+                "[{}] MQTT_SPOOL {}: {e}; make the folder writable by the server's user, or set MQTT_SPOOL to one that is (a relative path starts in $STATE_DIRECTORY under systemd, else beside the configuration)",
                 section.name(),
                 spool_dir.display()
             )
