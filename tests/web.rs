@@ -258,33 +258,14 @@ fn page_in_chromium_shows_live_values_and_a_chart_and_writes_with_the_token() {
     let artifacts = artifacts();
     let screenshot = artifacts.join("web-page.png");
     let _ = std::fs::remove_file(&screenshot);
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/web/page.mjs");
-    let mut node = ChildGuard::spawn(
-        "node tests/web/page.mjs",
-        Command::new("node")
-            .arg(&script)
-            .arg(format!("http://{}", web.http))
-            .arg(&screenshot)
-            .arg(TOKEN)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped()),
+    let seen = run_page_script(
+        "page.mjs",
+        &[
+            format!("http://{}", web.http),
+            screenshot.display().to_string(),
+            TOKEN.to_string(),
+        ],
     );
-    let stdout = node.child().stdout.take().unwrap();
-    let stderr = node.child().stderr.take().unwrap();
-    let out = common::process::Capture::start(stdout);
-    let err = common::process::Capture::start(stderr);
-    let status = node
-        .wait_timeout(Duration::from_secs(120))
-        .expect("the browser run ends within 2 minutes");
-    let (out, err) = (out.finish(), err.finish());
-    assert!(
-        status.success(),
-        "node tests/web/page.mjs failed (is `npm ci --prefix tests/web` done and /usr/bin/chromium installed?): {}{}",
-        String::from_utf8_lossy(&out),
-        String::from_utf8_lossy(&err)
-    );
-    let line = String::from_utf8_lossy(&out);
-    let seen = json(line.lines().last().unwrap_or("").as_bytes());
     assert_eq!(seen["failure"], Value::Null, "{seen:#}");
     assert_eq!(seen["page_errors"], serde_json::json!([]), "{seen:#}");
     let console: Vec<&str> = seen["console_errors"]
@@ -1466,7 +1447,7 @@ fn run_page_script(script: &str, args: &[String]) -> Value {
     let (out, err) = (out.finish(), err.finish());
     assert!(
         status.success(),
-        "node {script} failed: {}{}",
+        "node tests/web/{script} failed (is `npm ci --prefix tests/web` done and /usr/bin/chromium installed?): {}{}",
         String::from_utf8_lossy(&out),
         String::from_utf8_lossy(&err)
     );

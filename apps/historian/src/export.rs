@@ -232,6 +232,7 @@ struct Wide {
 }
 
 /// One time's wide rows.
+#[derive(Default)]
 struct Group {
     t: i64,
     /// The gap row's quality, if the time has one.
@@ -373,12 +374,7 @@ fn write_csv<W: Write>(
         out.write_all(&line)?;
         let wide = Wide::new(columns);
         let mut rows = rows.peekable();
-        let mut group = Group {
-            t: 0,
-            gap: None,
-            cells: Vec::new(),
-            any_good: false,
-        };
+        let mut group = Group::default();
         while wide.next_group(&mut rows, &mut group)? {
             if let Some(quality) = group.gap {
                 line.clear();
@@ -456,12 +452,7 @@ fn write_json<W: Write>(
         let wide = Wide::new(columns);
         let names = wide_header(columns);
         let mut rows = rows.peekable();
-        let mut group = Group {
-            t: 0,
-            gap: None,
-            cells: Vec::new(),
-            any_good: false,
-        };
+        let mut group = Group::default();
         while wide.next_group(&mut rows, &mut group)? {
             let mut lines: [(Option<RowQuality>, bool); 2] =
                 [(group.gap, true), (Some(RowQuality::Good), false)];
@@ -799,12 +790,7 @@ fn write_parquet<W: Write + Send>(
     if wide {
         let layout = Wide::new(columns);
         let mut rows = rows.peekable();
-        let mut group = Group {
-            t: 0,
-            gap: None,
-            cells: Vec::new(),
-            any_good: false,
-        };
+        let mut group = Group::default();
         while layout.next_group(&mut rows, &mut group)? {
             if let Some(gap) = group.gap {
                 fill[0].push_i64(group.t);
