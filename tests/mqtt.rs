@@ -325,8 +325,16 @@ fn writes_round_trip_and_refusals_never_applied_later() {
     assert!(!server.log().contains("'SET:COUNTER,'"));
 
     // The PLC goes away: a write is refused at once, and never made later.
+    // Only an `offline` after the drop counts (one from before would let
+    // the write race the loss).
+    let before = sub.on("plccoms/Plc/plc").len();
     drop(plc_process);
-    sub.wait_payload("plccoms/Plc/plc", "offline");
+    sub.wait_for("a new 'offline' on plccoms/Plc/plc", || {
+        sub.on("plccoms/Plc/plc")
+            .into_iter()
+            .skip(before)
+            .find(|m| m.payload == "offline")
+    });
     broker.publish("plccoms/Plc/COUNTER/set", "99", false);
     sub.wait("plccoms/Plc/COUNTER/error", |m| {
         m.payload.starts_with("ERROR:10")

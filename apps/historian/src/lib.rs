@@ -345,7 +345,10 @@ async fn record_section(
     queue: Queue,
     stop: CancellationToken,
 ) {
-    let mut sub = section.subscribe(&Recorder::masks(&history)).every_poll();
+    let mut sub = section
+        .subscribe(&Recorder::masks(&history))
+        .every_poll()
+        .every_change();
     let mut recorder = Recorder::new(section.name(), history, *section.format());
     let mut missed_log = RateLimited::new();
     let mut dropped_log = RateLimited::new();
@@ -372,7 +375,7 @@ async fn record_section(
         if batch.missed > 0 {
             queue.stats.missed.add(batch.missed);
             if let Some(n) = missed_log.add(batch.missed) {
-                warn!(section = %section.name(), "history: {n} publishes were not seen by the recorder (it was late): changes in between may be missing");
+                warn!(section = %section.name(), "history: {n} publishes were not seen by the recorder (it lagged by more than {} publishes): changes in between are missing, marked by a __RECORDER gap in exports", plccoms_core::changes::FOLLOW_BOUND);
             }
         }
         if pending.is_empty() {

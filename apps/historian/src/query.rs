@@ -554,6 +554,10 @@ pub enum Gap {
     /// The first and the last time of a damaged block's samples.
     DamagedFrom,
     DamagedTo,
+    /// The recorder lagged past its bound: changes before this are missing.
+    Missed,
+    /// Samples were dropped (queue full, disk full, size limit).
+    Dropped,
 }
 
 impl Gap {
@@ -563,6 +567,7 @@ impl Gap {
             Gap::LinkLost | Gap::LinkRestored => history_source::LINK,
             Gap::Stop | Gap::Start => history_source::SERVER,
             Gap::DamagedFrom | Gap::DamagedTo => history_source::DAMAGED,
+            Gap::Missed | Gap::Dropped => history_source::RECORDER,
         }
     }
 
@@ -571,6 +576,7 @@ impl Gap {
             Gap::LinkLost | Gap::LinkRestored => RowQuality::LinkLost,
             Gap::Stop | Gap::Start => RowQuality::Stopped,
             Gap::DamagedFrom | Gap::DamagedTo => RowQuality::Damaged,
+            Gap::Missed | Gap::Dropped => RowQuality::Missed,
         }
     }
 
@@ -583,6 +589,8 @@ impl Gap {
             Gap::Start => "start",
             Gap::DamagedFrom => "damaged_from",
             Gap::DamagedTo => "damaged_to",
+            Gap::Missed => "missed",
+            Gap::Dropped => "dropped",
         }
     }
 }
@@ -594,7 +602,7 @@ pub struct Mark {
     pub gap: Gap,
 }
 
-/// The link and server events of the range, in time order.
+/// The link, server and recorder events of the range, in time order.
 pub fn marks(query: &Query) -> Result<Vec<Mark>, QueryError> {
     let mut marks = Vec::new();
     for (_, path) in files(query)? {
@@ -605,7 +613,8 @@ pub fn marks(query: &Query) -> Result<Vec<Mark>, QueryError> {
         let mut stmt = conn
             .prepare(
                 "SELECT time, kind FROM events WHERE time >= ?1 AND time < ?2 \
-                 AND kind IN ('link_lost', 'link_restored', 'stop', 'start') ORDER BY time, id",
+                 AND kind IN ('link_lost', 'link_restored', 'stop', 'start', 'missed', 'dropped') \
+                 ORDER BY time, id",
             )
             .map_err(file_error(&path))?;
         let rows = stmt
@@ -619,6 +628,8 @@ pub fn marks(query: &Query) -> Result<Vec<Mark>, QueryError> {
                 "link_lost" => Gap::LinkLost,
                 "link_restored" => Gap::LinkRestored,
                 "stop" => Gap::Stop,
+                "missed" => Gap::Missed,
+                "dropped" => Gap::Dropped,
                 _ => Gap::Start,
             };
             marks.push(Mark { t, gap });

@@ -5,7 +5,12 @@
 //!
 //! A snapshot never blocks the link: it goes out on a `watch` channel, so a
 //! slow consumer simply sees a later snapshot and catches up by comparing
-//! change sequence numbers, instead of an ever-growing queue. Values are
+//! change sequence numbers, instead of an ever-growing queue. A consumer
+//! that must see every change (the historian, MQTT) follows the stream
+//! instead ([`Subscription::every_change`]): each snapshot is also queued
+//! for it, up to [`FOLLOW_BOUND`] publishes, so it loses nothing while it
+//! lags by less; past that the queue drops what it cannot hold and the
+//! consumer sees the jump as `missed`. Values are
 //! formatted once per change here, not once per consumer. Each snapshot
 //! carries the poll's time (monotonic, for freshness, and UTC, for records)
 //! and the link's state, so every value has a [`Quality`].
@@ -27,6 +32,45 @@ pub use subscription::{ChangeBatch, LinkEvent, Subscription};
 
 /// Slots per copy-on-write chunk: a publish copies only the chunks it changed.
 const CHUNK: usize = 256;
+
+/// Publishes queued for a following subscription (the historian, MQTT)
+/// before it misses some: 10 s of lag at COMM_LOOP_DELAY = 100 ms, 1 s at
+/// 10 ms. The queue holds snapshots only while its consumer lags, each
+/// sharing the chunks it did not change.
+pub const FOLLOW_BOUND: usize = 100;
+
+/// The queues of the subscriptions that follow every publish.
+#[derive(Default)]
+pub(crate) struct Followers {
+    queues: std::sync::Mutex<Vec<tokio::sync::mpsc::Sender<Arc<Snapshot>>>>,
+}
+
+impl Followers {
+    pub(crate) fn follow(&self) -> tokio::sync::mpsc::Receiver<Arc<Snapshot>> {
+        let (tx, rx) = tokio::sync::mpsc::channel(FOLLOW_BOUND);
+        self.lock().push(tx);
+        rx
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Vec<tokio::sync::mpsc::Sender<Arc<Snapshot>>>> {
+        self.queues.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Queues `snapshot` for every follower that has room; one that has
+    /// none misses it (and sees the jump in `seq`). Never waits.
+    fn offer(&self, snapshot: &Arc<Snapshot>) {
+        let mut queues = self.lock();
+        queues.retain(|tx| !tx.is_closed());
+        for tx in queues.iter() {
+            let _ = tx.try_send(snapshot.clone());
+        }
+    }
+
+    /// The publisher is gone: followers see the end.
+    fn close(&self) {
+        self.lock().clear();
+    }
+}
 
 /// Public-file notices kept for clients that missed snapshots: reloads come
 /// one per SETCONF or file change, so a session is never this far behind.
@@ -227,10 +271,17 @@ impl Snapshot {
     }
 }
 
+impl Drop for Publisher {
+    fn drop(&mut self) {
+        self.followers.close();
+    }
+}
+
 /// The consumers' side: the latest snapshot, and subscriptions.
 #[derive(Clone)]
 pub struct ChangeStream {
     rx: watch::Receiver<Arc<Snapshot>>,
+    followers: Arc<Followers>,
     /// Set by [`ChangeStream::woken_by_relay`]: what wakes sessions.
     relay: Option<watch::Receiver<()>>,
 }
@@ -273,14 +324,14 @@ impl ChangeStream {
     /// The changes of the variables matching `masks` (`*` wildcards, case
     /// insensitive), polled for as long as the subscription lives.
     pub fn subscribe<M: AsRef<[u8]>>(&self, masks: &[M]) -> Subscription {
-        Subscription::new(self.rx.clone(), masks, false)
+        Subscription::new(self.rx.clone(), self.followers.clone(), masks, false)
     }
 
     /// Like [`Changes::subscribe`], with masks that mean the project's
     /// variables: system variables only for masks beginning with `__`
     /// (`Mask::matches_name`).
     pub fn subscribe_names<M: AsRef<[u8]>>(&self, masks: &[M]) -> Subscription {
-        Subscription::new(self.rx.clone(), masks, true)
+        Subscription::new(self.rx.clone(), self.followers.clone(), masks, true)
     }
 }
 
@@ -327,6 +378,7 @@ impl Snapshots {
 /// The link's side: owns the master copy of the slots and publishes.
 pub struct Publisher {
     tx: watch::Sender<Arc<Snapshot>>,
+    followers: Arc<Followers>,
     seq: u64,
     poll_seq: u64,
     online: bool,
@@ -367,8 +419,10 @@ impl Publisher {
             chunks: chunks.clone(),
         });
         let (tx, rx) = watch::channel(snapshot);
+        let followers = Arc::new(Followers::default());
         let publisher = Publisher {
             tx,
+            followers: followers.clone(),
             seq: 0,
             poll_seq: 0,
             online: false,
@@ -383,7 +437,14 @@ impl Publisher {
             notices: Arc::new([]),
             block_eol: None,
         };
-        (publisher, ChangeStream { rx, relay: None })
+        (
+            publisher,
+            ChangeStream {
+                rx,
+                followers,
+                relay: None,
+            },
+        )
     }
 
     /// Changes the freshness bound (a new link with another timeout).
@@ -408,6 +469,7 @@ impl Publisher {
     pub fn stream(&self) -> ChangeStream {
         ChangeStream {
             rx: self.tx.subscribe(),
+            followers: self.followers.clone(),
             relay: None,
         }
     }
@@ -523,7 +585,9 @@ impl Publisher {
             diff_block,
             chunks: self.chunks.clone(),
         };
-        self.tx.send_replace(Arc::new(snapshot));
+        let snapshot = Arc::new(snapshot);
+        self.followers.offer(&snapshot);
+        self.tx.send_replace(snapshot);
     }
 
     pub fn online(&self) -> bool {

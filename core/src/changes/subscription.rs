@@ -6,16 +6,19 @@
 //! It is the mechanism sessions use: the latest [`Snapshot`] on a `watch`
 //! channel, interest counted in the snapshot's [`Interest`] so the link polls
 //! what is subscribed, and change sequence numbers per variable. Memory is
-//! bounded whatever the consumer does: a consumer that falls behind is not
-//! queued for; its next batch compares against the latest snapshot and says
-//! how many publishes it `missed` (their intermediate values are gone, the
-//! latest are in the batch).
+//! bounded whatever the consumer does. By default a consumer that falls
+//! behind is not queued for: its next batch compares against the latest
+//! snapshot and says how many publishes it `missed` (their intermediate
+//! values are gone, the latest are in the batch). One that follows
+//! ([`Subscription::every_change`]) gets every publish in order while it
+//! lags by less than [`super::FOLLOW_BOUND`] publishes; past that, the
+//! same catch-up and `missed`.
 
 use std::sync::Arc;
 
-use tokio::sync::watch;
+use tokio::sync::{mpsc, watch};
 
-use super::{Interest, Snapshot};
+use super::{Followers, Interest, Snapshot};
 use crate::vars::{VarId, VarTable};
 
 /// The link to the PLC changed state between two batches.
@@ -45,6 +48,9 @@ pub struct ChangeBatch {
 
 pub struct Subscription {
     rx: watch::Receiver<Arc<Snapshot>>,
+    followers: Arc<Followers>,
+    /// Every publish, queued, once [`Subscription::every_change`] asked.
+    follow: Option<mpsc::Receiver<Arc<Snapshot>>>,
     masks: Vec<Vec<u8>>,
     /// `masks` match names of the project only (`VarTable::matching_names`).
     names_only: bool,
@@ -64,12 +70,15 @@ pub struct Subscription {
 impl Subscription {
     pub(super) fn new<M: AsRef<[u8]>>(
         mut rx: watch::Receiver<Arc<Snapshot>>,
+        followers: Arc<Followers>,
         masks: &[M],
         names_only: bool,
     ) -> Subscription {
         let snapshot = rx.borrow_and_update().clone();
         let mut subscription = Subscription {
             rx,
+            followers,
+            follow: None,
             masks: masks.iter().map(|m| m.as_ref().to_vec()).collect(),
             names_only,
             table: snapshot.table.clone(),
@@ -92,6 +101,15 @@ impl Subscription {
     /// `missed`.
     pub fn every_poll(mut self) -> Subscription {
         self.every_poll = true;
+        self
+    }
+
+    /// Follows every publish: no change is missed while the consumer lags
+    /// by less than [`super::FOLLOW_BOUND`] publishes (for the historian
+    /// and MQTT, which promise every change). Call before the first
+    /// [`Subscription::next`].
+    pub fn every_change(mut self) -> Subscription {
+        self.follow = Some(self.followers.follow());
         self
     }
 
@@ -139,6 +157,9 @@ impl Subscription {
     /// The next batch with something in it: changes, a new table or a link
     /// event. `None` once the section stopped.
     pub async fn next(&mut self) -> Option<ChangeBatch> {
+        if self.follow.is_some() {
+            return self.next_followed().await;
+        }
         loop {
             let snapshot = self.rx.borrow_and_update().clone();
             if let Some(batch) = self.batch(snapshot) {
@@ -148,14 +169,64 @@ impl Subscription {
         }
     }
 
+    /// [`Subscription::next`] of a following subscription: the first batch
+    /// from the latest snapshot (everything known), then each queued
+    /// publish in order. A publish the full queue could not take shows as a
+    /// jump in `seq`: the batch after it compares everything and counts it
+    /// in `missed`.
+    async fn next_followed(&mut self) -> Option<ChangeBatch> {
+        if self.seen_seq == 0 {
+            let snapshot = self.rx.borrow_and_update().clone();
+            if let Some(batch) = self.batch(snapshot) {
+                return Some(batch);
+            }
+        }
+        loop {
+            let queued = match self.follow.as_mut()?.try_recv() {
+                Ok(snapshot) => Some(snapshot),
+                Err(mpsc::error::TryRecvError::Empty) => None,
+                Err(mpsc::error::TryRecvError::Disconnected) => return None,
+            };
+            let snapshot = match queued {
+                Some(snapshot) => snapshot,
+                // The queue is drained: anything newer on the watch is a
+                // publish the full queue could not take (a snapshot is
+                // queued before the watch shows it).
+                None if self.rx.borrow().seq > self.seen_seq => self.rx.borrow_and_update().clone(),
+                None => {
+                    let follow = self.follow.as_mut()?;
+                    tokio::select! {
+                        snapshot = follow.recv() => snapshot?,
+                        changed = self.rx.changed() => {
+                            changed.ok()?;
+                            continue;
+                        }
+                    }
+                }
+            };
+            // Queued before the first batch read the latest: seen already.
+            if snapshot.seq <= self.seen_seq {
+                continue;
+            }
+            if let Some(batch) = self.batch(snapshot) {
+                return Some(batch);
+            }
+        }
+    }
+
     /// The batch `snapshot` makes, if it holds anything new.
     fn batch(&mut self, snapshot: Arc<Snapshot>) -> Option<ChangeBatch> {
         let table_changed = !Arc::ptr_eq(&snapshot.table, &self.table);
         if snapshot.seq == self.seen_seq && !table_changed {
             return None;
         }
-        let missed = snapshot.seq.saturating_sub(self.seen_seq + 1);
         let first = self.seen_seq == 0;
+        // The first batch owes everything known: nothing was missed before it.
+        let missed = if first {
+            0
+        } else {
+            snapshot.seq.saturating_sub(self.seen_seq + 1)
+        };
         let consecutive = snapshot.seq == self.seen_seq + 1;
         self.seen_seq = snapshot.seq;
         if table_changed {
@@ -274,6 +345,53 @@ mod tests {
         assert_eq!(sub.next().await.unwrap().link, Some(LinkEvent::Restored));
         drop(sub);
         assert!(!publisher.interest().is_wanted(a), "interest released");
+    }
+
+    #[tokio::test]
+    async fn a_follower_gets_every_change_in_order_while_it_lags_within_the_bound() {
+        let (mut publisher, stream) = setup();
+        let a = publisher.table().fixed_count() as VarId;
+        poll(&mut publisher, &[(a, 1)]);
+        let mut sub = stream.subscribe(&["A"]).every_change();
+        // The first batch is what is known; nothing was missed before it.
+        let batch = sub.next().await.unwrap();
+        assert_eq!((names(&batch), batch.missed), (vec!["A".to_string()], 0));
+        // A consumer that does not read while the link publishes a whole
+        // bound's worth of changes, less one: every value, in order.
+        let lag = super::super::FOLLOW_BOUND as i16 - 1;
+        for value in 2..2 + lag {
+            poll(&mut publisher, &[(a, value)]);
+        }
+        for value in 2..2 + lag {
+            let batch = sub.next().await.unwrap();
+            assert_eq!(batch.missed, 0, "value {value}");
+            assert_eq!(
+                batch.snapshot.slot(a).text(),
+                Some(value.to_string().as_bytes()),
+                "in order"
+            );
+        }
+        // Past the bound: the latest value, and how many were missed.
+        let past = super::super::FOLLOW_BOUND as i16 + 5;
+        let first = 2 + lag;
+        for value in first..first + past {
+            poll(&mut publisher, &[(a, value)]);
+        }
+        let mut seen = Vec::new();
+        let mut missed = 0;
+        while seen.last() != Some(&(first + past - 1)) {
+            let batch = sub.next().await.unwrap();
+            missed += batch.missed;
+            let text = batch.snapshot.slot(a).text().unwrap();
+            seen.push(std::str::from_utf8(text).unwrap().parse::<i16>().unwrap());
+        }
+        // The queue held FOLLOW_BOUND of them and the watch the latest.
+        assert_eq!(missed, past as u64 - super::super::FOLLOW_BOUND as u64 - 1);
+        assert_eq!(seen.len() as u64 + missed, past as u64);
+        assert!(seen.windows(2).all(|w| w[0] < w[1]), "in order: {seen:?}");
+        // The link gone: the follower sees the end.
+        drop(publisher);
+        assert!(sub.next().await.is_none());
     }
 
     #[tokio::test]

@@ -41,6 +41,9 @@ pub enum RowQuality {
     Stopped,
     /// Samples of a damaged packed block are left out: `__DAMAGED` rows.
     Damaged,
+    /// The recorder missed changes (it lagged past its bound) or dropped
+    /// samples (queue or disk full): `__RECORDER` rows.
+    Missed,
     /// The read failed or was cut off here: an `__ERROR` row, the last.
     Error,
 }
@@ -53,6 +56,7 @@ impl RowQuality {
             RowQuality::LinkLost => "link_lost",
             RowQuality::Stopped => "stopped",
             RowQuality::Damaged => "damaged",
+            RowQuality::Missed => "missed",
             RowQuality::Error => "error",
         }
     }
@@ -72,6 +76,7 @@ impl From<Quality> for RowQuality {
 pub const LINK: &str = "__LINK";
 pub const SERVER: &str = "__SERVER";
 pub const DAMAGED: &str = "__DAMAGED";
+pub const RECORDER: &str = "__RECORDER";
 pub const ERROR: &str = "__ERROR";
 
 /// What is asked of the historian.
