@@ -17,9 +17,12 @@ pub use plccoms_plc::Refusal;
 
 /// Pause after the first failed probe; doubles up to [`PROBE_MAX`]. The
 /// defaults of [`PlcBackend::probe_backoff`], which the link's health uses.
+/// Pauses run from the start of one probe to the start of the next.
 pub const PROBE_MIN: std::time::Duration = std::time::Duration::from_millis(100);
-/// Longest pause between probes: with a probe taking at most EPSTOUT plus a
-/// retry, a PLC that returns is found again within about a second.
+/// Longest pause between probes, start to start: with a probe being one
+/// request without retry ([`PlcBackend::probe`], at most EPSTOUT), a PLC
+/// that returns is found again within about a second, whatever the length
+/// of the outage.
 pub const PROBE_MAX: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// A block of PLC memory to read.
@@ -131,6 +134,16 @@ pub trait PlcBackend: Send {
 
     /// (Re)initialise the link and return the PLC's identification string.
     async fn connect(&mut self) -> Result<String, PlcError>;
+
+    /// One connection attempt while the device is not known to be there (at
+    /// start-up, after a loss): as [`PlcBackend::connect`], but cheap for a
+    /// device that is away, since the link makes one about every second
+    /// ([`PROBE_MAX`]) until it answers: its first request is sent once,
+    /// without retry, and waits at most the answer timeout. The default is
+    /// `connect`, for backends whose connection attempt is already that.
+    async fn probe(&mut self) -> Result<String, PlcError> {
+        self.connect().await
+    }
 
     /// Read every block; answers come back in request order. The backend packs
     /// and splits requests as its transport allows.

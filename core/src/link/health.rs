@@ -7,8 +7,17 @@
 //!   vendor's defaults); the loss is logged once;
 //! - while it is lost, requests are answered with the link error at once
 //!   (the handle refuses them without queueing) and one probe at a time
-//!   looks for its return, [`PROBE_MIN`] doubling to [`PROBE_MAX`] apart
-//!   (the backend may choose other bounds: a Modbus device 1 s to 30 s);
+//!   looks for its return, [`PROBE_MIN`] doubling to [`PROBE_MAX`] apart,
+//!   measured from the start of one probe to the start of the next (a probe
+//!   that takes longer, such as one the PLC leaves unanswered until its
+//!   EPSTOUT, is followed by the next one at once). A probe is one request
+//!   without retry ([`crate::driver::PlcBackend::probe`]), so a PLC that
+//!   returns is found within [`PROBE_MAX`] (or the probe's own timeout, if
+//!   longer) plus the jitter, and polled at once: values again within 2 s of
+//!   its return at the defaults, however long it was away. Each pause is
+//!   shortened by a random [`JITTER`] of it, and a probe that overran its
+//!   pause is followed after a random half of that, so that many sections
+//!   that lost their PLCs together do not probe in step;
 //! - a failed first connection is logged once too, then retried the same
 //!   way; the return is logged with the outage's length;
 //! - a link lost before [`STEADY_POLLS`] good polls since it connected,
@@ -39,6 +48,8 @@ pub const STEADY_POLLS: u32 = 10;
 pub const FLAP_MAX: Duration = Duration::from_secs(30);
 /// Flaps are logged as a count at most this often.
 pub const FLAP_REPORT: Duration = Duration::from_secs(60);
+/// The largest part of a probe pause taken off it at random (one fifth).
+pub const JITTER: u32 = 5;
 
 /// The state of a section's link to its PLC.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -152,6 +163,10 @@ pub struct Health {
     /// The first pause of an outage and the longest it doubles to.
     backoff: (Duration, Duration),
     next_probe: Instant,
+    /// When the probe under way started (pauses are measured from it).
+    probe_started: Option<Instant>,
+    /// State of the jitter's generator (xorshift), seeded per link.
+    rng: u64,
     /// Since when the PLC has not answered.
     down_since: Option<Instant>,
     /// Good polls since the link last connected.
@@ -175,11 +190,31 @@ impl Health {
             pause: PROBE_MIN,
             backoff: (PROBE_MIN, PROBE_MAX),
             next_probe: now,
+            probe_started: None,
+            rng: seed(),
             down_since: None,
             good_polls: 0,
             lost_unsteady: false,
             flapping: None,
         }
+    }
+
+    /// A random part of `pause`, up to 1/[`JITTER`] of it.
+    fn jitter(&mut self, pause: Duration) -> Duration {
+        // xorshift64: plenty for spreading probes.
+        let mut x = self.rng;
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        self.rng = x;
+        let fraction = (x >> 11) as f64 / (1u64 << 53) as f64;
+        pause.mul_f64(fraction) / JITTER
+    }
+
+    /// A connection attempt starts at `now`: the pause before the next one
+    /// is measured from here.
+    pub fn probing(&mut self, now: Instant) {
+        self.probe_started = Some(now);
     }
 
     /// Probes of an outage pause `min` doubling to `max` (the backend's
@@ -209,6 +244,7 @@ impl Health {
 
     /// The PLC answered a connection attempt.
     pub fn connected(&mut self, now: Instant) -> Connected {
+        self.probe_started = None;
         self.set(LinkState::Online);
         self.pause = self.backoff.0;
         self.good_polls = 0;
@@ -238,6 +274,7 @@ impl Health {
 
     /// An exchange or a connection attempt failed at `now`.
     pub fn failed(&mut self, now: Instant) -> Failure {
+        let probe_started = self.probe_started.take();
         let steady = self.good_polls >= STEADY_POLLS;
         let polled_meanwhile = self.good_polls > 0;
         let failure = match self.state {
@@ -288,9 +325,13 @@ impl Health {
                     flapping.pause = (flapping.pause * 2).min(FLAP_MAX.max(self.backoff.1));
                 }
             }
-            // A failed probe waits, longer each time.
+            // A failed probe waits, longer each time, from its start; one
+            // that took longer than its pause is followed soon after.
             Failure::Unreachable | Failure::StillDown => {
-                self.next_probe = now + self.pause;
+                let start = probe_started.unwrap_or(now).min(now);
+                let spread = self.jitter(self.pause);
+                let due = start + self.pause - spread;
+                self.next_probe = if due > now { due } else { now + spread / 2 };
                 self.pause = (self.pause * 2).min(self.backoff.1);
             }
         }
@@ -321,11 +362,20 @@ impl Health {
         });
         self.pause = self.backoff.0;
         self.next_probe = now;
+        self.probe_started = None;
         self.down_since = None;
         self.good_polls = 0;
         self.lost_unsteady = false;
         self.flapping = None;
     }
+}
+
+/// A seed for the jitter, different for each link and each run.
+fn seed() -> u64 {
+    use std::hash::{BuildHasher, Hasher};
+    let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
+    hasher.write_u64(0x9E37_79B9_7F4A_7C15);
+    hasher.finish() | 1
 }
 
 #[cfg(test)]
@@ -344,6 +394,86 @@ mod tests {
             wait += Duration::from_millis(50);
         }
         wait
+    }
+
+    /// The pause until the next probe is due after `now`, to the
+    /// millisecond.
+    fn fine_pause(health: &Health, now: Instant) -> Duration {
+        let mut step = Duration::from_millis(1024);
+        let mut wait = Duration::ZERO;
+        while !health.probe_due(now + wait) {
+            wait += step;
+        }
+        // Back to the first due millisecond.
+        while step > Duration::from_millis(1) {
+            step /= 2;
+            if health.probe_due(now + wait - step) {
+                wait -= step;
+            }
+        }
+        wait
+    }
+
+    #[test]
+    fn pauses_run_from_the_start_of_a_probe_with_jitter() {
+        let t0 = Instant::now();
+        let mut health = Health::new(true, t0);
+        health.connected(t0);
+        steady(&mut health, t0);
+        assert_eq!(health.failed(t0), Failure::Lost);
+        // Probes that get no answer within a second (a silent PLC over UDP,
+        // EPSTOUT 1 s): the next starts soon after, not a pause later.
+        let mut now = t0;
+        let mut gaps = Vec::new();
+        for _ in 0..40 {
+            health.probing(now);
+            let end = now + Duration::from_secs(1);
+            assert_eq!(health.failed(end), Failure::StillDown);
+            let next = end + fine_pause(&health, end);
+            gaps.push((next - now).as_millis());
+            now = next;
+        }
+        assert!(
+            gaps.iter().all(|gap| (1000..=1100).contains(gap)),
+            "{gaps:?}"
+        );
+        assert!(gaps.windows(2).any(|w| w[0] != w[1]), "no jitter: {gaps:?}");
+        // Probes refused at once (a port closed): start to start, at most
+        // PROBE_MAX.
+        let mut starts = Vec::new();
+        for _ in 0..40 {
+            health.probing(now);
+            starts.push(now);
+            let end = now + Duration::from_millis(3);
+            assert_eq!(health.failed(end), Failure::StillDown);
+            now = end + fine_pause(&health, end);
+        }
+        let gaps: Vec<u128> = starts
+            .windows(2)
+            .map(|w| (w[1] - w[0]).as_millis())
+            .collect();
+        assert!(
+            gaps.iter().all(|gap| (800..=1000).contains(gap)),
+            "{gaps:?}"
+        );
+        assert!(gaps.windows(2).any(|w| w[0] != w[1]), "no jitter: {gaps:?}");
+        // Two links lost together drift apart.
+        let mut other = Health::new(true, t0);
+        other.connected(t0);
+        steady(&mut other, t0);
+        other.failed(t0);
+        let mut health = Health::new(true, t0);
+        health.connected(t0);
+        steady(&mut health, t0);
+        health.failed(t0);
+        let (mut a, mut b) = (t0, t0);
+        for _ in 0..10 {
+            health.failed(a);
+            a += fine_pause(&health, a);
+            other.failed(b);
+            b += fine_pause(&other, b);
+        }
+        assert_ne!(a, b, "in step");
     }
 
     #[test]
@@ -434,20 +564,20 @@ mod tests {
         assert!(!shared.get().accepts_requests());
         assert!(health.probe_due(t1), "first probe at once");
         assert_eq!(health.failed(t1), Failure::StillDown);
-        assert!(!health.probe_due(t1 + Duration::from_millis(99)));
+        // Jitter takes up to a fifth off each pause.
+        assert!(!health.probe_due(t1 + Duration::from_millis(79)));
         assert!(health.probe_due(t1 + PROBE_MIN));
         let mut now = t1 + PROBE_MIN;
         let mut pauses = Vec::new();
         for _ in 0..6 {
             assert_eq!(health.failed(now), Failure::StillDown);
-            let mut wait = Duration::ZERO;
-            while !health.probe_due(now + wait) {
-                wait += Duration::from_millis(50);
-            }
+            let wait = fine_pause(&health, now);
             pauses.push(wait.as_millis());
             now += wait;
         }
-        assert_eq!(pauses, [200, 400, 800, 1000, 1000, 1000]);
+        for (pause, nominal) in pauses.iter().zip([200, 400, 800, 1000, 1000, 1000]) {
+            assert!((nominal * 4 / 5..=nominal).contains(pause), "{pauses:?}");
+        }
         let back = now + Duration::from_millis(10);
         assert_eq!(health.connected(back), Connected::Again(back - t1));
         assert_eq!(shared.get(), LinkState::Online);
@@ -465,14 +595,14 @@ mod tests {
         let mut pauses = Vec::new();
         for _ in 0..7 {
             assert_eq!(health.failed(now), Failure::StillDown);
-            let mut wait = Duration::ZERO;
-            while !health.probe_due(now + wait) {
-                wait += Duration::from_millis(500);
-            }
-            pauses.push(wait.as_secs());
+            let wait = fine_pause(&health, now);
+            pauses.push(wait.as_millis());
             now += wait;
         }
-        assert_eq!(pauses, [1, 2, 4, 8, 16, 30, 30]);
+        for (pause, nominal) in pauses.iter().zip([1, 2, 4, 8, 16, 30, 30]) {
+            let nominal = nominal * 1000;
+            assert!((nominal * 4 / 5..=nominal).contains(pause), "{pauses:?}");
+        }
     }
 
     #[test]

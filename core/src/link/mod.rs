@@ -438,8 +438,9 @@ impl Link {
         };
         let lost = self.health.state() == LinkState::Lost;
         let mut deferred = Vec::new();
+        self.health.probing(Instant::now());
         let result = {
-            let connect = backend.connect();
+            let connect = backend.probe();
             tokio::pin!(connect);
             loop {
                 tokio::select! {
