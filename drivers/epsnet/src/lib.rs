@@ -240,6 +240,23 @@ fn unexpected(response: Response) -> PlcError {
     PlcError::Protocol(format!("unexpected answer {response:?}"))
 }
 
+/// The PLC's identification from the answers to `Ident` and `Status`.
+fn identified(answers: Vec<Answer<Response>>) -> Result<String, PlcError> {
+    let mut answers = answers.into_iter();
+    let ident = match answers.next() {
+        Some(Ok(Response::Ident(bytes))) => cp1250::decode(&bytes).into_owned(),
+        Some(Ok(other)) => return Err(unexpected(other)),
+        Some(Err(e)) => return Err(PlcError::Refused(e)),
+        None => return Err(PlcError::Protocol("no identification".into())),
+    };
+    match answers.next() {
+        Some(Ok(Response::Status { .. })) => Ok(ident.trim_end_matches('\0').to_string()),
+        Some(Ok(other)) => Err(unexpected(other)),
+        Some(Err(e)) => Err(PlcError::Refused(e)),
+        None => Err(PlcError::Protocol("no status".into())),
+    }
+}
+
 /// Requests that one caller-level request became, and how to join answers.
 struct Split {
     requests: Vec<Request>,
@@ -349,22 +366,20 @@ impl<T: Transport> PlcBackend for EpsnetClient<T> {
 
     async fn connect(&mut self) -> Result<String, PlcError> {
         self.transport.open().await?;
-        let mut answers = self
-            .exchange(&[Request::Ident, Request::Status], 1)
-            .await?
-            .into_iter();
-        let ident = match answers.next() {
-            Some(Ok(Response::Ident(bytes))) => cp1250::decode(&bytes).into_owned(),
-            Some(Ok(other)) => return Err(unexpected(other)),
-            Some(Err(e)) => return Err(PlcError::Refused(e)),
-            None => return Err(PlcError::Protocol("no identification".into())),
-        };
-        match answers.next() {
-            Some(Ok(Response::Status { .. })) => Ok(ident.trim_end_matches('\0').to_string()),
-            Some(Ok(other)) => Err(unexpected(other)),
-            Some(Err(e)) => Err(PlcError::Refused(e)),
-            None => Err(PlcError::Protocol("no status".into())),
-        }
+        let answers = self.exchange(&[Request::Ident, Request::Status], 1).await?;
+        identified(answers)
+    }
+
+    /// As `connect`, sent once: a PLC that is away costs one datagram
+    /// (over UDP the identification and the status travel together; on a
+    /// serial line the status follows only an answered identification) and
+    /// EPSTOUT.
+    async fn probe(&mut self) -> Result<String, PlcError> {
+        self.transport.open().await?;
+        let retries = std::mem::replace(&mut self.timing.retries, 0);
+        let answers = self.exchange(&[Request::Ident, Request::Status], 1).await;
+        self.timing.retries = retries;
+        identified(answers?)
     }
 
     async fn read(&mut self, reads: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {

@@ -7,8 +7,9 @@
 //!   or a foreign one is dropped, never mismatched.
 //! - Up to `window` transactions are in flight at once (MODBUS_INFLIGHT;
 //!   1 = strictly one, what every device accepts).
-//! - A transaction unanswered within the timeout is sent once more; then
-//!   the exchange fails with [`PlcError::Timeout`] and the connection is
+//! - A transaction unanswered within the timeout is sent once more (not
+//!   while the connection only probes the device, [`Connection::probing`]);
+//!   then the exchange fails with [`PlcError::Timeout`] and the connection is
 //!   given up (the backend opens a new one at its next `connect`).
 //! - A stream that cannot be framed or is closed fails the exchange at once.
 
@@ -43,6 +44,8 @@ pub struct Connection {
     writer: OwnedWriteHalf,
     next_id: u16,
     out: Vec<u8>,
+    /// Retries of a transaction: [`RETRIES`], or none while probing.
+    retries: u32,
 }
 
 /// One transaction of an exchange.
@@ -85,7 +88,14 @@ impl Connection {
             writer: write,
             next_id: 0,
             out: Vec::with_capacity(512),
+            retries: RETRIES,
         })
+    }
+
+    /// Whether transactions only probe the device (sent once, no retry:
+    /// the link probes an absent device about every second).
+    pub fn probing(&mut self, probing: bool) {
+        self.retries = if probing { 0 } else { RETRIES };
     }
 
     async fn send(
@@ -169,7 +179,7 @@ impl Connection {
                         if slots[i].deadline > now {
                             continue;
                         }
-                        if slots[i].attempts > RETRIES {
+                        if slots[i].attempts > self.retries {
                             counters.timeouts.inc();
                             let mut text = format!(
                                 "no answer from {} after {} attempts",
