@@ -375,7 +375,7 @@ async fn record_section(
         if batch.missed > 0 {
             queue.stats.missed.add(batch.missed);
             if let Some(n) = missed_log.add(batch.missed) {
-                warn!(section = %section.name(), "history: {n} publishes were not seen by the recorder (it lagged by more than {} publishes): changes in between are missing, marked by a __RECORDER gap in exports", plccoms_core::changes::FOLLOW_BOUND);
+                warn!(section = %section.name(), "history: {n} publishes were not seen by the recorder (it lagged past {} publishes or {} MiB of them): changes in between are missing, marked by a __RECORDER gap in exports", plccoms_core::changes::FOLLOW_BOUND, plccoms_core::changes::FOLLOW_BYTES >> 20);
             }
         }
         if pending.is_empty() {

@@ -469,7 +469,7 @@ impl Task {
                 .missed_logged
                 .is_some_and(|at| at.elapsed() < Duration::from_secs(60));
             if !quiet {
-                warn!(section = %self.section.name(), "MQTT: fell behind the polls by more than {} publishes ({} not seen); the latest values are published, intermediate ones are not (plccoms_mqtt_missed_total)", plccoms_core::changes::FOLLOW_BOUND, batch.missed);
+                warn!(section = %self.section.name(), "MQTT: fell behind the polls past {} publishes or {} MiB of them ({} not seen); the latest values are published, intermediate ones are not (plccoms_mqtt_missed_total)", plccoms_core::changes::FOLLOW_BOUND, plccoms_core::changes::FOLLOW_BYTES >> 20, batch.missed);
                 self.state.missed_logged = Some(Instant::now());
             }
         }

@@ -230,8 +230,8 @@ pub fn start(settings: Settings, sections: &[Arc<Section>]) -> Result<Mqtt, Stri
             .push((section.name().to_string(), metrics.clone()));
         metrics.queued.set(spool.len());
         metrics.queued_bytes.set(spool.bytes());
-        // Every change, in order, while the connection lags by less than
-        // FOLLOW_BOUND publishes: QoS 1 promises them to the broker.
+        // Every change, in order, while the connection lags within the
+        // follow bounds: QoS 1 promises them to the broker.
         let changes = section.subscribe_names(&rules.publish).every_change();
         let (write_tx, write_rx) = mpsc::channel(writes::QUEUE);
         let (outcome_tx, outcome_rx) = mpsc::channel(writes::QUEUE);

@@ -8,9 +8,9 @@
 //! change sequence numbers, instead of an ever-growing queue. A consumer
 //! that must see every change (the historian, MQTT) follows the stream
 //! instead ([`Subscription::every_change`]): each snapshot is also queued
-//! for it, up to [`FOLLOW_BOUND`] publishes, so it loses nothing while it
-//! lags by less; past that the queue drops what it cannot hold and the
-//! consumer sees the jump as `missed`. Values are
+//! for it, within [`FOLLOW_BOUND`] publishes and [`FOLLOW_BYTES`], so it
+//! loses nothing while it lags by less; past that the queue drops what it
+//! cannot hold and the consumer sees the jump as `missed`. Values are
 //! formatted once per change here, not once per consumer. Each snapshot
 //! carries the poll's time (monotonic, for freshness, and UTC, for records)
 //! and the link's state, so every value has a [`Quality`].
@@ -33,42 +33,115 @@ pub use subscription::{ChangeBatch, LinkEvent, Subscription};
 /// Slots per copy-on-write chunk: a publish copies only the chunks it changed.
 const CHUNK: usize = 256;
 
-/// Publishes queued for a following subscription (the historian, MQTT)
-/// before it misses some: 10 s of lag at COMM_LOOP_DELAY = 100 ms, 1 s at
-/// 10 ms. The queue holds snapshots only while its consumer lags, each
-/// sharing the chunks it did not change.
-pub const FOLLOW_BOUND: usize = 100;
+/// How far a following subscription (the historian, MQTT) may lag before
+/// it misses changes: this many publishes, or [`FOLLOW_BYTES`] of the
+/// slots its queued snapshots hold that no other snapshot shares, whichever
+/// comes first. A poll that changes a few variables costs one chunk of
+/// slots (256 of 48 bytes: 12 KiB), so the bytes allow minutes of polls or
+/// seconds of a client's rapid SETs; a poll that changes every variable of
+/// a 10,000 variable table costs about 480 KiB, so 68 of them. The queue holds
+/// snapshots only while its consumer lags.
+pub const FOLLOW_BOUND: usize = 10_000;
+/// See [`FOLLOW_BOUND`].
+pub const FOLLOW_BYTES: usize = 32 << 20;
+
+/// One following subscription's queue.
+pub(crate) struct FollowQueue {
+    state: std::sync::Mutex<Queued>,
+    ready: tokio::sync::Notify,
+    /// Publishes and bytes it may hold.
+    max: usize,
+    max_bytes: usize,
+}
+
+#[derive(Default)]
+struct Queued {
+    snapshots: std::collections::VecDeque<(Arc<Snapshot>, usize)>,
+    bytes: usize,
+    /// The publisher is gone.
+    closed: bool,
+}
+
+impl FollowQueue {
+    fn lock(&self) -> std::sync::MutexGuard<'_, Queued> {
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The oldest queued snapshot, if any; `Err` once the publisher is gone
+    /// and the queue is empty.
+    pub(crate) fn pop(&self) -> Result<Option<Arc<Snapshot>>, ()> {
+        let mut queued = self.lock();
+        match queued.snapshots.pop_front() {
+            Some((snapshot, cost)) => {
+                queued.bytes -= cost;
+                Ok(Some(snapshot))
+            }
+            None if queued.closed => Err(()),
+            None => Ok(None),
+        }
+    }
+
+    /// Waits until something may have been queued (or the end).
+    pub(crate) async fn wait(&self) {
+        self.ready.notified().await;
+    }
+
+    /// Queues `snapshot` if the bounds allow; else it is missed (the
+    /// consumer sees the jump in `seq`).
+    fn offer(&self, snapshot: &Arc<Snapshot>, cost: usize) {
+        let mut queued = self.lock();
+        if queued.snapshots.len() < self.max && queued.bytes + cost <= self.max_bytes {
+            queued.snapshots.push_back((snapshot.clone(), cost));
+            queued.bytes += cost;
+        }
+        drop(queued);
+        self.ready.notify_one();
+    }
+
+    fn close(&self) {
+        self.lock().closed = true;
+        self.ready.notify_one();
+    }
+}
 
 /// The queues of the subscriptions that follow every publish.
 #[derive(Default)]
 pub(crate) struct Followers {
-    queues: std::sync::Mutex<Vec<tokio::sync::mpsc::Sender<Arc<Snapshot>>>>,
+    queues: std::sync::Mutex<Vec<Arc<FollowQueue>>>,
 }
 
 impl Followers {
-    pub(crate) fn follow(&self) -> tokio::sync::mpsc::Receiver<Arc<Snapshot>> {
-        let (tx, rx) = tokio::sync::mpsc::channel(FOLLOW_BOUND);
-        self.lock().push(tx);
-        rx
+    pub(crate) fn follow(&self, max: usize, max_bytes: usize) -> Arc<FollowQueue> {
+        let queue = Arc::new(FollowQueue {
+            state: std::sync::Mutex::default(),
+            ready: tokio::sync::Notify::new(),
+            max,
+            max_bytes,
+        });
+        self.lock().push(queue.clone());
+        queue
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, Vec<tokio::sync::mpsc::Sender<Arc<Snapshot>>>> {
+    fn lock(&self) -> std::sync::MutexGuard<'_, Vec<Arc<FollowQueue>>> {
         self.queues.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// Queues `snapshot` for every follower that has room; one that has
-    /// none misses it (and sees the jump in `seq`). Never waits.
-    fn offer(&self, snapshot: &Arc<Snapshot>) {
+    /// Queues `snapshot` (whose own slots cost `cost` bytes) for every
+    /// follower that has room. Never waits.
+    fn offer(&self, snapshot: &Arc<Snapshot>, cost: usize) {
         let mut queues = self.lock();
-        queues.retain(|tx| !tx.is_closed());
-        for tx in queues.iter() {
-            let _ = tx.try_send(snapshot.clone());
+        // A dropped subscription leaves its queue to us alone.
+        queues.retain(|queue| Arc::strong_count(queue) > 1);
+        for queue in queues.iter() {
+            queue.offer(snapshot, cost);
         }
     }
 
     /// The publisher is gone: followers see the end.
     fn close(&self) {
-        self.lock().clear();
+        for queue in self.lock().drain(..) {
+            queue.close();
+        }
     }
 }
 
@@ -379,6 +452,8 @@ impl Snapshots {
 pub struct Publisher {
     tx: watch::Sender<Arc<Snapshot>>,
     followers: Arc<Followers>,
+    /// The chunks of the last snapshot published (what the next one shares).
+    published: Vec<Arc<Vec<Slot>>>,
     seq: u64,
     poll_seq: u64,
     online: bool,
@@ -423,6 +498,7 @@ impl Publisher {
         let publisher = Publisher {
             tx,
             followers: followers.clone(),
+            published: Vec::new(),
             seq: 0,
             poll_seq: 0,
             online: false,
@@ -586,7 +662,19 @@ impl Publisher {
             chunks: self.chunks.clone(),
         };
         let snapshot = Arc::new(snapshot);
-        self.followers.offer(&snapshot);
+        // What this snapshot holds that the one before does not share: the
+        // chunks copied since, and the list of them.
+        let copied = self
+            .chunks
+            .iter()
+            .zip(&self.published)
+            .filter(|(now, before)| !Arc::ptr_eq(now, before))
+            .count()
+            + self.chunks.len().saturating_sub(self.published.len());
+        let cost = copied * CHUNK * std::mem::size_of::<Slot>()
+            + self.chunks.len() * std::mem::size_of::<Arc<Vec<Slot>>>();
+        self.published = self.chunks.clone();
+        self.followers.offer(&snapshot, cost);
         self.tx.send_replace(snapshot);
     }
 

@@ -11,14 +11,14 @@
 //! snapshot and says how many publishes it `missed` (their intermediate
 //! values are gone, the latest are in the batch). One that follows
 //! ([`Subscription::every_change`]) gets every publish in order while it
-//! lags by less than [`super::FOLLOW_BOUND`] publishes; past that, the
-//! same catch-up and `missed`.
+//! lags within [`super::FOLLOW_BOUND`] publishes and
+//! [`super::FOLLOW_BYTES`]; past that, the same catch-up and `missed`.
 
 use std::sync::Arc;
 
-use tokio::sync::{mpsc, watch};
+use tokio::sync::watch;
 
-use super::{Followers, Interest, Snapshot};
+use super::{FollowQueue, Followers, Interest, Snapshot};
 use crate::vars::{VarId, VarTable};
 
 /// The link to the PLC changed state between two batches.
@@ -50,7 +50,7 @@ pub struct Subscription {
     rx: watch::Receiver<Arc<Snapshot>>,
     followers: Arc<Followers>,
     /// Every publish, queued, once [`Subscription::every_change`] asked.
-    follow: Option<mpsc::Receiver<Arc<Snapshot>>>,
+    follow: Option<Arc<FollowQueue>>,
     masks: Vec<Vec<u8>>,
     /// `masks` match names of the project only (`VarTable::matching_names`).
     names_only: bool,
@@ -105,11 +105,16 @@ impl Subscription {
     }
 
     /// Follows every publish: no change is missed while the consumer lags
-    /// by less than [`super::FOLLOW_BOUND`] publishes (for the historian
-    /// and MQTT, which promise every change). Call before the first
-    /// [`Subscription::next`].
-    pub fn every_change(mut self) -> Subscription {
-        self.follow = Some(self.followers.follow());
+    /// within [`super::FOLLOW_BOUND`] publishes and [`super::FOLLOW_BYTES`]
+    /// (for the historian and MQTT, which promise every change). Call
+    /// before the first [`Subscription::next`].
+    pub fn every_change(self) -> Subscription {
+        self.every_change_within(super::FOLLOW_BOUND, super::FOLLOW_BYTES)
+    }
+
+    /// [`Subscription::every_change`] with other bounds.
+    pub(crate) fn every_change_within(mut self, max: usize, max_bytes: usize) -> Subscription {
+        self.follow = Some(self.followers.follow(max, max_bytes));
         self
     }
 
@@ -182,11 +187,8 @@ impl Subscription {
             }
         }
         loop {
-            let queued = match self.follow.as_mut()?.try_recv() {
-                Ok(snapshot) => Some(snapshot),
-                Err(mpsc::error::TryRecvError::Empty) => None,
-                Err(mpsc::error::TryRecvError::Disconnected) => return None,
-            };
+            let follow = self.follow.clone()?;
+            let queued = follow.pop().ok()?;
             let snapshot = match queued {
                 Some(snapshot) => snapshot,
                 // The queue is drained: anything newer on the watch is a
@@ -194,14 +196,16 @@ impl Subscription {
                 // queued before the watch shows it).
                 None if self.rx.borrow().seq > self.seen_seq => self.rx.borrow_and_update().clone(),
                 None => {
-                    let follow = self.follow.as_mut()?;
+                    // Seen (its seq is ours already): wait for a newer one.
+                    self.rx.borrow_and_update();
+                    // A gone publisher closed the queue before its watch:
+                    // the next pop drains what is left, then ends.
                     tokio::select! {
-                        snapshot = follow.recv() => snapshot?,
-                        changed = self.rx.changed() => {
-                            changed.ok()?;
-                            continue;
-                        }
+                        biased;
+                        _ = follow.wait() => {}
+                        _ = self.rx.changed() => {}
                     }
+                    continue;
                 }
             };
             // Queued before the first batch read the latest: seen already.
@@ -292,6 +296,8 @@ mod tests {
 
     use super::*;
     use crate::changes::{PollStamp, Publisher};
+
+    const CHUNK_BYTES: usize = super::super::CHUNK * std::mem::size_of::<crate::changes::Slot>();
     use crate::vars::table_of;
 
     fn setup() -> (Publisher, super::super::ChangeStream) {
@@ -347,51 +353,65 @@ mod tests {
         assert!(!publisher.interest().is_wanted(a), "interest released");
     }
 
-    #[tokio::test]
-    async fn a_follower_gets_every_change_in_order_while_it_lags_within_the_bound() {
-        let (mut publisher, stream) = setup();
+    /// Publishes `values` of A, then reads until the last: the values seen
+    /// and the publishes missed.
+    async fn lag(
+        publisher: &mut Publisher,
+        sub: &mut Subscription,
+        values: std::ops::Range<i16>,
+    ) -> (Vec<i16>, u64) {
         let a = publisher.table().fixed_count() as VarId;
-        poll(&mut publisher, &[(a, 1)]);
-        let mut sub = stream.subscribe(&["A"]).every_change();
-        // The first batch is what is known; nothing was missed before it.
-        let batch = sub.next().await.unwrap();
-        assert_eq!((names(&batch), batch.missed), (vec!["A".to_string()], 0));
-        // A consumer that does not read while the link publishes a whole
-        // bound's worth of changes, less one: every value, in order.
-        let lag = super::super::FOLLOW_BOUND as i16 - 1;
-        for value in 2..2 + lag {
-            poll(&mut publisher, &[(a, value)]);
+        let last = values.end - 1;
+        for value in values {
+            poll(publisher, &[(a, value)]);
         }
-        for value in 2..2 + lag {
-            let batch = sub.next().await.unwrap();
-            assert_eq!(batch.missed, 0, "value {value}");
-            assert_eq!(
-                batch.snapshot.slot(a).text(),
-                Some(value.to_string().as_bytes()),
-                "in order"
-            );
-        }
-        // Past the bound: the latest value, and how many were missed.
-        let past = super::super::FOLLOW_BOUND as i16 + 5;
-        let first = 2 + lag;
-        for value in first..first + past {
-            poll(&mut publisher, &[(a, value)]);
-        }
-        let mut seen = Vec::new();
-        let mut missed = 0;
-        while seen.last() != Some(&(first + past - 1)) {
+        let (mut seen, mut missed) = (Vec::new(), 0);
+        while seen.last() != Some(&last) {
             let batch = sub.next().await.unwrap();
             missed += batch.missed;
             let text = batch.snapshot.slot(a).text().unwrap();
             seen.push(std::str::from_utf8(text).unwrap().parse::<i16>().unwrap());
         }
-        // The queue held FOLLOW_BOUND of them and the watch the latest.
-        assert_eq!(missed, past as u64 - super::super::FOLLOW_BOUND as u64 - 1);
-        assert_eq!(seen.len() as u64 + missed, past as u64);
         assert!(seen.windows(2).all(|w| w[0] < w[1]), "in order: {seen:?}");
+        (seen, missed)
+    }
+
+    #[tokio::test]
+    async fn a_follower_gets_every_change_in_order_while_it_lags_within_the_bounds() {
+        let (mut publisher, stream) = setup();
+        let a = publisher.table().fixed_count() as VarId;
+        poll(&mut publisher, &[(a, 1)]);
+        let mut sub = stream.subscribe(&["A"]).every_change_within(50, usize::MAX);
+        // The first batch is what is known; nothing was missed before it.
+        let batch = sub.next().await.unwrap();
+        assert_eq!((names(&batch), batch.missed), (vec!["A".to_string()], 0));
+        // A consumer that does not read while the link publishes the
+        // bound's worth of changes: every value, in order.
+        let (seen, missed) = lag(&mut publisher, &mut sub, 2..52).await;
+        assert_eq!((seen, missed), ((2..52).collect::<Vec<_>>(), 0));
+        // Past it: the queue's 50, then the latest; the rest counted.
+        let (seen, missed) = lag(&mut publisher, &mut sub, 52..112).await;
+        assert_eq!((seen.len(), missed), (51, 9));
         // The link gone: the follower sees the end.
         drop(publisher);
         assert!(sub.next().await.is_none());
+    }
+
+    #[tokio::test]
+    async fn a_follower_is_bounded_in_bytes_too() {
+        let (mut publisher, stream) = setup();
+        // FOLLOW_BYTES's doc and README count 12 KiB a chunk.
+        assert_eq!(CHUNK_BYTES, 12 * 1024);
+        // Each poll here copies one chunk of slots.
+        let one = CHUNK_BYTES + std::mem::size_of::<Arc<Vec<crate::changes::Slot>>>();
+        let a = publisher.table().fixed_count() as VarId;
+        poll(&mut publisher, &[(a, 0)]);
+        let mut sub = stream
+            .subscribe(&["A"])
+            .every_change_within(usize::MAX, 10 * one);
+        sub.next().await.unwrap();
+        let (seen, missed) = lag(&mut publisher, &mut sub, 1..31).await;
+        assert_eq!((seen.len(), missed), (11, 19), "{seen:?}");
     }
 
     #[tokio::test]
