@@ -429,9 +429,12 @@ fn home_assistant_discovery_stable_ids_and_removed_configs_cleared() {
     let server = run("switch, positive, counter, sinus, note, text");
     let config_of = |component: &str, name: &str| -> (Received, serde_json::Value) {
         let m = sub.wait_for(&format!("the {component} config of {name}"), || {
+            // Once the PLC's identification is in it: configs sent before
+            // it was known are sent again with it.
             sub.messages().into_iter().rev().find(|m| {
                 m.topic.starts_with(&format!("homeassistant/{component}/"))
                     && m.payload.contains(&format!("\"name\":\"{name}\""))
+                    && m.payload.contains("\"hw_version\"")
             })
         });
         let json = m.json();
