@@ -104,6 +104,18 @@ impl FollowQueue {
     }
 }
 
+/// What a snapshot of `chunks` holds that the one before (`before`) does
+/// not share: the chunks copied since, and the list of them.
+fn unshared_bytes(chunks: &[Arc<Vec<Slot>>], before: &[Arc<Vec<Slot>>]) -> usize {
+    let copied = chunks
+        .iter()
+        .zip(before)
+        .filter(|(now, before)| !Arc::ptr_eq(now, before))
+        .count()
+        + chunks.len().saturating_sub(before.len());
+    copied * CHUNK * std::mem::size_of::<Slot>() + std::mem::size_of_val(chunks)
+}
+
 /// The queues of the subscriptions that follow every publish.
 #[derive(Default)]
 pub(crate) struct Followers {
@@ -124,6 +136,11 @@ impl Followers {
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Vec<Arc<FollowQueue>>> {
         self.queues.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Whether any subscription follows (the link skips the cost otherwise).
+    fn any(&self) -> bool {
+        !self.lock().is_empty()
     }
 
     /// Queues `snapshot` (whose own slots cost `cost` bytes) for every
@@ -452,8 +469,6 @@ impl Snapshots {
 pub struct Publisher {
     tx: watch::Sender<Arc<Snapshot>>,
     followers: Arc<Followers>,
-    /// The chunks of the last snapshot published (what the next one shares).
-    published: Vec<Arc<Vec<Slot>>>,
     seq: u64,
     poll_seq: u64,
     online: bool,
@@ -498,7 +513,6 @@ impl Publisher {
         let publisher = Publisher {
             tx,
             followers: followers.clone(),
-            published: Vec::new(),
             seq: 0,
             poll_seq: 0,
             online: false,
@@ -662,19 +676,10 @@ impl Publisher {
             chunks: self.chunks.clone(),
         };
         let snapshot = Arc::new(snapshot);
-        // What this snapshot holds that the one before does not share: the
-        // chunks copied since, and the list of them.
-        let copied = self
-            .chunks
-            .iter()
-            .zip(&self.published)
-            .filter(|(now, before)| !Arc::ptr_eq(now, before))
-            .count()
-            + self.chunks.len().saturating_sub(self.published.len());
-        let cost = copied * CHUNK * std::mem::size_of::<Slot>()
-            + self.chunks.len() * std::mem::size_of::<Arc<Vec<Slot>>>();
-        self.published = self.chunks.clone();
-        self.followers.offer(&snapshot, cost);
+        if self.followers.any() {
+            let cost = unshared_bytes(&snapshot.chunks, &self.tx.borrow().chunks);
+            self.followers.offer(&snapshot, cost);
+        }
         self.tx.send_replace(snapshot);
     }
 
