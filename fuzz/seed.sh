@@ -196,6 +196,9 @@ put("mqtt_spool", record(7, b"plccoms/Demo/A%2FB", b'{"value":1}', 0, False) + r
 for text in [b"mqtt://broker.lan:1883", b"mqtts://[::1]:8883/", b"tcp://10.0.0.1",
              b"COUNTER", b"A%2FB%2BC%23D%25E", "TEPLOTA_KUCHYNĚ".encode(), b"%zz"]:
     put("mqtt_text", text)
+for text in [b"2026-11-25T10:15:00.123Z", b"2026-11-25T11:15:00+01:00", b"2026-11-25",
+             b"10:15:00.123", b"07:30", b"PT1H2M3.456S", b"P1DT0.25S", b"PT0S", b"5.0", b"-1e3"]:
+    put("user_value", text)
 # --- Modbus ------------------------------------------------------------------
 put("modbus_tags", read("conf/demo-modbus.csv"))
 put("modbus_tags", "name,type,table,address,bit,order,scale,offset,access,unit,description\n"

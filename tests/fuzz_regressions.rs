@@ -108,6 +108,21 @@ fn every_target_runs_on_ordinary_input() {
     ] {
         checks::mqtt_text(text.as_bytes());
     }
+    for text in [
+        "2026-11-25T10:15:00.123Z",
+        "2026-11-25T11:15:00+01:00",
+        "2026-11-25",
+        "10:15:00.123",
+        "PT1H2M3.456S",
+        "P1DT0.25S",
+        "P49D",
+        "9999-12-31T23:59:59.999+14:00",
+        "5.0",
+        "",
+        "\u{ff}",
+    ] {
+        checks::user_value(text.as_bytes());
+    }
     // IDENT request from 0x7D.
     checks::modbus_tags(include_bytes!("../conf/demo-modbus.csv"));
     checks::modbus_tags(

@@ -897,6 +897,39 @@ pub fn mqtt_text(data: &[u8]) {
 }
 
 // ---------------------------------------------------------------------------
+// user_value
+
+/// A value as a user writes it over MQTT or the web API
+/// (`present::protocol_text`), for every type: never a panic; a text
+/// accepted for a time type is protocol text that reads back, and what it
+/// reads back as, written again, gives the same protocol text.
+pub fn user_value(data: &[u8]) {
+    use plccoms_core::present::{protocol_text, Presented};
+    let opts = plccoms_protocol::value::FormatOptions::default();
+    for ty in all_types() {
+        let Ok(text) = protocol_text(ty, data, &opts) else {
+            continue;
+        };
+        if !matches!(
+            ty,
+            IecType::Date | IecType::Dt | IecType::Tod | IecType::Time
+        ) {
+            continue;
+        }
+        let shown = Presented::of(ty, &text, &opts);
+        assert!(
+            !matches!(shown, Presented::Text(_)),
+            "{ty}: {:?} -> {:?} does not read back",
+            String::from_utf8_lossy(data),
+            String::from_utf8_lossy(&text)
+        );
+        let shown_text = shown.text();
+        let again = protocol_text(ty, shown_text.as_bytes(), &opts).expect("its own form");
+        assert_eq!(again, text, "{ty}: {shown:?}");
+    }
+}
+
+// ---------------------------------------------------------------------------
 // modbus_tags
 
 /// A tag file: every tag lies inside the Modbus layout and is named as a
