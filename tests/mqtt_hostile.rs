@@ -155,6 +155,24 @@ async fn a_flood_of_home_assistant_onlines_keeps_memory_bounded() {
     server.shutdown().await;
 }
 
+/// A simulated section publishing to `broker` with the section `keys`, and
+/// a subscriber to `filter` that saw it come online.
+async fn online(
+    broker: &Broker,
+    keys: &str,
+    filter: &str,
+) -> (
+    plccoms::startup::Server,
+    std::net::SocketAddr,
+    tempfile::TempDir,
+    common::mqtt::Sub,
+) {
+    let (server, addr, dir) = simulated(&format!("MQTT_URL = {}", broker.url()), keys, None).await;
+    let sub = broker.subscribe(&[filter]);
+    sub.wait_payload("plccoms/PLC/status", "online");
+    (server, addr, dir, sub)
+}
+
 /// A retained `/set` over rumqttc's old 1 MiB limit made every connection
 /// fail at its subscription: reconnections without end, queued changes
 /// sent again each time, a log line each. It is refused like any retained
@@ -164,14 +182,12 @@ async fn an_oversized_retained_set_keeps_the_connection() {
     let _serial = SERIAL.lock().await;
     logs();
     let broker = Broker::anonymous();
-    let (server, addr, _dir) = simulated(
-        &format!("MQTT_URL = {}", broker.url()),
+    let (server, addr, _dir, sub) = online(
+        &broker,
         "MQTT_PUBLISH = counter\nMQTT_WRITE = counter, note",
-        None,
+        "plccoms/PLC/#",
     )
     .await;
-    let sub = broker.subscribe(&["plccoms/PLC/#"]);
-    sub.wait_payload("plccoms/PLC/status", "online");
     let start = logs().len();
     assert_eq!(metric(&server, "plccoms_mqtt_connects_total"), 1);
 
@@ -217,14 +233,12 @@ async fn a_retained_set_over_the_limit_never_reaches_the_server() {
     let _serial = SERIAL.lock().await;
     logs();
     let broker = Broker::anonymous();
-    let (server, _addr, _dir) = simulated(
-        &format!("MQTT_URL = {}", broker.url()),
+    let (server, _addr, _dir, sub) = online(
+        &broker,
         "MQTT_PUBLISH = counter\nMQTT_WRITE = counter, note",
-        None,
+        "plccoms/PLC/#",
     )
     .await;
-    let sub = broker.subscribe(&["plccoms/PLC/#"]);
-    sub.wait_payload("plccoms/PLC/status", "online");
     let start = logs().len();
     publish_retained_bytes(&broker, "plccoms/PLC/NOTE/set", &vec![b'x'; 20 << 20]);
     // Messages to one subscriber keep their order: once this write is
@@ -246,14 +260,12 @@ async fn refused_writes_are_counted_but_their_log_is_rate_limited() {
     logs();
     // Every one of the 5,000 reaches the server, however slow it is.
     let broker = Broker::start("allow_anonymous true\nmax_queued_messages 0\n");
-    let (server, _addr, _dir) = simulated(
-        &format!("MQTT_URL = {}", broker.url()),
+    let (server, _addr, _dir, _sub) = online(
+        &broker,
         "MQTT_PUBLISH = counter\nMQTT_WRITE = counter",
-        None,
+        "plccoms/PLC/status",
     )
     .await;
-    let sub = broker.subscribe(&["plccoms/PLC/status"]);
-    sub.wait_payload("plccoms/PLC/status", "online");
     let start = logs().len();
     let began = Instant::now();
     publish_lines(&broker, "plccoms/PLC/SINUS/set", 5000, "1");
