@@ -434,52 +434,28 @@ async fn backend_for(
     server: &mut Server,
 ) -> Result<Option<Box<dyn PlcBackend>>, String> {
     if let Some(simulator) = section.simulator.clone() {
-        if section.protocol == Protocol::ModbusTcp {
+        let device = if section.protocol == Protocol::ModbusTcp {
             let device = spawn_modbus_simulator(section, &simulator, dir, server).await?;
-            if let std::net::IpAddr::V4(ip) = device.ip() {
-                section.ipaddr = Some(ip);
-            }
             section.modbus.port = device.port();
-            return modbus_backend(section, device, dir);
-        }
-        let plc = spawn_simulator(section, &simulator, dir, server).await?;
-        if let std::net::IpAddr::V4(ip) = plc.ip() {
+            device
+        } else {
+            let plc = spawn_simulator(section, &simulator, dir, server).await?;
+            section.epsport = plc.port();
+            plc
+        };
+        if let std::net::IpAddr::V4(ip) = device.ip() {
             section.ipaddr = Some(ip);
         }
-        section.epsport = plc.port();
-        return Ok(Some(Box::new(plccoms_driver_epsnet::EpsnetBackend::new(
-            plccoms_driver_epsnet::config_of(section, plc),
-        ))));
+        // The simulated PLC answers on loopback: a serial line or a plugin
+        // named as well does not apply (nor to a SETCONF's new link).
+        section.serial_device = None;
+        section.shm_name = None;
     }
     let backend = DRIVERS.open(section, dir)?;
     if backend.is_none() {
         warn!(section = %section.name, "no PLC address (IPADDR) yet: serving clients without a PLC until SETCONF:ipaddr");
     }
     Ok(backend)
-}
-
-/// The backend of a simulated Modbus device at `device`.
-#[cfg(feature = "modbus")]
-fn modbus_backend(
-    section: &Section,
-    device: SocketAddr,
-    dir: &Path,
-) -> Result<Option<Box<dyn PlcBackend>>, String> {
-    Ok(Some(Box::new(plccoms_driver_modbus::ModbusBackend::new(
-        plccoms_driver_modbus::config_of(section, device, dir),
-    ))))
-}
-
-#[cfg(not(feature = "modbus"))]
-fn modbus_backend(
-    _section: &Section,
-    _device: SocketAddr,
-    _dir: &Path,
-) -> Result<Option<Box<dyn PlcBackend>>, String> {
-    Err(
-        "PROTOCOL = MODBUS_TCP: this build has no driver for it (built without its cargo feature)"
-            .into(),
-    )
 }
 
 /// Runs the simulated Modbus device of a `SIMULATOR = Yes` section with
