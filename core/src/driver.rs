@@ -225,7 +225,7 @@ pub type Opened = Result<Option<Box<dyn PlcBackend>>, String>;
 /// section, and if so, the section's backend.
 #[derive(Clone, Copy)]
 pub struct Driver {
-    /// For messages: `epsnet`, `modbus`, `plugin`.
+    /// For the log (`-v`): `epsnet`, `modbus`, `plugin`.
     pub name: &'static str,
     /// The backend of `section` when this driver serves it (`None`: not
     /// this driver's section). `dir` is the configuration's folder, where
@@ -244,19 +244,15 @@ impl Drivers {
     /// The backend of `section`: the one driver's that serves it, or why
     /// none can (a driver left out of this build).
     pub fn open(&self, section: &crate::config::Section, dir: &std::path::Path) -> Opened {
-        self.0
-            .iter()
-            .find_map(|driver| (driver.open)(section, dir))
-            .unwrap_or_else(|| {
-                Err(format!(
-                    "PROTOCOL = {}: this build has no driver for it (built without its cargo feature)",
-                    section.protocol
-                ))
-            })
-    }
-
-    /// The drivers' names, for `--version` and the logs.
-    pub fn names(&self) -> impl Iterator<Item = &'static str> + '_ {
-        self.0.iter().map(|driver| driver.name)
+        for driver in self.0 {
+            if let Some(opened) = (driver.open)(section, dir) {
+                tracing::debug!(section = %section.name, driver = driver.name, "driver chosen");
+                return opened;
+            }
+        }
+        Err(format!(
+            "PROTOCOL = {}: this build has no driver for it (built without its cargo feature)",
+            section.protocol
+        ))
     }
 }
