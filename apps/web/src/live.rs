@@ -132,11 +132,12 @@ struct Stream {
     _guard: StreamGuard,
 }
 
-/// The quality last sent per shown variable, for the table it was sent of.
+/// The quality last sent per variable (by id), for the table it was sent
+/// of: looked up for every shown variable at every poll, so a plain slice.
 #[derive(Default)]
 pub struct Shown {
     table: Option<Arc<VarTable>>,
-    quality: std::collections::HashMap<VarId, &'static str>,
+    quality: Vec<Option<&'static str>>,
 }
 
 #[derive(Serialize)]
@@ -173,12 +174,13 @@ pub fn encode(
     {
         shown.table = Some(snapshot.table.clone());
         shown.quality.clear();
+        shown.quality.resize(snapshot.table.len(), None);
     }
     let now = tokio::time::Instant::now();
     let mut ids: Vec<VarId> = batch.changes.clone();
     for &id in wanted {
         if snapshot.slot(id).text().is_some()
-            && shown.quality.get(&id) != Some(&quality_of(snapshot, id, now))
+            && shown.quality[id as usize] != Some(quality_of(snapshot, id, now))
         {
             ids.push(id);
         }
@@ -190,7 +192,7 @@ pub fn encode(
         .filter_map(|id| {
             let (value, text) = presented(section, snapshot, id)?;
             let quality = quality_of(snapshot, id, now);
-            shown.quality.insert(id, quality);
+            shown.quality[id as usize] = Some(quality);
             Some((
                 cp1250::decode(&snapshot.table.var(id).name),
                 value,
