@@ -209,6 +209,12 @@ impl Section {
         self.state.borrow().clone()
     }
 
+    /// Follows the live state (settings, the link's status and the PLC's
+    /// identification): `changed()` resolves at each change.
+    pub fn watch_state(&self) -> watch::Receiver<Arc<SectionState>> {
+        self.state.clone()
+    }
+
     /// Waits until a new session may start serving (see
     /// [`SectionState::ready`]).
     pub async fn ready(&self) {
