@@ -429,6 +429,52 @@ pub struct Modbus {
 pub struct Loaded {
     pub config: Config,
     pub diagnostics: Vec<Diagnostic>,
+    /// Every section as written (`[*]` included), for telling what a
+    /// reload changed.
+    pub written: Vec<Written>,
+}
+
+/// A section's keys as written: the value that counts (the last) of each
+/// key, keys upper-case and sorted.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Written {
+    pub name: String,
+    pub keys: std::collections::BTreeMap<String, String>,
+}
+
+impl Loaded {
+    /// The keys of section `name` as written (`*`: the global section).
+    pub fn written(&self, name: &str) -> Option<&Written> {
+        self.written.iter().find(|w| w.name == name)
+    }
+
+    /// Whether a problem made the loader skip something (a section, a
+    /// key's value): such a file is used at start, its good sections
+    /// running, but a reload refuses it whole.
+    pub fn has_errors(&self) -> bool {
+        self.diagnostics
+            .iter()
+            .any(|d| d.severity == Severity::Error)
+    }
+}
+
+/// The keys whose values differ between `old` and `new` (added and removed
+/// keys included), sorted.
+pub fn changed_keys(old: &Written, new: &Written) -> Vec<String> {
+    let mut keys: Vec<String> = old
+        .keys
+        .iter()
+        .filter(|(k, v)| new.keys.get(*k) != Some(v))
+        .map(|(k, _)| k.clone())
+        .chain(
+            new.keys
+                .keys()
+                .filter(|k| !old.keys.contains_key(*k))
+                .cloned(),
+        )
+        .collect();
+    keys.sort();
+    keys
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -598,6 +644,18 @@ pub fn parse(path_for_messages: &Path, text: &str) -> Result<Loaded, ConfigError
             diagnostics: diags.list,
         });
     }
+    let written = raw
+        .sections
+        .iter()
+        .map(|section| Written {
+            name: section.name.clone(),
+            keys: section
+                .entries
+                .iter()
+                .map(|e| (e.key.clone(), e.value.clone()))
+                .collect(),
+        })
+        .collect();
     Ok(Loaded {
         config: Config {
             path,
@@ -605,6 +663,7 @@ pub fn parse(path_for_messages: &Path, text: &str) -> Result<Loaded, ConfigError
             sections,
         },
         diagnostics: diags.list,
+        written,
     })
 }
 
