@@ -70,6 +70,8 @@ fn init_logging(cli: &Cli) -> Result<Option<Arc<LogFile>>, String> {
         1 => "debug",
         _ => "trace",
     };
+    // -vv: every section's frame trace.
+    plccoms_core::trace::trace_all(cli.verbose >= 2);
     use tracing_subscriber::layer::SubscriberExt;
     use tracing_subscriber::util::SubscriberInitExt;
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()

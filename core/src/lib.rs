@@ -32,4 +32,5 @@ pub mod present;
 pub mod ratelimit;
 pub mod section;
 pub mod sections;
+pub mod trace;
 pub mod vars;

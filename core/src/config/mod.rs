@@ -306,6 +306,9 @@ pub struct Section {
     /// `READ_ONLY = Yes`: requests that would change the PLC or the section
     /// answer ERROR:30 (this server's own key).
     pub read_only: bool,
+    /// `TRACE = Yes`: the section's frame trace is on from the start
+    /// (`SETCONF:trace` switches it at run time; see `crate::trace`).
+    pub trace: bool,
     /// `SETCONF_KEYS`: the SETCONF names clients may use; `None`: all.
     pub setconf_keys: Option<Vec<&'static str>>,
     /// `HISTORY*`: what the historian records (this server's own keys).
@@ -869,6 +872,7 @@ fn section_defaults(name: &str) -> Section {
         simulator: None,
         allow: None,
         read_only: false,
+        trace: false,
         setconf_keys: None,
         history: History::default(),
         mqtt: MqttSection::default(),

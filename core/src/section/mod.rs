@@ -204,6 +204,11 @@ impl Section {
         self.info_lines.get().map(|lines| lines.getinfo())
     }
 
+    /// The section's frame trace (see [`crate::trace`]).
+    pub fn trace(&self) -> &crate::trace::FrameTrace {
+        self.link.trace()
+    }
+
     /// The live state: settings as SETCONF left them, and the link.
     pub fn state(&self) -> Arc<SectionState> {
         self.state.borrow().clone()
