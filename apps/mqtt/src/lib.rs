@@ -18,6 +18,7 @@ mod connection;
 pub mod discovery;
 pub mod payload;
 pub mod settings;
+pub mod sparkplug;
 pub mod spool;
 pub mod topics;
 pub mod writes;
