@@ -10,7 +10,9 @@
 //! - `connection.rs`: one task per section, with a connection of its own
 //!   (its own client id and last will): changes -> queue -> broker;
 //! - `writes.rs`: `/set` through SET's validation, one write at a time;
-//! - `discovery.rs`: Home Assistant discovery.
+//! - `discovery.rs`: Home Assistant discovery;
+//! - `sparkplug/`: Sparkplug B, the sections with SPARKPLUG = Yes as the
+//!   devices of one edge node.
 //!
 //! Counters are `plccoms_mqtt_*` in `/metrics` ([`Source`]).
 
@@ -183,11 +185,16 @@ pub fn start(settings: Settings, sections: &[Arc<Section>]) -> Result<Mqtt, Stri
     let settings = Arc::new(settings);
     let stop = CancellationToken::new();
     let mut prepared = Vec::new();
+    let mut devices = Vec::new();
     for section in sections {
         let section = section.clone();
         let config = section.state().config.clone();
         let rules =
             SectionRules::new(&config.mqtt).map_err(|e| format!("[{}] {e}", section.name()))?;
+        if config.mqtt.sparkplug {
+            devices.push((section, rules));
+            continue;
+        }
         let client_id = settings.section_client_id(section.name());
         let spool_dir = settings.spool.join(id_safe(&client_id));
         let (spool, recovered) = Spool::open(&spool_dir, settings.buffer).map_err(|e| {
@@ -257,6 +264,21 @@ pub fn start(settings: Settings, sections: &[Arc<Section>]) -> Result<Mqtt, Stri
             state: Default::default(),
         };
         tasks.push(tokio::spawn(task.run(changes)));
+    }
+    if !devices.is_empty() {
+        let devices = devices
+            .into_iter()
+            .map(|(section, rules)| {
+                let metrics = Arc::new(Metrics::default());
+                source
+                    .sections
+                    .push((section.name().to_string(), metrics.clone()));
+                (section, rules, metrics)
+            })
+            .collect();
+        let (node, helpers) = sparkplug::start(settings.clone(), devices, stop.clone());
+        tasks.push(node);
+        writers.extend(helpers);
     }
     Ok(Mqtt {
         tasks,
