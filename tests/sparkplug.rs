@@ -505,11 +505,30 @@ fn primary_host_state() {
         metric(&death, "bdSeq")["value"],
         metric(&first, "bdSeq")["value"]
     );
+    // Changes while the host is away are held, then sent after the births
+    // as historical metrics, in order, with their poll times
+    // ([tck-id-payloads-metric-historical]).
     let from = host.count();
-    thread::sleep(Duration::from_millis(1500));
+    while !server.log().contains("waiting for it") {
+        assert!(start.elapsed() < DEADLINE, "{}", server.log());
+        thread::sleep(Duration::from_millis(20));
+    }
+    for n in 1..=5 {
+        assert_eq!(
+            ask(port, &format!("SET:counter,{n}")),
+            format!("DIFF:COUNTER,{n}")
+        );
+        thread::sleep(Duration::from_millis(150));
+    }
+    thread::sleep(Duration::from_millis(500));
+    let later = &host.all()[from..];
     assert!(
-        !host.all()[from..].iter().any(is("NBIRTH")),
+        !later.iter().any(is("NBIRTH")),
         "born while the host is offline"
+    );
+    assert!(
+        !later.iter().any(is("DDATA")),
+        "data while the host is offline"
     );
     host.state("scada", true, 3000);
     let second = host.wait_from(from, "NBIRTH when the host is back", is("NBIRTH"));
@@ -518,4 +537,32 @@ fn primary_host_state() {
         (metric(&first, "bdSeq")["value"].as_u64().unwrap() + 1) % 256,
         "a new session"
     );
+    let birth = host.wait_from(from, "DBIRTH when the host is back", is("DBIRTH"));
+    assert_eq!(metric(&birth, "COUNTER")["value"], 5);
+    host.wait_from(from, "the last held change", |m| {
+        m["type"] == "DDATA" && m["metrics"][0]["value"] == 5
+    });
+    let all = host.all();
+    let held: Vec<&Value> = all[from..]
+        .iter()
+        .filter(|m| m["type"] == "DDATA")
+        .flat_map(|m| m["metrics"].as_array().unwrap())
+        .collect();
+    let values: Vec<i64> = held.iter().map(|m| m["value"].as_i64().unwrap()).collect();
+    assert_eq!(values, [1, 2, 3, 4, 5], "{held:?}");
+    assert!(
+        held.iter()
+            .all(|m| m["is_historical"] == true && m["name"] == "COUNTER"),
+        "{held:?}"
+    );
+    let stamps: Vec<u64> = held
+        .iter()
+        .map(|m| m["timestamp"].as_u64().unwrap())
+        .collect();
+    assert!(
+        stamps.windows(2).all(|w| w[0] < w[1]),
+        "poll times in order: {stamps:?}"
+    );
+    let reborn = all.iter().position(|m| m == &second).unwrap();
+    assert_seq_runs(&all[reborn..]);
 }

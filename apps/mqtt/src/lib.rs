@@ -276,7 +276,7 @@ pub fn start(settings: Settings, sections: &[Arc<Section>]) -> Result<Mqtt, Stri
                 (section, rules, metrics)
             })
             .collect();
-        let (node, helpers) = sparkplug::start(settings.clone(), devices, stop.clone());
+        let (node, helpers) = sparkplug::start(settings.clone(), devices, stop.clone())?;
         tasks.push(node);
         writers.extend(helpers);
     }

@@ -25,9 +25,10 @@ use plccoms_core::section::Section;
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
-use tracing::info;
+use tracing::{info, warn};
 
 use crate::settings::{id_safe, SectionRules, Settings};
+use crate::spool::Spool;
 use crate::{writes, Metrics};
 pub use node::NodeSettings;
 use node::{Device, Node};
@@ -60,12 +61,29 @@ pub fn node_settings(mqtt: &MqttGlobal, spool: &Path) -> Result<NodeSettings, St
 }
 
 /// Starts the edge node with `sections` as its devices; their counters
-/// are `metrics[i]`.
+/// are `metrics[i]`. Fails when the held changes' folder cannot be used.
 pub(crate) fn start(
     settings: Arc<Settings>,
     sections: Vec<(Arc<Section>, SectionRules, Arc<Metrics>)>,
     stop: CancellationToken,
-) -> (JoinHandle<()>, Vec<JoinHandle<()>>) {
+) -> Result<(JoinHandle<()>, Vec<JoinHandle<()>>), String> {
+    let node = settings.sparkplug.clone();
+    let dir = node.bdseq_file.with_file_name("held");
+    let (held, recovered) = Spool::open(&dir, settings.buffer).map_err(|e| {
+        format!(
+            "Sparkplug: MQTT_SPOOL {}: {e}; make the folder writable by the server's user",
+            dir.display()
+        )
+    })?;
+    for cut in &recovered.cut {
+        warn!("Sparkplug: held changes: {cut}");
+    }
+    if recovered.messages > 0 {
+        info!(
+            "Sparkplug: {} held changes from before are sent to the host after its birth",
+            recovered.messages
+        );
+    }
     let (batch_tx, batches) = mpsc::channel(64);
     let (outcome_tx, outcomes) = mpsc::channel(writes::QUEUE);
     let mut helpers = Vec::new();
@@ -100,14 +118,14 @@ pub(crate) fn start(
             }
         }));
         let id = topic::device_id(section.name());
-        let node = &settings.sparkplug;
         info!(section = %section.name(), "Sparkplug: device {}/{}/{id}, metrics [{}]", node.group, node.node, section.state().config.mqtt.publish.join(", "));
         devices.push(Device::new(
             section, rules, id, metrics, write_tx, table, wanted,
         ));
     }
     let client_id = format!("{}-sparkplug", settings.client_id);
-    let node = settings.sparkplug.clone();
-    let task = Node::new(settings, node, client_id, devices, stop, batches, outcomes);
-    (tokio::spawn(task.run()), helpers)
+    let task = Node::new(
+        settings, node, client_id, devices, stop, batches, outcomes, held,
+    );
+    Ok((tokio::spawn(task.run()), helpers))
 }

@@ -15,9 +15,13 @@
 //!   one write path (`writes::worker`); the value read back comes as
 //!   DDATA; a refusal is logged, counted (`plccoms_mqtt_write_refusals_total`
 //!   and the node metric `Node Info/Write Refusals`) and changes nothing.
-//! - Sparkplug messages are QoS 0 and not retained (spec 3.0), so they are
-//!   not queued while the broker is away: a rebirth on the next connection
-//!   brings the host every current value.
+//! - Sparkplug messages are QoS 0 and not retained (spec 3.0). Without
+//!   SPARKPLUG_HOST nothing is kept while the broker is away: a rebirth on
+//!   the next connection brings every current value. With it, the changes
+//!   made while the node is not born (host offline, broker away) are kept
+//!   in the on-disk queue (`spool.rs`, in `<MQTT_SPOOL>/sparkplug-<node>/held`,
+//!   bounded by MQTT_BUFFER) and sent after the next births as historical
+//!   DDATA, oldest first, with their poll times.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -49,6 +53,7 @@ use crate::connection::{
     RETRY_FIRST, RETRY_MAX, STOP_WAIT,
 };
 use crate::settings::{SectionRules, Settings};
+use crate::spool::{Message, Spool};
 use crate::writes::{self, Refused, Request};
 use crate::Metrics;
 
@@ -207,6 +212,14 @@ pub struct Node {
     host_seen: Option<u64>,
     refusals: u64,
     refusal_logs: BTreeMap<String, RateLimited>,
+    /// With SPARKPLUG_HOST, the changes made while the node is not born
+    /// (the host offline, the broker away), each batch a message whose
+    /// topic is the device id and whose payload a Sparkplug payload of
+    /// named metrics; sent as historical DDATA after the next births.
+    held: Spool,
+    /// Held messages dropped over MQTT_BUFFER since the queue was last
+    /// drained.
+    dropping: u64,
 }
 
 impl Node {
@@ -219,6 +232,7 @@ impl Node {
         shutdown: CancellationToken,
         batches: mpsc::Receiver<DeviceBatch>,
         outcomes: mpsc::Receiver<(usize, writes::Outcome)>,
+        held: Spool,
     ) -> Node {
         Node {
             topics: Topics::new(&node.group, &node.node),
@@ -241,12 +255,17 @@ impl Node {
             host_seen: None,
             refusals: 0,
             refusal_logs: BTreeMap::new(),
+            held,
+            dropping: 0,
         }
     }
 
     pub async fn run(mut self) {
         self.connect();
+        let mut tick = tokio::time::interval(Duration::from_secs(1));
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
         loop {
+            self.drain_held();
             tokio::select! {
                 biased;
                 _ = self.shutdown.cancelled() => break,
@@ -256,6 +275,12 @@ impl Node {
                 _ = sleep_until(self.retry_at) => {
                     self.retry_at = None;
                     self.connect();
+                }
+                _ = tick.tick() => {
+                    let durable = !self.born;
+                    if let Err(e) = self.held.checkpoint(durable) {
+                        warn!("Sparkplug: cannot save the held changes: {e}");
+                    }
                 }
             }
         }
@@ -548,6 +573,9 @@ impl Node {
         let online = device.up(&batch.snapshot);
         let was = std::mem::replace(&mut device.online, online);
         if !self.born {
+            if self.node.host.is_some() && online {
+                self.hold(index, &batch.snapshot, &batch.changes);
+            }
             return;
         }
         match (was, online) {
@@ -560,6 +588,110 @@ impl Node {
         }
         let ids: Vec<VarId> = batch.changes.clone();
         self.device_data(index, &batch.snapshot, &ids);
+    }
+
+    /// Keeps the values of `ids` for the host, by name (aliases are given
+    /// anew at the next birth), with their poll times.
+    fn hold(&mut self, index: usize, snapshot: &Snapshot, ids: &[VarId]) {
+        let device = &self.devices[index];
+        if !Arc::ptr_eq(&device.table, &snapshot.table) {
+            return;
+        }
+        let format = *device.section.format();
+        let mut metrics = Vec::new();
+        for &id in ids {
+            if device.place.get(id as usize).copied().flatten().is_none() {
+                continue;
+            }
+            let var = device.table.var(id);
+            let slot = snapshot.slot(id);
+            let Some(text) = slot.text() else {
+                continue;
+            };
+            let value = metric::value(datatype_of(var.ty), &Presented::of(var.ty, text, &format));
+            metrics.push(Metric {
+                name: Some(cp1250::decode(&var.name).into_owned()),
+                timestamp: Some(slot.changed_ms.max(0) as u64),
+                is_null: value.is_none().then_some(true),
+                value,
+                ..Metric::default()
+            });
+        }
+        if metrics.is_empty() {
+            return;
+        }
+        let message = Message {
+            topic: device.id.clone(),
+            payload: Payload {
+                metrics,
+                ..Payload::default()
+            }
+            .encode_to_vec(),
+            qos: 1,
+            retain: false,
+        };
+        match self.held.push(&[message]) {
+            Ok(0) => {}
+            Ok(dropped) => {
+                if self.dropping == 0 {
+                    warn!("Sparkplug: MQTT_BUFFER ({} bytes) is full: dropping the oldest held changes", self.settings.buffer);
+                }
+                self.dropping += dropped;
+                self.devices[index].metrics.dropped.add(dropped);
+            }
+            Err(e) => warn!("Sparkplug: cannot hold a change for the host: {e}"),
+        }
+        self.devices[index].metrics.queued.set(self.held.len());
+    }
+
+    /// Sends the held changes as historical DDATA
+    /// ([tck-id-payloads-metric-historical]), oldest first, while born and
+    /// while rumqttc takes them.
+    fn drain_held(&mut self) {
+        while self.born && self.held.has_unsent() {
+            let (seq, message) = match self.held.next_unsent() {
+                Ok(Some(next)) => next,
+                Ok(None) => break,
+                Err(e) => {
+                    warn!("Sparkplug: cannot read the held changes: {e}");
+                    break;
+                }
+            };
+            let Some(index) = self.devices.iter().position(|d| d.id == message.topic) else {
+                self.held.ack(seq);
+                continue;
+            };
+            let Ok(mut payload) = Payload::decode(&message.payload[..]) else {
+                self.held.ack(seq);
+                continue;
+            };
+            let device = &self.devices[index];
+            if !device.born {
+                // Its PLC is down now: kept until it is born again.
+                self.held.rewind();
+                break;
+            }
+            payload.metrics.retain_mut(|m| {
+                let name = m.name.take().unwrap_or_default();
+                let Some(id) = device.resolve(&Target::Name(&name)) else {
+                    return false;
+                };
+                let place = device.place[id as usize].unwrap_or_default();
+                m.alias = Some(device.alias_base + u64::from(place));
+                m.is_historical = Some(true);
+                true
+            });
+            let topic = self.topics.device("DDATA", &device.id);
+            if !payload.metrics.is_empty() && !self.send(topic, payload) {
+                self.held.rewind();
+                break;
+            }
+            self.held.ack(seq);
+        }
+        if self.born && !self.held.has_unsent() && self.dropping > 0 {
+            warn!("Sparkplug: {} held changes were dropped (MQTT_BUFFER full) while the host was away", self.dropping);
+            self.dropping = 0;
+        }
     }
 
     /// A DDATA of the values of `ids` in `snapshot`, by alias.
