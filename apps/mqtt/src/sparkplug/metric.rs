@@ -459,5 +459,38 @@ mod tests {
             props.values[0].value,
             Some(PropertyScalar::StringValue("link_lost".into()))
         );
+        let var = Var {
+            name: b"T".to_vec().into(),
+            area: plccoms_protocol::Area::R,
+            offset: 0,
+            bit: None,
+            ty: IecType::Real,
+            codec: Default::default(),
+            writable: true,
+            info: plccoms_core::vars::VarInfo {
+                unit: "°C".into(),
+                description: "Teplota v hale".into(),
+                ..Default::default()
+            }
+            .boxed(),
+        };
+        let props = properties(Some(&var), Quality::Good);
+        assert_eq!(props.keys, ["Quality", "engUnit", "Description"]);
+        let texts: Vec<_> = props
+            .values
+            .iter()
+            .map(|v| (v.r#type, v.value.clone()))
+            .collect();
+        assert_eq!(
+            texts,
+            [
+                (Some(12), Some(PropertyScalar::StringValue("good".into()))),
+                (Some(12), Some(PropertyScalar::StringValue("°C".into()))),
+                (
+                    Some(12),
+                    Some(PropertyScalar::StringValue("Teplota v hale".into()))
+                ),
+            ]
+        );
     }
 }
