@@ -15,8 +15,8 @@ use std::sync::{Arc, Mutex};
 use std::thread;
 use std::time::{Duration, Instant};
 
-use common::mqtt::{Broker, DEADLINE};
-use common::process::{free_port, free_udp_port, plcsim_bin, ChildGuard, ServerProcess};
+use common::mqtt::{plcsim, Broker, DEADLINE};
+use common::process::{free_port, free_udp_port, ChildGuard, ServerProcess};
 use serde_json::{json, Value};
 
 /// The venv's python, made when missing (a failure fails the test).
@@ -158,6 +158,17 @@ fn sim_section(name: &str, port: u16, keys: &str) -> String {
     format!(
         "[{name}]\nSIMULATOR = Yes\nSIMULATOR_PROGRAM = idle\nSERVER_PORT = {port}\nPUBFILE = //demo.pub\nSPARKPLUG = Yes\n{keys}\n"
     )
+}
+
+/// A broker, the listening host, and a server whose simulated section
+/// `Demo` has `keys`.
+fn start(global: &str, keys: &str) -> (Broker, Host, ServerProcess) {
+    let broker = Broker::anonymous();
+    let host = Host::listen(&broker);
+    let port = free_port();
+    let ini = config(&broker, global, &sim_section("Demo", port, keys));
+    let server = ServerProcess::with_config(&ini, port);
+    (broker, host, server)
 }
 
 /// A line-protocol client's one request and answer.
@@ -386,15 +397,8 @@ fn births_data_commands_and_seq() {
 /// ([tck-id-payloads-ndeath-bdseq], [tck-id-payloads-nbirth-bdseq-repeat]).
 #[test]
 fn bdseq_across_kill_9_and_restart() {
-    let broker = Broker::anonymous();
-    let host = Host::listen(&broker);
-    let port = free_port();
-    let ini = config(
-        &broker,
-        "",
-        &sim_section("Demo", port, "MQTT_PUBLISH = counter"),
-    );
-    let mut server = ServerProcess::with_config(&ini, port);
+    let (_broker, host, mut server) = start("", "MQTT_PUBLISH = counter");
+    let port = server.port();
     let first = metric(&host.wait("NBIRTH", is("NBIRTH")), "bdSeq")["value"]
         .as_u64()
         .unwrap();
@@ -428,26 +432,7 @@ fn plc_lost_is_ddeath_and_its_return_a_dbirth() {
     let host = Host::listen(&broker);
     let udp = free_udp_port();
     let files = tempfile::tempdir().unwrap();
-    std::fs::write(
-        files.path().join("demo.pub"),
-        include_bytes!("../conf/demo.pub"),
-    )
-    .unwrap();
-    let plcsim = |files: &std::path::Path| {
-        ChildGuard::spawn(
-            "plcsim",
-            Command::new(plcsim_bin())
-                .args(["--bind", &format!("127.0.0.1:{udp}"), "--program", "idle"])
-                .arg("--files")
-                .arg(files)
-                .arg("--pub")
-                .arg(files.join("demo.pub"))
-                .stdin(Stdio::null())
-                .stdout(Stdio::null())
-                .stderr(Stdio::null()),
-        )
-    };
-    let mut plc = plcsim(files.path());
+    let mut plc = plcsim(files.path(), udp);
     let port = free_port();
     let section = format!(
         "[Plc]\nIPADDR = 127.0.0.1\nEPSPORT = {udp}\nEPSTOUT = 200\nEPSTOUT_STEP = 0\nSERVER_PORT = {port}\nPUBFILE = //demo.pub\nSPARKPLUG = Yes\nMQTT_PUBLISH = counter\n"
@@ -460,7 +445,7 @@ fn plc_lost_is_ddeath_and_its_return_a_dbirth() {
     assert!(death["seq"].as_u64().is_some());
     drop(plc);
     let from = host.count();
-    let _plc = plcsim(files.path());
+    let _plc = plcsim(files.path(), udp);
     let birth = host.wait_from(from, "DBIRTH on return", is("DBIRTH"));
     assert_eq!(metric(&birth, "COUNTER")["properties"]["Quality"], "good");
     assert_seq_runs(&host.all()[1..]);
@@ -472,15 +457,8 @@ fn plc_lost_is_ddeath_and_its_return_a_dbirth() {
 /// [tck-id-operational-behavior-edge-node-terminate-session]).
 #[test]
 fn primary_host_state() {
-    let broker = Broker::anonymous();
-    let host = Host::listen(&broker);
-    let port = free_port();
-    let ini = config(
-        &broker,
-        "SPARKPLUG_HOST = scada",
-        &sim_section("Demo", port, "MQTT_PUBLISH = counter"),
-    );
-    let server = ServerProcess::with_config(&ini, port);
+    let (_broker, host, server) = start("SPARKPLUG_HOST = scada", "MQTT_PUBLISH = counter");
+    let port = server.port();
     let start = Instant::now();
     while !server
         .log()

@@ -238,14 +238,7 @@ impl Task {
                 true,
                 None,
             ));
-        if let Some((user, password)) = &self.settings.credentials {
-            options.set_credentials(user, password);
-        }
-        if let Some(tls) = &self.settings.tls {
-            options.set_transport(Transport::tls_with_config(TlsConfiguration::Rustls(
-                tls.clone(),
-            )));
-        }
+        credentials_and_tls(&self.settings, &mut options);
         options
     }
 
@@ -854,6 +847,18 @@ fn state_message(topic: String, payload: &str) -> Message {
 
 fn plc_message(topics: &Topics, online: bool) -> Message {
     state_message(topics.plc(), if online { "online" } else { "offline" })
+}
+
+/// The broker's user and password, and TLS, as the settings give them.
+pub(super) fn credentials_and_tls(settings: &Settings, options: &mut MqttOptions) {
+    if let Some((user, password)) = &settings.credentials {
+        options.set_credentials(user, password);
+    }
+    if let Some(tls) = &settings.tls {
+        options.set_transport(Transport::tls_with_config(TlsConfiguration::Rustls(
+            tls.clone(),
+        )));
+    }
 }
 
 /// A connection problem in words, with what to check for a refusal.

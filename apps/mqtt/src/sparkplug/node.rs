@@ -38,7 +38,6 @@ use prost::Message as _;
 use rumqttc::v5::mqttbytes::v5::{LastWill, Packet};
 use rumqttc::v5::mqttbytes::QoS;
 use rumqttc::v5::{ConnectionError, Event, MqttOptions};
-use rumqttc::{TlsConfiguration, Transport};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
@@ -49,8 +48,8 @@ use super::metric::{self, datatype};
 use super::proto::{Metric, MetricValue, Payload};
 use super::topic::{Incoming, Topics};
 use crate::connection::{
-    describe, next_event, sleep_until, Link, KEEP_ALIVE, MAX_INCOMING, REFUSAL_LOG_INTERVAL,
-    RETRY_FIRST, RETRY_MAX, STOP_WAIT,
+    credentials_and_tls, describe, next_event, sleep_until, Link, KEEP_ALIVE, MAX_INCOMING,
+    REFUSAL_LOG_INTERVAL, RETRY_FIRST, RETRY_MAX, STOP_WAIT,
 };
 use crate::settings::{SectionRules, Settings};
 use crate::spool::{Message, Spool};
@@ -311,16 +310,6 @@ impl Node {
         self.bdseq = self.next_bdseq();
         let broker = &self.settings.broker;
         let mut options = MqttOptions::new(&self.client_id, &broker.host, broker.port);
-        let death = Payload {
-            timestamp: Some(now_ms()),
-            metrics: vec![metric::node_metric(
-                BDSEQ,
-                BDSEQ_ALIAS,
-                MetricValue::LongValue(self.bdseq),
-                datatype::UINT64,
-            )],
-            ..Payload::default()
-        };
         // [tck-id-payloads-ndeath-will-message] QoS 1, not retained.
         options
             .set_keep_alive(KEEP_ALIVE)
@@ -328,19 +317,12 @@ impl Node {
             .set_max_packet_size(Some(MAX_INCOMING as u32))
             .set_last_will(LastWill::new(
                 self.topics.node("NDEATH"),
-                death.encode_to_vec(),
+                self.death(),
                 QoS::AtLeastOnce,
                 false,
                 None,
             ));
-        if let Some((user, password)) = &self.settings.credentials {
-            options.set_credentials(user, password);
-        }
-        if let Some(tls) = &self.settings.tls {
-            options.set_transport(Transport::tls_with_config(TlsConfiguration::Rustls(
-                tls.clone(),
-            )));
-        }
+        credentials_and_tls(&self.settings, &mut options);
         self.link = Some(Link::spawn(options, REQUESTS, REQUESTS));
     }
 
@@ -797,25 +779,7 @@ impl Node {
                 // [tck-id-operational-behavior-edge-node-terminate-session]:
                 // NDEATH, disconnect, connect again and wait for the host.
                 info!("Sparkplug: primary host offline: NDEATH, disconnecting; waiting for it");
-                let death = Payload {
-                    timestamp: Some(now_ms()),
-                    metrics: vec![metric::node_metric(
-                        BDSEQ,
-                        BDSEQ_ALIAS,
-                        MetricValue::LongValue(self.bdseq),
-                        datatype::UINT64,
-                    )],
-                    ..Payload::default()
-                };
-                if let Some(link) = &self.link {
-                    let _ = link.client.try_publish(
-                        self.topics.node("NDEATH"),
-                        QoS::AtLeastOnce,
-                        false,
-                        death.encode_to_vec(),
-                    );
-                    let _ = link.client.try_disconnect();
-                }
+                self.say_death();
                 self.born = false;
                 for device in &mut self.devices {
                     device.born = false;
@@ -939,42 +903,52 @@ impl Node {
 
     // ---------------------------------------------------------------- stop
 
+    /// The NDEATH payload of this connection: its bdSeq.
+    fn death(&self) -> Vec<u8> {
+        Payload {
+            timestamp: Some(now_ms()),
+            metrics: vec![metric::node_metric(
+                BDSEQ,
+                BDSEQ_ALIAS,
+                MetricValue::LongValue(self.bdseq),
+                datatype::UINT64,
+            )],
+            ..Payload::default()
+        }
+        .encode_to_vec()
+    }
+
+    /// NDEATH and DISCONNECT (the will is not sent on a clean one): whether
+    /// both were handed to rumqttc.
+    fn say_death(&self) -> bool {
+        let Some(link) = &self.link else {
+            return false;
+        };
+        link.client
+            .try_publish(
+                self.topics.node("NDEATH"),
+                QoS::AtLeastOnce,
+                false,
+                self.death(),
+            )
+            .is_ok()
+            && link.client.try_disconnect().is_ok()
+    }
+
     /// A clean stop: NDEATH (the will is not sent on a clean DISCONNECT,
     /// [tck-id-operational-behavior-edge-node-termination-host-action-ndeath]),
     /// then DISCONNECT.
     async fn stop(&mut self) {
-        if self.connected {
-            if let Some(link) = &self.link {
-                let death = Payload {
-                    timestamp: Some(now_ms()),
-                    metrics: vec![metric::node_metric(
-                        BDSEQ,
-                        BDSEQ_ALIAS,
-                        MetricValue::LongValue(self.bdseq),
-                        datatype::UINT64,
-                    )],
-                    ..Payload::default()
-                };
-                let sent = link
-                    .client
-                    .try_publish(
-                        self.topics.node("NDEATH"),
-                        QoS::AtLeastOnce,
-                        false,
-                        death.encode_to_vec(),
-                    )
-                    .is_ok()
-                    && link.client.try_disconnect().is_ok();
-                if sent {
-                    let deadline = Instant::now() + STOP_WAIT;
-                    while let Ok(event) =
-                        tokio::time::timeout_at(deadline, next_event(&mut self.link)).await
-                    {
-                        match event {
-                            Ok(Event::Outgoing(rumqttc::Outgoing::Disconnect)) | Err(_) => break,
-                            _ => {}
-                        }
-                    }
+        if self.connected && self.say_death() {
+            let deadline = Instant::now() + STOP_WAIT;
+            while let Ok(event) =
+                tokio::time::timeout_at(deadline, next_event(&mut self.link)).await
+            {
+                if matches!(
+                    event,
+                    Ok(Event::Outgoing(rumqttc::Outgoing::Disconnect)) | Err(_)
+                ) {
+                    break;
                 }
             }
         }
