@@ -544,3 +544,37 @@ fn primary_host_state() {
     let reborn = all.iter().position(|m| m == &second).unwrap();
     assert_seq_runs(&all[reborn..]);
 }
+
+/// A metric's time is the PLC's own where HISTORY_STAMP pairs one, and a
+/// new PLC time is a new event of its value even when the value is the
+/// same ([tck-id-payloads-metric-timestamp-in-UTC]).
+#[test]
+fn plc_time_of_a_paired_metric() {
+    let (_broker, host, server) =
+        start("", "MQTT_PUBLISH = counter\nHISTORY_STAMP = counter:v_lint");
+    let port = server.port();
+    let birth = host.wait("DBIRTH", is("DBIRTH"));
+    assert_eq!(
+        birth["metrics"].as_array().unwrap().len(),
+        1,
+        "the stamp is no metric: {birth}"
+    );
+    let from = host.count();
+    assert_eq!(
+        ask(port, "SET:v_lint,1795601700123"),
+        "DIFF:V_LINT,1795601700123"
+    );
+    assert_eq!(ask(port, "SET:counter,7"), "DIFF:COUNTER,7");
+    let data = host.wait_from(from, "COUNTER = 7", |m| {
+        m["type"] == "DDATA" && m["metrics"][0]["value"] == 7
+    });
+    assert_eq!(data["metrics"][0]["timestamp"], 1_795_601_700_123_u64);
+    let from = host.count();
+    assert_eq!(
+        ask(port, "SET:v_lint,1795601800000"),
+        "DIFF:V_LINT,1795601800000"
+    );
+    let data = host.wait_from(from, "COUNTER stamped again", is("DDATA"));
+    assert_eq!(data["metrics"][0]["value"], 7);
+    assert_eq!(data["metrics"][0]["timestamp"], 1_795_601_800_000_u64);
+}

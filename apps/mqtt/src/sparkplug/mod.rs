@@ -22,6 +22,7 @@ use std::sync::Arc;
 
 use plccoms_core::config::MqttGlobal;
 use plccoms_core::section::Section;
+use plccoms_protocol::cp1250;
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
@@ -90,7 +91,14 @@ pub(crate) fn start(
     let mut devices = Vec::new();
     for (index, (section, rules, metrics)) in sections.into_iter().enumerate() {
         // Every change, in order, as the JSON format's QoS 1 promises.
-        let mut changes = section.subscribe_names(&rules.publish).every_change();
+        // HISTORY_STAMP's pairs too: a metric's time is the PLC's where
+        // one is paired.
+        let mut masks = rules.publish.clone();
+        for pair in &section.state().config.history.stamps {
+            masks.push(cp1250::encode(&pair.value).into_owned());
+            masks.push(cp1250::encode(&pair.stamp).into_owned());
+        }
+        let mut changes = section.subscribe_names(&masks).every_change();
         let table = changes.table().clone();
         let wanted = changes.wanted().to_vec();
         let tx = batch_tx.clone();

@@ -33,7 +33,8 @@ use plccoms_core::present::Presented;
 use plccoms_core::ratelimit::{self, RateLimited};
 use plccoms_core::section::Section;
 use plccoms_core::vars::{VarId, VarTable};
-use plccoms_protocol::cp1250;
+use plccoms_protocol::value::Value;
+use plccoms_protocol::{cp1250, IecType, Mask};
 use prost::Message as _;
 use rumqttc::v5::mqttbytes::v5::{LastWill, Packet};
 use rumqttc::v5::mqttbytes::QoS;
@@ -98,6 +99,10 @@ pub struct Device {
     online: bool,
     /// When the PLC was first seen online (not yet up).
     online_at: Option<Instant>,
+    /// Per variable, the variable holding the PLC's time of its value
+    /// (HISTORY_STAMP), and the pairs as (stamp, value).
+    stamp_of: Vec<Option<VarId>>,
+    stamps: Vec<(VarId, VarId)>,
     /// The change stream's sequence of the value last sent per variable: a
     /// confirmed write it already carried is not sent again.
     sent_seq: Vec<u64>,
@@ -129,6 +134,8 @@ impl Device {
             born: false,
             online: false,
             online_at: None,
+            stamp_of: Vec::new(),
+            stamps: Vec::new(),
             sent_seq: Vec::new(),
             quality: Vec::new(),
         };
@@ -136,10 +143,36 @@ impl Device {
         device
     }
 
-    fn adopt(&mut self, table: Arc<VarTable>, wanted: Vec<VarId>) {
+    /// A new table: its metrics are the subscribed variables MQTT_PUBLISH
+    /// names (the subscription also holds HISTORY_STAMP's), each paired
+    /// with the variable that holds the PLC's time of its value, if any.
+    fn adopt(&mut self, table: Arc<VarTable>, subscribed: Vec<VarId>) {
+        let publish: Vec<Mask> = self.rules.publish.iter().map(|m| Mask::new(m)).collect();
+        let wanted: Vec<VarId> = subscribed
+            .into_iter()
+            .filter(|&id| publish.iter().any(|m| m.matches_name(&table.var(id).name)))
+            .collect();
         self.place = vec![None; table.len()];
         for (i, &id) in wanted.iter().enumerate() {
             self.place[id as usize] = Some(i as u32);
+        }
+        self.stamp_of = vec![None; table.len()];
+        self.stamps.clear();
+        for pair in &self.section.state().config.history.stamps {
+            let (Some(value), Some(stamp)) = (
+                table.lookup(&cp1250::encode(&pair.value)),
+                table.lookup(&cp1250::encode(&pair.stamp)),
+            ) else {
+                continue;
+            };
+            let is_time = matches!(
+                table.var(stamp).ty,
+                IecType::Dt | IecType::Date | IecType::Lint | IecType::Ulint | IecType::Lword
+            );
+            if is_time && self.place[value as usize].is_some() {
+                self.stamp_of[value as usize] = Some(stamp);
+                self.stamps.push((stamp, value));
+            }
         }
         self.sent_seq = vec![0; table.len()];
         self.quality = vec![Quality::Good; wanted.len()];
@@ -166,6 +199,20 @@ impl Device {
                 .wanted
                 .iter()
                 .all(|&id| snapshot.slot(id).text().is_some())
+    }
+
+    /// The time of `id`'s value: the PLC's own where HISTORY_STAMP pairs
+    /// one and it holds a time, else the poll's.
+    fn timestamp(&self, snapshot: &Snapshot, id: VarId) -> u64 {
+        let plc = self.stamp_of[id as usize].and_then(|stamp| {
+            match snapshot.slot(stamp).value(self.table.var(stamp))? {
+                Value::Date(seconds) => Some((seconds * 1000.0).round() as i64),
+                Value::Signed(ms) => Some(ms),
+                Value::Unsigned(ms) => i64::try_from(ms).ok(),
+                _ => None,
+            }
+        });
+        plc.unwrap_or(snapshot.slot(id).changed_ms).max(0) as u64
     }
 
     /// The variable an alias or a name of a command names.
@@ -507,7 +554,7 @@ impl Node {
             metrics.push(Metric {
                 name: Some(cp1250::decode(&var.name).into_owned()),
                 alias: Some(device.alias_base + place as u64),
-                timestamp: Some(slot.changed_ms.max(0) as u64),
+                timestamp: Some(device.timestamp(snapshot, id)),
                 datatype: Some(ty),
                 is_null: value.is_none().then_some(true),
                 properties: Some(metric::properties(Some(var), quality)),
@@ -568,7 +615,14 @@ impl Node {
         if !device.born {
             return;
         }
-        let ids: Vec<VarId> = batch.changes.clone();
+        // A new PLC time is a new event of the values it stamps, even with
+        // the same value.
+        let mut ids: Vec<VarId> = batch.changes.clone();
+        for &(stamp, value) in &device.stamps {
+            if batch.changes.contains(&stamp) && !ids.contains(&value) {
+                ids.push(value);
+            }
+        }
         self.device_data(index, &batch.snapshot, &ids);
     }
 
@@ -593,7 +647,7 @@ impl Node {
             let value = metric::value(datatype_of(var.ty), &Presented::of(var.ty, text, &format));
             metrics.push(Metric {
                 name: Some(cp1250::decode(&var.name).into_owned()),
-                timestamp: Some(slot.changed_ms.max(0) as u64),
+                timestamp: Some(device.timestamp(snapshot, id)),
                 is_null: value.is_none().then_some(true),
                 value,
                 ..Metric::default()
@@ -701,7 +755,7 @@ impl Node {
             let value = metric::value(datatype_of(var.ty), &Presented::of(var.ty, text, &format));
             metrics.push(Metric {
                 alias: Some(device.alias_base + u64::from(place)),
-                timestamp: Some(slot.changed_ms.max(0) as u64),
+                timestamp: Some(device.timestamp(snapshot, id)),
                 is_null: value.is_none().then_some(true),
                 properties,
                 value,
