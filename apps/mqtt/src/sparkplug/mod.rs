@@ -89,6 +89,8 @@ pub(crate) fn start(
     let (outcome_tx, outcomes) = mpsc::channel(writes::QUEUE);
     let mut helpers = Vec::new();
     let mut devices = Vec::new();
+    let names: Vec<&str> = sections.iter().map(|(s, _, _)| s.name()).collect();
+    check_device_ids(&names)?;
     for (index, (section, rules, metrics)) in sections.into_iter().enumerate() {
         // Every change, in order, as the JSON format's QoS 1 promises.
         // HISTORY_STAMP's pairs too: a metric's time is the PLC's where
@@ -136,4 +138,32 @@ pub(crate) fn start(
         settings, node, client_id, devices, stop, batches, outcomes, held,
     );
     Ok((tokio::spawn(task.run()), helpers))
+}
+
+/// Refuses two sections that would be one device (their names differ
+/// only where a device id has `_`).
+fn check_device_ids(sections: &[&str]) -> Result<(), String> {
+    let mut seen: Vec<(&str, String)> = Vec::new();
+    for &name in sections {
+        let id = topic::device_id(name);
+        if let Some((other, _)) = seen.iter().find(|(_, known)| *known == id) {
+            return Err(format!(
+                "[{name}] and [{other}] are both the Sparkplug device {id} (/, + and # become _): rename one"
+            ));
+        }
+        seen.push((name, id));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn two_sections_are_never_one_device() {
+        assert!(super::check_device_ids(&["Hala 1", "Hala 2"]).is_ok());
+        assert_eq!(
+            super::check_device_ids(&["a/b", "x", "a_b"]),
+            Err("[a_b] and [a/b] are both the Sparkplug device a_b (/, + and # become _): rename one".into())
+        );
+    }
 }

@@ -257,7 +257,9 @@ pub struct Node {
     /// The primary host's latest STATE timestamp seen.
     host_seen: Option<u64>,
     refusals: u64,
-    refusal_logs: BTreeMap<String, RateLimited>,
+    /// Per device (`None`: commands to devices this node does not have,
+    /// whose ids any client can make up), so the map stays small.
+    refusal_logs: BTreeMap<Option<usize>, RateLimited>,
     /// With SPARKPLUG_HOST, the changes made while the node is not born
     /// (the host offline, the broker away), each batch a message whose
     /// topic is the device id and whose payload a Sparkplug payload of
@@ -930,7 +932,7 @@ impl Node {
         }
         let log = self
             .refusal_logs
-            .entry(device.to_string())
+            .entry(index)
             .or_insert_with(|| RateLimited::new(REFUSAL_LOG_INTERVAL));
         if let Some(quiet) = log.admit() {
             warn!(
