@@ -578,3 +578,39 @@ fn plc_time_of_a_paired_metric() {
     assert_eq!(data["metrics"][0]["value"], 7);
     assert_eq!(data["metrics"][0]["timestamp"], 1_795_601_800_000_u64);
 }
+
+/// MQTT_DELTA holds back changes within the deadband; a confirmed DCMD
+/// write is sent whatever its size.
+#[test]
+fn deadband_and_confirmed_writes() {
+    let (_broker, host, server) = start(
+        "",
+        "MQTT_PUBLISH = counter\nMQTT_WRITE = counter\nMQTT_DELTA = 5",
+    );
+    let port = server.port();
+    host.wait("DBIRTH", is("DBIRTH"));
+    let from = host.count();
+    for n in [3, 9, 12, 20] {
+        assert_eq!(
+            ask(port, &format!("SET:counter,{n}")),
+            format!("DIFF:COUNTER,{n}")
+        );
+    }
+    host.wait_from(from, "COUNTER = 20", |m| {
+        m["type"] == "DDATA" && m["metrics"][0]["value"] == 20
+    });
+    let sent: Vec<i64> = host.all()[from..]
+        .iter()
+        .filter(|m| m["type"] == "DDATA")
+        .map(|m| m["metrics"][0]["value"].as_i64().unwrap())
+        .collect();
+    assert_eq!(sent, [9, 20], "moves over 5 from the last sent");
+    let from = host.count();
+    host.command(
+        "spBv1.0/Plant/DCMD/gw1/Demo",
+        json!([{"name": "COUNTER", "datatype": 2, "value": 21}]),
+    );
+    host.wait_from(from, "the confirmed write", |m| {
+        m["type"] == "DDATA" && m["metrics"][0]["value"] == 21
+    });
+}

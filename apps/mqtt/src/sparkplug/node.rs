@@ -106,6 +106,8 @@ pub struct Device {
     /// The change stream's sequence of the value last sent per variable: a
     /// confirmed write it already carried is not sent again.
     sent_seq: Vec<u64>,
+    /// MQTT_DELTA: the value last sent per variable.
+    last: Vec<Option<Value>>,
     /// The quality last sent per place.
     quality: Vec<Quality>,
 }
@@ -137,6 +139,7 @@ impl Device {
             stamp_of: Vec::new(),
             stamps: Vec::new(),
             sent_seq: Vec::new(),
+            last: Vec::new(),
             quality: Vec::new(),
         };
         device.adopt(table, wanted);
@@ -175,6 +178,7 @@ impl Device {
             }
         }
         self.sent_seq = vec![0; table.len()];
+        self.last = vec![None; table.len()];
         self.quality = vec![Quality::Good; wanted.len()];
         self.table = table;
         self.wanted = wanted;
@@ -550,6 +554,7 @@ impl Node {
             let quality = snapshot.quality(id);
             device.quality[place] = quality;
             device.sent_seq[id as usize] = snapshot.seq;
+            device.last[id as usize] = slot.value(var);
             let value = slot
                 .text()
                 .and_then(|text| metric::value(ty, &Presented::of(var.ty, text, &format)));
@@ -625,7 +630,7 @@ impl Node {
                 ids.push(value);
             }
         }
-        self.device_data(index, &batch.snapshot, &ids);
+        self.device_data(index, &batch.snapshot, &ids, true);
     }
 
     /// Keeps the values of `ids` for the host, by name (aliases are given
@@ -732,8 +737,9 @@ impl Node {
         }
     }
 
-    /// A DDATA of the values of `ids` in `snapshot`, by alias.
-    fn device_data(&mut self, index: usize, snapshot: &Snapshot, ids: &[VarId]) {
+    /// A DDATA of the values of `ids` in `snapshot`, by alias; with
+    /// `deadband`, those MQTT_DELTA lets through.
+    fn device_data(&mut self, index: usize, snapshot: &Snapshot, ids: &[VarId], deadband: bool) {
         let device = &mut self.devices[index];
         if !Arc::ptr_eq(&device.table, &snapshot.table) {
             return;
@@ -749,6 +755,18 @@ impl Node {
             let Some(text) = slot.text() else {
                 continue;
             };
+            let value = slot.value(var);
+            if let (true, Some(delta), Some(new), Some(last)) = (
+                deadband,
+                &device.rules.delta,
+                &value,
+                &device.last[id as usize],
+            ) {
+                if !new.exceeds(last, delta, var.ty, &format) {
+                    continue;
+                }
+            }
+            device.last[id as usize] = value;
             device.sent_seq[id as usize] = snapshot.seq;
             let quality = snapshot.quality(id);
             let properties = (std::mem::replace(&mut device.quality[place as usize], quality)
@@ -913,7 +931,7 @@ impl Node {
                 }
                 let snapshot = device.section.latest();
                 if snapshot.seq >= confirmed.seq {
-                    self.device_data(index, &snapshot, &[id]);
+                    self.device_data(index, &snapshot, &[id], false);
                 }
             }
             Err(Refused { line, .. }) => {
