@@ -33,7 +33,8 @@ pub struct Cli {
     #[arg(short, long)]
     pub daemon: bool,
 
-    /// Terminate if the configuration file was changed
+    /// Terminate if the configuration file was changed (SIGHUP applies an edit
+    /// without a restart)
     #[arg(short, long)]
     pub terminate: bool,
 

@@ -39,12 +39,14 @@ pub const OUR_CRATES: &[&str] = &[
 ];
 
 /// The log filter for `level` (`info`, `debug`, `trace`): our crates at
-/// that level, every other at `info`.
+/// that level, every other at `info`; the frame trace always passes (each
+/// section decides whether it writes one: `TRACE`, `SETCONF:trace`, `-vv`).
 pub fn log_filter(level: &str) -> String {
     let mut filter = String::from("info");
     for name in OUR_CRATES {
         filter.push_str(&format!(",{name}={level}"));
     }
+    filter.push_str(&format!(",{}=trace", plccoms_core::trace::TARGET));
     filter
 }
 

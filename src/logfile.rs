@@ -73,28 +73,36 @@ impl Write for &LogFile {
 }
 
 /// From now on SIGHUP reopens `log` (logging that it did) instead of ending
-/// the process; without a log file it is logged and ignored. Call inside
-/// the runtime, as early as possible: until then SIGHUP ends the process.
-pub fn reopen_on_hangup(log: Option<Arc<LogFile>>) -> io::Result<()> {
+/// the process, and then yields on the returned receiver (the server
+/// re-reads its configuration). Call inside the runtime, as early as
+/// possible: until then SIGHUP ends the process.
+pub fn reopen_on_hangup(
+    log: Option<Arc<LogFile>>,
+) -> io::Result<tokio::sync::mpsc::UnboundedReceiver<()>> {
     use tokio::signal::unix::{signal, SignalKind};
     let mut hangups = signal(SignalKind::hangup())?;
+    let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
     tokio::spawn(async move {
         while hangups.recv().await.is_some() {
-            let Some(log) = &log else {
-                info!("SIGHUP: no log file to reopen (logging to the terminal)");
-                continue;
-            };
-            info!("SIGHUP: reopening the log file {}", log.path().display());
-            match log.reopen() {
-                Ok(()) => info!("SIGHUP: log file {} reopened", log.path().display()),
-                Err(e) => error!(
-                    "SIGHUP: cannot reopen the log file {}: {e}; still writing to the old one",
-                    log.path().display()
-                ),
+            // The log first: what the reload says goes to the new file.
+            if let Some(log) = &log {
+                reopen(log);
             }
+            let _ = tx.send(());
         }
     });
-    Ok(())
+    Ok(rx)
+}
+
+fn reopen(log: &LogFile) {
+    info!("SIGHUP: reopening the log file {}", log.path().display());
+    match log.reopen() {
+        Ok(()) => info!("SIGHUP: log file {} reopened", log.path().display()),
+        Err(e) => error!(
+            "SIGHUP: cannot reopen the log file {}: {e}; still writing to the old one",
+            log.path().display()
+        ),
+    }
 }
 
 #[cfg(test)]

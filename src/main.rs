@@ -70,6 +70,8 @@ fn init_logging(cli: &Cli) -> Result<Option<Arc<LogFile>>, String> {
         1 => "debug",
         _ => "trace",
     };
+    // -vv: every section's frame trace.
+    plccoms_core::trace::trace_all(cli.verbose >= 2);
     use tracing_subscriber::layer::SubscriberExt;
     use tracing_subscriber::util::SubscriberInitExt;
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
@@ -107,6 +109,52 @@ fn init_logging(cli: &Cli) -> Result<Option<Arc<LogFile>>, String> {
     }
 }
 
+/// SIGHUP: re-reads the configuration and applies it section by section; a
+/// file with errors is refused whole and the running configuration stays.
+async fn reload(path: &Path, embedded: bool, server: &mut plccoms::startup::Server) {
+    if embedded {
+        info!("SIGHUP: the built-in configuration has no file to re-read");
+        return;
+    }
+    info!("SIGHUP: re-reading {}", path.display());
+    let loaded = match config::load(path) {
+        Ok(loaded) if !loaded.has_errors() => loaded,
+        Ok(loaded) => {
+            for diagnostic in &loaded.diagnostics {
+                log_diagnostic(diagnostic);
+            }
+            let errors = loaded
+                .diagnostics
+                .iter()
+                .filter(|d| d.severity == Severity::Error)
+                .count();
+            error!(
+                "SIGHUP: {} not applied: {errors} error(s) above; the running configuration stays",
+                path.display()
+            );
+            return;
+        }
+        Err(err) => {
+            for diagnostic in err.diagnostics() {
+                log_diagnostic(diagnostic);
+            }
+            error!("SIGHUP: {err}; not applied, the running configuration stays");
+            return;
+        }
+    };
+    for diagnostic in &loaded.diagnostics {
+        log_diagnostic(diagnostic);
+    }
+    let report = server.reload(loaded).await;
+    if !report.global_keys.is_empty() {
+        warn!(
+            "SIGHUP: [*] {} changed: [*] keys take effect at the next restart; the running values stay",
+            report.global_keys.join(", ")
+        );
+    }
+    info!("SIGHUP: configuration reloaded: {report}");
+}
+
 fn log_diagnostic(diagnostic: &Diagnostic) {
     match diagnostic.severity {
         Severity::Warning => warn!("{diagnostic}"),
@@ -133,13 +181,17 @@ async fn run(cli: Cli, mut notifier: Notifier, log: Option<Arc<LogFile>>) -> Exi
         }
         None => None,
     };
-    // SIGHUP reopens the log (logrotate) instead of ending the server.
-    if let Err(err) = logfile::reopen_on_hangup(log) {
-        let message = format!("cannot handle SIGHUP: {err}");
-        error!("{message}");
-        notifier.fail(&message);
-        return ExitCode::FAILURE;
-    }
+    // SIGHUP reopens the log (logrotate) and re-reads the configuration,
+    // instead of ending the server.
+    let mut hangups = match logfile::reopen_on_hangup(log) {
+        Ok(hangups) => hangups,
+        Err(err) => {
+            let message = format!("cannot handle SIGHUP: {err}");
+            error!("{message}");
+            notifier.fail(&message);
+            return ExitCode::FAILURE;
+        }
+    };
     let embedded = cli.config == Path::new(DEFAULT_CONFIG) && !cli.config.exists();
     let loaded = if embedded {
         // The built-in demo (plccoms::demo): a simulated PLC, said loudly.
@@ -185,7 +237,7 @@ async fn run(cli: Cli, mut notifier: Notifier, log: Option<Arc<LogFile>>) -> Exi
             }
         }
     }
-    let server = match plccoms::startup::start(&loaded.config).await {
+    let mut server = match plccoms::startup::start(&loaded.config).await {
         Ok(server) => server,
         Err(message) => {
             error!("{message}");
@@ -209,17 +261,25 @@ async fn run(cli: Cli, mut notifier: Notifier, log: Option<Arc<LogFile>>) -> Exi
         server.sections.len(),
         std::process::id()
     );
+    server.written = loaded.written;
     notifier.ready();
-    let config_changed = async {
-        match config_changes.as_mut() {
-            Some((_, changes)) => changes.recv().await,
-            None => std::future::pending().await,
+    loop {
+        let config_changed = async {
+            match config_changes.as_mut() {
+                Some((_, changes)) => changes.recv().await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => info!("SIGINT: shutting down"),
+            _ = terminate.recv() => info!("SIGTERM: shutting down"),
+            _ = config_changed => info!("configuration file {} changed: exiting (-t)", cli.config.display()),
+            Some(()) = hangups.recv() => {
+                reload(&cli.config, embedded, &mut server).await;
+                continue;
+            }
         }
-    };
-    tokio::select! {
-        _ = tokio::signal::ctrl_c() => info!("SIGINT: shutting down"),
-        _ = terminate.recv() => info!("SIGTERM: shutting down"),
-        _ = config_changed => info!("configuration file {} changed: exiting (-t)", cli.config.display()),
+        break;
     }
     server.shutdown().await;
     info!("stopped");

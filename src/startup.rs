@@ -20,7 +20,7 @@ use plcsim::{SimConfig, SimHandle};
 
 use crate::DRIVERS;
 
-type SectionRef = Arc<plccoms_core::section::Section>;
+use plccoms_core::sections::Sections;
 
 /// A section that is serving: its link, and its telnet port.
 pub struct RunningSection {
@@ -28,6 +28,12 @@ pub struct RunningSection {
     pub local_addr: SocketAddr,
     link: plccoms_core::section::run::Running,
     listener: plccoms_telnet::server::Listener,
+    /// The section as configured (before a simulated PLC's address was put
+    /// in), to tell what a reload changes.
+    configured: Option<Section>,
+    /// Its simulated PLC (`SIMULATOR = Yes`) and that PLC's files.
+    simulators: Vec<SimHandle>,
+    file_stores: Vec<tempfile::TempDir>,
 }
 
 impl RunningSection {
@@ -93,12 +99,45 @@ pub async fn start_section(
         local_addr: listener.local_addr,
         link,
         listener,
+        configured: None,
+        simulators: Vec::new(),
+        file_stores: Vec::new(),
     })
+}
+
+/// Stops `sections` together: no more clients, each session answers what
+/// it received and closes (bounded), then polling stops and their
+/// simulated PLCs.
+async fn stop_sections(sections: &mut [RunningSection]) {
+    for section in sections.iter() {
+        section.stop_accepting();
+    }
+    futures::future::join_all(sections.iter().map(|s| s.wait_sessions(SESSIONS_GRACE))).await;
+    for section in sections.iter() {
+        section.abort();
+    }
+    futures::future::join_all(sections.iter().map(|s| s.wait_link(LINK_GRACE))).await;
+    for section in sections.iter_mut() {
+        for simulator in std::mem::take(&mut section.simulators) {
+            simulator.stop().await;
+        }
+        section.file_stores.clear();
+    }
 }
 
 /// Every section that started, and what keeps them alive.
 pub struct Server {
     pub sections: Vec<RunningSection>,
+    /// The running sections, as the north apps follow them.
+    pub running: Sections,
+    /// The configuration running, and its keys as written (empty when it
+    /// was not read from a file: a reload then restarts what differs
+    /// without naming keys).
+    config: Config,
+    pub written: Vec<plccoms_core::config::Written>,
+    /// `[*]` as running: a reload keeps it (see [`Server::reload`]).
+    global: Arc<Global>,
+    dir: PathBuf,
     /// Every section's metrics, and whatever else reports (`/metrics`).
     pub metrics: Arc<plccoms_core::metrics::Registry>,
     /// The web page, `/metrics` and the API, when HTTP_PORT is set.
@@ -107,16 +146,15 @@ pub struct Server {
     /// The historian, when a section records (HISTORY).
     #[cfg(feature = "historian")]
     pub historian: Option<plccoms_historian::Historian>,
-    simulators: Vec<SimHandle>,
-    _file_stores: Vec<tempfile::TempDir>,
     /// The MQTT north side, when MQTT_URL is set.
     #[cfg(feature = "mqtt")]
     mqtt: Option<plccoms_mqtt::Mqtt>,
 }
 
 impl Server {
-    pub fn simulators(&self) -> &[SimHandle] {
-        &self.simulators
+    /// The simulated PLCs, in section order.
+    pub fn simulators(&self) -> Vec<&SimHandle> {
+        self.sections.iter().flat_map(|s| &s.simulators).collect()
     }
 
     /// Stops accepting, lets every session answer what it has received
@@ -125,7 +163,6 @@ impl Server {
     /// the simulators. Sections stop together: the whole takes at most
     /// [`SESSIONS_GRACE`] + [`LINK_GRACE`] (plus half a second for MQTT),
     /// however many there are.
-    #[cfg_attr(not(any(feature = "web", feature = "historian")), allow(unused_mut))]
     pub async fn shutdown(mut self) {
         #[cfg(feature = "web")]
         if let Some(web) = self.web.take() {
@@ -137,19 +174,10 @@ impl Server {
         // MQTT first, while the links still answer: `offline`, DISCONNECT,
         // the queue saved.
         #[cfg(feature = "mqtt")]
-        if let Some(mqtt) = self.mqtt {
+        if let Some(mqtt) = self.mqtt.take() {
             mqtt.shutdown(MQTT_GRACE).await;
         }
-        futures::future::join_all(
-            self.sections
-                .iter()
-                .map(|s| s.wait_sessions(SESSIONS_GRACE)),
-        )
-        .await;
-        for section in &self.sections {
-            section.abort();
-        }
-        futures::future::join_all(self.sections.iter().map(|s| s.wait_link(LINK_GRACE))).await;
+        stop_sections(&mut self.sections).await;
         #[cfg(feature = "fanout-trace")]
         if let Some(summary) = plccoms_telnet::session::trace::summary() {
             info!("{summary}");
@@ -159,10 +187,219 @@ impl Server {
         if let Some(historian) = self.historian.take() {
             historian.stop().await;
         }
-        for simulator in self.simulators {
-            simulator.stop().await;
+    }
+}
+
+/// What a reload did, as the log tells it.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct Reloaded {
+    pub added: Vec<String>,
+    pub removed: Vec<String>,
+    /// Restarted sections and the keys that changed (empty when the
+    /// running configuration was not read from a file).
+    pub restarted: Vec<(String, Vec<String>)>,
+    pub unchanged: Vec<String>,
+    /// Sections of the new file that could not start, and why.
+    pub failed: Vec<(String, String)>,
+    /// `[*]` keys that changed: they take effect at the next restart.
+    pub global_keys: Vec<String>,
+}
+
+impl std::fmt::Display for Reloaded {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let names = |list: &[String]| {
+            list.iter()
+                .map(|n| format!("[{n}]"))
+                .collect::<Vec<_>>()
+                .join(" ")
+        };
+        let mut parts = Vec::new();
+        if !self.added.is_empty() {
+            parts.push(format!("added {}", names(&self.added)));
+        }
+        if !self.removed.is_empty() {
+            parts.push(format!("removed {}", names(&self.removed)));
+        }
+        if !self.restarted.is_empty() {
+            let list: Vec<String> = self
+                .restarted
+                .iter()
+                .map(|(name, keys)| match keys.is_empty() {
+                    true => format!("[{name}]"),
+                    false => format!("[{name}] ({})", keys.join(", ")),
+                })
+                .collect();
+            parts.push(format!("restarted {}", list.join(" ")));
+        }
+        if !self.failed.is_empty() {
+            parts.push(format!(
+                "not started {}",
+                names(
+                    &self
+                        .failed
+                        .iter()
+                        .map(|(n, _)| n.clone())
+                        .collect::<Vec<_>>()
+                )
+            ));
+        }
+        parts.push(format!("{} unchanged", self.unchanged.len()));
+        write!(f, "{}", parts.join(", "))
+    }
+}
+
+impl Server {
+    /// Registers a started section (metrics; [`Server::publish`] tells the
+    /// apps).
+    fn add(&mut self, running: RunningSection) {
+        let probe: std::sync::Weak<dyn plccoms_core::metrics::SectionProbe> =
+            Arc::downgrade(&running.section) as _;
+        self.metrics.add_section(
+            running.section.name(),
+            running.section.metrics().clone(),
+            probe,
+        );
+        self.sections.push(running);
+    }
+
+    /// Tells the north apps which sections run now.
+    fn publish(&self) {
+        self.running
+            .set(self.sections.iter().map(|r| r.section.clone()).collect());
+    }
+
+    /// Applies a new configuration without a restart: sections added start,
+    /// removed ones stop (their clients' requests answered, then the
+    /// connections closed), changed ones restart alone; unchanged ones keep
+    /// their clients, links, subscriptions and MQTT sessions. `[*]` stays as
+    /// it runs: its changed keys are named, for the next restart. The
+    /// caller refuses a file with errors before this (see
+    /// [`plccoms_core::config::Loaded::has_errors`]).
+    pub async fn reload(&mut self, loaded: plccoms_core::config::Loaded) -> Reloaded {
+        let new = loaded.config;
+        let mut report = Reloaded::default();
+        if let (Some(old), Some(now)) = (
+            self.written("*"),
+            loaded.written.iter().find(|w| w.name == "*"),
+        ) {
+            report.global_keys = plccoms_core::config::changed_keys(old, now);
+        } else if self.config.global != new.global {
+            report.global_keys.push("*".into());
+        }
+        for own in new.own_paths() {
+            plccoms_core::localfs::protect(
+                &own.path,
+                own.used != plccoms_core::config::PathUse::Input,
+            );
+        }
+        // What each section of the new file would run with: `[*]` as running.
+        let wanted: Vec<Section> = new
+            .sections
+            .iter()
+            .map(|section| Section {
+                serial_device_cfg: self.global.serial_device_cfg.clone(),
+                ..section.clone()
+            })
+            .collect();
+        let mut stopping = Vec::new();
+        let mut kept = Vec::new();
+        for running in std::mem::take(&mut self.sections) {
+            let name = running.section.name().to_string();
+            match wanted.iter().find(|s| s.name == name) {
+                None => {
+                    report.removed.push(name);
+                    stopping.push(running);
+                }
+                Some(section) if running.configured.as_ref() != Some(section) => {
+                    let keys = match (
+                        self.written(&name),
+                        loaded.written.iter().find(|w| w.name == name),
+                    ) {
+                        (Some(old), Some(now)) => plccoms_core::config::changed_keys(old, now),
+                        _ => Vec::new(),
+                    };
+                    report.restarted.push((name, keys));
+                    stopping.push(running);
+                }
+                Some(_) => {
+                    report.unchanged.push(name);
+                    kept.push(running);
+                }
+            }
+        }
+        for running in &stopping {
+            self.metrics.remove_section(running.section.name());
+        }
+        // The apps let go of them first (MQTT says `offline` while the link
+        // still answers), then they stop.
+        self.sections = kept;
+        self.publish();
+        stop_sections(&mut stopping).await;
+        drop(stopping);
+        for section in &wanted {
+            if self
+                .sections
+                .iter()
+                .any(|r| r.section.name() == section.name)
+            {
+                continue;
+            }
+            let restarted = report.restarted.iter().any(|(n, _)| *n == section.name);
+            if !restarted && !report.removed.contains(&section.name) {
+                report.added.push(section.name.clone());
+            }
+            match start_one(&self.global, section, &self.dir).await {
+                Ok(running) => self.add(running),
+                Err(message) => {
+                    error!(section = %section.name, "section not started: {message}");
+                    report.failed.push((section.name.clone(), message));
+                }
+            }
+        }
+        // Configuration order, as at start.
+        self.sections.sort_by_key(|r| {
+            wanted
+                .iter()
+                .position(|s| s.name == r.section.name())
+                .unwrap_or(usize::MAX)
+        });
+        self.publish();
+        self.start_historian_if_needed();
+        // `[*]` stays as it runs, and so do its keys as written.
+        let global_written = self.written.iter().find(|w| w.name == "*").cloned();
+        self.written = loaded
+            .written
+            .into_iter()
+            .filter(|w| w.name != "*")
+            .chain(global_written)
+            .collect();
+        self.config = Config {
+            global: self.config.global.clone(),
+            ..new
+        };
+        report
+    }
+
+    fn written(&self, name: &str) -> Option<&plccoms_core::config::Written> {
+        self.written.iter().find(|w| w.name == name)
+    }
+
+    /// A reload that adds the first section with HISTORY starts the
+    /// historian.
+    #[cfg(feature = "historian")]
+    fn start_historian_if_needed(&mut self) {
+        if self.historian.is_some() {
+            return;
+        }
+        let config = self.config.clone();
+        let sections = self.running.clone();
+        if let Err(message) = start_historian(&config, &sections, self) {
+            error!("{message}");
         }
     }
+
+    #[cfg(not(feature = "historian"))]
+    fn start_historian_if_needed(&mut self) {}
 }
 
 /// Longest wait at shutdown for sessions to answer what they received, and
@@ -194,29 +431,23 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     let global = Arc::new(global);
     let mut server = Server {
         sections: Vec::new(),
+        running: Sections::new(Vec::new()),
+        config: config.clone(),
+        written: Vec::new(),
+        global: global.clone(),
+        dir: dir.clone(),
         metrics: Arc::default(),
         #[cfg(feature = "web")]
         web: None,
         #[cfg(feature = "historian")]
         historian: None,
-        simulators: Vec::new(),
-        _file_stores: Vec::new(),
         #[cfg(feature = "mqtt")]
         mqtt: None,
     };
     let mut failures = Vec::new();
     for section in &config.sections {
-        match start_one(&global, section, &dir, &mut server).await {
-            Ok(running) => {
-                let probe: std::sync::Weak<dyn plccoms_core::metrics::SectionProbe> =
-                    Arc::downgrade(&running.section) as _;
-                server.metrics.add_section(
-                    running.section.name(),
-                    running.section.metrics().clone(),
-                    probe,
-                );
-                server.sections.push(running);
-            }
+        match start_one(&global, section, &dir).await {
+            Ok(running) => server.add(running),
             Err(message) => {
                 error!(section = %section.name, "section not started: {message}");
                 failures.push(format!("[{}] {message}", section.name));
@@ -231,7 +462,8 @@ pub async fn start(config: &Config) -> Result<Server, String> {
             failures.join("; ")
         ));
     }
-    let sections: Vec<_> = server.sections.iter().map(|r| r.section.clone()).collect();
+    server.publish();
+    let sections = server.running.clone();
     start_historian(config, &sections, &mut server)?;
     start_mqtt(config, &dir, &sections, &mut server)?;
     start_web(config, &global, &dir, sections, &mut server)?;
@@ -254,7 +486,7 @@ fn left_out(what: &str, feature: &str) -> String {
 #[cfg(feature = "historian")]
 fn start_historian(
     config: &Config,
-    sections: &[SectionRef],
+    sections: &Sections,
     server: &mut Server,
 ) -> Result<(), String> {
     server.historian = plccoms_historian::Historian::start(config, sections)
@@ -268,10 +500,11 @@ fn start_historian(
 #[cfg(not(feature = "historian"))]
 fn start_historian(
     _config: &Config,
-    sections: &[SectionRef],
+    sections: &Sections,
     _server: &mut Server,
 ) -> Result<(), String> {
     if sections
+        .current()
         .iter()
         .any(|section| section.state().config.history.enabled())
     {
@@ -287,7 +520,7 @@ fn start_historian(
 fn start_mqtt(
     config: &Config,
     dir: &Path,
-    sections: &[SectionRef],
+    sections: &Sections,
     server: &mut Server,
 ) -> Result<(), String> {
     let mqtt = plccoms_mqtt::settings::Settings::load(&config.global.mqtt, dir, &config.path)
@@ -308,7 +541,7 @@ fn start_mqtt(
 fn start_mqtt(
     config: &Config,
     _dir: &Path,
-    _sections: &[SectionRef],
+    _sections: &Sections,
     _server: &mut Server,
 ) -> Result<(), String> {
     if config.global.mqtt.url.is_some() {
@@ -325,7 +558,7 @@ fn start_web(
     config: &Config,
     global: &Arc<Global>,
     dir: &Path,
-    sections: Vec<SectionRef>,
+    sections: Sections,
     server: &mut Server,
 ) -> Result<(), String> {
     let Some(web) = plccoms_web::WebConfig::from_global(global, dir) else {
@@ -356,7 +589,7 @@ fn start_web(
     _config: &Config,
     global: &Arc<Global>,
     _dir: &Path,
-    _sections: Vec<SectionRef>,
+    _sections: Sections,
     _server: &mut Server,
 ) -> Result<(), String> {
     if global.http_port.is_some() {
@@ -388,14 +621,21 @@ fn files_root(global: &plccoms_core::config::Global, dir: &Path) -> Result<PathB
     Ok(root)
 }
 
+/// A section's simulated PLC and its files, while it runs.
+#[derive(Default)]
+struct Simulated {
+    simulators: Vec<SimHandle>,
+    file_stores: Vec<tempfile::TempDir>,
+}
+
 async fn start_one(
     global: &Arc<Global>,
-    section: &Section,
+    configured: &Section,
     dir: &Path,
-    server: &mut Server,
 ) -> Result<RunningSection, String> {
-    let mut section = section.clone();
-    let backend = backend_for(&mut section, dir, server).await?;
+    let mut section = configured.clone();
+    let mut simulated = Simulated::default();
+    let backend = backend_for(&mut section, dir, &mut simulated).await?;
     let section = &section;
     let source = PubSource::new(section, dir)?;
     let (user, from_plc) = match source.load_local(section, NamedBy::Configuration) {
@@ -412,7 +652,7 @@ async fn start_one(
     );
     let bind_ip = section.ipaddr_local.unwrap_or(Ipv4Addr::UNSPECIFIED);
     let bind = SocketAddr::new(IpAddr::V4(bind_ip), section.server_port);
-    start_section(
+    let mut running = start_section(
         global.clone(),
         section.clone(),
         table,
@@ -422,7 +662,11 @@ async fn start_one(
         Some(Tables::new(source, user, from_plc)),
     )
     .await
-    .map_err(|e| format!("cannot listen on {bind}: {e}"))
+    .map_err(|e| format!("cannot listen on {bind}: {e}"))?;
+    running.configured = Some(configured.clone());
+    running.simulators = simulated.simulators;
+    running.file_stores = simulated.file_stores;
+    Ok(running)
 }
 
 /// The section's PLC link; `None` when it has no PLC yet (`IPADDR = 0.0.0.0`).
@@ -431,7 +675,7 @@ async fn start_one(
 async fn backend_for(
     section: &mut Section,
     dir: &Path,
-    server: &mut Server,
+    server: &mut Simulated,
 ) -> Result<Option<Box<dyn PlcBackend>>, String> {
     if let Some(simulator) = section.simulator.clone() {
         let device = if section.protocol == Protocol::ModbusTcp {
@@ -466,7 +710,7 @@ async fn spawn_modbus_simulator(
     section: &mut Section,
     simulator: &plccoms_core::config::Simulator,
     dir: &Path,
-    server: &mut Server,
+    server: &mut Simulated,
 ) -> Result<SocketAddr, String> {
     let read = |path: PathBuf, key: &str| {
         std::fs::read(&path).map_err(|e| format!("{key} {}: {e}", path.display()))
@@ -482,7 +726,7 @@ async fn spawn_modbus_simulator(
             let path = store.path().join("demo-modbus.csv");
             std::fs::write(&path, plcsim::DEMO_TAGS).map_err(|e| e.to_string())?;
             section.modbus.tags = Some(path.to_string_lossy().into_owned());
-            server._file_stores.push(store);
+            server.file_stores.push(store);
             plcsim::DEMO_TAGS.to_vec()
         }
     };
@@ -508,7 +752,7 @@ async fn run_simulator(
     simulator: &plccoms_core::config::Simulator,
     config: SimConfig,
     what: &str,
-    server: &mut Server,
+    server: &mut Simulated,
 ) -> Result<SocketAddr, String> {
     let program = simulator
         .program
@@ -530,7 +774,7 @@ async fn spawn_simulator(
     section: &Section,
     simulator: &plccoms_core::config::Simulator,
     dir: &Path,
-    server: &mut Server,
+    server: &mut Simulated,
 ) -> Result<SocketAddr, String> {
     let bytes = match &simulator.pubfile {
         Some(path) => {
@@ -557,6 +801,6 @@ async fn spawn_simulator(
         ..SimConfig::default()
     };
     let addr = run_simulator(section, simulator, config, "simulated PLC", server).await?;
-    server._file_stores.push(store);
+    server.file_stores.push(store);
     Ok(addr)
 }

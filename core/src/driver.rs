@@ -132,6 +132,12 @@ pub trait PlcBackend: Send {
     /// (the section's, kept across new links).
     fn set_counters(&mut self, _counters: std::sync::Arc<crate::metrics::BackendCounters>) {}
 
+    /// Whether this is the link's trace wrapper already
+    /// ([`crate::link::traced::Traced`]); no backend of a driver is.
+    fn is_traced(&self) -> bool {
+        false
+    }
+
     /// (Re)initialise the link and return the PLC's identification string.
     async fn connect(&mut self) -> Result<String, PlcError>;
 

@@ -31,4 +31,6 @@ pub mod metrics;
 pub mod present;
 pub mod ratelimit;
 pub mod section;
+pub mod sections;
+pub mod trace;
 pub mod vars;

@@ -288,6 +288,11 @@ impl Registry {
         lock(&self.sections).push((name.to_string(), metrics, probe));
     }
 
+    /// Forgets a section that stopped (removed or restarted by a reload).
+    pub fn remove_section(&self, name: &str) {
+        lock(&self.sections).retain(|(n, _, _)| n != name);
+    }
+
     pub fn add_source(&self, source: Arc<dyn Source>) {
         lock(&self.sources).push(source);
     }

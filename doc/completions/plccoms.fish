@@ -28,7 +28,7 @@ complete -c plccoms -n "__fish_plccoms_needs_command" -s c -l config -d 'Configu
 complete -c plccoms -n "__fish_plccoms_needs_command" -s l -l log -d 'Log file (without it, reports go to the terminal unless -d is given)' -r -F
 complete -c plccoms -n "__fish_plccoms_needs_command" -l pid-file -d 'Pid file, locked while the server runs (with -d: PLCComS.pid unless given; a file left by a crash is taken over)' -r -F
 complete -c plccoms -n "__fish_plccoms_needs_command" -s d -l daemon -d 'Run in the background; reports go to the log file (PLCComS.log unless -l is given)'
-complete -c plccoms -n "__fish_plccoms_needs_command" -s t -l terminate -d 'Terminate if the configuration file was changed'
+complete -c plccoms -n "__fish_plccoms_needs_command" -s t -l terminate -d 'Terminate if the configuration file was changed (SIGHUP applies an edit without a restart)'
 complete -c plccoms -n "__fish_plccoms_needs_command" -s v -l verbose -d 'Verbose mode (multiple -v options increase the verbosity)'
 complete -c plccoms -n "__fish_plccoms_needs_command" -s h -l help -d 'Print help'
 complete -c plccoms -n "__fish_plccoms_needs_command" -s V -l version -d 'Print version'

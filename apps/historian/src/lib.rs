@@ -174,31 +174,161 @@ impl InfoLines for Stats {
     }
 }
 
-/// The running historian: a recorder task per recording section and the
-/// writer thread.
+/// Each recording section's name and stats, for `/metrics`.
+type StatsList = Arc<std::sync::Mutex<Vec<(String, Arc<Stats>)>>>;
+
+/// The running historian: a recorder task per recording section, started
+/// and stopped as the running sections change (a reload), and the writer
+/// thread.
 pub struct Historian {
     stop: CancellationToken,
-    recorders: Vec<JoinHandle<()>>,
+    supervisor: Option<JoinHandle<()>>,
     writer: Option<std::thread::JoinHandle<()>>,
     tx: Sender<Message>,
     /// Per recording section, its name and stats.
-    pub sections: Vec<(String, Arc<Stats>)>,
+    stats: StatsList,
+}
+
+/// One section's recorder.
+struct Recording {
+    section: Arc<Section>,
+    index: usize,
+    stop: CancellationToken,
+    task: JoinHandle<()>,
+}
+
+/// What starts and stops the recorders.
+struct Recorders {
+    tx: Sender<Message>,
+    stop: CancellationToken,
+    stats: StatsList,
+    sync: Duration,
+    dir: PathBuf,
+    /// Sections handed to the writer so far (the next one's number).
+    added: usize,
+    running: Vec<Recording>,
+}
+
+impl Recorders {
+    /// Starts recording `section` if its HISTORY is set; `out` collects
+    /// what the writer needs when it is not running yet.
+    fn start(&mut self, section: &Arc<Section>, outs: Option<&mut Vec<writer::SectionOut>>) {
+        let history = section.state().config.history.clone();
+        if !history.enabled() {
+            return;
+        }
+        let stats = Arc::new(Stats::default());
+        stats.sync_ms.set(self.sync.as_millis() as u64);
+        let _ = section.set_info_lines(stats.clone());
+        let out = writer::SectionOut {
+            name: section.name().to_string(),
+            stats: stats.clone(),
+        };
+        match outs {
+            Some(outs) => outs.push(out),
+            None => {
+                let _ = self.tx.send(Message::Add(out));
+            }
+        }
+        {
+            let mut list = lock(&self.stats);
+            list.retain(|(name, _)| name != section.name());
+            list.push((section.name().to_string(), stats.clone()));
+        }
+        info!(section = %section.name(), dir = %self.dir.display(), "history: recording {}", history.masks.join(", "));
+        let index = self.added;
+        self.added += 1;
+        let stop = self.stop.child_token();
+        let task = tokio::spawn(record_section(
+            section.clone(),
+            history,
+            index,
+            Queue {
+                tx: self.tx.clone(),
+                stats,
+            },
+            stop.clone(),
+        ));
+        self.running.push(Recording {
+            section: section.clone(),
+            index,
+            stop,
+            task,
+        });
+    }
+
+    /// Stops the recorder of a section that stopped: what it queued is
+    /// written and its files closed before a replacement opens them.
+    async fn stop(&mut self, section: &Arc<Section>) {
+        let Some(at) = self
+            .running
+            .iter()
+            .position(|r| Arc::ptr_eq(&r.section, section))
+        else {
+            return;
+        };
+        let recording = self.running.remove(at);
+        recording.stop.cancel();
+        let _ = recording.task.await;
+        let _ = self.tx.send(Message::Remove {
+            section: recording.index,
+        });
+        lock(&self.stats).retain(|(name, _)| name != section.name());
+        info!(section = %section.name(), "history: recording stopped (section stopped)");
+    }
+
+    /// Follows the running sections until the historian stops.
+    async fn follow(
+        mut self,
+        mut watch: tokio::sync::watch::Receiver<plccoms_core::sections::SectionList>,
+    ) {
+        loop {
+            tokio::select! {
+                _ = self.stop.cancelled() => break,
+                changed = watch.changed() => if changed.is_err() { break },
+            }
+            let now = watch.borrow_and_update().clone();
+            let current: Vec<_> = self.running.iter().map(|r| r.section.clone()).collect();
+            let (added, removed) = plccoms_core::sections::diff(&current, &now);
+            for section in &removed {
+                self.stop(section).await;
+            }
+            // Unchanged sections that do not record come back as `added`
+            // (only recorders are in `running`): `start` passes them by.
+            for section in &added {
+                self.start(section, None);
+            }
+        }
+        for recording in self.running.drain(..) {
+            let _ = recording.task.await;
+        }
+    }
+}
+
+fn lock<T>(mutex: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Whether the historian has work: a section whose HISTORY is set.
+pub fn records(sections: &[Arc<Section>]) -> bool {
+    sections
+        .iter()
+        .any(|section| section.state().config.history.enabled())
 }
 
 impl Historian {
-    /// Starts recording the sections whose HISTORY is set; `None` when
-    /// there are none; an error naming the key and the fix when the history
+    /// Starts recording the sections whose HISTORY is set, and follows
+    /// `sections` (a reload starts and stops recorders); `None` when none
+    /// records now; an error naming the key and the fix when the history
     /// folder cannot be written (a configured historian that records nothing
     /// must not start).
-    pub fn start(config: &Config, sections: &[Arc<Section>]) -> Result<Option<Historian>, String> {
-        let recording: Vec<(&Arc<Section>, History)> = sections
-            .iter()
-            .filter_map(|section| {
-                let history = section.state().config.history.clone();
-                history.enabled().then_some((section, history))
-            })
-            .collect();
-        if recording.is_empty() {
+    pub fn start(
+        config: &Config,
+        sections: &plccoms_core::sections::Sections,
+    ) -> Result<Option<Historian>, String> {
+        let mut watch = sections.watch();
+        let first = watch.borrow_and_update().clone();
+        if !records(&first) {
             return Ok(None);
         }
         let dir = history_dir(&config.path, &config.global);
@@ -210,31 +340,19 @@ impl Historian {
         })?;
         let (tx, rx) = std::sync::mpsc::channel();
         let stop = CancellationToken::new();
+        let stats = Arc::new(std::sync::Mutex::new(Vec::new()));
+        let mut recorders = Recorders {
+            tx: tx.clone(),
+            stop: stop.clone(),
+            stats: stats.clone(),
+            sync: config.global.history_sync,
+            dir: dir.clone(),
+            added: 0,
+            running: Vec::new(),
+        };
         let mut outs = Vec::new();
-        let mut stats_list = Vec::new();
-        let mut recorders = Vec::new();
-        for (index, (section, history)) in recording.into_iter().enumerate() {
-            let stats = Arc::new(Stats::default());
-            stats
-                .sync_ms
-                .set(config.global.history_sync.as_millis() as u64);
-            let _ = section.set_info_lines(stats.clone());
-            outs.push(writer::SectionOut {
-                name: section.name().to_string(),
-                stats: stats.clone(),
-            });
-            stats_list.push((section.name().to_string(), stats.clone()));
-            info!(section = %section.name(), dir = %dir.display(), "history: recording {}", history.masks.join(", "));
-            recorders.push(tokio::spawn(record_section(
-                section.clone(),
-                history,
-                index,
-                Queue {
-                    tx: tx.clone(),
-                    stats,
-                },
-                stop.clone(),
-            )));
+        for section in first.iter() {
+            recorders.start(section, Some(&mut outs));
         }
         let settings = writer::Settings {
             dir,
@@ -247,20 +365,21 @@ impl Historian {
             .name("historian".into())
             .spawn(move || writer::run(rx, outs, settings))
             .map_err(|e| format!("cannot start the writer thread: {e}"))?;
+        let supervisor = tokio::spawn(recorders.follow(watch));
         Ok(Some(Historian {
             stop,
-            recorders,
+            supervisor: Some(supervisor),
             writer: Some(writer),
             tx,
-            sections: stats_list,
+            stats,
         }))
     }
 
     /// Stops recording: what is queued is committed and the files closed.
     pub async fn stop(mut self) {
         self.stop.cancel();
-        for recorder in self.recorders.drain(..) {
-            let _ = recorder.await;
+        if let Some(supervisor) = self.supervisor.take() {
+            let _ = supervisor.await;
         }
         let _ = self.tx.send(Message::Stop);
         if let Some(writer) = self.writer.take() {
@@ -270,7 +389,7 @@ impl Historian {
 
     /// The metrics of every recording section.
     pub fn metrics(&self) -> Arc<dyn metrics::Source> {
-        Arc::new(Metrics(self.sections.clone()))
+        Arc::new(Metrics(self.stats.clone()))
     }
 }
 
@@ -416,7 +535,7 @@ async fn record_section(
 }
 
 /// The historian's metrics, `plccoms_historian_*`, one `section` label.
-struct Metrics(Vec<(String, Arc<Stats>)>);
+struct Metrics(StatsList);
 
 impl metrics::Source for Metrics {
     fn render(&self, out: &mut String) {
@@ -434,9 +553,10 @@ impl metrics::Source for Metrics {
             ("plccoms_historian_file_bytes", "gauge", "Bytes of the day files being written.", |s| s.bytes.get()),
             ("plccoms_historian_recording", "gauge", "1 while recording, 0 while stopped (disk full, size limit).", |s| u64::from(s.state() == State::Recording)),
         ];
+        let sections = lock(&self.0).clone();
         for (name, kind, help, get) in families {
             metrics::header(out, name, kind, help);
-            for (section, stats) in &self.0 {
+            for (section, stats) in &sections {
                 let labels = format!("section=\"{}\"", metrics::escape_label(section));
                 let value = get(stats);
                 if name == "plccoms_historian_flush_seconds" {
@@ -462,7 +582,11 @@ mod tests {
         stats.sync_ms.set(1000);
         stats.queue_max.raise(7);
         let mut out = String::new();
-        Metrics(vec![("Boiler".into(), stats.clone())]).render(&mut out);
+        Metrics(Arc::new(std::sync::Mutex::new(vec![(
+            "Boiler".into(),
+            stats.clone(),
+        )])))
+        .render(&mut out);
         assert!(out.contains("# TYPE plccoms_historian_samples_written_total counter\n"));
         assert!(out.contains("plccoms_historian_samples_written_total{section=\"Boiler\"} 5\n"));
         assert!(out.contains("plccoms_historian_flush_seconds{section=\"Boiler\"} 0.0025\n"));

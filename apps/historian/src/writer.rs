@@ -17,7 +17,7 @@
 //! over is packed whole, its freed pages given back, and then closed. Days
 //! left unpacked by a stop are finished after the next start.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
 use std::sync::mpsc::{Receiver, RecvTimeoutError};
@@ -41,6 +41,12 @@ pub enum Message {
         samples: Vec<Sample>,
         events: Vec<Event>,
     },
+    /// A section to record from now on (a reload added or restarted it);
+    /// its `Record`s name it by the number of sections added before it.
+    Add(SectionOut),
+    /// A section that stopped: what it has pending is written and its
+    /// files closed (its replacement, if any, opens them anew).
+    Remove { section: usize },
     /// Write what is pending and end.
     Stop,
 }
@@ -78,25 +84,40 @@ struct Section {
     pack_failing: Option<bool>,
 }
 
-pub fn run(rx: Receiver<Message>, sections: Vec<SectionOut>, settings: Settings) {
-    let mut sections: Vec<Section> = sections
-        .into_iter()
-        .map(|out| Section {
+impl Section {
+    fn new(out: SectionOut, settings: &Settings) -> Section {
+        let closing = if settings.pack_after.is_some() {
+            unfinished_days(settings, &out.name)
+        } else {
+            Vec::new()
+        };
+        Section {
             out,
             pending: Vec::new(),
             events: Vec::new(),
             pending_samples: 0,
             files: HashMap::new(),
-            closing: Vec::new(),
+            closing,
             failing: None,
             pack_failing: None,
-        })
-        .collect();
-    if settings.pack_after.is_some() {
-        for section in &mut sections {
-            section.closing = unfinished_days(&settings, &section.out.name);
         }
     }
+
+    fn close(self) {
+        for file in self.files.into_values().chain(self.closing) {
+            file.close();
+        }
+    }
+}
+
+pub fn run(rx: Receiver<Message>, sections: Vec<SectionOut>, settings: Settings) {
+    // By the number given at `Add`: removed sections leave a gap.
+    let mut sections: BTreeMap<usize, Section> = sections
+        .into_iter()
+        .map(|out| Section::new(out, &settings))
+        .enumerate()
+        .collect();
+    let mut added = sections.len();
     let mut next_sync = Instant::now() + settings.sync;
     let mut next_retention = Instant::now();
     let mut over_limit = false;
@@ -104,7 +125,7 @@ pub fn run(rx: Receiver<Message>, sections: Vec<SectionOut>, settings: Settings)
     while !stopping {
         let now = Instant::now();
         if now >= next_retention {
-            over_limit = retention(&settings, &sections);
+            over_limit = retention(&settings, sections.values());
             next_retention = now + RETENTION_EVERY;
         }
         match rx.recv_timeout(next_sync.saturating_duration_since(now)) {
@@ -114,7 +135,9 @@ pub fn run(rx: Receiver<Message>, sections: Vec<SectionOut>, settings: Settings)
                 samples,
                 events,
             }) => {
-                let s = &mut sections[section];
+                let Some(s) = sections.get_mut(&section) else {
+                    continue;
+                };
                 s.pending_samples += samples.len() as u64;
                 if !samples.is_empty() {
                     s.pending.push((table, samples));
@@ -122,19 +145,31 @@ pub fn run(rx: Receiver<Message>, sections: Vec<SectionOut>, settings: Settings)
                 s.events.extend(events);
                 continue;
             }
+            Ok(Message::Add(out)) => {
+                sections.insert(added, Section::new(out, &settings));
+                added += 1;
+                continue;
+            }
+            Ok(Message::Remove { section }) => {
+                if let Some(mut s) = sections.remove(&section) {
+                    flush(&mut s, &settings, over_limit);
+                    s.close();
+                }
+                continue;
+            }
             Ok(Message::Stop) | Err(RecvTimeoutError::Disconnected) => stopping = true,
             Err(RecvTimeoutError::Timeout) => {}
         }
         let interval_start = next_sync - settings.sync;
         let started = Instant::now();
-        for section in &mut sections {
+        for section in sections.values_mut() {
             flush(section, &settings, over_limit);
         }
         let took = started.elapsed();
         if !stopping {
             if let Some(after) = settings.pack_after {
                 let deadline = started + settings.sync / 2;
-                for section in &mut sections {
+                for section in sections.values_mut() {
                     pack(section, after, deadline);
                 }
             }
@@ -142,7 +177,7 @@ pub fn run(rx: Receiver<Message>, sections: Vec<SectionOut>, settings: Settings)
         let filled = started
             .saturating_duration_since(interval_start)
             .max(settings.sync);
-        for section in &sections {
+        for section in sections.values() {
             section.out.stats.flush_us.set(took.as_micros() as u64);
             section
                 .out
@@ -158,10 +193,8 @@ pub fn run(rx: Receiver<Message>, sections: Vec<SectionOut>, settings: Settings)
             next_sync = Instant::now() + settings.sync;
         }
     }
-    for section in sections {
-        for file in section.files.into_values().chain(section.closing) {
-            file.close();
-        }
+    for section in sections.into_values() {
+        section.close();
     }
 }
 
@@ -448,7 +481,7 @@ fn clone_error(e: &store::StoreError) -> store::StoreError {
 
 /// Deletes day files past the retention; returns whether the files still
 /// take more than the size limit (recording must stop).
-fn retention(settings: &Settings, sections: &[Section]) -> bool {
+fn retention<'a>(settings: &Settings, sections: impl Iterator<Item = &'a Section>) -> bool {
     let Retention { days, bytes } = settings.retention;
     if days.is_none() && bytes.is_none() {
         return false;
@@ -459,7 +492,6 @@ fn retention(settings: &Settings, sections: &[Section]) -> bool {
         return false;
     };
     let open: Vec<&PathBuf> = sections
-        .iter()
         .flat_map(|s| s.files.values().chain(&s.closing).map(|f| &f.path))
         .collect();
     for entry in entries.filter_map(Result::ok) {
@@ -653,14 +685,14 @@ mod tests {
             pack_after: None,
         };
         // 30 days: the 40-day-old file (and its WAL) goes.
-        assert!(!retention(&settings(Some(30), None), &[]));
+        assert!(!retention(&settings(Some(30), None), [].iter()));
         assert!(!old.exists() && !wal.exists());
         assert!(a_week.exists() && b_yesterday.exists());
         // 2500 bytes for 3000: the oldest goes, whatever its section.
-        assert!(!retention(&settings(None, Some(2500)), &[]));
+        assert!(!retention(&settings(None, Some(2500)), [].iter()));
         assert!(!a_week.exists() && b_yesterday.exists() && b_today.exists());
         // Today's file is never deleted: over the limit, recording stops.
-        assert!(retention(&settings(None, Some(500)), &[]));
+        assert!(retention(&settings(None, Some(500)), [].iter()));
         assert!(!b_yesterday.exists() && b_today.exists());
     }
 }

@@ -190,6 +190,9 @@ impl Task {
         let mut tick = tokio::time::interval(Duration::from_secs(1));
         tick.set_missed_tick_behavior(MissedTickBehavior::Skip);
         let mut stream_open = true;
+        // The PLC's identification comes after the first values (the
+        // public file is fetched first): discovery names it once known.
+        let mut section_state = self.section.watch_state();
         loop {
             self.pump();
             tokio::select! {
@@ -214,6 +217,7 @@ impl Task {
                     self.connect();
                 }
                 _ = tick.tick() => self.checkpoint(),
+                Ok(()) = section_state.changed() => self.on_state(),
             }
         }
         self.stop().await;
@@ -480,12 +484,8 @@ impl Task {
             self.state
                 .direct
                 .push_back(plc_message(&self.topics, online));
-            if online && self.rules.ha_discovery {
-                let state = self.section.state();
-                let maker = Maker::of(&state.config, state.link.ident.as_deref());
-                if self.state.maker.as_ref() != Some(&maker) {
-                    self.announce();
-                }
+            if online {
+                self.on_state();
             }
         }
         if link_changed && self.rules.format == MqttFormat::Json && !batch.table_changed {
@@ -692,6 +692,20 @@ impl Task {
     /// as the window has room ([`Task::next_announcement`]), so an
     /// announcement holds a cursor and the topics to clear, never the
     /// messages.
+    /// Announces discovery again when what it says of the device (the PLC's
+    /// identification) changed, while connected and the PLC online.
+    fn on_state(&mut self) {
+        if !self.rules.ha_discovery || !self.state.connected || self.state.plc_online != Some(true)
+        {
+            return;
+        }
+        let state = self.section.state();
+        let maker = Maker::of(&state.config, state.link.ident.as_deref());
+        if self.state.maker.as_ref() != Some(&maker) {
+            self.announce();
+        }
+    }
+
     fn announce(&mut self) {
         if !self.state.connected {
             return;

@@ -135,16 +135,24 @@ impl Metrics {
 }
 
 /// Every section's MQTT counters, for `/metrics`.
+#[derive(Default)]
 pub struct Source {
-    sections: Vec<(String, Arc<Metrics>)>,
+    sections: std::sync::Mutex<Vec<(String, Arc<Metrics>)>>,
+}
+
+impl Source {
+    fn sections(&self) -> std::sync::MutexGuard<'_, Vec<(String, Arc<Metrics>)>> {
+        self.sections.lock().unwrap_or_else(|e| e.into_inner())
+    }
 }
 
 impl metrics::Source for Source {
     fn render(&self, out: &mut String) {
         use std::fmt::Write as _;
+        let sections = self.sections().clone();
         for (index, (name, kind, help)) in FAMILIES.iter().enumerate() {
             metrics::header(out, name, kind, help);
-            for (section, m) in &self.sections {
+            for (section, m) in &sections {
                 let _ = writeln!(
                     out,
                     "{name}{{section=\"{}\"}} {}",
@@ -156,10 +164,10 @@ impl metrics::Source for Source {
     }
 }
 
-/// The running MQTT tasks.
+/// The running MQTT side: a task per section, started and stopped as the
+/// running sections change (a reload), the others left alone.
 pub struct Mqtt {
-    tasks: Vec<JoinHandle<()>>,
-    writers: Vec<JoinHandle<()>>,
+    supervisor: JoinHandle<()>,
     stop: CancellationToken,
     pub source: Arc<Source>,
 }
@@ -169,122 +177,261 @@ impl Mqtt {
     /// saved), waiting at most `grace`.
     pub async fn shutdown(self, grace: Duration) {
         self.stop.cancel();
-        let all = futures::future::join_all(self.tasks);
-        if tokio::time::timeout(grace, all).await.is_err() {
+        if tokio::time::timeout(grace, self.supervisor).await.is_err() {
             warn!("MQTT: not every section stopped within {grace:?}");
-        }
-        for writer in self.writers {
-            writer.abort();
         }
     }
 }
 
-/// Starts a task per section. Fails when a section's rules or queue folder
-/// cannot be used (the folder held by another process, say).
-pub fn start(settings: Settings, sections: &[Arc<Section>]) -> Result<Mqtt, String> {
-    let settings = Arc::new(settings);
-    let stop = CancellationToken::new();
-    let mut prepared = Vec::new();
+/// One section's MQTT work.
+struct Running {
+    section: Arc<Section>,
+    stop: CancellationToken,
+    task: JoinHandle<()>,
+    writer: JoinHandle<()>,
+}
+
+impl Running {
+    /// Ends the section's session cleanly, at most `grace`.
+    async fn stop(self, grace: Duration) {
+        self.stop.cancel();
+        if tokio::time::timeout(grace, self.task).await.is_err() {
+            warn!(section = %self.section.name(), "MQTT: the section's task did not stop within {grace:?}");
+        }
+        self.writer.abort();
+    }
+}
+
+/// What a section needs before its task can run (checked at start, so a
+/// folder that cannot be used stops the start).
+struct Prepared {
+    section: Arc<Section>,
+    rules: SectionRules,
+    topics: Topics,
+    client_id: String,
+    spool: Spool,
+    spool_dir: std::path::PathBuf,
+}
+
+fn prepare(settings: &Settings, section: &Arc<Section>) -> Result<Prepared, String> {
+    let section = section.clone();
+    let config = section.state().config.clone();
+    let rules = SectionRules::new(&config.mqtt).map_err(|e| format!("[{}] {e}", section.name()))?;
+    let client_id = settings.section_client_id(section.name());
+    let spool_dir = settings.spool.join(id_safe(&client_id));
+    let (spool, recovered) = Spool::open(&spool_dir, settings.buffer).map_err(|e| {
+        format!(
+            "[{}] MQTT_SPOOL {}: {e}; make the folder writable by the server's user, or set MQTT_SPOOL to one that is (a relative path starts in $STATE_DIRECTORY under systemd, else beside the configuration)",
+            section.name(),
+            spool_dir.display()
+        )
+    })?;
+    for cut in &recovered.cut {
+        warn!(section = %section.name(), "MQTT queue: {cut}");
+    }
+    if recovered.messages > 0 {
+        info!(section = %section.name(), "MQTT: {} messages ({} bytes) queued from before are sent first", recovered.messages, recovered.bytes);
+    }
+    if !rules.write.is_empty() && config.read_only {
+        warn!(section = %section.name(), "MQTT_WRITE is set but the section is READ_ONLY: every write is refused");
+    }
+    let topics = Topics::new(&settings.prefix, section.name());
+    info!(
+        section = %section.name(),
+        "MQTT: publishing [{}] under {}/, writable [{}], QoS {}, {:?}, as {}",
+        config.mqtt.publish.join(", "),
+        topics.base(),
+        config.mqtt.write.join(", "),
+        rules.qos,
+        rules.format,
+        client_id
+    );
+    Ok(Prepared {
+        section,
+        rules,
+        topics,
+        client_id,
+        spool,
+        spool_dir,
+    })
+}
+
+fn run(
+    prepared: Prepared,
+    settings: &Arc<Settings>,
+    stop: &CancellationToken,
+    source: &Source,
+) -> Running {
+    let Prepared {
+        section,
+        rules,
+        topics,
+        client_id,
+        spool,
+        spool_dir,
+    } = prepared;
+    let metrics = Arc::new(Metrics::default());
+    {
+        let mut sections = source.sections();
+        sections.retain(|(name, _)| name != section.name());
+        sections.push((section.name().to_string(), metrics.clone()));
+    }
+    metrics.queued.set(spool.len());
+    metrics.queued_bytes.set(spool.bytes());
+    // Every change, in order, while the connection lags within the follow
+    // bounds: QoS 1 promises them to the broker.
+    let changes = section.subscribe_names(&rules.publish).every_change();
+    let (write_tx, write_rx) = mpsc::channel(writes::QUEUE);
+    let (outcome_tx, outcome_rx) = mpsc::channel(writes::QUEUE);
+    let writer = tokio::spawn(writes::worker(section.clone(), write_rx, outcome_tx));
+    let stop = stop.child_token();
+    let task = Task {
+        section: section.clone(),
+        settings: settings.clone(),
+        rules,
+        topics,
+        client_id,
+        spool,
+        spool_dir,
+        metrics,
+        shutdown: stop.clone(),
+        writes: write_tx,
+        outcomes: outcome_rx,
+        refusal_logs: Default::default(),
+        state: Default::default(),
+    };
+    Running {
+        section,
+        stop,
+        task: tokio::spawn(task.run(changes)),
+        writer,
+    }
+}
+
+/// Whether the section publishes as a Sparkplug device.
+fn is_sparkplug(section: &Arc<Section>) -> bool {
+    section.state().config.mqtt.sparkplug
+}
+
+/// The Sparkplug edge node, when some sections are its devices: its task
+/// and helpers (change forwarders, write workers).
+type Node = Option<(JoinHandle<()>, Vec<JoinHandle<()>>)>;
+
+fn start_sparkplug(
+    settings: &Arc<Settings>,
+    sections: &[Arc<Section>],
+    stop: &CancellationToken,
+    source: &Source,
+) -> Result<Node, String> {
+    if sections.is_empty() {
+        return Ok(None);
+    }
     let mut devices = Vec::new();
     for section in sections {
-        let section = section.clone();
-        let config = section.state().config.clone();
-        let rules =
-            SectionRules::new(&config.mqtt).map_err(|e| format!("[{}] {e}", section.name()))?;
-        if config.mqtt.sparkplug {
-            devices.push((section, rules));
-            continue;
-        }
-        let client_id = settings.section_client_id(section.name());
-        let spool_dir = settings.spool.join(id_safe(&client_id));
-        let (spool, recovered) = Spool::open(&spool_dir, settings.buffer).map_err(|e| {
-            format!(
-                "[{}] MQTT_SPOOL {}: {e}; make the folder writable by the server's user, or set MQTT_SPOOL to one that is (a relative path starts in $STATE_DIRECTORY under systemd, else beside the configuration)",
-                section.name(),
-                spool_dir.display()
-            )
-        })?;
-        for cut in &recovered.cut {
-            warn!(section = %section.name(), "MQTT queue: {cut}");
-        }
-        if recovered.messages > 0 {
-            info!(section = %section.name(), "MQTT: {} messages ({} bytes) queued from before are sent first", recovered.messages, recovered.bytes);
-        }
-        if !rules.write.is_empty() && config.read_only {
-            warn!(section = %section.name(), "MQTT_WRITE is set but the section is READ_ONLY: every write is refused");
-        }
-        let topics = Topics::new(&settings.prefix, section.name());
-        info!(
-            section = %section.name(),
-            "MQTT: publishing [{}] under {}/, writable [{}], QoS {}, {:?}, as {}",
-            config.mqtt.publish.join(", "),
-            topics.base(),
-            config.mqtt.write.join(", "),
-            rules.qos,
-            rules.format,
-            client_id
-        );
-        prepared.push((section, rules, topics, client_id, spool, spool_dir));
-    }
-    let mut tasks = Vec::new();
-    let mut writers = Vec::new();
-    let mut source = Source {
-        sections: Vec::new(),
-    };
-    for (section, rules, topics, client_id, spool, spool_dir) in prepared {
+        let rules = SectionRules::new(&section.state().config.mqtt)
+            .map_err(|e| format!("[{}] {e}", section.name()))?;
         let metrics = Arc::new(Metrics::default());
         source
-            .sections
+            .sections()
             .push((section.name().to_string(), metrics.clone()));
-        metrics.queued.set(spool.len());
-        metrics.queued_bytes.set(spool.bytes());
-        // Every change, in order, while the connection lags within the
-        // follow bounds: QoS 1 promises them to the broker.
-        let changes = section.subscribe_names(&rules.publish).every_change();
-        let (write_tx, write_rx) = mpsc::channel(writes::QUEUE);
-        let (outcome_tx, outcome_rx) = mpsc::channel(writes::QUEUE);
-        writers.push(tokio::spawn(writes::worker(
-            section.clone(),
-            write_rx,
-            outcome_tx,
-        )));
-        let task = Task {
-            section,
-            settings: settings.clone(),
-            rules,
-            topics,
-            client_id,
-            spool,
-            spool_dir,
-            metrics,
-            shutdown: stop.clone(),
-            writes: write_tx,
-            outcomes: outcome_rx,
-            refusal_logs: Default::default(),
-            state: Default::default(),
-        };
-        tasks.push(tokio::spawn(task.run(changes)));
+        devices.push((section.clone(), rules, metrics));
     }
-    if !devices.is_empty() {
-        let devices = devices
-            .into_iter()
-            .map(|(section, rules)| {
-                let metrics = Arc::new(Metrics::default());
-                source
-                    .sections
-                    .push((section.name().to_string(), metrics.clone()));
-                (section, rules, metrics)
+    sparkplug::start(settings.clone(), devices, stop.child_token()).map(Some)
+}
+
+/// How long a section removed or restarted by a reload has to say
+/// `offline` and save its queue before its replacement opens the queue.
+const RELOAD_GRACE: Duration = Duration::from_secs(2);
+
+/// Starts a task per running section and follows `sections`: a section
+/// added by a reload gets a task, a removed one's ends cleanly, the others
+/// keep their sessions. Fails when a section's rules or queue folder cannot
+/// be used at start (the folder held by another process, say).
+pub fn start(
+    settings: Settings,
+    sections: &plccoms_core::sections::Sections,
+) -> Result<Mqtt, String> {
+    let settings = Arc::new(settings);
+    let stop = CancellationToken::new();
+    let mut watch = sections.watch();
+    let (devices, first): (Vec<_>, Vec<_>) = watch
+        .borrow_and_update()
+        .iter()
+        .cloned()
+        .partition(is_sparkplug);
+    let prepared = first
+        .iter()
+        .map(|section| prepare(&settings, section))
+        .collect::<Result<Vec<_>, _>>()?;
+    let source = Arc::new(Source::default());
+    let node = start_sparkplug(&settings, &devices, &stop, &source)?;
+    let mut running: Vec<Running> = prepared
+        .into_iter()
+        .map(|p| run(p, &settings, &stop, &source))
+        .collect();
+    let supervisor = {
+        let (stop, source) = (stop.clone(), source.clone());
+        tokio::spawn(async move {
+            loop {
+                tokio::select! {
+                    _ = stop.cancelled() => break,
+                    changed = watch.changed() => if changed.is_err() { break },
+                }
+                let (now_devices, now): (Vec<_>, Vec<_>) = watch
+                    .borrow_and_update()
+                    .iter()
+                    .cloned()
+                    .partition(is_sparkplug);
+                let (added, removed) = plccoms_core::sections::diff(&devices, &now_devices);
+                if !added.is_empty() || !removed.is_empty() {
+                    let names = |list: &[Arc<Section>]| {
+                        list.iter()
+                            .map(|s| s.name().to_string())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    };
+                    warn!("Sparkplug: the reload changed the node's devices (added or changed [{}], removed [{}]): the node keeps the devices it started with until plccoms restarts", names(&added), names(&removed));
+                }
+                let current: Vec<_> = running.iter().map(|r| r.section.clone()).collect();
+                let (added, removed) = plccoms_core::sections::diff(&current, &now);
+                let (gone, kept): (Vec<_>, Vec<_>) = running
+                    .into_iter()
+                    .partition(|r| removed.iter().any(|s| Arc::ptr_eq(s, &r.section)));
+                running = kept;
+                // Before the replacements start: a restarted section's queue
+                // folder is free again once its old task has saved it.
+                futures::future::join_all(gone.into_iter().map(|r| {
+                    let name = r.section.name().to_string();
+                    let source = source.clone();
+                    async move {
+                        r.stop(RELOAD_GRACE).await;
+                        source.sections().retain(|(n, _)| *n != name);
+                    }
+                }))
+                .await;
+                for section in &added {
+                    match prepare(&settings, section) {
+                        Ok(p) => running.push(run(p, &settings, &stop, &source)),
+                        Err(message) => {
+                            tracing::error!(section = %section.name(), "MQTT not started for this section: {message}")
+                        }
+                    }
+                }
+            }
+            let sections = running.into_iter().map(|r| r.stop(Duration::MAX));
+            futures::future::join(futures::future::join_all(sections), async {
+                if let Some((node, helpers)) = node {
+                    let _ = node.await;
+                    helpers.iter().for_each(JoinHandle::abort);
+                }
             })
-            .collect();
-        let (node, helpers) = sparkplug::start(settings.clone(), devices, stop.clone())?;
-        tasks.push(node);
-        writers.extend(helpers);
-    }
+            .await;
+        })
+    };
     Ok(Mqtt {
-        tasks,
-        writers,
+        supervisor,
         stop,
-        source: Arc::new(source),
+        source,
     })
 }
 
@@ -298,9 +445,8 @@ mod tests {
         let metrics = Arc::new(Metrics::default());
         metrics.connected.set(1);
         metrics.dropped.add(3);
-        let source = Source {
-            sections: vec![("Hala \"1\"".into(), metrics)],
-        };
+        let source = Source::default();
+        source.sections().push(("Hala \"1\"".into(), metrics));
         let mut out = String::new();
         source.render(&mut out);
         assert!(out.contains("# TYPE plccoms_mqtt_connected gauge\n"));

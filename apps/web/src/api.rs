@@ -163,7 +163,6 @@ pub fn find(state: &State, name: &str) -> Result<Arc<Section>, ApiError> {
     state
         .0
         .section(name)
-        .cloned()
         .ok_or_else(|| ApiError::new(StatusCode::NOT_FOUND, format!("no section named '{name}'")))
 }
 
@@ -238,7 +237,15 @@ fn section_view(section: &Section) -> SectionView {
 
 /// `GET /api/sections`
 pub async fn sections(state: State) -> Json<Vec<SectionView>> {
-    Json(state.0.sections.iter().map(|s| section_view(s)).collect())
+    Json(
+        state
+            .0
+            .sections
+            .current()
+            .iter()
+            .map(|s| section_view(s))
+            .collect(),
+    )
 }
 
 /// `GET /api/sections/{section}`

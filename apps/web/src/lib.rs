@@ -37,6 +37,7 @@ use tracing::{error, info};
 use plccoms_core::config::Global;
 use plccoms_core::history_source::HistorySource;
 use plccoms_core::section::Section;
+use plccoms_core::sections::Sections;
 
 /// What the `[*]` keys ask of the web server.
 #[derive(Debug, Clone)]
@@ -69,7 +70,8 @@ impl WebConfig {
 
 /// What the handlers share.
 pub(crate) struct Shared {
-    pub sections: Vec<Arc<Section>>,
+    /// The running sections (a reload changes them).
+    pub sections: Sections,
     pub metrics: Arc<plccoms_core::metrics::Registry>,
     pub history: Option<Arc<dyn HistorySource>>,
     pub auth: auth::Auth,
@@ -83,8 +85,8 @@ pub(crate) struct Shared {
 }
 
 impl Shared {
-    pub fn section(&self, name: &str) -> Option<&Arc<Section>> {
-        self.sections.iter().find(|s| s.name() == name)
+    pub fn section(&self, name: &str) -> Option<Arc<Section>> {
+        self.sections.find(name)
     }
 }
 
@@ -106,7 +108,7 @@ const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
 /// address cannot be bound or the TLS files cannot be used.
 pub fn start(
     config: &WebConfig,
-    sections: Vec<Arc<Section>>,
+    sections: Sections,
     registry: Arc<plccoms_core::metrics::Registry>,
     history: Option<Arc<dyn HistorySource>>,
 ) -> Result<WebServer, String> {

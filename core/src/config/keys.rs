@@ -16,7 +16,7 @@ pub use super::protocol::PROTOCOLS;
 pub const SIMULATOR_PROGRAMS: [&str; 2] = ["demo", "idle"];
 
 /// Every SETCONF name, for `SETCONF_KEYS`.
-pub const SETCONF_NAMES: [&str; 8] = [
+pub const SETCONF_NAMES: [&str; 9] = [
     "crlf",
     "diff",
     "ipaddr",
@@ -25,6 +25,7 @@ pub const SETCONF_NAMES: [&str; 8] = [
     "serial_device",
     "serial_speed",
     "pubfile",
+    "trace",
 ];
 
 /// Where a key is written.
@@ -760,6 +761,10 @@ static KEYS: &[Key] = &[
     row("READ_ONLY", Some("No"), Kind::Bool,
         "Yes: requests that would change the PLC or the section answer ERROR:30",
         Setter::Section(|s, v| s.read_only = v.bool())),
+    row("TRACE", Some("No"), Kind::Bool,
+        "Yes: the section's PLC requests and answers and its clients' lines go to the log (trace level, target plccoms_frames); SETCONF:trace switches it at run time",
+        Setter::Section(|s, v| s.trace = v.bool()))
+        .setconf("trace", SetConfScope::Section),
     row("SETCONF_KEYS", None, Kind::Choices { what: "SETCONF name", choices: &SETCONF_NAMES },
         "the SETCONF names clients may use (default: all); others answer ERROR:30",
         Setter::Section(|s, v| s.setconf_keys = Some(v.choices()))),

@@ -306,6 +306,9 @@ pub struct Section {
     /// `READ_ONLY = Yes`: requests that would change the PLC or the section
     /// answer ERROR:30 (this server's own key).
     pub read_only: bool,
+    /// `TRACE = Yes`: the section's frame trace is on from the start
+    /// (`SETCONF:trace` switches it at run time; see `crate::trace`).
+    pub trace: bool,
     /// `SETCONF_KEYS`: the SETCONF names clients may use; `None`: all.
     pub setconf_keys: Option<Vec<&'static str>>,
     /// `HISTORY*`: what the historian records (this server's own keys).
@@ -429,6 +432,52 @@ pub struct Modbus {
 pub struct Loaded {
     pub config: Config,
     pub diagnostics: Vec<Diagnostic>,
+    /// Every section as written (`[*]` included), for telling what a
+    /// reload changed.
+    pub written: Vec<Written>,
+}
+
+/// A section's keys as written: the value that counts (the last) of each
+/// key, keys upper-case and sorted.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Written {
+    pub name: String,
+    pub keys: std::collections::BTreeMap<String, String>,
+}
+
+impl Loaded {
+    /// The keys of section `name` as written (`*`: the global section).
+    pub fn written(&self, name: &str) -> Option<&Written> {
+        self.written.iter().find(|w| w.name == name)
+    }
+
+    /// Whether a problem made the loader skip something (a section, a
+    /// key's value): such a file is used at start, its good sections
+    /// running, but a reload refuses it whole.
+    pub fn has_errors(&self) -> bool {
+        self.diagnostics
+            .iter()
+            .any(|d| d.severity == Severity::Error)
+    }
+}
+
+/// The keys whose values differ between `old` and `new` (added and removed
+/// keys included), sorted.
+pub fn changed_keys(old: &Written, new: &Written) -> Vec<String> {
+    let mut keys: Vec<String> = old
+        .keys
+        .iter()
+        .filter(|(k, v)| new.keys.get(*k) != Some(v))
+        .map(|(k, _)| k.clone())
+        .chain(
+            new.keys
+                .keys()
+                .filter(|k| !old.keys.contains_key(*k))
+                .cloned(),
+        )
+        .collect();
+    keys.sort();
+    keys
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -598,6 +647,18 @@ pub fn parse(path_for_messages: &Path, text: &str) -> Result<Loaded, ConfigError
             diagnostics: diags.list,
         });
     }
+    let written = raw
+        .sections
+        .iter()
+        .map(|section| Written {
+            name: section.name.clone(),
+            keys: section
+                .entries
+                .iter()
+                .map(|e| (e.key.clone(), e.value.clone()))
+                .collect(),
+        })
+        .collect();
     Ok(Loaded {
         config: Config {
             path,
@@ -605,6 +666,7 @@ pub fn parse(path_for_messages: &Path, text: &str) -> Result<Loaded, ConfigError
             sections,
         },
         diagnostics: diags.list,
+        written,
     })
 }
 
@@ -810,6 +872,7 @@ fn section_defaults(name: &str) -> Section {
         simulator: None,
         allow: None,
         read_only: false,
+        trace: false,
         setconf_keys: None,
         history: History::default(),
         mqtt: MqttSection::default(),

@@ -1066,6 +1066,7 @@ fn setconf_names() {
         ("serial_device", "SERIAL_DEVICE", SetConfScope::Section),
         ("serial_speed", "SERIAL_SPEED", SetConfScope::Section),
         ("pubfile", "PUBFILE", SetConfScope::Section),
+        ("trace", "TRACE", SetConfScope::Section),
     ] {
         let found = setconf_key(name).unwrap_or_else(|| panic!("{name}"));
         assert_eq!(
@@ -1079,7 +1080,7 @@ fn setconf_names() {
     }
     assert_eq!(
         keys().iter().filter(|k| k.setconf_name().is_some()).count(),
-        8
+        9
     );
 }
 

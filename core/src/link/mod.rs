@@ -29,6 +29,7 @@ pub mod reconf;
 pub mod refusals;
 pub mod state;
 pub mod tables;
+pub mod traced;
 
 use std::sync::Arc;
 use std::time::{Duration, SystemTime};
@@ -144,9 +145,15 @@ impl Job {
 pub struct LinkHandle {
     jobs: mpsc::UnboundedSender<Job>,
     state: SharedState,
+    trace: crate::trace::FrameTrace,
 }
 
 impl LinkHandle {
+    /// The section's frame trace, shared with the link.
+    pub fn trace(&self) -> &crate::trace::FrameTrace {
+        &self.trace
+    }
+
     pub fn state(&self) -> LinkState {
         self.state.get()
     }
@@ -256,6 +263,8 @@ pub struct LinkSetup {
     /// table (tests).
     pub tables: Option<Tables>,
     pub metrics: Arc<SectionMetrics>,
+    /// The section's frame trace (see [`crate::trace`]).
+    pub trace: crate::trace::FrameTrace,
 }
 
 pub struct Link {
@@ -272,6 +281,7 @@ pub struct Link {
     files: Files,
     tables: Option<Tables>,
     metrics: Arc<SectionMetrics>,
+    trace: crate::trace::FrameTrace,
     /// The next poll cycle is due then.
     deadline: Instant,
     /// Jobs that came in during a poll behind one that is not a SET: served
@@ -303,6 +313,7 @@ impl Link {
         let handle = LinkHandle {
             jobs: jobs_tx,
             state: health.shared(),
+            trace: setup.trace.clone(),
         };
         let mut link = Link {
             cycle: Cycle::new(setup.name.clone()),
@@ -318,6 +329,7 @@ impl Link {
             files: Files::new(setup.files, setup.loop_delay),
             tables: setup.tables,
             metrics: setup.metrics,
+            trace: setup.trace,
             deadline: Instant::now(),
             held: std::collections::VecDeque::new(),
         };
@@ -335,11 +347,14 @@ impl Link {
         self.state.borrow().config.clone()
     }
 
-    /// The backend counts into the section's metrics.
+    /// The backend counts into the section's metrics, and its requests and
+    /// answers go to the section's frame trace.
     fn count_backend(&mut self) {
         let counters = self.metrics.backend.clone();
-        if let Some(backend) = self.backend.as_mut() {
+        if let Some(backend) = self.backend.take() {
+            let mut backend = traced::Traced::wrap(backend, self.trace.clone());
             backend.set_counters(counters);
+            self.backend = Some(backend);
         }
     }
 

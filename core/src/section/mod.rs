@@ -204,9 +204,20 @@ impl Section {
         self.info_lines.get().map(|lines| lines.getinfo())
     }
 
+    /// The section's frame trace (see [`crate::trace`]).
+    pub fn trace(&self) -> &crate::trace::FrameTrace {
+        self.link.trace()
+    }
+
     /// The live state: settings as SETCONF left them, and the link.
     pub fn state(&self) -> Arc<SectionState> {
         self.state.borrow().clone()
+    }
+
+    /// Follows the live state (settings, the link's status and the PLC's
+    /// identification): `changed()` resolves at each change.
+    pub fn watch_state(&self) -> watch::Receiver<Arc<SectionState>> {
+        self.state.clone()
     }
 
     /// Waits until a new session may start serving (see

@@ -59,8 +59,10 @@ pub fn start(setup: Setup) -> io::Result<Running> {
     let (publisher, changes) = Publisher::new(Arc::new(table), format, fresh_for);
     let eol: &'static [u8] = if global.end_line_crlf { b"\r\n" } else { b"\n" };
     let publisher = publisher.with_diff_block(eol);
+    let trace = crate::trace::FrameTrace::new(&config.name, config.trace);
     let (link, handle, state) = Link::new(LinkSetup {
         name: config.name.clone(),
+        trace,
         backend,
         drivers,
         publisher,

@@ -30,7 +30,10 @@ Stop accepting, answer what clients already sent, close the PLC links and
 log \fIstopped\fR; within 5 s, however many sections.
 .TP
 \fBSIGHUP\fR
-Reopen the log file (logrotate moves it away, then signals).
+Reopen the log file (logrotate moves it away, then signals) and re-read the
+configuration: sections added start, removed ones stop, changed ones restart
+alone, the others keep their clients; a file with errors is refused whole;
+\fB[*]\fR keys apply at the next restart (\fBsystemctl reload plccoms\fR).
 .SH FILES
 .TP
 \fI/etc/plccoms/PLCComS.ini\fR

@@ -9,7 +9,9 @@
 //! warning. ERROR:10 when the PLC does not answer, ERROR:35 for a bad value,
 //! ERROR:50 for an unknown name; a refused SETCONF changes nothing. With
 //! READ_ONLY = Yes the section-wide keys answer ERROR:30 and change nothing,
-//! and so does every name SETCONF_KEYS does not list.
+//! and so does every name SETCONF_KEYS does not list. `trace` (this
+//! server's own) switches the section's frame trace in the log, answered
+//! like `crlf`.
 
 use plccoms_protocol::answer::{write_error, write_warning, ErrorCode, WarningCode};
 use plccoms_protocol::request::{parse_setconf, ArgError};
@@ -59,6 +61,23 @@ pub fn run(cx: &mut Cx<'_>, args: &[u8], context: &[u8], out: &mut Vec<u8>) -> R
     }
     if state.config.read_only {
         return super::read_only(cx, context, out);
+    }
+    if key.name == "TRACE" {
+        // The section's frame trace: the log, not the PLC, changes.
+        let Some(on) = config::parse_bool(&text) else {
+            return error(cx, ErrorCode::WrongValue, context, out);
+        };
+        cx.section.trace().set(on);
+        tracing::info!(
+            section = %cx.section.name(),
+            "SETCONF: trace {} (frames at trace level, target {})",
+            if on { "on" } else { "off" },
+            plccoms_core::trace::TARGET
+        );
+        out.extend_from_slice(b"SETCONF:TRACE,");
+        out.extend_from_slice(if on { b"YES" } else { b"NO" });
+        out.extend_from_slice(cx.client.eol);
+        return Reply::Done;
     }
     // The value is parsed and range-checked as the ini key is; the link
     // gets the field it sets.

@@ -321,6 +321,12 @@ impl Session {
                     if n == 0 {
                         return Ok(());
                     }
+                    if self.section.trace().on() {
+                        let at = self.conn.written;
+                        for line in self.conn.out[at..at + n].split_inclusive(|b| *b == b'\n') {
+                            self.section.trace().client(&self.client.peer, "<-", line);
+                        }
+                    }
                     self.conn.advance_written(n);
                     #[cfg(feature = "fanout-trace")]
                     if self.conn.backlog() == 0 && !self.traced.is_empty() {
@@ -398,6 +404,9 @@ impl Session {
             match frame {
                 Frame::Line(line) => self.handle_line(&line),
                 Frame::Block { header, data } => {
+                    self.section
+                        .trace()
+                        .client(&self.client.peer, "->", &header);
                     self.continuation = None;
                     self.dispatch(|cx, out| cmd::writefile::block(cx, &header, data, out));
                 }
@@ -444,6 +453,7 @@ impl Session {
     }
 
     fn handle_line(&mut self, line: &[u8]) {
+        self.section.trace().client(&self.client.peer, "->", line);
         match classify(line) {
             Line::Empty => {}
             Line::Command { command, args } => {
