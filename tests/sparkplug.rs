@@ -614,3 +614,41 @@ fn deadband_and_confirmed_writes() {
         m["type"] == "DDATA" && m["metrics"][0]["value"] == 21
     });
 }
+
+/// A reload (SIGHUP) that adds a Sparkplug section is a new session of
+/// the node: NDEATH, then NBIRTH with the next bdSeq and a DBIRTH per
+/// device, the new one included.
+#[test]
+fn a_reload_that_adds_a_device_is_a_new_session() {
+    let (broker, host, server) = start("", "MQTT_PUBLISH = counter");
+    let first = host.wait("NBIRTH", is("NBIRTH"));
+    host.wait("DBIRTH", is("DBIRTH"));
+    let from = host.count();
+    let two = free_port();
+    let ini = config(
+        &broker,
+        "",
+        &(sim_section("Demo", server.port(), "MQTT_PUBLISH = counter")
+            + &sim_section("Two", two, "MQTT_PUBLISH = sinus")),
+    );
+    std::fs::write(server.dir.path().join("plccoms.ini"), ini).unwrap();
+    let mut server = server;
+    common::mqtt::signal(server.child.child().id(), libc::SIGHUP);
+    let death = host.wait_from(from, "NDEATH of the old session", is("NDEATH"));
+    assert_eq!(
+        metric(&death, "bdSeq")["value"],
+        metric(&first, "bdSeq")["value"]
+    );
+    let second = host.wait_from(from, "NBIRTH of the new session", is("NBIRTH"));
+    assert_eq!(
+        metric(&second, "bdSeq")["value"].as_u64().unwrap(),
+        (metric(&first, "bdSeq")["value"].as_u64().unwrap() + 1) % 256
+    );
+    let births = |device: &str| {
+        host.wait_from(from, device, |m| {
+            m["type"] == "DBIRTH" && m["device"] == device
+        })
+    };
+    assert_eq!(births("Two")["metrics"][0]["name"], "SINUS");
+    assert_eq!(births("Demo")["metrics"][0]["name"], "COUNTER");
+}

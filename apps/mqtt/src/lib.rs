@@ -339,6 +339,15 @@ fn start_sparkplug(
     sparkplug::start(settings.clone(), devices, stop.child_token()).map(Some)
 }
 
+/// Waits for a stopped node's clean end (NDEATH, DISCONNECT), then ends
+/// its helpers.
+async fn stop_node(node: Node) {
+    if let Some((task, helpers)) = node {
+        let _ = task.await;
+        helpers.iter().for_each(JoinHandle::abort);
+    }
+}
+
 /// How long a section removed or restarted by a reload has to say
 /// `offline` and save its queue before its replacement opens the queue.
 const RELOAD_GRACE: Duration = Duration::from_secs(2);
@@ -364,7 +373,9 @@ pub fn start(
         .map(|section| prepare(&settings, section))
         .collect::<Result<Vec<_>, _>>()?;
     let source = Arc::new(Source::default());
-    let node = start_sparkplug(&settings, &devices, &stop, &source)?;
+    let mut devices = devices;
+    let mut node_stop = stop.child_token();
+    let mut node = start_sparkplug(&settings, &devices, &node_stop, &source)?;
     let mut running: Vec<Running> = prepared
         .into_iter()
         .map(|p| run(p, &settings, &stop, &source))
@@ -384,13 +395,23 @@ pub fn start(
                     .partition(is_sparkplug);
                 let (added, removed) = plccoms_core::sections::diff(&devices, &now_devices);
                 if !added.is_empty() || !removed.is_empty() {
-                    let names = |list: &[Arc<Section>]| {
-                        list.iter()
-                            .map(|s| s.name().to_string())
-                            .collect::<Vec<_>>()
-                            .join(", ")
-                    };
-                    warn!("Sparkplug: the reload changed the node's devices (added or changed [{}], removed [{}]): the node keeps the devices it started with until plccoms restarts", names(&added), names(&removed));
+                    // The node's devices are its births: a new session
+                    // (NDEATH, then NBIRTH and DBIRTHs of the new set).
+                    info!(
+                        "Sparkplug: the reload changed the node's devices: starting a new session"
+                    );
+                    node_stop.cancel();
+                    stop_node(node.take()).await;
+                    source
+                        .sections()
+                        .retain(|(n, _)| !devices.iter().any(|d| d.name() == n));
+                    devices = now_devices;
+                    node_stop = stop.child_token();
+                    node = start_sparkplug(&settings, &devices, &node_stop, &source)
+                        .unwrap_or_else(|message| {
+                            tracing::error!("Sparkplug: the node not started again: {message}");
+                            None
+                        });
                 }
                 let current: Vec<_> = running.iter().map(|r| r.section.clone()).collect();
                 let (added, removed) = plccoms_core::sections::diff(&current, &now);
@@ -419,13 +440,7 @@ pub fn start(
                 }
             }
             let sections = running.into_iter().map(|r| r.stop(Duration::MAX));
-            futures::future::join(futures::future::join_all(sections), async {
-                if let Some((node, helpers)) = node {
-                    let _ = node.await;
-                    helpers.iter().for_each(JoinHandle::abort);
-                }
-            })
-            .await;
+            futures::future::join(futures::future::join_all(sections), stop_node(node)).await;
         })
     };
     Ok(Mqtt {
