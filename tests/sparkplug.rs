@@ -229,7 +229,7 @@ fn births_data_commands_and_seq() {
     let server = ServerProcess::with_config(&ini, port);
 
     // NBIRTH: seq 0, bdSeq, Node Control/Rebirth ([tck-id-payloads-nbirth-bdseq],
-    // [tck-id-operational-behavior-edge-node-birth-sequence]).
+    // [tck-id-message-flow-edge-node-birth-publish-nbirth-payload-seq]).
     let nbirth = host.wait("NBIRTH", is("NBIRTH"));
     assert_eq!(nbirth["topic"], "spBv1.0/Plant/NBIRTH/gw1");
     assert_eq!(nbirth["seq"], 0);
@@ -359,7 +359,7 @@ fn births_data_commands_and_seq() {
     );
 
     // NCMD Rebirth: NBIRTH (seq 0) and DBIRTH again, same bdSeq
-    // ([tck-id-operational-behavior-edge-node-control-rebirth]).
+    // ([tck-id-operational-behavior-data-commands-rebirth-action-2]).
     let from = host.count();
     host.command(
         "spBv1.0/Plant/NCMD/gw1",
@@ -454,7 +454,7 @@ fn plc_lost_is_ddeath_and_its_return_a_dbirth() {
 /// With SPARKPLUG_HOST: nothing is born before the host's STATE says
 /// online; its offline is NDEATH and a new session that waits for it
 /// ([tck-id-operational-behavior-edge-node-birth-sequence-wait],
-/// [tck-id-operational-behavior-edge-node-terminate-session]).
+/// [tck-id-message-flow-edge-node-birth-publish-phid-offline]).
 #[test]
 fn primary_host_state() {
     let (_broker, host, server) = start("SPARKPLUG_HOST = scada", "MQTT_PUBLISH = counter");
@@ -485,7 +485,7 @@ fn primary_host_state() {
     );
     // Changes while the host is away are held, then sent after the births
     // as historical metrics, in order, with their poll times
-    // ([tck-id-payloads-metric-historical]).
+    // ((spec 3.0, Payloads: the metric's is_historical)).
     let from = host.count();
     while !server.log().contains("waiting for it") {
         assert!(start.elapsed() < DEADLINE, "{}", server.log());

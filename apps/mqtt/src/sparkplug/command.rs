@@ -106,7 +106,7 @@ mod tests {
 
     #[test]
     fn rebirth_by_name_or_alias() {
-        // [tck-id-operational-behavior-edge-node-control-rebirth]
+        // [tck-id-operational-behavior-data-commands-rebirth-action-2]
         let by = |name: Option<&str>, alias: Option<u64>, v: bool| Payload {
             metrics: vec![Metric {
                 name: name.map(str::to_string),

@@ -406,7 +406,7 @@ impl Node {
             device.metrics.connects.inc();
         }
         if let Some(link) = &self.link {
-            // [tck-id-operational-behavior-edge-node-intial-establishment]
+            // [tck-id-message-flow-edge-node-ncmd-subscribe]
             // commands subscribed before NBIRTH.
             let _ = link
                 .client
@@ -688,7 +688,7 @@ impl Node {
     }
 
     /// Sends the held changes as historical DDATA
-    /// ([tck-id-payloads-metric-historical]), oldest first, while born and
+    /// ((spec 3.0, Payloads: the metric's is_historical)), oldest first, while born and
     /// while rumqttc takes them.
     fn drain_held(&mut self) {
         while self.born && self.held.has_unsent() {
@@ -850,7 +850,7 @@ impl Node {
                 self.birth();
             }
             (false, true) => {
-                // [tck-id-operational-behavior-edge-node-terminate-session]:
+                // [tck-id-message-flow-edge-node-birth-publish-phid-offline]:
                 // NDEATH, disconnect, connect again and wait for the host.
                 info!("Sparkplug: primary host offline: NDEATH, disconnecting; waiting for it");
                 self.say_death();
@@ -1010,7 +1010,7 @@ impl Node {
     }
 
     /// A clean stop: NDEATH (the will is not sent on a clean DISCONNECT,
-    /// [tck-id-operational-behavior-edge-node-termination-host-action-ndeath]),
+    /// [tck-id-operational-behavior-edge-node-intentional-disconnect-ndeath]),
     /// then DISCONNECT.
     async fn stop(&mut self) {
         if self.connected && self.say_death() {
