@@ -123,6 +123,15 @@ fn every_target_runs_on_ordinary_input() {
     ] {
         checks::user_value(text.as_bytes());
     }
+    // A DCMD of COUNTER = 42 by alias 21 (Int16 in int_value), an NCMD
+    // rebirth by name, an empty payload, and a truncated varint.
+    checks::sparkplug_command(&[0x12, 0x06, 0x10, 0x15, 0x20, 0x02, 0x50, 0x2a]);
+    checks::sparkplug_command(&[
+        0x12, 0x18, 0x0a, 0x14, b'N', b'o', b'd', b'e', b' ', b'C', b'o', b'n', b't', b'r', b'o',
+        b'l', b'/', b'R', b'e', b'b', b'i', b'r', b't', b'h', 0x70, 0x01,
+    ]);
+    checks::sparkplug_command(b"");
+    checks::sparkplug_command(&[0x12, 0x80]);
     // IDENT request from 0x7D.
     checks::modbus_tags(include_bytes!("../conf/demo-modbus.csv"));
     checks::modbus_tags(
@@ -139,6 +148,52 @@ fn every_target_runs_on_ordinary_input() {
 }
 
 proptest::proptest! {
+    /// Sparkplug commands: metrics of every value field with and without
+    /// alias and name, then cut or with a byte flipped anywhere.
+    #[test]
+    fn sparkplug_commands_never_panic(
+        metrics in proptest::collection::vec(
+            (proptest::option::of(0u64..1 << 40), proptest::option::of("[A-Z_/ ]{0,12}"), 10u8..17, proptest::collection::vec(proptest::num::u8::ANY, 0..12)),
+            0..6,
+        ),
+        cut in proptest::num::usize::ANY,
+        flip in proptest::option::of((proptest::num::usize::ANY, proptest::num::u8::ANY)),
+    ) {
+        let mut bytes = Vec::new();
+        for (alias, name, field, raw) in &metrics {
+            let mut m = Vec::new();
+            if let Some(name) = name {
+                m.extend([0x0a, name.len() as u8]);
+                m.extend(name.as_bytes());
+            }
+            if let Some(alias) = alias {
+                m.push(0x10);
+                varint(*alias, &mut m);
+            }
+            // The value's field: varints for 10, 11, 14; fixed for 12, 13;
+            // length-delimited for 15, 16.
+            match field {
+                12 => { m.push(12 << 3 | 5); m.extend(raw.iter().chain([0; 4].iter()).take(4)); }
+                13 => { m.push(13 << 3 | 1); m.extend(raw.iter().chain([0; 8].iter()).take(8)); }
+                15 | 16 => { m.extend([field << 3 | 2, raw.len() as u8]); m.extend(raw); }
+                _ => { m.push(field << 3); varint(raw.iter().fold(0u64, |a, b| a << 8 | u64::from(*b)), &mut m); }
+            }
+            bytes.push(0x12);
+            varint(m.len() as u64, &mut bytes);
+            bytes.extend(m);
+        }
+        checks::sparkplug_command(&bytes);
+        if let Some((at, byte)) = flip {
+            if !bytes.is_empty() {
+                let at = at % bytes.len();
+                bytes[at] ^= byte;
+            }
+        }
+        checks::sparkplug_command(&bytes);
+        let keep = if bytes.is_empty() { 0 } else { cut % bytes.len() };
+        checks::sparkplug_command(&bytes[..keep]);
+    }
+
     /// Names built from the characters that matter to the path rules.
     #[test]
     fn local_path_rules_hold_for_generated_names(
@@ -157,4 +212,13 @@ proptest::proptest! {
         checks::local_path(name.as_bytes());
         checks::local_path(name.trim_end_matches(['/', '\\']).as_bytes());
     }
+}
+
+/// A protobuf varint.
+fn varint(mut n: u64, out: &mut Vec<u8>) {
+    while n >= 0x80 {
+        out.push(n as u8 | 0x80);
+        n >>= 7;
+    }
+    out.push(n as u8);
 }

@@ -17,7 +17,7 @@ use std::process::{Command, Stdio};
 use std::thread;
 use std::time::{Duration, Instant};
 
-use common::mqtt::{signal, write, Broker, Received, Sub, DEADLINE};
+use common::mqtt::{plcsim, signal, write, Broker, Received, Sub, DEADLINE};
 use common::process::{free_port, free_udp_port, plcsim_bin, ChildGuard, ServerProcess};
 
 /// A section served by the simulator inside the server.
@@ -31,24 +31,6 @@ fn config(broker: &Broker, global: &str, sections: &str) -> String {
     format!(
         "[*]\nCOMM_LOOP_DELAY = 50\nMQTT_URL = {}\n{global}\n{sections}",
         broker.url()
-    )
-}
-
-/// The simulated PLC as a process of its own (it outlives a server), with
-/// the demo project in its file system.
-fn plcsim(files: &std::path::Path, udp: u16) -> ChildGuard {
-    std::fs::write(files.join("demo.pub"), include_bytes!("../conf/demo.pub")).unwrap();
-    ChildGuard::spawn(
-        "plcsim",
-        Command::new(plcsim_bin())
-            .args(["--bind", &format!("127.0.0.1:{udp}"), "--program", "idle"])
-            .arg("--files")
-            .arg(files)
-            .arg("--pub")
-            .arg(files.join("demo.pub"))
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null()),
     )
 }
 

@@ -13,7 +13,7 @@ use plccoms_plc::pubfile::{self, PubFile};
 pub use plccoms_plc::value_codec::{Codec, EncodeError};
 /// A table's variable (its name upper case, as the server prints it), and
 /// a file's (name as written, with its line).
-pub use plccoms_plc::var::{Var, VarDef};
+pub use plccoms_plc::var::{Var, VarDef, VarInfo};
 use plccoms_plc::MemoryMap;
 
 /// Index of a variable in its table.

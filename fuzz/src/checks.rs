@@ -897,6 +897,32 @@ pub fn mqtt_text(data: &[u8]) {
 }
 
 // ---------------------------------------------------------------------------
+// sparkplug_command
+
+/// An NCMD/DCMD payload from any client of the broker
+/// (`sparkplug::command::decode`): never a panic; a decoded command has at
+/// most `MAX_METRICS` metrics, and each one's value, for a variable of any
+/// type, is either refused or a text `present::protocol_text` takes or
+/// names as wrong.
+pub fn sparkplug_command(data: &[u8]) {
+    use plccoms_mqtt::sparkplug::{command, metric};
+    let Ok(payload) = command::decode(data) else {
+        return;
+    };
+    assert!(payload.metrics.len() <= command::MAX_METRICS);
+    let _ = command::asks_rebirth(&payload, 2);
+    let opts = plccoms_protocol::value::FormatOptions::default();
+    for m in &payload.metrics {
+        let _ = command::target(m);
+        for ty in all_types() {
+            if let Ok(text) = metric::command_text(ty, command::value(m)) {
+                let _ = plccoms_core::present::protocol_text(ty, text.as_bytes(), &opts);
+            }
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------
 // user_value
 
 /// A value as a user writes it over MQTT or the web API

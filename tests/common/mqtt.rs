@@ -8,7 +8,7 @@ use std::process::{Command, Stdio};
 use std::thread;
 use std::time::{Duration, Instant};
 
-use super::process::{free_port, which, Capture, ChildGuard};
+use super::process::{free_port, plcsim_bin, which, Capture, ChildGuard};
 
 /// Longest wait for anything in these tests.
 pub const DEADLINE: Duration = Duration::from_secs(30);
@@ -270,4 +270,26 @@ impl Sub {
 /// Writes `text` to `path` (a test's file).
 pub fn write(path: &Path, text: &str) {
     std::fs::write(path, text).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+}
+
+/// The simulated PLC as a process of its own (it outlives a server), with
+/// the demo project in its file system.
+pub fn plcsim(files: &Path, udp: u16) -> ChildGuard {
+    std::fs::write(
+        files.join("demo.pub"),
+        include_bytes!("../../conf/demo.pub"),
+    )
+    .unwrap();
+    ChildGuard::spawn(
+        "plcsim",
+        Command::new(plcsim_bin())
+            .args(["--bind", &format!("127.0.0.1:{udp}"), "--program", "idle"])
+            .arg("--files")
+            .arg(files)
+            .arg("--pub")
+            .arg(files.join("demo.pub"))
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null()),
+    )
 }

@@ -61,18 +61,18 @@ const WINDOW: usize = 256;
 /// any write (`/set` values of more than [`writes::MAX_VALUE`] bytes are
 /// refused), and still a bound on what one message can make this process
 /// hold.
-const MAX_INCOMING: usize = 16 << 20;
-const KEEP_ALIVE: Duration = Duration::from_secs(15);
-const RETRY_FIRST: Duration = Duration::from_millis(250);
-const RETRY_MAX: Duration = Duration::from_secs(5);
+pub(super) const MAX_INCOMING: usize = 16 << 20;
+pub(super) const KEEP_ALIVE: Duration = Duration::from_secs(15);
+pub(super) const RETRY_FIRST: Duration = Duration::from_millis(250);
+pub(super) const RETRY_MAX: Duration = Duration::from_secs(5);
 /// A connection up this long is a healthy one: the retry delay starts
 /// again from [`RETRY_FIRST`] and the next problem is logged. One that
 /// fails sooner (at its subscriptions, say) keeps backing off quietly.
 const STABLE: Duration = Duration::from_secs(30);
 /// Refused writes of one error code are logged at most this often.
-const REFUSAL_LOG_INTERVAL: Duration = Duration::from_secs(1);
+pub(super) const REFUSAL_LOG_INTERVAL: Duration = Duration::from_secs(1);
 /// How long a clean stop waits for `offline` and DISCONNECT to go out.
-const STOP_WAIT: Duration = Duration::from_secs(2);
+pub(super) const STOP_WAIT: Duration = Duration::from_secs(2);
 
 /// An announcement under way: the next of `wanted` to announce, and the
 /// config topics left to clear.
@@ -82,10 +82,33 @@ struct Announcement {
 }
 
 /// A connection attempt: the client, and the event loop's events.
-struct Link {
-    client: AsyncClient,
+pub(super) struct Link {
+    pub client: AsyncClient,
     events: mpsc::Receiver<Result<Event, ConnectionError>>,
     task: JoinHandle<()>,
+}
+
+impl Link {
+    /// A fresh client whose event loop runs in a task of its own,
+    /// forwarding its events until one fails.
+    pub(super) fn spawn(options: MqttOptions, requests: usize, events: usize) -> Link {
+        let (client, mut eventloop) = AsyncClient::new(options, requests);
+        let (tx, events) = mpsc::channel(events);
+        let task = tokio::spawn(async move {
+            loop {
+                let event = eventloop.poll().await;
+                let failed = event.is_err();
+                if tx.send(event).await.is_err() || failed {
+                    break;
+                }
+            }
+        });
+        Link {
+            client,
+            events,
+            task,
+        }
+    }
 }
 
 impl Drop for Link {
@@ -219,35 +242,13 @@ impl Task {
                 true,
                 None,
             ));
-        if let Some((user, password)) = &self.settings.credentials {
-            options.set_credentials(user, password);
-        }
-        if let Some(tls) = &self.settings.tls {
-            options.set_transport(Transport::tls_with_config(TlsConfiguration::Rustls(
-                tls.clone(),
-            )));
-        }
+        credentials_and_tls(&self.settings, &mut options);
         options
     }
 
     /// Starts a connection attempt: a fresh client and event loop.
     fn connect(&mut self) {
-        let (client, mut eventloop) = AsyncClient::new(self.options(), WINDOW + 16);
-        let (tx, events) = mpsc::channel(WINDOW * 2);
-        let task = tokio::spawn(async move {
-            loop {
-                let event = eventloop.poll().await;
-                let failed = event.is_err();
-                if tx.send(event).await.is_err() || failed {
-                    break;
-                }
-            }
-        });
-        self.state.link = Some(Link {
-            client,
-            events,
-            task,
-        });
+        self.state.link = Some(Link::spawn(self.options(), WINDOW + 16, WINDOW * 2));
     }
 
     fn on_event(&mut self, event: Result<Event, ConnectionError>) {
@@ -862,8 +863,20 @@ fn plc_message(topics: &Topics, online: bool) -> Message {
     state_message(topics.plc(), if online { "online" } else { "offline" })
 }
 
+/// The broker's user and password, and TLS, as the settings give them.
+pub(super) fn credentials_and_tls(settings: &Settings, options: &mut MqttOptions) {
+    if let Some((user, password)) = &settings.credentials {
+        options.set_credentials(user, password);
+    }
+    if let Some(tls) = &settings.tls {
+        options.set_transport(Transport::tls_with_config(TlsConfiguration::Rustls(
+            tls.clone(),
+        )));
+    }
+}
+
 /// A connection problem in words, with what to check for a refusal.
-fn describe(e: &ConnectionError) -> String {
+pub(super) fn describe(e: &ConnectionError) -> String {
     match e {
         ConnectionError::ConnectionRefused(code) => match code {
             ConnectReturnCode::BadUserNamePassword => {
@@ -892,7 +905,7 @@ fn describe(e: &ConnectionError) -> String {
     }
 }
 
-async fn next_event(link: &mut Option<Link>) -> Result<Event, ConnectionError> {
+pub(super) async fn next_event(link: &mut Option<Link>) -> Result<Event, ConnectionError> {
     match link {
         Some(link) => link
             .events
@@ -903,7 +916,7 @@ async fn next_event(link: &mut Option<Link>) -> Result<Event, ConnectionError> {
     }
 }
 
-async fn sleep_until(at: Option<Instant>) {
+pub(super) async fn sleep_until(at: Option<Instant>) {
     match at {
         Some(at) => tokio::time::sleep_until(at).await,
         None => std::future::pending().await,

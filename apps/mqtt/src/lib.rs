@@ -10,7 +10,9 @@
 //! - `connection.rs`: one task per section, with a connection of its own
 //!   (its own client id and last will): changes -> queue -> broker;
 //! - `writes.rs`: `/set` through SET's validation, one write at a time;
-//! - `discovery.rs`: Home Assistant discovery.
+//! - `discovery.rs`: Home Assistant discovery;
+//! - `sparkplug/`: Sparkplug B, the sections with SPARKPLUG = Yes as the
+//!   devices of one edge node.
 //!
 //! Counters are `plccoms_mqtt_*` in `/metrics` ([`Source`]).
 
@@ -18,6 +20,7 @@ mod connection;
 pub mod discovery;
 pub mod payload;
 pub mod settings;
+pub mod sparkplug;
 pub mod spool;
 pub mod topics;
 pub mod writes;
@@ -305,6 +308,46 @@ fn run(
     }
 }
 
+/// Whether the section publishes as a Sparkplug device.
+fn is_sparkplug(section: &Arc<Section>) -> bool {
+    section.state().config.mqtt.sparkplug
+}
+
+/// The Sparkplug edge node, when some sections are its devices: its task
+/// and helpers (change forwarders, write workers).
+type Node = Option<(JoinHandle<()>, Vec<JoinHandle<()>>)>;
+
+fn start_sparkplug(
+    settings: &Arc<Settings>,
+    sections: &[Arc<Section>],
+    stop: &CancellationToken,
+    source: &Source,
+) -> Result<Node, String> {
+    if sections.is_empty() {
+        return Ok(None);
+    }
+    let mut devices = Vec::new();
+    for section in sections {
+        let rules = SectionRules::new(&section.state().config.mqtt)
+            .map_err(|e| format!("[{}] {e}", section.name()))?;
+        let metrics = Arc::new(Metrics::default());
+        source
+            .sections()
+            .push((section.name().to_string(), metrics.clone()));
+        devices.push((section.clone(), rules, metrics));
+    }
+    sparkplug::start(settings.clone(), devices, stop.child_token()).map(Some)
+}
+
+/// Waits for a stopped node's clean end (NDEATH, DISCONNECT), then ends
+/// its helpers.
+async fn stop_node(node: Node) {
+    if let Some((task, helpers)) = node {
+        let _ = task.await;
+        helpers.iter().for_each(JoinHandle::abort);
+    }
+}
+
 /// How long a section removed or restarted by a reload has to say
 /// `offline` and save its queue before its replacement opens the queue.
 const RELOAD_GRACE: Duration = Duration::from_secs(2);
@@ -320,12 +363,19 @@ pub fn start(
     let settings = Arc::new(settings);
     let stop = CancellationToken::new();
     let mut watch = sections.watch();
-    let first = watch.borrow_and_update().clone();
+    let (devices, first): (Vec<_>, Vec<_>) = watch
+        .borrow_and_update()
+        .iter()
+        .cloned()
+        .partition(is_sparkplug);
     let prepared = first
         .iter()
         .map(|section| prepare(&settings, section))
         .collect::<Result<Vec<_>, _>>()?;
     let source = Arc::new(Source::default());
+    let mut devices = devices;
+    let mut node_stop = stop.child_token();
+    let mut node = start_sparkplug(&settings, &devices, &node_stop, &source)?;
     let mut running: Vec<Running> = prepared
         .into_iter()
         .map(|p| run(p, &settings, &stop, &source))
@@ -338,7 +388,31 @@ pub fn start(
                     _ = stop.cancelled() => break,
                     changed = watch.changed() => if changed.is_err() { break },
                 }
-                let now = watch.borrow_and_update().clone();
+                let (now_devices, now): (Vec<_>, Vec<_>) = watch
+                    .borrow_and_update()
+                    .iter()
+                    .cloned()
+                    .partition(is_sparkplug);
+                let (added, removed) = plccoms_core::sections::diff(&devices, &now_devices);
+                if !added.is_empty() || !removed.is_empty() {
+                    // The node's devices are its births: a new session
+                    // (NDEATH, then NBIRTH and DBIRTHs of the new set).
+                    info!(
+                        "Sparkplug: the reload changed the node's devices: starting a new session"
+                    );
+                    node_stop.cancel();
+                    stop_node(node.take()).await;
+                    source
+                        .sections()
+                        .retain(|(n, _)| !devices.iter().any(|d| d.name() == n));
+                    devices = now_devices;
+                    node_stop = stop.child_token();
+                    node = start_sparkplug(&settings, &devices, &node_stop, &source)
+                        .unwrap_or_else(|message| {
+                            tracing::error!("Sparkplug: the node not started again: {message}");
+                            None
+                        });
+                }
                 let current: Vec<_> = running.iter().map(|r| r.section.clone()).collect();
                 let (added, removed) = plccoms_core::sections::diff(&current, &now);
                 let (gone, kept): (Vec<_>, Vec<_>) = running
@@ -365,7 +439,8 @@ pub fn start(
                     }
                 }
             }
-            futures::future::join_all(running.into_iter().map(|r| r.stop(Duration::MAX))).await;
+            let sections = running.into_iter().map(|r| r.stop(Duration::MAX));
+            futures::future::join(futures::future::join_all(sections), stop_node(node)).await;
         })
     };
     Ok(Mqtt {

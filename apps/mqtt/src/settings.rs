@@ -28,6 +28,8 @@ pub struct Settings {
     pub tls: Option<Arc<rustls::ClientConfig>>,
     pub buffer: u64,
     pub spool: PathBuf,
+    /// The Sparkplug B edge node's ids.
+    pub sparkplug: crate::sparkplug::NodeSettings,
 }
 
 impl std::fmt::Debug for Settings {
@@ -41,6 +43,7 @@ impl std::fmt::Debug for Settings {
             .field("tls", &self.tls.is_some())
             .field("buffer", &self.buffer)
             .field("spool", &self.spool)
+            .field("sparkplug", &self.sparkplug)
             .finish()
     }
 }
@@ -84,15 +87,17 @@ impl Settings {
             Some(id) => id.clone(),
             None => default_client_id(config_path),
         };
+        // Written: under systemd the configuration's folder is read-only.
+        let spool = config::state_dir(config_path).join(&mqtt.spool);
         Ok(Some(Settings {
+            sparkplug: crate::sparkplug::node_settings(mqtt, &spool)?,
             broker,
             credentials,
             client_id,
             prefix: mqtt.prefix.clone(),
             tls,
             buffer: mqtt.buffer,
-            // Written: under systemd the configuration's folder is read-only.
-            spool: config::state_dir(config_path).join(&mqtt.spool),
+            spool,
         }))
     }
 

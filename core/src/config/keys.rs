@@ -685,6 +685,13 @@ static KEYS: &[Key] = &[
     row("MQTT_SPOOL", Some("mqtt-spool"), Kind::Path(PathUse::State),
         "folder of the on-disk queues, relative to $STATE_DIRECTORY under systemd, else to the configuration's folder",
         Setter::Global(|g, v| g.mqtt.spool = v.text())),
+    row("SPARKPLUG_GROUP", Some("plccoms"), Kind::Text, "Sparkplug B group id of the edge node",
+        Setter::Global(|g, v| g.mqtt.sparkplug_group = v.text())),
+    row("SPARKPLUG_NODE", None, Kind::Text, "Sparkplug B edge node id (default: the host name)",
+        Setter::Global(|g, v| g.mqtt.sparkplug_node = Some(v.text()))),
+    row("SPARKPLUG_HOST", None, Kind::Text,
+        "Sparkplug B primary host id: publish only while its STATE says online (default: none, always publish)",
+        Setter::Global(|g, v| g.mqtt.sparkplug_host = Some(v.text()))),
 
     // A PLC section.
     row("IPADDR", None, Kind::Ipv4, "IP address of the PLC (0.0.0.0 = none yet)",
@@ -790,14 +797,19 @@ static KEYS: &[Key] = &[
     row("MQTT_RETAIN", Some("Yes"), Kind::Bool, "value messages are retained",
         Setter::Section(|s, v| s.mqtt.retain = v.bool())),
     row("MQTT_FORMAT", Some("plain"), choice("MQTT format", &MQTT_FORMATS),
-        "plain (the value as GET prints it) or json (value, time of the poll, quality)",
+        "plain (the value as GET prints it), json (value, time of the poll, quality) or sparkplug (as SPARKPLUG = Yes)",
         Setter::Section(|s, v| {
-            s.mqtt.format = if v.text() == "json" { MqttFormat::Json } else { MqttFormat::Plain };
+            let text = v.text();
+            s.mqtt.format = if text == "json" { MqttFormat::Json } else { MqttFormat::Plain };
+            s.mqtt.sparkplug |= text == "sparkplug";
         })),
     row("MQTT_DELTA", None, Kind::Text, "deadband: a value is published when it moved more than this",
         Setter::Section(|s, v| s.mqtt.delta = Some(v.text()))),
     row("MQTT_HA_DISCOVERY", Some("No"), Kind::Bool, "Home Assistant MQTT discovery",
         Setter::Section(|s, v| s.mqtt.ha_discovery = v.bool())),
+    row("SPARKPLUG", Some("No"), Kind::Bool,
+        "publish as a device of the Sparkplug B edge node (SPARKPLUG_GROUP, SPARKPLUG_NODE): MQTT_PUBLISH its metrics, MQTT_WRITE those DCMD may write",
+        Setter::Section(|s, v| s.mqtt.sparkplug |= v.bool())),
     // Modbus TCP (PROTOCOL = MODBUS_TCP).
     row("MODBUS_PORT", Some("502"), number(1, 65535, ""), "Modbus TCP port of the device",
         Setter::Section(|s, v| s.modbus.port = v.number() as u16)),

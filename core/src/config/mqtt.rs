@@ -33,6 +33,11 @@ pub struct MqttGlobal {
     pub buffer: u64,
     /// MQTT_SPOOL: the folder of the on-disk queues.
     pub spool: String,
+    /// SPARKPLUG_GROUP, SPARKPLUG_NODE (default: the host name),
+    /// SPARKPLUG_HOST: the Sparkplug B edge node (apps/mqtt/src/sparkplug).
+    pub sparkplug_group: String,
+    pub sparkplug_node: Option<String>,
+    pub sparkplug_host: Option<String>,
 }
 
 /// How a value is written on its topic.
@@ -59,6 +64,9 @@ pub struct MqttSection {
     /// MQTT_DELTA: the deadband, as written (checked by [`check_section`]).
     pub delta: Option<String>,
     pub ha_discovery: bool,
+    /// SPARKPLUG (or MQTT_FORMAT = sparkplug): the section is a device of
+    /// the Sparkplug B edge node instead of having topics of its own.
+    pub sparkplug: bool,
 }
 
 impl Default for MqttSection {
@@ -71,12 +79,13 @@ impl Default for MqttSection {
             format: MqttFormat::Plain,
             delta: None,
             ha_discovery: false,
+            sparkplug: false,
         }
     }
 }
 
 /// The format names MQTT_FORMAT accepts.
-pub const MQTT_FORMATS: [&str; 2] = ["plain", "json"];
+pub const MQTT_FORMATS: [&str; 3] = ["plain", "json", "sparkplug"];
 
 /// `A*, B , C*` -> `["A*", "B", "C*"]`: a comma-separated list of masks.
 pub fn split_masks(text: &str) -> Vec<String> {

@@ -1326,6 +1326,9 @@ fn every_key_naming_a_file_is_a_path_key() {
         "MQTT_PUBLISH",
         "MQTT_WRITE",
         "MQTT_DELTA",
+        "SPARKPLUG_NODE",
+        "SPARKPLUG_GROUP",
+        "SPARKPLUG_HOST",
     ];
     for key in keys() {
         if key.kind == Kind::Text {

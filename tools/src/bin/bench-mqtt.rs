@@ -10,6 +10,10 @@
 //!   as many topics with payloads of the same size): what the broker alone
 //!   delivers, the reference for plccoms' figure.
 //!
+//! Both count changes and the bytes (topic and payload) that carry them: a
+//! json value message is one change, a Sparkplug DDATA as many as its
+//! metrics (other Sparkplug messages carry none).
+//!
 //! Results are `label.metric value` lines appended to `--out`.
 
 use std::io::Write as _;
@@ -95,6 +99,20 @@ fn options(role: &str, port: u16) -> MqttOptions {
 struct Counts {
     counting: AtomicBool,
     messages: AtomicU64,
+    changes: AtomicU64,
+    bytes: AtomicU64,
+}
+
+/// The changes a message carries.
+fn changes_in(topic: &[u8], payload: &[u8]) -> u64 {
+    use prost::Message as _;
+    if !topic.starts_with(b"spBv1.0/") {
+        return 1;
+    }
+    if !topic.windows(7).any(|w| w == b"/DDATA/") {
+        return 0;
+    }
+    plccoms_mqtt::sparkplug::proto::Payload::decode(payload).map_or(0, |p| p.metrics.len() as u64)
 }
 
 async fn subscriber(
@@ -119,6 +137,13 @@ async fn subscriber(
                     continue;
                 }
                 counts.messages.fetch_add(1, Ordering::Relaxed);
+                counts.changes.fetch_add(
+                    changes_in(p.topic.as_bytes(), &p.payload),
+                    Ordering::Relaxed,
+                );
+                counts
+                    .bytes
+                    .fetch_add((p.topic.len() + p.payload.len()) as u64, Ordering::Relaxed);
                 if latency {
                     if let Some(ts) = ts_ms(&p.payload) {
                         latencies.lock().unwrap().push(now_ms() - ts);
@@ -187,6 +212,8 @@ async fn main() {
     let counts = Arc::new(Counts {
         counting: AtomicBool::new(false),
         messages: AtomicU64::new(0),
+        changes: AtomicU64::new(0),
+        bytes: AtomicU64::new(0),
     });
     let latencies = Arc::new(std::sync::Mutex::new(Vec::new()));
     tokio::spawn(subscriber(
@@ -210,7 +237,20 @@ async fn main() {
     counts.counting.store(false, Ordering::Relaxed);
     let elapsed = start.elapsed().as_secs_f64();
     let messages = counts.messages.load(Ordering::Relaxed);
+    let changes = counts.changes.load(Ordering::Relaxed);
+    let bytes = counts.bytes.load(Ordering::Relaxed);
     let mut lines = vec![
+        format!("{}.changes {changes}", common.label),
+        format!(
+            "{}.changes_per_s {:.0}",
+            common.label,
+            changes as f64 / elapsed
+        ),
+        format!(
+            "{}.bytes_per_change {:.1}",
+            common.label,
+            bytes as f64 / changes.max(1) as f64
+        ),
         format!("{}.messages {messages}", common.label),
         format!(
             "{}.msgs_per_s {:.0}",
