@@ -1325,6 +1325,9 @@ fn every_key_naming_a_file_is_a_path_key() {
         "MQTT_PUBLISH",
         "MQTT_WRITE",
         "MQTT_DELTA",
+        "OPCUA_HOST",
+        "OPCUA_PUBLISH",
+        "OPCUA_WRITE",
     ];
     for key in keys() {
         if key.kind == Kind::Text {

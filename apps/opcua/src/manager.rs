@@ -1,0 +1,584 @@
+//! Our node manager: the stack's in-memory address space for browsing and
+//! the attributes, with the services that touch the PLC done here: Read of
+//! a value (the poll's, else a read from the PLC as GET does), Write
+//! through the core's one write path, monitored items that enable their
+//! variable in the poll as EN does, and HistoryRead from the historian.
+
+use std::sync::Arc;
+
+use async_trait::async_trait;
+use futures::StreamExt;
+use opcua::core::sync::RwLock;
+use opcua::server::address_space::{AccessLevel, AddressSpace};
+use opcua::server::diagnostics::NamespaceMetadata;
+use opcua::server::node_manager::memory::{
+    InMemoryNodeManagerImpl, InMemoryNodeManagerImplBuilder,
+};
+use opcua::server::node_manager::{
+    HistoryNode, MonitoredItemRef, ParsedReadValueId, RequestContext, ServerContext, WriteNode,
+};
+use opcua::server::{ContinuationPoint, CreateMonitoredItem};
+use opcua::types::{
+    AttributeId, DataValue, DateTime, HistoryData, NodeId, ReadRawModifiedDetails, StatusCode,
+    TimestampsToReturn,
+};
+use plccoms_core::driver::ReadRequest;
+use plccoms_core::history_source::{HistoryQuery, RowQuality};
+use plccoms_core::present;
+use plccoms_core::vars::VarId;
+
+use crate::auth;
+use crate::convert;
+use crate::space::{self, Shared, View, Watched};
+
+/// Our namespace's URI.
+pub const NAMESPACE: &str = "urn:plccoms";
+
+/// Most values one HistoryRead returns per node, whatever the client asks:
+/// past it, a continuation point.
+pub const HISTORY_PAGE: usize = 10_000;
+
+pub struct Builder {
+    pub shared: Arc<Shared>,
+    pub loop_delay_ms: f64,
+}
+
+impl InMemoryNodeManagerImplBuilder for Builder {
+    type Impl = Manager;
+
+    fn build(self, context: ServerContext, space: &mut AddressSpace) -> Manager {
+        let ns = context
+            .type_tree
+            .write()
+            .namespaces_mut()
+            .add_namespace(NAMESPACE);
+        space.add_namespace(NAMESPACE, ns);
+        let _ = self.shared.ns.set(ns);
+        space::build_root(space, ns);
+        for (index, nodes) in self.shared.sections.iter().enumerate() {
+            let view = nodes.lock();
+            space::build_section(space, &self.shared, index, None, &view, self.loop_delay_ms);
+        }
+        Manager {
+            shared: self.shared,
+            ns,
+        }
+    }
+}
+
+pub struct Manager {
+    pub shared: Arc<Shared>,
+    ns: u16,
+}
+
+/// Where a HistoryRead stopped: the time of the last value returned and
+/// how many values of that millisecond were returned (several samples may
+/// share one). Kept by the stack, per session; never parsed from a client.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Cursor {
+    pub from_ms: i64,
+    pub skip: usize,
+    /// The request's end, so a continuation of another range is refused.
+    pub to_ms: i64,
+}
+
+impl Manager {
+    fn read_ours(&self, node: &ParsedReadValueId) -> Option<(usize, VarId, Ours)> {
+        if node.attribute_id != AttributeId::Value {
+            return None;
+        }
+        let (index, name) = self.shared.variable(&node.node_id)?;
+        let nodes = &self.shared.sections[index];
+        let snapshot = nodes.section.latest();
+        let view = nodes.lock();
+        let &id = view.by_name.get(&name)?;
+        if !Arc::ptr_eq(&view.table, &snapshot.table) {
+            return None;
+        }
+        let now = tokio::time::Instant::now();
+        // The poll's value while it is fresh; the last value with its bad
+        // quality while the link is lost; else a read, as GET makes one.
+        if snapshot.fresh(id, now).is_some() || !snapshot.online || view.table.is_fixed(id) {
+            let value = space::data_value(&snapshot, id, nodes.section.format());
+            return Some((index, id, Ours::Value(value)));
+        }
+        Some((index, id, Ours::Read))
+    }
+}
+
+enum Ours {
+    Value(DataValue),
+    Read,
+}
+
+fn stamp(mut value: DataValue, which: TimestampsToReturn) -> DataValue {
+    match which {
+        TimestampsToReturn::Source => value.server_timestamp = None,
+        TimestampsToReturn::Server => value.source_timestamp = None,
+        TimestampsToReturn::Neither => {
+            value.server_timestamp = None;
+            value.source_timestamp = None;
+        }
+        _ => {}
+    }
+    value
+}
+
+fn bad(status: StatusCode) -> DataValue {
+    DataValue {
+        value: None,
+        status: Some(status),
+        source_timestamp: None,
+        source_picoseconds: None,
+        server_timestamp: Some(DateTime::now()),
+        server_picoseconds: None,
+    }
+}
+
+#[async_trait]
+impl InMemoryNodeManagerImpl for Manager {
+    async fn init(&self, _space: &mut AddressSpace, _context: ServerContext) {}
+
+    fn name(&self) -> &str {
+        "plccoms"
+    }
+
+    fn namespaces(&self) -> Vec<NamespaceMetadata> {
+        vec![NamespaceMetadata {
+            namespace_uri: NAMESPACE.to_string(),
+            namespace_index: self.ns,
+            ..Default::default()
+        }]
+    }
+
+    async fn read_values(
+        &self,
+        context: &RequestContext,
+        address_space: &RwLock<AddressSpace>,
+        nodes: &[&ParsedReadValueId],
+        max_age: f64,
+        timestamps_to_return: TimestampsToReturn,
+    ) -> Vec<DataValue> {
+        let mut results: Vec<Option<DataValue>> = vec![None; nodes.len()];
+        // Per section: (result index, variable) to read from the PLC.
+        let mut reads: Vec<Vec<(usize, VarId)>> = vec![Vec::new(); self.shared.sections.len()];
+        let mut from_space = Vec::new();
+        for (i, node) in nodes.iter().enumerate() {
+            match self.read_ours(node) {
+                Some((_, _, Ours::Value(value))) => results[i] = Some(value),
+                Some((section, id, Ours::Read)) => reads[section].push((i, id)),
+                None => from_space.push(i),
+            }
+        }
+        if !from_space.is_empty() {
+            let space = address_space.read();
+            for i in from_space {
+                results[i] = Some(space.read(context, nodes[i], max_age, timestamps_to_return));
+            }
+        }
+        for (section, wanted) in reads.into_iter().enumerate() {
+            if wanted.is_empty() {
+                continue;
+            }
+            let nodes = &self.shared.sections[section];
+            let table = nodes.section.latest().table.clone();
+            let requests = wanted
+                .iter()
+                .map(|&(_, id)| {
+                    let var = table.var(id);
+                    ReadRequest {
+                        area: var.area,
+                        offset: var.offset,
+                        len: var.byte_len(),
+                    }
+                })
+                .collect();
+            let reply = nodes.section.read(requests).await;
+            let answers = match reply {
+                Ok(Ok(answers)) => answers,
+                // The link is down or failed: nothing read.
+                _ => {
+                    for &(i, _) in &wanted {
+                        results[i] = Some(bad(StatusCode::BadCommunicationError));
+                    }
+                    continue;
+                }
+            };
+            for (&(i, id), answer) in wanted.iter().zip(answers) {
+                let var = table.var(id);
+                results[i] = Some(match answer {
+                    Ok(bytes) => match convert::variant(var.ty, &var.decode(&bytes)) {
+                        Some(value) => {
+                            let now = DateTime::now();
+                            DataValue {
+                                value: Some(value),
+                                status: Some(StatusCode::Good),
+                                source_timestamp: Some(now),
+                                source_picoseconds: None,
+                                server_timestamp: Some(now),
+                                server_picoseconds: None,
+                            }
+                        }
+                        None => bad(StatusCode::BadDataEncodingInvalid),
+                    },
+                    Err(_) => bad(StatusCode::BadNotReadable),
+                });
+            }
+        }
+        results
+            .into_iter()
+            .map(|v| {
+                stamp(
+                    v.unwrap_or_else(|| bad(StatusCode::BadInternalError)),
+                    timestamps_to_return,
+                )
+            })
+            .collect()
+    }
+
+    async fn create_value_monitored_items(
+        &self,
+        context: &RequestContext,
+        address_space: &RwLock<AddressSpace>,
+        items: &mut [&mut &mut CreateMonitoredItem],
+    ) {
+        let mut rest = Vec::new();
+        for (i, item) in items.iter_mut().enumerate() {
+            let node = item.item_to_monitor();
+            let Some((index, name)) = (node.attribute_id == AttributeId::Value)
+                .then(|| self.shared.variable(&node.node_id))
+                .flatten()
+            else {
+                rest.push(i);
+                continue;
+            };
+            let nodes = &self.shared.sections[index];
+            let snapshot = nodes.section.latest();
+            let mut view = nodes.lock();
+            let node_id = node.node_id.clone();
+            match watch(&mut view, &name, node_id) {
+                Some(id) if Arc::ptr_eq(&view.table, &snapshot.table) => {
+                    let value = space::data_value(&snapshot, id, nodes.section.format());
+                    if let Some(w) = view.watched.get_mut(&id) {
+                        w.seq = snapshot.slot(id).changed_seq;
+                        w.quality = Some(snapshot.quality(id));
+                    }
+                    item.set_initial_value(value);
+                    item.set_status(StatusCode::Good);
+                }
+                Some(_) => item.set_status(StatusCode::Good),
+                None => {
+                    // Not a variable of this table (any more): nothing to watch.
+                    unwatch(&mut view, &name);
+                    item.set_status(StatusCode::BadNodeIdUnknown);
+                }
+            }
+        }
+        if !rest.is_empty() {
+            let space = address_space.read();
+            for i in rest {
+                let value = space.read(
+                    context,
+                    items[i].item_to_monitor(),
+                    0.0,
+                    TimestampsToReturn::Both,
+                );
+                if value.status() != StatusCode::BadAttributeIdInvalid {
+                    items[i].set_initial_value(value);
+                }
+                items[i].set_status(StatusCode::Good);
+            }
+        }
+    }
+
+    async fn delete_monitored_items(&self, _context: &RequestContext, items: &[&MonitoredItemRef]) {
+        for item in items {
+            if item.attribute() != AttributeId::Value {
+                continue;
+            }
+            if let Some((index, name)) = self.shared.variable(item.node_id()) {
+                unwatch(&mut self.shared.sections[index].lock(), &name);
+            }
+        }
+    }
+
+    async fn write(
+        &self,
+        context: &RequestContext,
+        address_space: &RwLock<AddressSpace>,
+        nodes_to_write: &mut [&mut WriteNode],
+    ) -> Result<(), StatusCode> {
+        let writer = auth::may_write(&self.shared.users, &context.token);
+        let mut pending = Vec::new();
+        {
+            let space = address_space.read();
+            for (i, write) in nodes_to_write.iter_mut().enumerate() {
+                match self.check_write(&space, write, writer) {
+                    Ok((section, name, text)) => pending.push((i, section, name, text)),
+                    Err(status) => write.set_status(status),
+                }
+            }
+        }
+        // Each write waits for the PLC's read-back (or its refusal) before
+        // answering: a refused write is never applied later.
+        let outcomes =
+            futures::future::join_all(pending.into_iter().map(|(i, section, name, text)| {
+                let section = self.shared.sections[section].section.clone();
+                async move { (i, section.write(&name, &text).await) }
+            }))
+            .await;
+        for (i, outcome) in outcomes {
+            nodes_to_write[i].set_status(match outcome {
+                Ok(_) => StatusCode::Good,
+                Err(refusal) => convert::refusal(&refusal),
+            });
+        }
+        Ok(())
+    }
+
+    async fn history_read_raw_modified(
+        &self,
+        _context: &RequestContext,
+        details: &ReadRawModifiedDetails,
+        nodes: &mut [&mut &mut HistoryNode],
+        _timestamps_to_return: TimestampsToReturn,
+    ) -> Result<(), StatusCode> {
+        if details.is_read_modified {
+            return Err(StatusCode::BadHistoryOperationUnsupported);
+        }
+        let Some(history) = self.shared.history.clone() else {
+            return Err(StatusCode::BadHistoryOperationUnsupported);
+        };
+        let from = time_ms(&details.start_time, i64::MIN);
+        let to = time_ms(&details.end_time, i64::MAX);
+        let page = match details.num_values_per_node {
+            0 => HISTORY_PAGE,
+            n => (n as usize).min(HISTORY_PAGE),
+        };
+        for node in nodes.iter_mut() {
+            let status = self.history_node(&*history, node, from, to, page).await;
+            node.set_status(status);
+        }
+        Ok(())
+    }
+}
+
+/// UTC milliseconds of an OPC UA time; `unset` for a null one.
+fn time_ms(time: &DateTime, unset: i64) -> i64 {
+    if time.is_null() {
+        unset
+    } else {
+        time.as_chrono().timestamp_millis()
+    }
+}
+
+impl Manager {
+    /// Checks a write and makes its SET text: the node must be one of our
+    /// variables, writable (BadNotWritable), by this user
+    /// (BadUserAccessDenied), with a value of its type (BadTypeMismatch).
+    fn check_write(
+        &self,
+        space: &AddressSpace,
+        write: &WriteNode,
+        writer: bool,
+    ) -> Result<(usize, Vec<u8>, Vec<u8>), StatusCode> {
+        let value = write.value();
+        let Some(node) = space.find(&value.node_id) else {
+            return Err(StatusCode::BadNodeIdUnknown);
+        };
+        let Some((index, name)) = self.shared.variable(&value.node_id) else {
+            return Err(StatusCode::BadNotWritable);
+        };
+        let opcua::server::address_space::NodeType::Variable(variable) = node else {
+            return Err(StatusCode::BadNotWritable);
+        };
+        if value.attribute_id != AttributeId::Value || value.index_range.has_range() {
+            return Err(StatusCode::BadNotWritable);
+        }
+        if !variable.access_level().contains(AccessLevel::CURRENT_WRITE) {
+            return Err(StatusCode::BadNotWritable);
+        }
+        if !writer {
+            return Err(StatusCode::BadUserAccessDenied);
+        }
+        let Some(variant) = value.value.value.as_ref() else {
+            return Err(StatusCode::BadTypeMismatch);
+        };
+        let nodes = &self.shared.sections[index];
+        let view = nodes.lock();
+        let &id = view
+            .by_name
+            .get(&name)
+            .ok_or(StatusCode::BadNodeIdUnknown)?;
+        let var = view.table.var(id);
+        let text = convert::write_text(var.ty, variant, nodes.section.format())?;
+        Ok((index, var.name.to_vec(), text))
+    }
+
+    async fn history_node(
+        &self,
+        history: &dyn plccoms_core::history_source::HistorySource,
+        node: &mut HistoryNode,
+        from: i64,
+        to: i64,
+        page: usize,
+    ) -> StatusCode {
+        let Some((index, name)) = self.shared.variable(node.node_id()) else {
+            return StatusCode::BadNodeIdUnknown;
+        };
+        let nodes = &self.shared.sections[index];
+        let (ty, recorded) = {
+            let view = nodes.lock();
+            match view.by_name.get(&name) {
+                Some(&id) => (view.table.var(id).ty, view.historized[id as usize]),
+                None => return StatusCode::BadNodeIdUnknown,
+            }
+        };
+        if !recorded {
+            return StatusCode::BadHistoryOperationUnsupported;
+        }
+        // Oldest first; a range given backwards is read forwards.
+        let (from, to) = (from.min(to), from.max(to));
+        let cursor = match node.continuation_point() {
+            None => Cursor {
+                from_ms: from,
+                skip: 0,
+                to_ms: to,
+            },
+            Some(point) => match point.get::<Cursor>() {
+                Some(cursor) if cursor.to_ms == to => *cursor,
+                _ => return StatusCode::BadContinuationPointInvalid,
+            },
+        };
+        let query = HistoryQuery {
+            section: nodes.name.clone(),
+            masks: vec![name.clone()],
+            from_ms: cursor.from_ms,
+            to_ms: to,
+        };
+        let mut stream = match history.samples(query) {
+            Ok(stream) => stream,
+            Err(_) => return StatusCode::BadHistoryOperationUnsupported,
+        };
+        let opts = nodes.section.format();
+        let mut values = Vec::new();
+        let mut skip = cursor.skip;
+        let mut last: Option<(i64, usize)> = None;
+        let mut more = false;
+        while let Some(row) = stream.next().await {
+            let sample = match row {
+                Ok(sample) => sample,
+                Err(_) => {
+                    values.push(bad(StatusCode::BadUnexpectedError));
+                    break;
+                }
+            };
+            let marker = sample.value.is_none();
+            if !marker && *sample.name != *name {
+                continue;
+            }
+            if sample.unix_ms == cursor.from_ms && skip > 0 {
+                skip -= 1;
+                continue;
+            }
+            if values.len() == page {
+                more = true;
+                break;
+            }
+            let source =
+                chrono::DateTime::from_timestamp_millis(sample.unix_ms).map(DateTime::from);
+            let value = sample.value.as_ref().and_then(|p| {
+                let user = p.text();
+                let text = present::protocol_text(ty, user.as_bytes(), opts).ok()?;
+                convert::variant_of_text(ty, &text, opts)
+            });
+            let status = match sample.quality {
+                RowQuality::Good => StatusCode::Good,
+                RowQuality::Stale => StatusCode::UncertainLastUsableValue,
+                RowQuality::LinkLost => StatusCode::BadNoCommunication,
+                RowQuality::Stopped => StatusCode::BadOutOfService,
+                RowQuality::Damaged | RowQuality::Missed => StatusCode::BadDataLost,
+                RowQuality::Error => StatusCode::BadUnexpectedError,
+            };
+            values.push(DataValue {
+                status: Some(if value.is_none() && status.is_good() {
+                    StatusCode::BadDataEncodingInvalid
+                } else {
+                    status
+                }),
+                value,
+                source_timestamp: source,
+                source_picoseconds: None,
+                server_timestamp: source,
+                server_picoseconds: None,
+            });
+            last = Some(match last {
+                Some((ms, n)) if ms == sample.unix_ms => (ms, n + 1),
+                _ => (sample.unix_ms, 1),
+            });
+        }
+        let next = match (more, last) {
+            (true, Some((ms, n))) => Some(Cursor {
+                from_ms: ms,
+                // Values of that millisecond given before this page too.
+                skip: if ms == cursor.from_ms {
+                    n + cursor.skip
+                } else {
+                    n
+                },
+                to_ms: to,
+            }),
+            _ => None,
+        };
+        node.set_next_continuation_point(next.map(|c| ContinuationPoint::new(Box::new(c))));
+        let empty = values.is_empty();
+        node.set_result(HistoryData {
+            data_values: Some(values),
+        });
+        if empty {
+            StatusCode::GoodNoData
+        } else {
+            StatusCode::Good
+        }
+    }
+}
+
+/// One more monitored item on `name`: the first enables it in the poll.
+/// The variable's id in the view's table, if it has it.
+pub fn watch(view: &mut View, name: &str, node: NodeId) -> Option<VarId> {
+    let count = view.monitored.entry(name.to_string()).or_default();
+    *count += 1;
+    let first = *count == 1;
+    let &id = view.by_name.get(name)?;
+    if first {
+        if !view.table.is_fixed(id) {
+            view.interest.add(id);
+        }
+        view.watched.insert(
+            id,
+            Watched {
+                node,
+                seq: u64::MAX,
+                quality: None,
+            },
+        );
+    }
+    Some(id)
+}
+
+/// One monitored item fewer on `name`: the last disables it.
+pub fn unwatch(view: &mut View, name: &str) {
+    let Some(count) = view.monitored.get_mut(name) else {
+        return;
+    };
+    *count -= 1;
+    if *count > 0 {
+        return;
+    }
+    view.monitored.remove(name);
+    if let Some(&id) = view.by_name.get(name) {
+        if view.watched.remove(&id).is_some() && !view.table.is_fixed(id) {
+            view.interest.remove(id);
+        }
+    }
+}
