@@ -261,6 +261,7 @@ pub fn start(
         // Room for every item of a subscription to change in one publish.
         subs.max_queued_notifications = settings.max_monitored_items.saturating_mul(4);
         subs.max_notifications_per_publish = 50_000;
+        subs.max_monitored_item_queue_size = 10_000;
         subs.max_pending_publish_requests = 100;
         subs.max_publish_requests_per_subscription = 10;
         limits.max_message_size = 64 << 20;

@@ -168,10 +168,10 @@ fn hex(text: &str) -> Option<Vec<u8>> {
         .collect()
 }
 
-#[cfg(test)]
-pub(crate) fn hash_line(name: &str, role: &str, password: &str) -> String {
-    let salt = b"plccoms-salt-123";
-    let iterations = NonZeroU32::new(MIN_ITERATIONS).unwrap();
+/// A users file line for `name` with `role` (`read` or `write`) and
+/// `password`, hashed with `salt` (8 bytes or more) and `iterations`.
+pub fn hash_line(name: &str, role: &str, password: &str, salt: &[u8], iterations: u32) -> String {
+    let iterations = NonZeroU32::new(iterations.max(1)).unwrap_or(NonZeroU32::MIN);
     let mut out = [0u8; 32];
     ring::pbkdf2::derive(
         ring::pbkdf2::PBKDF2_HMAC_SHA256,
@@ -196,8 +196,8 @@ mod tests {
     fn checks_passwords_and_roles() {
         let text = format!(
             "# users\n\n{}\n  {}  \n",
-            hash_line("hmi", "write", "secret"),
-            hash_line("scada", "READ", "other")
+            hash_line("hmi", "write", "secret", b"plccoms-salt", MIN_ITERATIONS),
+            hash_line("scada", "READ", "other", b"plccoms-salt", MIN_ITERATIONS)
         );
         let users = Users::parse(&text).unwrap();
         assert_eq!(users.len(), 2);
@@ -209,7 +209,7 @@ mod tests {
 
     #[test]
     fn refuses_bad_lines_naming_them() {
-        let good = hash_line("a", "read", "x");
+        let good = hash_line("a", "read", "x", b"plccoms-salt", MIN_ITERATIONS);
         for (text, problem) in [
             ("a read".to_string(), "expected 3 fields"),
             (

@@ -1,0 +1,546 @@
+//! The OPC UA server against a real third-party client: asyncua (PyPI),
+//! driven through tests/opcua/client.py, on loopback, with the simulated
+//! PLC in-process (EPSNET) so the tests set values, lose the link and
+//! bring it back. `.ci/run` installs asyncua; without it these tests fail.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::Client;
+use plcsim::{SimConfig, SimHandle};
+use serde_json::Value;
+use tokio::io::{AsyncBufReadExt, BufReader};
+
+const SCRIPT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/opcua/client.py");
+
+/// Users of every test: `hmi` may write, `scada` only reads.
+fn users_file(dir: &Path) -> PathBuf {
+    let path = dir.join("opcua-users");
+    let text = [
+        plccoms_opcua::users::hash_line("hmi", "write", "hmi-pass", b"tests-salt-1", 1000),
+        plccoms_opcua::users::hash_line("scada", "read", "scada-pass", b"tests-salt-2", 1000),
+    ]
+    .join("\n");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+struct Ua {
+    server: plccoms::startup::Server,
+    sim: SimHandle,
+    port: u16,
+    url: String,
+    conf: tempfile::TempDir,
+    _files: tempfile::TempDir,
+}
+
+impl Ua {
+    async fn start(global: &str, section: &str) -> Ua {
+        let ua = Ua::start_with(global, section).await;
+        ua.wait_table(&[]).await;
+        ua
+    }
+
+    /// Starts; [`Ua::wait_table`] waits for the PLC's table.
+    async fn start_with(global: &str, section: &str) -> Ua {
+        let files = tempfile::tempdir().unwrap();
+        std::fs::write(files.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
+        let users = users_file(files.path());
+        let sim = plcsim::spawn(SimConfig {
+            bind: "127.0.0.1:0".parse().unwrap(),
+            files: Some(files.path().to_path_buf()),
+            program: "idle".parse().unwrap(),
+            ..SimConfig::default()
+        })
+        .await
+        .unwrap();
+        let epsport = sim.local_addr().port();
+        let (server, port, conf) = common::start_on_free_port(|port| {
+            let opc = common::process::free_port();
+            format!(
+                "[*]\nCOMM_LOOP_DELAY = 20\nOPCUA_PORT = {opc}\nOPCUA_USERS = {}\n{global}\n\
+                 [PLC]\nIPADDR = 127.0.0.1\nEPSPORT = {epsport}\nEPSTOUT = 100\nEPSTOUT_STEP = 0\n\
+                 IPADDR_LOCAL = 127.0.0.1\nSERVER_PORT = {port}\nPUBFILE_CRC = No\nPUBFILE = //demo.pub\n\
+                 OPCUA_WRITE = SETPOINT, COUNTER, NOTE, V_*, DAT, TIM\n{section}\n",
+                users.display()
+            )
+        })
+        .await;
+        let opcua = server.opcua.as_ref().expect("OPC UA running");
+        let url = format!("opc.tcp://127.0.0.1:{}/", opcua.local_addr.port());
+        Ua {
+            server,
+            sim,
+            port,
+            url,
+            conf,
+            _files: files,
+        }
+    }
+
+    async fn telnet(&self) -> Client {
+        Client::connect(([127, 0, 0, 1], self.port).into()).await
+    }
+
+    /// Until the demo table (from the PLC) is in the address space.
+    async fn wait_table(&self, options: &[&str]) {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        loop {
+            let names = browse(&self.url, options).await;
+            if names.iter().any(|v| v["name"] == "SETPOINT") {
+                return;
+            }
+            assert!(Instant::now() < deadline, "no demo table: {names:?}");
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    }
+
+    fn pki(&self) -> PathBuf {
+        self.conf.path().join("opcua-pki")
+    }
+
+    /// Trusts the one client certificate in rejected/, by moving it to
+    /// trusted/ as an administrator does.
+    fn trust_rejected(&self) {
+        let rejected: Vec<_> = std::fs::read_dir(self.pki().join("rejected"))
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .collect();
+        assert_eq!(rejected.len(), 1, "{rejected:?}");
+        let name = rejected[0].file_name().unwrap();
+        std::fs::rename(&rejected[0], self.pki().join("trusted").join(name)).unwrap();
+    }
+}
+
+/// Runs the client to its end: its JSON lines.
+async fn run(args: Vec<String>) -> Vec<Value> {
+    let output = tokio::task::spawn_blocking(move || {
+        Command::new("python3")
+            .arg(SCRIPT)
+            .args(&args)
+            .stdin(Stdio::null())
+            .output()
+            .expect("python3")
+    })
+    .await
+    .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let lines: Vec<Value> = stdout
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect();
+    assert!(
+        output.status.success() || lines.iter().any(|l| l.get("error").is_some()),
+        "client.py failed ({}): {}\n{}",
+        output.status,
+        stdout,
+        String::from_utf8_lossy(&output.stderr)
+    );
+    lines
+}
+
+fn args(options: &[&str], command: &str, url: &str, rest: &[&str]) -> Vec<String> {
+    options
+        .iter()
+        .chain([command, url].iter())
+        .chain(rest.iter())
+        .map(|s| s.to_string())
+        .collect()
+}
+
+async fn browse(url: &str, options: &[&str]) -> Vec<Value> {
+    run(args(options, "browse", url, &[])).await
+}
+
+async fn write(url: &str, options: &[&str], node: &str, ty: &str, value: &str) -> String {
+    let lines = run(args(options, "write", url, &[node, ty, value])).await;
+    lines[0]["status"]
+        .as_str()
+        .or(lines[0]["error"].as_str())
+        .unwrap()
+        .to_string()
+}
+
+const HMI: &[&str] = &["--user", "hmi", "--password", "hmi-pass"];
+const SCADA: &[&str] = &["--user", "scada", "--password", "scada-pass"];
+
+/// SET through the telnet port; SET answers with the value read back.
+async fn set(c: &mut Client, name: &str, value: &str) {
+    // The line protocol speaks cp1250.
+    let request = format!("SET:{name},{value}\n");
+    c.send(&plccoms_protocol::cp1250::encode(&request)).await;
+    let line = String::from_utf8_lossy(&c.line().await).into_owned();
+    assert!(line.starts_with(&format!("DIFF:{name},")), "{line}");
+}
+
+/// GET through the telnet port: the value's text.
+async fn get(c: &mut Client, name: &str) -> String {
+    c.send(format!("GET:{name}\n").as_bytes()).await;
+    let line = String::from_utf8_lossy(&c.line().await).into_owned();
+    line.strip_prefix(&format!("GET:{name},"))
+        .unwrap_or_else(|| panic!("{line}"))
+        .trim_end()
+        .to_string()
+}
+
+async fn get_f64(c: &mut Client, name: &str) -> f64 {
+    get(c, name).await.parse().unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn browse_and_read_every_type() {
+    let ua = Ua::start("", "").await;
+    let mut c = ua.telnet().await;
+    set(&mut c, "SETPOINT", "21.5").await;
+    set(&mut c, "COUNTER", "-7").await;
+    set(&mut c, "V_ULINT", "18446744073709551615").await;
+    set(&mut c, "V_SINT", "-128").await;
+    set(&mut c, "NOTE", "\"Žluťoučký kůň\"").await;
+    let tree = browse(&ua.url, &[]).await;
+    let var = |name: &str| {
+        tree.iter()
+            .find(|v| v["name"] == name)
+            .unwrap_or_else(|| panic!("{name} not browsed: {tree:?}"))
+            .clone()
+    };
+    // The issue's table of types.
+    for (name, ty) in [
+        ("POSITIVE", "Boolean"),
+        ("V_SINT", "SByte"),
+        ("V_USINT", "Byte"),
+        ("V_BYTE", "Byte"),
+        ("COUNTER", "Int16"),
+        ("V_UINT", "UInt16"),
+        ("V_WORD", "UInt16"),
+        ("V_DINT", "Int32"),
+        ("V_UDINT", "UInt32"),
+        ("V_DWORD", "UInt32"),
+        ("V_LINT", "Int64"),
+        ("V_ULINT", "UInt64"),
+        ("V_LWORD", "UInt64"),
+        ("SETPOINT", "Float"),
+        ("SINUS", "Double"),
+        ("TEXT", "String"),
+        ("NOTE", "String"),
+        ("DAT", "DateTime"),
+        ("V_DT", "DateTime"),
+        ("TIM", "Duration"),
+    ] {
+        let v = var(name);
+        assert_eq!(v["type"], ty, "{name}: {v}");
+        assert_eq!(v["status"], "Good", "{name}: {v}");
+        assert_eq!(v["id"], format!("PLC.{name}"), "{name}: {v}");
+        assert!(v["source_ts"].is_string(), "{name}: {v}");
+    }
+    assert_eq!(var("SETPOINT")["value"], 21.5);
+    assert_eq!(var("COUNTER")["value"], -7);
+    assert_eq!(var("V_ULINT")["value"], u64::MAX);
+    assert_eq!(var("V_SINT")["value"], -128);
+    assert_eq!(var("NOTE")["value"], "Žluťoučký kůň");
+    assert_eq!(var("TIM")["variant"], "Double");
+    // AccessLevel: CurrentRead (1), CurrentWrite (2) where OPCUA_WRITE
+    // allows it.
+    assert_eq!(var("SETPOINT")["access"], 3);
+    assert_eq!(var("SINUS")["access"], 1);
+    // The section object's properties.
+    assert_eq!(var("LinkState")["value"], "online");
+    assert_eq!(var("Backend")["value"], "EPSNET");
+    ua.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn writes_go_through_the_core_and_refusals_say_why() {
+    let ua = Ua::start("", "").await;
+    let mut c = ua.telnet().await;
+    assert_eq!(
+        write(&ua.url, HMI, "PLC.SETPOINT", "Float", "21.5").await,
+        "Good"
+    );
+    assert_eq!(get_f64(&mut c, "SETPOINT").await, 21.5);
+    assert_eq!(
+        write(&ua.url, HMI, "PLC.COUNTER", "Int16", "-300").await,
+        "Good"
+    );
+    assert_eq!(get(&mut c, "COUNTER").await, "-300");
+    assert_eq!(
+        write(
+            &ua.url,
+            HMI,
+            "PLC.DAT",
+            "DateTime",
+            "2026-11-25T00:00:00+00:00"
+        )
+        .await,
+        "Good"
+    );
+    // Not in OPCUA_WRITE.
+    assert_eq!(
+        write(&ua.url, HMI, "PLC.SINUS", "Double", "1.0").await,
+        "BadNotWritable"
+    );
+    // An Int32 to a REAL.
+    assert_eq!(
+        write(&ua.url, HMI, "PLC.SETPOINT", "Int32", "5").await,
+        "BadTypeMismatch"
+    );
+    // 60 characters into a STRING[40].
+    let long = "x".repeat(60);
+    assert_eq!(
+        write(&ua.url, HMI, "PLC.NOTE", "String", &long).await,
+        "BadOutOfRange"
+    );
+    // A reader, and an anonymous session, may not write.
+    assert_eq!(
+        write(&ua.url, SCADA, "PLC.SETPOINT", "Float", "1").await,
+        "BadUserAccessDenied"
+    );
+    assert_eq!(
+        write(&ua.url, &[], "PLC.SETPOINT", "Float", "1").await,
+        "BadUserAccessDenied"
+    );
+    assert_eq!(get_f64(&mut c, "SETPOINT").await, 21.5);
+
+    // The link lost: refused at once, and never applied later.
+    ua.sim.set_loss(1.0);
+    let lost = Instant::now();
+    loop {
+        let tree = browse(&ua.url, &[]).await;
+        let setpoint = tree.iter().find(|v| v["name"] == "SETPOINT").unwrap();
+        if setpoint["status"] == "BadNoCommunication" {
+            // The last value stays, with its bad quality.
+            assert_eq!(setpoint["value"], 21.5);
+            break;
+        }
+        assert!(lost.elapsed() < Duration::from_secs(10), "{setpoint}");
+    }
+    assert_eq!(
+        write(&ua.url, HMI, "PLC.SETPOINT", "Float", "99").await,
+        "BadCommunicationError"
+    );
+    ua.sim.set_loss(0.0);
+    let back = Instant::now();
+    loop {
+        let (line, _) = common::health::answer(&mut c, "GET:SETPOINT\n").await;
+        if line.starts_with("GET:") {
+            assert!(line.starts_with("GET:SETPOINT,21.5"), "{line}");
+            break;
+        }
+        assert!(back.elapsed() < Duration::from_secs(10), "{line}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert_eq!(get_f64(&mut c, "SETPOINT").await, 21.5);
+    ua.server.shutdown().await;
+}
+
+/// A running subscription: its JSON lines as they come.
+struct Subscription {
+    child: tokio::process::Child,
+    lines: tokio::io::Lines<BufReader<tokio::process::ChildStdout>>,
+}
+
+impl Subscription {
+    async fn start(
+        url: &str,
+        options: &[&str],
+        command: &str,
+        rest: &[&str],
+    ) -> (Subscription, Value) {
+        let mut child = tokio::process::Command::new("python3")
+            .arg(SCRIPT)
+            .args(args(options, command, url, rest))
+            .stdout(Stdio::piped())
+            .stdin(Stdio::null())
+            .kill_on_drop(true)
+            .spawn()
+            .expect("python3");
+        let lines = BufReader::new(child.stdout.take().unwrap()).lines();
+        let mut sub = Subscription { child, lines };
+        let ready = sub.next().await.expect("ready line");
+        assert!(ready.get("ready").is_some(), "{ready}");
+        (sub, ready)
+    }
+
+    async fn next(&mut self) -> Option<Value> {
+        let line = tokio::time::timeout(Duration::from_secs(20), self.lines.next_line())
+            .await
+            .expect("a line within 20 s")
+            .ok()??;
+        Some(serde_json::from_str(&line).unwrap())
+    }
+
+    /// Values until `done`.
+    async fn values(&mut self) -> Vec<Value> {
+        let mut values = Vec::new();
+        while let Some(line) = self.next().await {
+            if line.get("done").is_some() {
+                break;
+            }
+            values.push(line);
+        }
+        values
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn subscriptions_get_every_change_once_and_deadbands() {
+    let ua = Ua::start("", "").await;
+    let mut c = ua.telnet().await;
+    set(&mut c, "COUNTER", "0").await;
+    set(&mut c, "V_DINT", "0").await;
+    // A DataChangeFilter of deadband 0 (trigger StatusValue): every change
+    // of value or quality. (async-opcua 0.19 compares only the value for
+    // an item without a filter.)
+    let (mut every, ready) = Subscription::start(
+        &ua.url,
+        &[],
+        "subscribe",
+        &["PLC.COUNTER", "absolute", "0", "6"],
+    )
+    .await;
+    // No sampling faster than COMM_LOOP_DELAY (20 ms).
+    assert_eq!(ready["status"], "Good");
+    assert!(
+        ready["revised_sampling"].as_f64().unwrap() >= 20.0,
+        "{ready}"
+    );
+    assert_eq!(ready["revised_queue"], 1000);
+    let (mut absolute, _) = Subscription::start(
+        &ua.url,
+        &[],
+        "subscribe",
+        &["PLC.V_DINT", "absolute", "2", "6"],
+    )
+    .await;
+    // One change per poll or slower: every one must arrive, once.
+    for n in 1..=20 {
+        set(&mut c, "COUNTER", &n.to_string()).await;
+        tokio::time::sleep(Duration::from_millis(60)).await;
+    }
+    for n in [1, 2, 4, 5, 8] {
+        set(&mut c, "V_DINT", &n.to_string()).await;
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let all = every.values().await;
+    // The value SET left (not polled yet: stale), then polled (good).
+    assert_eq!(all[0]["status"], "UncertainLastUsableValue", "{all:?}");
+    let got: Vec<i64> = all
+        .iter()
+        .filter(|v| v["status"] == "Good")
+        .map(|v| v["value"].as_i64().unwrap())
+        .collect();
+    assert_eq!(got, (0..=20).collect::<Vec<_>>());
+    let got: Vec<i64> = absolute
+        .values()
+        .await
+        .iter()
+        .filter(|v| v["status"] == "Good")
+        .map(|v| v["value"].as_i64().unwrap())
+        .collect();
+    // |change| > 2 from the last value reported.
+    assert_eq!(got, [0, 4, 8]);
+    ua.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_client_killed_mid_subscription_leaves_the_server_serving() {
+    let ua = Ua::start("", "").await;
+    let mut c = ua.telnet().await;
+    let (mut held, _) = Subscription::start(&ua.url, &[], "hold", &["PLC.COUNTER"]).await;
+    set(&mut c, "COUNTER", "5").await;
+    loop {
+        let v = held.next().await.expect("a value");
+        if v["value"] == 5 {
+            break;
+        }
+    }
+    held.child.kill().await.unwrap();
+    let (mut other, _) = Subscription::start(
+        &ua.url,
+        &[],
+        "subscribe",
+        &["PLC.COUNTER", "none", "0", "2"],
+    )
+    .await;
+    set(&mut c, "COUNTER", "6").await;
+    let got: Vec<Value> = other.values().await;
+    assert!(got.iter().any(|v| v["value"] == 6), "{got:?}");
+    assert_eq!(
+        write(&ua.url, HMI, "PLC.COUNTER", "Int16", "7").await,
+        "Good"
+    );
+    assert_eq!(get(&mut c, "COUNTER").await, "7");
+    ua.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn an_untrusted_certificate_is_rejected_then_signandencrypt_with_a_user() {
+    let ua = Ua::start("", "").await;
+    let certs = tempfile::tempdir().unwrap();
+    let cert_dir = certs.path().to_str().unwrap();
+    let secure = [
+        "--security",
+        "Basic256Sha256,SignAndEncrypt",
+        "--cert",
+        cert_dir,
+    ];
+    let options: Vec<&str> = secure.iter().chain(HMI).copied().collect();
+    let refused = run(args(
+        &options,
+        "write",
+        &ua.url,
+        &["PLC.SETPOINT", "Float", "3.5"],
+    ))
+    .await;
+    assert!(refused[0].get("error").is_some(), "{refused:?}");
+    ua.trust_rejected();
+    assert_eq!(
+        write(&ua.url, &options, "PLC.SETPOINT", "Float", "3.5").await,
+        "Good"
+    );
+    let mut c = ua.telnet().await;
+    assert_eq!(get_f64(&mut c, "SETPOINT").await, 3.5);
+    // A wrong password is refused.
+    let wrong: Vec<&str> = secure
+        .iter()
+        .chain(&["--user", "hmi", "--password", "nope"])
+        .copied()
+        .collect();
+    let lines = run(args(&wrong, "browse", &ua.url, &[])).await;
+    assert!(lines[0].get("error").is_some(), "{lines:?}");
+    ua.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn anonymous_is_refused_off_loopback() {
+    // Bound to every address: not loopback, although the test connects
+    // through 127.0.0.1.
+    let ua = Ua::start_with("OPCUA_HOST = 0.0.0.0", "").await;
+    let certs = tempfile::tempdir().unwrap();
+    let cert_dir = certs.path().to_str().unwrap();
+    let secure = [
+        "--security",
+        "Basic256Sha256,SignAndEncrypt",
+        "--cert",
+        cert_dir,
+    ];
+    let with_user: Vec<&str> = secure.iter().chain(HMI).copied().collect();
+    let lines = run(args(&with_user, "browse", &ua.url, &[])).await;
+    assert_eq!(lines[0]["error"], "BadCertificateUntrusted", "{lines:?}");
+    ua.trust_rejected();
+    ua.wait_table(&with_user).await;
+    // Anonymous: refused on the secure endpoint, and there is no None
+    // endpoint.
+    let lines = run(args(&secure, "browse", &ua.url, &[])).await;
+    assert!(lines[0].get("error").is_some(), "{lines:?}");
+    let lines = run(args(&[], "browse", &ua.url, &[])).await;
+    assert!(lines[0].get("error").is_some(), "{lines:?}");
+    assert_eq!(
+        write(&ua.url, &with_user, "PLC.COUNTER", "Int16", "9").await,
+        "Good"
+    );
+    ua.server.shutdown().await;
+}
