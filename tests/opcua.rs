@@ -544,3 +544,94 @@ async fn anonymous_is_refused_off_loopback() {
     );
     ua.server.shutdown().await;
 }
+
+/// Until the link state shown on the section object is `state`.
+async fn until_link(ua: &Ua, state: &str) {
+    let deadline = Instant::now() + Duration::from_secs(15);
+    loop {
+        let tree = browse(&ua.url, &[]).await;
+        if tree
+            .iter()
+            .any(|v| v["name"] == "LinkState" && v["value"] == state)
+        {
+            return;
+        }
+        assert!(Instant::now() < deadline, "link never {state}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// Every value of a HistoryRead of `node` over the last hour, read in
+/// pages of `per_page`: (pages, values).
+async fn history(ua: &Ua, node: &str, per_page: usize) -> (usize, Vec<Value>) {
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_millis() as i64;
+    let pages = run(args(
+        &[],
+        "history",
+        &ua.url,
+        &[
+            node,
+            &(now - 3_600_000).to_string(),
+            &(now + 60_000).to_string(),
+            &per_page.to_string(),
+        ],
+    ))
+    .await;
+    let values = pages
+        .iter()
+        .flat_map(|p| p["values"].as_array().unwrap().clone())
+        .collect();
+    for page in &pages[..pages.len() - 1] {
+        assert_eq!(page["values"].as_array().unwrap().len(), per_page, "{page}");
+        assert_eq!(page["more"], true, "{page}");
+    }
+    (pages.len(), values)
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn history_read_pages_with_continuation_points_and_shows_outages() {
+    let ua = Ua::start("HISTORY_SYNC = 1", "HISTORY = COUNTER").await;
+    let tree = browse(&ua.url, &[]).await;
+    let counter = tree.iter().find(|v| v["name"] == "COUNTER").unwrap();
+    assert_eq!(counter["historizing"], true, "{counter}");
+    // AccessLevel: read, write and HistoryRead (4).
+    assert_eq!(counter["access"], 7, "{counter}");
+    let mut c = ua.telnet().await;
+    for n in 1..=25 {
+        set(&mut c, "COUNTER", &n.to_string()).await;
+        tokio::time::sleep(Duration::from_millis(40)).await;
+    }
+    // Recorded within HISTORY_SYNC.
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let (pages, values) = history(&ua, "PLC.COUNTER", 7).await;
+    let good: Vec<i64> = values
+        .iter()
+        .filter(|v| v["status"] == "Good")
+        .map(|v| v["value"].as_i64().unwrap())
+        .collect();
+    assert!(pages >= 4, "{pages} pages: {values:?}");
+    let from = good.iter().position(|&v| v == 1).expect("1 recorded");
+    assert_eq!(good[from..], (1..=25).collect::<Vec<_>>()[..], "{values:?}");
+
+    // An outage comes back as Bad samples, not as silence.
+    ua.sim.set_loss(1.0);
+    until_link(&ua, "lost").await;
+    ua.sim.set_loss(0.0);
+    until_link(&ua, "online").await;
+    set(&mut c, "COUNTER", "26").await;
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let (_, values) = history(&ua, "PLC.COUNTER", 5).await;
+    let at_25 = values.iter().position(|v| v["value"] == 25).unwrap();
+    let at_26 = values.iter().position(|v| v["value"] == 26).unwrap();
+    assert!(
+        values[at_25..at_26]
+            .iter()
+            .any(|v| v["status"] == "BadNoCommunication"),
+        "{:?}",
+        &values[at_25..=at_26]
+    );
+    ua.server.shutdown().await;
+}
