@@ -635,3 +635,97 @@ async fn history_read_pages_with_continuation_points_and_shows_outages() {
     );
     ua.server.shutdown().await;
 }
+
+const TAGS: &str =
+    "name,type,table,address,bit,order,scale,offset,access,unit,description,min,max\n\
+                    level,REAL,holding,0,,,,,,%,tank level,0,200\n\
+                    count,INT,holding,2,,,,,,,a counter,,\n";
+
+/// A Modbus section on the embedded simulated device, its tag file in
+/// `dir` (edited by the test).
+async fn modbus(dir: &Path) -> (plccoms::startup::Server, String, u16, tempfile::TempDir) {
+    let tags = dir.join("tags.csv");
+    std::fs::write(&tags, TAGS).unwrap();
+    let (server, port, conf) = common::start_on_free_port(|port| {
+        let opc = common::process::free_port();
+        format!(
+            "[*]\nCOMM_LOOP_DELAY = 20\nOPCUA_PORT = {opc}\n[M]\nPROTOCOL = MODBUS_TCP\nSIMULATOR = Yes\n\
+             MODBUS_TAGS = {}\nSERVER_PORT = {port}\nIPADDR_LOCAL = 127.0.0.1\n",
+            tags.display()
+        )
+    })
+    .await;
+    let url = format!(
+        "opc.tcp://127.0.0.1:{}/",
+        server.opcua.as_ref().unwrap().local_addr.port()
+    );
+    (server, url, port, conf)
+}
+
+/// Browses until `check` holds for the variables of the tree.
+async fn until_tree(url: &str, what: &str, check: impl Fn(&[Value]) -> bool) -> Vec<Value> {
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        let tree = browse(url, &[]).await;
+        if check(&tree) {
+            return tree;
+        }
+        assert!(Instant::now() < deadline, "never {what}: {tree:?}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+fn names(tree: &[Value]) -> Vec<&str> {
+    tree.iter().filter_map(|v| v["name"].as_str()).collect()
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn tag_file_units_ranges_percent_deadband_and_a_live_edit() {
+    let files = tempfile::tempdir().unwrap();
+    let (server, url, port, _conf) = modbus(files.path()).await;
+    let tree = until_tree(&url, "LEVEL shown", |t| names(t).contains(&"LEVEL")).await;
+    let level = tree.iter().find(|v| v["name"] == "LEVEL").unwrap();
+    assert_eq!(level["type"], "Float", "{level}");
+    assert_eq!(level["description"], "tank level", "{level}");
+    assert_eq!(level["EngineeringUnits"]["unit"], "%", "{level}");
+    assert_eq!(level["EURange"]["low"], 0.0, "{level}");
+    assert_eq!(level["EURange"]["high"], 200.0, "{level}");
+    let count = tree.iter().find(|v| v["name"] == "COUNT").unwrap();
+    assert!(count.get("EURange").is_none(), "{count}");
+
+    // 10 % of the range 0-200: a change must exceed 20 from the last value
+    // reported.
+    let mut c = Client::connect(([127, 0, 0, 1], port).into()).await;
+    set(&mut c, "LEVEL", "0").await;
+    let (mut percent, _) =
+        Subscription::start(&url, &[], "subscribe", &["M.LEVEL", "percent", "10", "4"]).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    for level in ["5", "15", "25", "30", "50"] {
+        set(&mut c, "LEVEL", level).await;
+        tokio::time::sleep(Duration::from_millis(150)).await;
+    }
+    let got: Vec<f64> = percent
+        .values()
+        .await
+        .iter()
+        .filter(|v| v["status"] == "Good")
+        .map(|v| v["value"].as_f64().unwrap())
+        .collect();
+    assert_eq!(got, [0.0, 25.0, 50.0]);
+
+    // The tag file edited: COUNT goes, EXTRA comes; LEVEL keeps its id.
+    let edited = TAGS.replace(
+        "count,INT,holding,2,,,,,,,a counter,,\n",
+        "extra,DINT,holding,4,,,,,,,added later,,\n",
+    );
+    std::fs::write(files.path().join("tags.csv"), edited).unwrap();
+    let tree = until_tree(&url, "the edit", |t| {
+        names(t).contains(&"EXTRA") && !names(t).contains(&"COUNT")
+    })
+    .await;
+    let level = tree.iter().find(|v| v["name"] == "LEVEL").unwrap();
+    assert_eq!(level["id"], "M.LEVEL");
+    let extra = tree.iter().find(|v| v["name"] == "EXTRA").unwrap();
+    assert_eq!(extra["type"], "Int32", "{extra}");
+    server.shutdown().await;
+}
