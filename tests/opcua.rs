@@ -646,11 +646,14 @@ const TAGS: &str =
 async fn modbus(dir: &Path) -> (plccoms::startup::Server, String, u16, tempfile::TempDir) {
     let tags = dir.join("tags.csv");
     std::fs::write(&tags, TAGS).unwrap();
+    let users = users_file(dir);
     let (server, port, conf) = common::start_on_free_port(|port| {
         let opc = common::process::free_port();
         format!(
-            "[*]\nCOMM_LOOP_DELAY = 20\nOPCUA_PORT = {opc}\n[M]\nPROTOCOL = MODBUS_TCP\nSIMULATOR = Yes\n\
-             MODBUS_TAGS = {}\nSERVER_PORT = {port}\nIPADDR_LOCAL = 127.0.0.1\n",
+            "[*]\nCOMM_LOOP_DELAY = 20\nOPCUA_PORT = {opc}\nOPCUA_USERS = {}\n[M]\nPROTOCOL = MODBUS_TCP\n\
+             SIMULATOR = Yes\nMODBUS_TAGS = {}\nSERVER_PORT = {port}\nIPADDR_LOCAL = 127.0.0.1\n\
+             OPCUA_WRITE = LEVEL\n",
+            users.display(),
             tags.display()
         )
     })
@@ -712,6 +715,17 @@ async fn tag_file_units_ranges_percent_deadband_and_a_live_edit() {
         .map(|v| v["value"].as_f64().unwrap())
         .collect();
     assert_eq!(got, [0.0, 25.0, 50.0]);
+    // Writes stay within the range.
+    assert_eq!(
+        write(&url, HMI, "M.LEVEL", "Float", "250").await,
+        "BadOutOfRange"
+    );
+    assert_eq!(
+        write(&url, HMI, "M.LEVEL", "Float", "-1").await,
+        "BadOutOfRange"
+    );
+    assert_eq!(write(&url, HMI, "M.LEVEL", "Float", "120").await, "Good");
+    assert_eq!(get_f64(&mut c, "LEVEL").await, 120.0);
 
     // The tag file edited: COUNT goes, EXTRA comes; LEVEL keeps its id.
     let edited = TAGS.replace(

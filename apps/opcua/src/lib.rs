@@ -24,6 +24,9 @@ pub mod manager;
 pub mod space;
 pub mod users;
 
+/// The stack, for the types our functions take.
+pub use opcua;
+
 use std::net::{IpAddr, SocketAddr, ToSocketAddrs};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;

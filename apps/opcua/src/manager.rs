@@ -411,7 +411,17 @@ impl Manager {
             .get(&name)
             .ok_or(StatusCode::BadNodeIdUnknown)?;
         let var = view.table.var(id);
-        let text = convert::write_text(var.ty, variant, nodes.section.format())?;
+        let opts = nodes.section.format();
+        let text = convert::write_text(var.ty, variant, opts)?;
+        // The tag file's range is the range a writer may set (EURange).
+        if let Some(info) = var.info.as_deref() {
+            let value = plccoms_protocol::value::Value::parse(var.ty, &text, opts)
+                .map(|v| v.as_f64())
+                .unwrap_or(f64::NAN);
+            if info.min.is_some_and(|min| value < min) || info.max.is_some_and(|max| value > max) {
+                return Err(StatusCode::BadOutOfRange);
+            }
+        }
         Ok((index, var.name.to_vec(), text))
     }
 
