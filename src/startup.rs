@@ -342,7 +342,7 @@ fn start_mqtt(
 
 /// The historian as the apps read it (the web page's history, OPC UA's
 /// HistoryRead), when one records.
-#[cfg(feature = "historian")]
+#[cfg(all(feature = "historian", any(feature = "web", feature = "opcua")))]
 fn history_source(
     config: &Config,
     global: &Global,
@@ -356,7 +356,7 @@ fn history_source(
     })
 }
 
-#[cfg(not(feature = "historian"))]
+#[cfg(all(not(feature = "historian"), any(feature = "web", feature = "opcua")))]
 fn history_source(
     _config: &Config,
     _global: &Global,

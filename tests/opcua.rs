@@ -102,8 +102,33 @@ impl Ua {
         self.conf.path().join("opcua-pki")
     }
 
-    /// Trusts the one client certificate in rejected/, by moving it to
-    /// trusted/ as an administrator does.
+    /// A client certificate (made in a new folder) that the server first
+    /// refuses, storing it in rejected/, then trusts once it is moved to
+    /// trusted/ as an administrator does; the client options that use it
+    /// with Basic256Sha256 SignAndEncrypt, and the folder.
+    async fn trusted_client(&self, options: &[&str]) -> (Vec<String>, tempfile::TempDir) {
+        let certs = tempfile::tempdir().unwrap();
+        let mut secure: Vec<String> = [
+            "--security",
+            "Basic256Sha256,SignAndEncrypt",
+            "--cert",
+            certs.path().to_str().unwrap(),
+        ]
+        .iter()
+        .chain(options)
+        .map(|s| s.to_string())
+        .collect();
+        let refused = run(args_of(&secure, "browse", &self.url, &[])).await;
+        assert_eq!(
+            refused[0]["error"], "BadCertificateUntrusted",
+            "{refused:?}"
+        );
+        self.trust_rejected();
+        secure.truncate(4);
+        (secure, certs)
+    }
+
+    /// Trusts the one client certificate in rejected/.
     fn trust_rejected(&self) {
         let rejected: Vec<_> = std::fs::read_dir(self.pki().join("rejected"))
             .unwrap()
@@ -140,6 +165,11 @@ async fn run(args: Vec<String>) -> Vec<Value> {
         String::from_utf8_lossy(&output.stderr)
     );
     lines
+}
+
+fn args_of(options: &[String], command: &str, url: &str, rest: &[&str]) -> Vec<String> {
+    let options: Vec<&str> = options.iter().map(String::as_str).collect();
+    args(&options, command, url, rest)
 }
 
 fn args(options: &[&str], command: &str, url: &str, rest: &[&str]) -> Vec<String> {
@@ -479,26 +509,11 @@ async fn a_client_killed_mid_subscription_leaves_the_server_serving() {
 #[tokio::test(flavor = "multi_thread")]
 async fn an_untrusted_certificate_is_rejected_then_signandencrypt_with_a_user() {
     let ua = Ua::start("", "").await;
-    let certs = tempfile::tempdir().unwrap();
-    let cert_dir = certs.path().to_str().unwrap();
-    let secure = [
-        "--security",
-        "Basic256Sha256,SignAndEncrypt",
-        "--cert",
-        cert_dir,
-    ];
-    let options: Vec<&str> = secure.iter().chain(HMI).copied().collect();
-    let refused = run(args(
-        &options,
-        "write",
-        &ua.url,
-        &["PLC.SETPOINT", "Float", "3.5"],
-    ))
-    .await;
-    assert!(refused[0].get("error").is_some(), "{refused:?}");
-    ua.trust_rejected();
+    let (secure, _certs) = ua.trusted_client(HMI).await;
+    let secure: Vec<&str> = secure.iter().map(String::as_str).collect();
+    let with_user: Vec<&str> = secure.iter().chain(HMI).copied().collect();
     assert_eq!(
-        write(&ua.url, &options, "PLC.SETPOINT", "Float", "3.5").await,
+        write(&ua.url, &with_user, "PLC.SETPOINT", "Float", "3.5").await,
         "Good"
     );
     let mut c = ua.telnet().await;
@@ -519,18 +534,9 @@ async fn anonymous_is_refused_off_loopback() {
     // Bound to every address: not loopback, although the test connects
     // through 127.0.0.1.
     let ua = Ua::start_with("OPCUA_HOST = 0.0.0.0", "").await;
-    let certs = tempfile::tempdir().unwrap();
-    let cert_dir = certs.path().to_str().unwrap();
-    let secure = [
-        "--security",
-        "Basic256Sha256,SignAndEncrypt",
-        "--cert",
-        cert_dir,
-    ];
+    let (secure, _certs) = ua.trusted_client(HMI).await;
+    let secure: Vec<&str> = secure.iter().map(String::as_str).collect();
     let with_user: Vec<&str> = secure.iter().chain(HMI).copied().collect();
-    let lines = run(args(&with_user, "browse", &ua.url, &[])).await;
-    assert_eq!(lines[0]["error"], "BadCertificateUntrusted", "{lines:?}");
-    ua.trust_rejected();
     ua.wait_table(&with_user).await;
     // Anonymous: refused on the secure endpoint, and there is no None
     // endpoint.

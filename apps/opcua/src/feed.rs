@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use opcua::server::node_manager::memory::InMemoryNodeManager;
 use opcua::server::SubscriptionCache;
-use opcua::types::{DataValue, DateTime, NodeId, StatusCode, Variant};
+use opcua::types::{DataValue, DateTime, NodeId, Variant};
 use tokio_util::sync::CancellationToken;
 use tracing::info;
 
@@ -119,7 +119,7 @@ impl Feed {
                 if link_changed {
                     updates.push((
                         self.shared.node(ids::property(&nodes.name, "LinkState")),
-                        now_value(Variant::from(link)),
+                        space::good_now(Variant::from(link)),
                     ));
                 }
                 if let Some(time) =
@@ -127,7 +127,7 @@ impl Feed {
                 {
                     updates.push((
                         self.shared.node(ids::property(&nodes.name, "LastPoll")),
-                        now_value(Variant::from(DateTime::from(time))),
+                        space::good_now(Variant::from(DateTime::from(time))),
                     ));
                 }
             }
@@ -143,17 +143,5 @@ impl Feed {
                 .zip(values)
                 .map(|(node, value)| (node, None, value)),
         );
-    }
-}
-
-fn now_value(value: Variant) -> DataValue {
-    let now = DateTime::now();
-    DataValue {
-        value: Some(value),
-        status: Some(StatusCode::Good),
-        source_timestamp: Some(now),
-        source_picoseconds: None,
-        server_timestamp: Some(now),
-        server_picoseconds: None,
     }
 }

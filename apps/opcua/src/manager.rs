@@ -208,17 +208,7 @@ impl InMemoryNodeManagerImpl for Manager {
                 let var = table.var(id);
                 results[i] = Some(match answer {
                     Ok(bytes) => match convert::variant(var.ty, &var.decode(&bytes)) {
-                        Some(value) => {
-                            let now = DateTime::now();
-                            DataValue {
-                                value: Some(value),
-                                status: Some(StatusCode::Good),
-                                source_timestamp: Some(now),
-                                source_picoseconds: None,
-                                server_timestamp: Some(now),
-                                server_picoseconds: None,
-                            }
-                        }
+                        Some(value) => space::good_now(value),
                         None => bad(StatusCode::BadDataEncodingInvalid),
                     },
                     Err(_) => bad(StatusCode::BadNotReadable),

@@ -394,3 +394,16 @@ pub fn data_value(
         server_picoseconds: None,
     }
 }
+
+/// A good value read now.
+pub fn good_now(value: Variant) -> DataValue {
+    let now = DateTime::now();
+    DataValue {
+        value: Some(value),
+        status: Some(StatusCode::Good),
+        source_timestamp: Some(now),
+        source_picoseconds: None,
+        server_timestamp: Some(now),
+        server_picoseconds: None,
+    }
+}
