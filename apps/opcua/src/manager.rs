@@ -4,6 +4,7 @@
 //! through the core's one write path, monitored items that enable their
 //! variable in the poll as EN does, and HistoryRead from the historian.
 
+use std::collections::HashSet;
 use std::sync::Arc;
 
 use async_trait::async_trait;
@@ -17,10 +18,10 @@ use opcua::server::node_manager::memory::{
 use opcua::server::node_manager::{
     HistoryNode, MonitoredItemRef, ParsedReadValueId, RequestContext, ServerContext, WriteNode,
 };
-use opcua::server::{ContinuationPoint, CreateMonitoredItem};
+use opcua::server::{ContinuationPoint, CreateMonitoredItem, MonitoredItemHandle};
 use opcua::types::{
-    AttributeId, DataValue, DateTime, HistoryData, NodeId, ReadRawModifiedDetails, StatusCode,
-    TimestampsToReturn,
+    AttributeId, DataValue, DateTime, HistoryData, MonitoringMode, NodeId, ReadRawModifiedDetails,
+    StatusCode, TimestampsToReturn,
 };
 use plccoms_core::driver::ReadRequest;
 use plccoms_core::history_source::{HistoryQuery, RowQuality};
@@ -62,6 +63,7 @@ impl InMemoryNodeManagerImplBuilder for Builder {
         Manager {
             shared: self.shared,
             ns,
+            disabled: Default::default(),
         }
     }
 }
@@ -69,6 +71,9 @@ impl InMemoryNodeManagerImplBuilder for Builder {
 pub struct Manager {
     pub shared: Arc<Shared>,
     ns: u16,
+    /// Monitored items of ours in MonitoringMode Disabled: they do not
+    /// keep their variable enabled in the poll.
+    disabled: std::sync::Mutex<HashSet<MonitoredItemHandle>>,
 }
 
 /// Where a HistoryRead stopped: the time of the last value returned and
@@ -83,6 +88,10 @@ pub struct Cursor {
 }
 
 impl Manager {
+    fn disabled_set(&self) -> std::sync::MutexGuard<'_, HashSet<MonitoredItemHandle>> {
+        self.disabled.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
     fn read_ours(&self, node: &ParsedReadValueId) -> Option<(usize, VarId, Ours)> {
         if node.attribute_id != AttributeId::Value {
             return None;
@@ -242,6 +251,11 @@ impl InMemoryNodeManagerImpl for Manager {
                 rest.push(i);
                 continue;
             };
+            if item.monitoring_mode() == MonitoringMode::Disabled {
+                self.disabled_set().insert(item.handle());
+                item.set_status(StatusCode::Good);
+                continue;
+            }
             let nodes = &self.shared.sections[index];
             let snapshot = nodes.section.latest();
             let mut view = nodes.lock();
@@ -283,11 +297,45 @@ impl InMemoryNodeManagerImpl for Manager {
 
     async fn delete_monitored_items(&self, _context: &RequestContext, items: &[&MonitoredItemRef]) {
         for item in items {
-            if item.attribute() != AttributeId::Value {
+            if item.attribute() != AttributeId::Value || self.disabled_set().remove(&item.handle())
+            {
                 continue;
             }
             if let Some((index, name)) = self.shared.variable(item.node_id()) {
                 unwatch(&mut self.shared.sections[index].lock(), &name);
+            }
+        }
+    }
+
+    /// Disabled items stop keeping their variable in the poll, as DI: does;
+    /// enabled again, they keep it again.
+    async fn set_monitoring_mode(
+        &self,
+        _context: &RequestContext,
+        mode: MonitoringMode,
+        items: &[&MonitoredItemRef],
+    ) {
+        for item in items {
+            if item.attribute() != AttributeId::Value {
+                continue;
+            }
+            let Some((index, name)) = self.shared.variable(item.node_id()) else {
+                continue;
+            };
+            let was_disabled = self.disabled_set().contains(&item.handle());
+            let view = &mut self.shared.sections[index].lock();
+            match (mode == MonitoringMode::Disabled, was_disabled) {
+                (true, false) => {
+                    self.disabled_set().insert(item.handle());
+                    unwatch(view, &name);
+                }
+                (false, true) => {
+                    self.disabled_set().remove(&item.handle());
+                    // Counted by name even if this table lacks it: a
+                    // later table may have it.
+                    let _ = watch(view, &name, item.node_id().clone());
+                }
+                _ => {}
             }
         }
     }
@@ -580,5 +628,56 @@ pub fn unwatch(view: &mut View, name: &str) {
         if view.watched.remove(&id).is_some() && !view.table.is_fixed(id) {
             view.interest.remove(id);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use plccoms_core::changes::Interest;
+    use plccoms_core::vars::table_of;
+
+    fn view() -> View {
+        let table = Arc::new(table_of(&[("A", "INT"), ("B", "REAL")]));
+        let by_name = (0..table.len() as VarId)
+            .map(|id| (space::shown_name(&table, id), id))
+            .collect();
+        View {
+            interest: Arc::new(Interest::new(table.len())),
+            shown: vec![true; table.len()],
+            writable: vec![false; table.len()],
+            historized: vec![false; table.len()],
+            table,
+            by_name,
+            monitored: Default::default(),
+            watched: Default::default(),
+            link_shown: None,
+        }
+    }
+
+    /// As EN: the first monitored item enables the variable in the poll,
+    /// the last to go disables it.
+    #[test]
+    fn monitored_items_enable_their_variable_until_the_last_goes() {
+        let mut view = view();
+        let a = view.table.lookup(b"A").unwrap();
+        let node = NodeId::new(2, "S.A");
+        assert_eq!(watch(&mut view, "A", node.clone()), Some(a));
+        assert_eq!(watch(&mut view, "A", node), Some(a));
+        assert!(view.interest.is_wanted(a));
+        unwatch(&mut view, "A");
+        assert!(view.interest.is_wanted(a));
+        assert!(view.watched.contains_key(&a));
+        unwatch(&mut view, "A");
+        assert!(!view.interest.is_wanted(a));
+        assert!(view.watched.is_empty() && view.monitored.is_empty());
+        // A name the table lacks is counted, and enables nothing.
+        assert_eq!(watch(&mut view, "GONE", NodeId::new(2, "S.GONE")), None);
+        assert_eq!(view.monitored.get("GONE"), Some(&1));
+        unwatch(&mut view, "GONE");
+        assert!(view.monitored.is_empty());
+        // More removals than items are harmless.
+        unwatch(&mut view, "A");
+        assert!(!view.interest.is_wanted(a));
     }
 }
