@@ -733,7 +733,9 @@ async fn tag_file_units_ranges_percent_deadband_and_a_live_edit() {
     assert_eq!(write(&url, HMI, "M.LEVEL", "Float", "120").await, "Good");
     assert_eq!(get_f64(&mut c, "LEVEL").await, 120.0);
 
-    // The tag file edited: COUNT goes, EXTRA comes; LEVEL keeps its id.
+    // The tag file edited: COUNT goes, EXTRA comes; LEVEL keeps its id;
+    // a client of model change events hears of it.
+    let (mut events, _) = Subscription::start(&url, &[], "events", &["20"]).await;
     let edited = TAGS.replace(
         "count,INT,holding,2,,,,,,,a counter,,\n",
         "extra,DINT,holding,4,,,,,,,added later,,\n",
@@ -747,5 +749,11 @@ async fn tag_file_units_ranges_percent_deadband_and_a_live_edit() {
     assert_eq!(level["id"], "M.LEVEL");
     let extra = tree.iter().find(|v| v["name"] == "EXTRA").unwrap();
     assert_eq!(extra["type"], "Int32", "{extra}");
+    let event = events.next().await.expect("a model change event");
+    assert_eq!(event["source"], "M", "{event}");
+    assert!(
+        event["event_type"].as_str().unwrap().contains("2133"),
+        "{event}"
+    );
     server.shutdown().await;
 }

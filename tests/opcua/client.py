@@ -11,6 +11,7 @@ prints JSON lines on stdout; a failure to connect prints
   client.py history URL NODE FROM_MS TO_MS PER_PAGE
                                              HistoryRead raw, page by page
   client.py hold URL NODE                    subscribes and waits forever (to be killed)
+  client.py events URL SECONDS               GeneralModelChangeEvents of the Server object
   client.py --cert DIR makecert -            only makes the client's certificate
 
 Options before the command: --user NAME --password PW, --security
@@ -226,6 +227,36 @@ async def history(client, args):
             break
 
 
+class EventHandler:
+    def __init__(self):
+        self.events = asyncio.Queue()
+
+    def event_notification(self, event):
+        self.events.put_nowait({"event_type": str(event.EventType),
+                                "source": getattr(event, "SourceName", None),
+                                "message": event.Message.Text if event.Message else None})
+
+
+async def events(client, args):
+    handler = EventHandler()
+    sub = await client.create_subscription(20, handler)
+    server = client.get_node(ua.ObjectIds.Server)
+    # Every event of the Server object (BaseEventType), as most clients
+    # subscribe; the test checks the type.
+    await sub.subscribe_events(server)
+    out({"ready": True})
+    deadline = asyncio.get_running_loop().time() + float(args.seconds)
+    while True:
+        left = deadline - asyncio.get_running_loop().time()
+        if left <= 0:
+            break
+        try:
+            out(await asyncio.wait_for(handler.events.get(), timeout=left))
+        except asyncio.TimeoutError:
+            break
+    out({"done": True})
+
+
 async def hold(client, args):
     ns = await client.get_namespace_index("urn:plccoms")
     node = client.get_node(ua.NodeId(args.node, ns))
@@ -252,7 +283,7 @@ async def main():
         "browse": [], "write": ["node", "type", "value"],
         "subscribe": ["node", "kind", "deadband", "seconds"],
         "history": ["node", "from_ms", "to_ms", "per_page"], "hold": ["node"],
-        "makecert": [],
+        "makecert": [], "events": ["seconds"],
     }[args.command]
     for name, value in zip(names, args.rest):
         setattr(args, name, value)

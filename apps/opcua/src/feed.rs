@@ -88,6 +88,46 @@ impl Feed {
             "OPC UA: address space rebuilt for the new variable table ({} variables shown)",
             view.by_name.len()
         );
+        drop(view);
+        drop(space);
+        self.model_changed();
+    }
+
+    /// A GeneralModelChangeEvent from the Server object: the section's
+    /// nodes were added and removed, for clients that cache the tree.
+    fn model_changed(&self) {
+        use opcua::core_namespace::events::{
+            BaseModelChangeEventType, GeneralModelChangeEventType,
+        };
+        use opcua::nodes::{BaseEventType, Event};
+        use opcua::types::{ByteString, ModelChangeStructureDataType, ObjectId, ObjectTypeId};
+        let nodes = &self.shared.sections[self.index];
+        let section = self.shared.node(nodes.name.clone());
+        let id = format!(
+            "plccoms:{}:{}",
+            nodes.name,
+            chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0)
+        );
+        let mut base = BaseEventType::new_now(
+            ObjectTypeId::GeneralModelChangeEventType,
+            ByteString::from(id.into_bytes()),
+            format!("[{}]: variables added and removed", nodes.name),
+        );
+        base.source_node = section.clone();
+        base.source_name = nodes.name.as_str().into();
+        base.severity = 100;
+        let event = GeneralModelChangeEventType {
+            base: BaseModelChangeEventType { base },
+            changes: ModelChangeStructureDataType {
+                affected: section,
+                affected_type: ObjectTypeId::BaseObjectType.into(),
+                // NodeAdded | NodeDeleted | ReferenceAdded | ReferenceDeleted
+                verb: 0b1111,
+            },
+        };
+        let server: NodeId = ObjectId::Server.into();
+        self.subscriptions
+            .notify_events([(&event as &dyn Event, &server)].into_iter());
     }
 
     /// Gives the stack what changed for the monitored variables, and the
