@@ -278,6 +278,19 @@ async fn browse_and_read_every_type() {
     // The section object's properties.
     assert_eq!(var("LinkState")["value"], "online");
     assert_eq!(var("Backend")["value"], "EPSNET");
+    // TranslateBrowsePaths, and Browse 5 references a call with BrowseNext.
+    let paths = run(args(&[], "paths", &ua.url, &["PLC", "SETPOINT", "5"])).await;
+    assert_eq!(paths[0]["translated"], "PLC.SETPOINT");
+    let names: Vec<&str> = paths[1]["names"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|n| n.as_str())
+        .collect();
+    let browsed: Vec<&str> = tree.iter().filter_map(|v| v["name"].as_str()).collect();
+    assert_eq!(names.len(), browsed.len(), "{names:?}");
+    assert!(browsed.iter().all(|b| names.contains(b)), "{names:?}");
+    assert!(paths[1]["calls"].as_u64().unwrap() >= 6, "{}", paths[1]);
     ua.server.shutdown().await;
 }
 

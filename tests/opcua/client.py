@@ -11,6 +11,7 @@ prints JSON lines on stdout; a failure to connect prints
   client.py history URL NODE FROM_MS TO_MS PER_PAGE
                                              HistoryRead raw, page by page
   client.py hold URL NODE                    subscribes and waits forever (to be killed)
+  client.py paths URL SECTION VARIABLE PAGE  TranslateBrowsePaths, and Browse with BrowseNext
   client.py events URL SECONDS               GeneralModelChangeEvents of the Server object
   client.py --cert DIR makecert -            only makes the client's certificate
 
@@ -257,6 +258,36 @@ async def events(client, args):
     out({"done": True})
 
 
+async def paths(client, args):
+    """TranslateBrowsePathsToNodeIds of plccoms/<section>/<variable>, and
+    Browse of the section PAGE references at a time, with BrowseNext."""
+    ns = await client.get_namespace_index("urn:plccoms")
+    objects = client.get_node(ua.ObjectIds.ObjectsFolder)
+    node = await objects.get_child([f"{ns}:plccoms", f"{ns}:{args.section}", f"{ns}:{args.variable}"])
+    out({"translated": node.nodeid.Identifier})
+    desc = ua.BrowseDescription()
+    desc.NodeId = ua.NodeId(args.section, ns)
+    desc.BrowseDirection = ua.BrowseDirection.Forward
+    desc.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HierarchicalReferences)
+    desc.IncludeSubtypes = True
+    desc.ResultMask = ua.BrowseResultMask.All
+    params = ua.BrowseParameters()
+    params.View.Timestamp = ua.get_win_epoch()  # as asyncua's own browse: no view
+    params.NodesToBrowse = [desc]
+    params.RequestedMaxReferencesPerNode = int(args.page)
+    result = (await client.uaclient.browse(params))[0]
+    names = [r.BrowseName.Name for r in result.References]
+    calls = 1
+    while result.ContinuationPoint:
+        more = ua.BrowseNextParameters()
+        more.ReleaseContinuationPoints = False
+        more.ContinuationPoints = [result.ContinuationPoint]
+        result = (await client.uaclient.browse_next(more))[0]
+        names += [r.BrowseName.Name for r in result.References]
+        calls += 1
+    out({"names": names, "calls": calls})
+
+
 async def hold(client, args):
     ns = await client.get_namespace_index("urn:plccoms")
     node = client.get_node(ua.NodeId(args.node, ns))
@@ -283,7 +314,7 @@ async def main():
         "browse": [], "write": ["node", "type", "value"],
         "subscribe": ["node", "kind", "deadband", "seconds"],
         "history": ["node", "from_ms", "to_ms", "per_page"], "hold": ["node"],
-        "makecert": [], "events": ["seconds"],
+        "makecert": [], "events": ["seconds"], "paths": ["section", "variable", "page"],
     }[args.command]
     for name, value in zip(names, args.rest):
         setattr(args, name, value)
