@@ -635,6 +635,41 @@ async fn history_read_pages_with_continuation_points_and_shows_outages() {
     let from = good.iter().position(|&v| v == 1).expect("1 recorded");
     assert_eq!(good[from..], (1..=25).collect::<Vec<_>>()[..], "{values:?}");
 
+    // Bounds: the values just outside the range, at its ends.
+    let ms = |v: &Value| {
+        chrono::DateTime::parse_from_rfc3339(v["ts"].as_str().unwrap())
+            .unwrap()
+            .timestamp_millis()
+    };
+    let at = |n: i64| values.iter().find(|v| v["value"] == n).unwrap();
+    let (after_5, before_7) = (ms(at(5)) + 1, ms(at(7)) - 1);
+    let bounded = run(args(
+        &["--bounds"],
+        "history",
+        &ua.url,
+        &[
+            "PLC.COUNTER",
+            &after_5.to_string(),
+            &before_7.to_string(),
+            "0",
+        ],
+    ))
+    .await;
+    let got: Vec<(Value, Value)> = bounded[0]["values"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| (v["value"].clone(), v["status"].clone()))
+        .collect();
+    assert_eq!(
+        got,
+        [
+            (Value::from(5), Value::from("Good")),
+            (Value::from(6), Value::from("Good")),
+            (Value::from(7), Value::from("Good")),
+        ]
+    );
+
     // An outage comes back as Bad samples, not as silence.
     ua.sim.set_loss(1.0);
     until_link(&ua, "lost").await;

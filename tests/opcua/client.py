@@ -9,7 +9,8 @@ prints JSON lines on stdout; a failure to connect prints
                                              one monitored item (KIND none, absolute,
                                              percent); prints "ready", then each value
   client.py history URL NODE FROM_MS TO_MS PER_PAGE
-                                             HistoryRead raw, page by page
+                                             HistoryRead raw, page by page (--bounds:
+                                             with ReturnBounds)
   client.py hold URL NODE                    subscribes and waits forever (to be killed)
   client.py paths URL SECTION VARIABLE PAGE  TranslateBrowsePaths, and Browse with BrowseNext
   client.py events URL SECONDS               GeneralModelChangeEvents of the Server object
@@ -203,7 +204,7 @@ async def history(client, args):
     details.StartTime = datetime.datetime.fromtimestamp(int(args.from_ms) / 1000, datetime.timezone.utc)
     details.EndTime = datetime.datetime.fromtimestamp(int(args.to_ms) / 1000, datetime.timezone.utc)
     details.NumValuesPerNode = int(args.per_page)
-    details.ReturnBounds = False
+    details.ReturnBounds = bool(args.bounds)
     point = None
     pages = 0
     while True:
@@ -306,6 +307,7 @@ async def main():
     parser.add_argument("--password")
     parser.add_argument("--security")
     parser.add_argument("--cert")
+    parser.add_argument("--bounds", action="store_true")
     parser.add_argument("command")
     parser.add_argument("url")
     parser.add_argument("rest", nargs="*")

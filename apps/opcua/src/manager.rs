@@ -393,8 +393,11 @@ impl InMemoryNodeManagerImpl for Manager {
             0 => HISTORY_PAGE,
             n => (n as usize).min(HISTORY_PAGE),
         };
+        let bounds = details.return_bounds;
         for node in nodes.iter_mut() {
-            let status = self.history_node(&*history, node, from, to, page).await;
+            let status = self
+                .history_node(&*history, node, (from, to), page, bounds)
+                .await;
             node.set_status(status);
         }
         Ok(())
@@ -467,9 +470,9 @@ impl Manager {
         &self,
         history: &dyn plccoms_core::history_source::HistorySource,
         node: &mut HistoryNode,
-        from: i64,
-        to: i64,
+        (from, to): (i64, i64),
         page: usize,
+        bounds: bool,
     ) -> StatusCode {
         let Some((index, name)) = self.shared.variable(node.node_id()) else {
             return StatusCode::BadNodeIdUnknown;
@@ -510,6 +513,23 @@ impl Manager {
         };
         let opts = nodes.section.format();
         let mut values = Vec::new();
+        let find_bound = |from_ms: i64, to_ms: i64, first: bool| {
+            let query = HistoryQuery {
+                section: nodes.name.clone(),
+                masks: vec![name.clone()],
+                from_ms,
+                to_ms,
+            };
+            bound(history, query, &name, first)
+        };
+        // The bound before the start: on the first page only.
+        if bounds && node.continuation_point().is_none() && from != i64::MIN {
+            let found = find_bound(from.saturating_sub(BOUND_LOOKBACK_MS), from - 1, false).await;
+            values.push(match found {
+                Some(sample) => history_value(&sample, ty, opts),
+                None => bound_not_found(from),
+            });
+        }
         let mut skip = cursor.skip;
         let mut last: Option<(i64, usize)> = None;
         let mut more = false;
@@ -533,36 +553,18 @@ impl Manager {
                 more = true;
                 break;
             }
-            let source =
-                chrono::DateTime::from_timestamp_millis(sample.unix_ms).map(DateTime::from);
-            let value = sample.value.as_ref().and_then(|p| {
-                let user = p.text();
-                let text = present::protocol_text(ty, user.as_bytes(), opts).ok()?;
-                convert::variant_of_text(ty, &text, opts)
-            });
-            let status = match sample.quality {
-                RowQuality::Good => StatusCode::Good,
-                RowQuality::Stale => StatusCode::UncertainLastUsableValue,
-                RowQuality::LinkLost => StatusCode::BadNoCommunication,
-                RowQuality::Stopped => StatusCode::BadOutOfService,
-                RowQuality::Damaged | RowQuality::Missed => StatusCode::BadDataLost,
-                RowQuality::Error => StatusCode::BadUnexpectedError,
-            };
-            values.push(DataValue {
-                status: Some(if value.is_none() && status.is_good() {
-                    StatusCode::BadDataEncodingInvalid
-                } else {
-                    status
-                }),
-                value,
-                source_timestamp: source,
-                source_picoseconds: None,
-                server_timestamp: source,
-                server_picoseconds: None,
-            });
+            values.push(history_value(&sample, ty, opts));
             last = Some(match last {
                 Some((ms, n)) if ms == sample.unix_ms => (ms, n + 1),
                 _ => (sample.unix_ms, 1),
+            });
+        }
+        // The bound after the end: on the last page.
+        if bounds && !more && to != i64::MAX {
+            let found = find_bound(to + 1, to.saturating_add(BOUND_LOOKBACK_MS), true).await;
+            values.push(match found {
+                Some(sample) => history_value(&sample, ty, opts),
+                None => bound_not_found(to),
             });
         }
         let next = match (more, last) {
@@ -590,6 +592,79 @@ impl Manager {
         }
     }
 }
+
+/// A history row as a DataValue: its value with the row's quality as
+/// StatusCode; a marker row (an outage, the server stopped, a gap) without
+/// a value, Bad.
+fn history_value(
+    sample: &plccoms_core::history_source::Sample,
+    ty: plccoms_protocol::IecType,
+    opts: &plccoms_protocol::value::FormatOptions,
+) -> DataValue {
+    let source = chrono::DateTime::from_timestamp_millis(sample.unix_ms).map(DateTime::from);
+    let value = sample.value.as_ref().and_then(|p| {
+        let user = p.text();
+        let text = present::protocol_text(ty, user.as_bytes(), opts).ok()?;
+        convert::variant_of_text(ty, &text, opts)
+    });
+    let status = match sample.quality {
+        RowQuality::Good => StatusCode::Good,
+        RowQuality::Stale => StatusCode::UncertainLastUsableValue,
+        RowQuality::LinkLost => StatusCode::BadNoCommunication,
+        RowQuality::Stopped => StatusCode::BadOutOfService,
+        RowQuality::Damaged | RowQuality::Missed => StatusCode::BadDataLost,
+        RowQuality::Error => StatusCode::BadUnexpectedError,
+    };
+    DataValue {
+        status: Some(if value.is_none() && status.is_good() {
+            StatusCode::BadDataEncodingInvalid
+        } else {
+            status
+        }),
+        value,
+        source_timestamp: source,
+        source_picoseconds: None,
+        server_timestamp: source,
+        server_picoseconds: None,
+    }
+}
+
+/// The first (`first`) or last sample of `name` in `query`'s range.
+async fn bound(
+    history: &dyn plccoms_core::history_source::HistorySource,
+    query: HistoryQuery,
+    name: &str,
+    first: bool,
+) -> Option<plccoms_core::history_source::Sample> {
+    let mut stream = history.samples(query).ok()?;
+    let mut found = None;
+    while let Some(Ok(sample)) = stream.next().await {
+        if sample.value.is_some() && *sample.name != *name {
+            continue;
+        }
+        found = Some(sample);
+        if first {
+            break;
+        }
+    }
+    found
+}
+
+/// A bound with no sample within [`BOUND_LOOKBACK_MS`].
+fn bound_not_found(at_ms: i64) -> DataValue {
+    let at = chrono::DateTime::from_timestamp_millis(at_ms).map(DateTime::from);
+    DataValue {
+        value: None,
+        status: Some(StatusCode::BadBoundNotFound),
+        source_timestamp: at,
+        source_picoseconds: None,
+        server_timestamp: at,
+        server_picoseconds: None,
+    }
+}
+
+/// How far before the start and after the end a bound is looked for.
+pub const BOUND_LOOKBACK_MS: i64 = 24 * 3_600_000;
 
 /// One more monitored item on `name`: the first enables it in the poll.
 /// The variable's id in the view's table, if it has it.
