@@ -805,3 +805,28 @@ async fn tag_file_units_ranges_percent_deadband_and_a_live_edit() {
     );
     server.shutdown().await;
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_history_stamp_pair_gives_the_plcs_time_as_source_timestamp() {
+    let ua = Ua::start("", "HISTORY_STAMP = V_DINT:V_LINT").await;
+    let mut c = ua.telnet().await;
+    // Milliseconds since 1970, as the PLC's program writes them.
+    set(&mut c, "V_LINT", "1700000000123").await;
+    set(&mut c, "V_DINT", "5").await;
+    let (mut sub, _) = Subscription::start(
+        &ua.url,
+        &[],
+        "subscribe",
+        &["PLC.V_DINT", "absolute", "0", "2"],
+    )
+    .await;
+    let values = sub.values().await;
+    // The first value (async-opcua moves a later value's SourceTimestamp
+    // forward by the sampling interval when two come closer than it).
+    assert_eq!(values[0]["value"], 5, "{values:?}");
+    assert_eq!(
+        values[0]["source_ts"], "2023-11-14T22:13:20.123000+00:00",
+        "{values:?}"
+    );
+    ua.server.shutdown().await;
+}

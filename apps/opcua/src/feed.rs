@@ -56,8 +56,13 @@ impl Feed {
             view.monitored = std::mem::take(&mut current.monitored);
             for name in view.monitored.keys() {
                 if let Some(&id) = view.by_name.get(name) {
-                    if !view.table.is_fixed(id) {
-                        view.interest.add(id);
+                    for enabled in [Some(id), view.stamp_of.get(&id).copied()]
+                        .into_iter()
+                        .flatten()
+                    {
+                        if !view.table.is_fixed(enabled) {
+                            view.interest.add(enabled);
+                        }
                     }
                     let node = shared.node(ids::variable(&nodes.name, name));
                     view.watched.insert(
@@ -141,6 +146,7 @@ impl Feed {
             if !Arc::ptr_eq(&view.table, &snapshot.table) {
                 return;
             }
+            let view = &mut *view;
             for (&id, watched) in view.watched.iter_mut() {
                 let slot = snapshot.slot(id);
                 let quality = snapshot.quality(id);
@@ -149,7 +155,11 @@ impl Feed {
                 }
                 watched.seq = slot.changed_seq;
                 watched.quality = Some(quality);
-                updates.push((watched.node.clone(), space::data_value(snapshot, id, opts)));
+                let stamp = view.stamp_of.get(&id).copied();
+                updates.push((
+                    watched.node.clone(),
+                    space::data_value(snapshot, id, stamp, opts),
+                ));
             }
             let link = nodes.section.link_state().as_str();
             let polled = snapshot.polled.map_or(0, |p| p.unix_ms);

@@ -108,7 +108,8 @@ impl Manager {
         // The poll's value while it is fresh; the last value with its bad
         // quality while the link is lost; else a read, as GET makes one.
         if snapshot.fresh(id, now).is_some() || !snapshot.online || view.table.is_fixed(id) {
-            let value = space::data_value(&snapshot, id, nodes.section.format());
+            let stamp = view.stamp_of.get(&id).copied();
+            let value = space::data_value(&snapshot, id, stamp, nodes.section.format());
             return Some((index, id, Ours::Value(value)));
         }
         Some((index, id, Ours::Read))
@@ -262,7 +263,8 @@ impl InMemoryNodeManagerImpl for Manager {
             let node_id = node.node_id.clone();
             match watch(&mut view, &name, node_id) {
                 Some(id) if Arc::ptr_eq(&view.table, &snapshot.table) => {
-                    let value = space::data_value(&snapshot, id, nodes.section.format());
+                    let stamp = view.stamp_of.get(&id).copied();
+                    let value = space::data_value(&snapshot, id, stamp, nodes.section.format());
                     if let Some(w) = view.watched.get_mut(&id) {
                         w.seq = snapshot.slot(id).changed_seq;
                         w.quality = Some(snapshot.quality(id));
@@ -674,8 +676,14 @@ pub fn watch(view: &mut View, name: &str, node: NodeId) -> Option<VarId> {
     let first = *count == 1;
     let &id = view.by_name.get(name)?;
     if first {
-        if !view.table.is_fixed(id) {
-            view.interest.add(id);
+        // With its HISTORY_STAMP variable: the PLC's time of it.
+        for enabled in [Some(id), view.stamp_of.get(&id).copied()]
+            .into_iter()
+            .flatten()
+        {
+            if !view.table.is_fixed(enabled) {
+                view.interest.add(enabled);
+            }
         }
         view.watched.insert(
             id,
@@ -700,8 +708,15 @@ pub fn unwatch(view: &mut View, name: &str) {
     }
     view.monitored.remove(name);
     if let Some(&id) = view.by_name.get(name) {
-        if view.watched.remove(&id).is_some() && !view.table.is_fixed(id) {
-            view.interest.remove(id);
+        if view.watched.remove(&id).is_some() {
+            for enabled in [Some(id), view.stamp_of.get(&id).copied()]
+                .into_iter()
+                .flatten()
+            {
+                if !view.table.is_fixed(enabled) {
+                    view.interest.remove(enabled);
+                }
+            }
         }
     }
 }
@@ -727,6 +742,7 @@ mod tests {
             monitored: Default::default(),
             watched: Default::default(),
             link_shown: None,
+            stamp_of: Default::default(),
         }
     }
 

@@ -19,6 +19,7 @@ use plccoms_core::changes::{Quality, Snapshot};
 use plccoms_core::section::Section;
 use plccoms_core::vars::{VarId, VarTable};
 use plccoms_protocol::cp1250;
+use plccoms_protocol::value::Value;
 
 use crate::convert;
 use crate::ids;
@@ -50,6 +51,9 @@ pub struct View {
     pub watched: HashMap<VarId, Watched>,
     /// Last link state and poll shown on the section object.
     pub link_shown: Option<(&'static str, i64)>,
+    /// HISTORY_STAMP: value variable -> the variable holding the PLC's time
+    /// of it (its SourceTimestamp).
+    pub stamp_of: HashMap<VarId, VarId>,
 }
 
 pub struct SectionNodes {
@@ -141,6 +145,7 @@ impl View {
             monitored: HashMap::new(),
             watched: HashMap::new(),
             link_shown: None,
+            stamp_of: HashMap::new(),
         };
         view.classify(section, recorded);
         view
@@ -173,6 +178,18 @@ impl View {
         } else {
             vec![false; len]
         };
+        self.stamp_of = config
+            .history
+            .stamps
+            .iter()
+            .filter_map(|pair| {
+                let value = table.lookup(pair.value.as_bytes())?;
+                let stamp = table.lookup(pair.stamp.as_bytes())?;
+                use plccoms_protocol::IecType::*;
+                matches!(table.var(stamp).ty, Dt | Date | Lint | Ulint | Lword)
+                    .then_some((value, stamp))
+            })
+            .collect();
         self.by_name = (0..len as VarId)
             .filter(|&id| self.shown[id as usize])
             .map(|id| (shown_name(table, id), id))
@@ -357,10 +374,12 @@ fn remove_variable(space: &mut AddressSpace, ns: u16, section: &str, shown: &str
 }
 
 /// The DataValue of variable `id` in `snapshot` (its value as last known,
-/// its quality as StatusCode, the poll's time as SourceTimestamp).
+/// its quality as StatusCode, as SourceTimestamp the PLC's time from its
+/// HISTORY_STAMP variable `stamp` if it has one, else the poll's time).
 pub fn data_value(
     snapshot: &Snapshot,
     id: VarId,
+    stamp: Option<VarId>,
     opts: &plccoms_protocol::value::FormatOptions,
 ) -> DataValue {
     let slot = snapshot.slot(id);
@@ -384,11 +403,20 @@ pub fn data_value(
         Some(v) => (Some(v), convert::status(snapshot.quality(id))),
         None => (None, StatusCode::BadDataEncodingInvalid),
     };
+    let plc_ms =
+        stamp.and_then(
+            |stamp| match snapshot.slot(stamp).value(snapshot.table.var(stamp))? {
+                Value::Date(secs) if secs.is_finite() => Some((secs * 1000.0).round() as i64),
+                Value::Signed(ms) => Some(ms),
+                Value::Unsigned(ms) => i64::try_from(ms).ok(),
+                _ => None,
+            },
+        );
+    let source_ms = plc_ms.unwrap_or(slot.changed_ms);
     DataValue {
         value,
         status: Some(status),
-        source_timestamp: chrono::DateTime::from_timestamp_millis(slot.changed_ms)
-            .map(DateTime::from),
+        source_timestamp: chrono::DateTime::from_timestamp_millis(source_ms).map(DateTime::from),
         source_picoseconds: None,
         server_timestamp: Some(now),
         server_picoseconds: None,
