@@ -136,6 +136,20 @@ async def write(client, args):
     out({"status": status_name(results[0])})
 
 
+async def drain(queue, seconds):
+    """Prints what comes on `queue` for `seconds`, then {"done": true}."""
+    deadline = asyncio.get_running_loop().time() + seconds
+    while True:
+        left = deadline - asyncio.get_running_loop().time()
+        if left <= 0:
+            break
+        try:
+            out(await asyncio.wait_for(queue.get(), timeout=left))
+        except asyncio.TimeoutError:
+            break
+    out({"done": True})
+
+
 class Handler:
     def __init__(self):
         self.values = asyncio.Queue()
@@ -183,17 +197,7 @@ async def subscribe(client, args):
     out({"ready": True, "status": status_name(result.StatusCode),
          "revised_sampling": result.RevisedSamplingInterval,
          "revised_queue": result.RevisedQueueSize})
-    deadline = asyncio.get_running_loop().time() + float(args.seconds)
-    while True:
-        left = deadline - asyncio.get_running_loop().time()
-        if left <= 0:
-            break
-        try:
-            item = await asyncio.wait_for(handler.values.get(), timeout=left)
-        except asyncio.TimeoutError:
-            break
-        out(item)
-    out({"done": True})
+    await drain(handler.values, float(args.seconds))
 
 
 async def history(client, args):
@@ -247,16 +251,7 @@ async def events(client, args):
     # subscribe; the test checks the type.
     await sub.subscribe_events(server)
     out({"ready": True})
-    deadline = asyncio.get_running_loop().time() + float(args.seconds)
-    while True:
-        left = deadline - asyncio.get_running_loop().time()
-        if left <= 0:
-            break
-        try:
-            out(await asyncio.wait_for(handler.events.get(), timeout=left))
-        except asyncio.TimeoutError:
-            break
-    out({"done": True})
+    await drain(handler.events, float(args.seconds))
 
 
 async def paths(client, args):

@@ -16,7 +16,7 @@ use plccoms_core::changes::Snapshot;
 
 use crate::ids;
 use crate::manager::Manager;
-use crate::space::{self, Shared, View, Watched};
+use crate::space::{self, Shared, View};
 
 pub struct Feed {
     pub shared: Arc<Shared>,
@@ -54,25 +54,11 @@ impl Feed {
         let old = {
             let mut current = nodes.lock();
             view.monitored = std::mem::take(&mut current.monitored);
-            for name in view.monitored.keys() {
-                if let Some(&id) = view.by_name.get(name) {
-                    for enabled in [Some(id), view.stamp_of.get(&id).copied()]
-                        .into_iter()
-                        .flatten()
-                    {
-                        if !view.table.is_fixed(enabled) {
-                            view.interest.add(enabled);
-                        }
-                    }
-                    let node = shared.node(ids::variable(&nodes.name, name));
-                    view.watched.insert(
-                        id,
-                        Watched {
-                            node,
-                            seq: u64::MAX,
-                            quality: None,
-                        },
-                    );
+            let names: Vec<String> = view.monitored.keys().cloned().collect();
+            for name in names {
+                if let Some(&id) = view.by_name.get(&name) {
+                    let node = shared.node(ids::variable(&nodes.name, &name));
+                    view.enable(id, node);
                 }
             }
             std::mem::replace(&mut *current, view)

@@ -30,7 +30,7 @@ use plccoms_core::vars::VarId;
 
 use crate::auth;
 use crate::convert;
-use crate::space::{self, Shared, View, Watched};
+use crate::space::{self, Shared, View};
 
 /// Our namespace's URI.
 pub const NAMESPACE: &str = "urn:plccoms";
@@ -676,23 +676,7 @@ pub fn watch(view: &mut View, name: &str, node: NodeId) -> Option<VarId> {
     let first = *count == 1;
     let &id = view.by_name.get(name)?;
     if first {
-        // With its HISTORY_STAMP variable: the PLC's time of it.
-        for enabled in [Some(id), view.stamp_of.get(&id).copied()]
-            .into_iter()
-            .flatten()
-        {
-            if !view.table.is_fixed(enabled) {
-                view.interest.add(enabled);
-            }
-        }
-        view.watched.insert(
-            id,
-            Watched {
-                node,
-                seq: u64::MAX,
-                quality: None,
-            },
-        );
+        view.enable(id, node);
     }
     Some(id)
 }
@@ -708,16 +692,7 @@ pub fn unwatch(view: &mut View, name: &str) {
     }
     view.monitored.remove(name);
     if let Some(&id) = view.by_name.get(name) {
-        if view.watched.remove(&id).is_some() {
-            for enabled in [Some(id), view.stamp_of.get(&id).copied()]
-                .into_iter()
-                .flatten()
-            {
-                if !view.table.is_fixed(enabled) {
-                    view.interest.remove(enabled);
-                }
-            }
-        }
+        view.disable(id);
     }
 }
 

@@ -151,6 +151,42 @@ impl View {
         view
     }
 
+    /// Enables `id` in the poll (with its HISTORY_STAMP variable) and hands
+    /// its changes to the monitored items on `node`.
+    pub fn enable(&mut self, id: VarId, node: NodeId) {
+        for enabled in [Some(id), self.stamp_of.get(&id).copied()]
+            .into_iter()
+            .flatten()
+        {
+            if !self.table.is_fixed(enabled) {
+                self.interest.add(enabled);
+            }
+        }
+        self.watched.insert(
+            id,
+            Watched {
+                node,
+                seq: u64::MAX,
+                quality: None,
+            },
+        );
+    }
+
+    /// Undoes [`View::enable`].
+    pub fn disable(&mut self, id: VarId) {
+        if self.watched.remove(&id).is_none() {
+            return;
+        }
+        for enabled in [Some(id), self.stamp_of.get(&id).copied()]
+            .into_iter()
+            .flatten()
+        {
+            if !self.table.is_fixed(enabled) {
+                self.interest.remove(enabled);
+            }
+        }
+    }
+
     /// Which variables of `self.table` are shown, writable and recorded.
     fn classify(&mut self, section: &Section, recorded: bool) {
         let config = section.state().config.clone();
