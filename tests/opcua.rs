@@ -830,3 +830,62 @@ async fn a_history_stamp_pair_gives_the_plcs_time_as_source_timestamp() {
     );
     ua.server.shutdown().await;
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn history_read_continues_across_a_day_file_boundary() {
+    use plccoms_historian::sample::{Sample, Stored};
+    use plccoms_historian::store::{day_of, DayFile, DAY_MS};
+    let ua = Ua::start("HISTORY_SYNC = 1", "HISTORY = COUNTER").await;
+    // Yesterday's day file: COUNTER 100..=109 in its last ten seconds.
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_millis() as i64;
+    let yesterday = day_of(now) - 1;
+    let table = std::sync::Arc::new(plccoms_core::vars::table_of(&[("COUNTER", "INT")]));
+    let counter = table.lookup(b"COUNTER").unwrap();
+    let end = (yesterday + 1) * DAY_MS;
+    let samples: Vec<Sample> = (0..10)
+        .map(|i| Sample {
+            t: end - 10_000 + i * 1000,
+            var: counter,
+            value: Stored::Int(100 + i),
+            quality: plccoms_core::changes::Quality::Good,
+            plc_time: None,
+        })
+        .collect();
+    let mut file = DayFile::open(&ua.conf.path().join("history"), "PLC", yesterday).unwrap();
+    file.write(&[(&table, &samples)], &[]).unwrap();
+    file.close();
+    // Today's, recorded live.
+    let mut c = ua.telnet().await;
+    for n in 1..=5 {
+        set(&mut c, "COUNTER", &n.to_string()).await;
+        tokio::time::sleep(Duration::from_millis(40)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let pages = run(args(
+        &[],
+        "history",
+        &ua.url,
+        &[
+            "PLC.COUNTER",
+            &(end - 60_000).to_string(),
+            &(now + 60_000).to_string(),
+            "3",
+        ],
+    ))
+    .await;
+    let good: Vec<i64> = pages
+        .iter()
+        .flat_map(|p| p["values"].as_array().unwrap().clone())
+        .filter(|v| v["status"] == "Good")
+        .map(|v| v["value"].as_i64().unwrap())
+        .collect();
+    let expected: Vec<i64> = (100..=109).chain(1..=5).collect();
+    let today: Vec<i64> = good.iter().copied().filter(|&v| v != 0).collect();
+    assert_eq!(today, expected, "{pages:?}");
+    // Three values a page: yesterday's ten end in the middle of a page.
+    assert!(pages.len() >= 5, "{pages:?}");
+    ua.server.shutdown().await;
+}
