@@ -349,3 +349,86 @@ fn own_thumbprint(pki: &Path) -> Option<String> {
     let cert = opcua::crypto::X509::from_der(&der).ok()?;
     Some(cert.thumbprint().as_hex_string())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn global(keys: &[(&str, &str)]) -> Global {
+        let mut global = Global::default();
+        global.opcua.port = Some(4840);
+        for (key, value) in keys {
+            match *key {
+                "host" => global.opcua.host = value.to_string(),
+                "anonymous" => global.opcua.anonymous = *value == "Yes",
+                "users" => global.opcua.users = Some(value.to_string()),
+                "security" => {
+                    global.opcua.security = config::OPCUA_SECURITY_CHOICES
+                        .iter()
+                        .copied()
+                        .filter(|c| value.split(',').any(|v| v.trim() == *c))
+                        .collect()
+                }
+                _ => unreachable!(),
+            }
+        }
+        global
+    }
+
+    #[test]
+    fn the_defaults_serve_loopback_with_every_endpoint() {
+        let path = Path::new("/nonexistent/plccoms.ini");
+        assert!(Settings::load(&Global::default(), path).unwrap().is_none());
+        let settings = Settings::load(&global(&[]), path).unwrap().unwrap();
+        assert_eq!(settings.host, "127.0.0.1");
+        assert!(settings.anonymous);
+        assert_eq!(settings.endpoints.len(), 3);
+        assert!(settings
+            .endpoints
+            .contains(&(SecurityPolicy::None, MessageSecurityMode::None)));
+        assert_eq!(settings.pki, Path::new("/nonexistent/opcua-pki"));
+    }
+
+    #[test]
+    fn off_loopback_anonymous_and_none_need_opcua_anonymous() {
+        let path = Path::new("/nonexistent/plccoms.ini");
+        let refused = Settings::load(&global(&[("host", "0.0.0.0")]), path).unwrap_err();
+        assert!(refused.contains("OPCUA_USERS"), "{refused}");
+        let open = Settings::load(&global(&[("host", "0.0.0.0"), ("anonymous", "Yes")]), path)
+            .unwrap()
+            .unwrap();
+        assert!(open.anonymous);
+        assert!(open.endpoints.iter().any(|e| e.0 == SecurityPolicy::None));
+        // Only None asked for, off loopback: nothing left to serve.
+        let none_only = global(&[("host", "10.0.0.1"), ("security", "None")]);
+        assert!(Settings::load(&none_only, path)
+            .unwrap_err()
+            .contains("no endpoint"));
+        // A users file that is not there stops the start, naming it.
+        let missing = global(&[("host", "10.0.0.1"), ("users", "nope")]);
+        assert!(Settings::load(&missing, path)
+            .unwrap_err()
+            .contains("OPCUA_USERS /nonexistent/nope"));
+    }
+
+    #[test]
+    fn policies_and_loopback_names() {
+        for choice in config::OPCUA_SECURITY_CHOICES {
+            assert!(security(choice).is_some(), "{choice}");
+        }
+        assert_eq!(security("Basic256Sha256 Encrypt"), None);
+        for host in [
+            "127.0.0.1",
+            "::1",
+            "[::1]",
+            "localhost",
+            "LocalHost",
+            "127.1.2.3",
+        ] {
+            assert!(is_loopback(host), "{host}");
+        }
+        for host in ["0.0.0.0", "::", "10.0.0.1", "plc.example"] {
+            assert!(!is_loopback(host), "{host}");
+        }
+    }
+}
