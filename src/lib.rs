@@ -35,6 +35,7 @@ pub const OUR_CRATES: &[&str] = &[
     "plccoms_historian",
     "plccoms_mqtt",
     "plccoms_web",
+    "plccoms_opcua",
     "plcsim",
 ];
 

@@ -149,6 +149,9 @@ pub struct Server {
     /// The MQTT north side, when MQTT_URL is set.
     #[cfg(feature = "mqtt")]
     mqtt: Option<plccoms_mqtt::Mqtt>,
+    /// The OPC UA server, when OPCUA_PORT is set.
+    #[cfg(feature = "opcua")]
+    pub opcua: Option<plccoms_opcua::Opcua>,
 }
 
 impl Server {
@@ -167,6 +170,10 @@ impl Server {
         #[cfg(feature = "web")]
         if let Some(web) = self.web.take() {
             web.shutdown().await;
+        }
+        #[cfg(feature = "opcua")]
+        if let Some(opcua) = self.opcua.take() {
+            opcua.shutdown(OPCUA_GRACE).await;
         }
         for section in &self.sections {
             section.stop_accepting();
@@ -410,6 +417,8 @@ pub const SESSIONS_GRACE: std::time::Duration = std::time::Duration::from_secs(3
 pub const LINK_GRACE: std::time::Duration = std::time::Duration::from_secs(1);
 /// Longest wait at shutdown for MQTT to say `offline` and save its queue.
 pub const MQTT_GRACE: std::time::Duration = std::time::Duration::from_millis(500);
+/// Longest wait at shutdown for the OPC UA server to close its sessions.
+pub const OPCUA_GRACE: std::time::Duration = std::time::Duration::from_millis(500);
 
 /// Starts every section of `config`; fails only when none could start.
 pub async fn start(config: &Config) -> Result<Server, String> {
@@ -443,6 +452,8 @@ pub async fn start(config: &Config) -> Result<Server, String> {
         historian: None,
         #[cfg(feature = "mqtt")]
         mqtt: None,
+        #[cfg(feature = "opcua")]
+        opcua: None,
     };
     let mut failures = Vec::new();
     for section in &config.sections {
@@ -466,6 +477,7 @@ pub async fn start(config: &Config) -> Result<Server, String> {
     let sections = server.running.clone();
     start_historian(config, &sections, &mut server)?;
     start_mqtt(config, &dir, &sections, &mut server)?;
+    start_opcua(config, &global, &sections, &mut server)?;
     start_web(config, &global, &dir, sections, &mut server)?;
     Ok(server)
 }
@@ -478,7 +490,12 @@ pub async fn start(config: &Config) -> Result<Server, String> {
 // stop it; the app says what it waits for.
 
 /// Part of a configuration this build cannot serve.
-#[cfg(not(all(feature = "historian", feature = "mqtt", feature = "web")))]
+#[cfg(not(all(
+    feature = "historian",
+    feature = "mqtt",
+    feature = "web",
+    feature = "opcua"
+)))]
 fn left_out(what: &str, feature: &str) -> String {
     format!("{what}: this build has no {feature} (built without the cargo feature `{feature}`); remove the key or use a build with it")
 }
@@ -553,6 +570,70 @@ fn start_mqtt(
     Ok(())
 }
 
+/// The historian as the apps read it (the web page's history, OPC UA's
+/// HistoryRead), when one records.
+#[cfg(all(feature = "historian", any(feature = "web", feature = "opcua")))]
+fn history_source(
+    config: &Config,
+    global: &Global,
+    server: &Server,
+) -> Option<Arc<dyn plccoms_core::history_source::HistorySource>> {
+    server.historian.as_ref().map(|_| {
+        Arc::new(plccoms_historian::web::Source::new(
+            plccoms_historian::history_dir(&config.path, global),
+            global.history_query_timeout,
+        )) as Arc<dyn plccoms_core::history_source::HistorySource>
+    })
+}
+
+#[cfg(all(not(feature = "historian"), any(feature = "web", feature = "opcua")))]
+fn history_source(
+    _config: &Config,
+    _global: &Global,
+    _server: &Server,
+) -> Option<Arc<dyn plccoms_core::history_source::HistorySource>> {
+    None
+}
+
+#[cfg(feature = "opcua")]
+fn start_opcua(
+    config: &Config,
+    global: &Arc<Global>,
+    sections: &Sections,
+    server: &mut Server,
+) -> Result<(), String> {
+    let opcua = plccoms_opcua::Settings::load(global, &config.path)
+        .and_then(|settings| {
+            settings
+                .map(|settings| {
+                    // HistoryRead reads the historian's files, as the web
+                    // page's history does.
+                    let history = history_source(config, global, server);
+                    plccoms_opcua::start(settings, sections, history)
+                })
+                .transpose()
+        })
+        .map_err(|message| format!("OPC UA not started: {message}"))?;
+    server.opcua = opcua;
+    Ok(())
+}
+
+#[cfg(not(feature = "opcua"))]
+fn start_opcua(
+    _config: &Config,
+    global: &Arc<Global>,
+    _sections: &Sections,
+    _server: &mut Server,
+) -> Result<(), String> {
+    if global.opcua.port.is_some() {
+        return Err(format!(
+            "OPC UA not started: {}",
+            left_out("OPCUA_PORT", "opcua")
+        ));
+    }
+    Ok(())
+}
+
 #[cfg(feature = "web")]
 fn start_web(
     config: &Config,
@@ -566,18 +647,7 @@ fn start_web(
     };
     // /api/history and the chart's range mode read the historian's files;
     // without one they answer "historian not enabled".
-    #[cfg(feature = "historian")]
-    let history = server.historian.as_ref().map(|_| {
-        Arc::new(plccoms_historian::web::Source::new(
-            plccoms_historian::history_dir(&config.path, global),
-            global.history_query_timeout,
-        )) as Arc<dyn plccoms_core::history_source::HistorySource>
-    });
-    #[cfg(not(feature = "historian"))]
-    let history = {
-        let _ = config;
-        None
-    };
+    let history = history_source(config, global, server);
     let running = plccoms_web::start(&web, sections, server.metrics.clone(), history)
         .map_err(|message| format!("web page not started: {message}"))?;
     server.web = Some(running);

@@ -50,6 +50,21 @@ fn every_target_runs_on_ordinary_input() {
         b"section=Demo&vars=SIN*,%20counter&from=0&to=2026-11-30T12:00:00%2B01:00&format=csv",
     );
     checks::web_query(b"section=Demo&from=9&to=8&vars=,,");
+    for id in [
+        &b"Hala\nHala.2\nHala.2.TEMP#EURange"[..],
+        b"Hala\nHala.",
+        b"Hala\nHala#",
+        b"Hala\nplccoms",
+        b"\n\n",
+        b"",
+        b"A\nA.B#C#D",
+    ] {
+        checks::opcua_node_id(id);
+    }
+    checks::opcua_users(b"# none\n\nhmi write pbkdf2-sha256:1000:00112233445566778899:00");
+    checks::opcua_users(b"a read pbkdf2-sha256:99999999999:zz:zz\nb");
+    checks::opcua_write(b"\x01\x02\x03\x04\x05\x06\x07\x08PT1H");
+    checks::opcua_write(b"\xff\xff\xff\xff\xff\xff\xef\x7f2026-11-25T10:15:00Z");
     checks::web_query(b"section=%ZZ&&=&format=\xff");
     for time in [
         "-7d",
@@ -221,4 +236,27 @@ fn varint(mut n: u64, out: &mut Vec<u8>) {
         n >>= 7;
     }
     out.push(n as u8);
+}
+
+proptest::proptest! {
+    /// OPC UA node ids and users files from the characters that matter to
+    /// their grammars, through the fuzz targets' checks.
+    #[test]
+    fn opcua_parsers_hold_for_generated_text(
+        parts in proptest::collection::vec(
+            proptest::sample::select(vec![
+                "Hala", "Hala.2", ".", "#", "TEMP", "EURange", "plccoms", "\n", " ", "write",
+                "read", "pbkdf2-sha256:", "1000:", "0011223344556677:", "zz", "\u{17d}",
+            ]),
+            0..12,
+        ),
+        number in proptest::num::u64::ANY,
+    ) {
+        let text = parts.concat();
+        checks::opcua_node_id(text.as_bytes());
+        checks::opcua_users(text.as_bytes());
+        let mut write = number.to_le_bytes().to_vec();
+        write.extend_from_slice(text.as_bytes());
+        checks::opcua_write(&write);
+    }
 }

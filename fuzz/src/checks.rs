@@ -1109,3 +1109,104 @@ pub fn modbus_answer(data: &[u8]) {
         }
     }
 }
+
+// ---------------------------------------------------------------------------
+// OPC UA (apps/opcua): what of a client's or a file's text is parsed by
+// our code rather than the stack's.
+
+/// A NodeId string against section names: `data` is lines, the last the
+/// id, the others (at most 4) the section names. Never a panic; an id read
+/// as ours is made again the same by `ids::variable`/`ids::property`.
+pub fn opcua_node_id(data: &[u8]) {
+    use plccoms_opcua::ids::{self, Ours};
+    let text = String::from_utf8_lossy(data);
+    let mut lines: Vec<&str> = text.split('\n').collect();
+    let id = lines.pop().unwrap_or_default();
+    lines.truncate(4);
+    let names = lines;
+    match ids::parse(id, &names) {
+        Ok(Ours::Root) => assert_eq!(id, ids::ROOT),
+        Ok(Ours::Section { section }) => assert_eq!(id, names[section]),
+        Ok(Ours::SectionProperty { section, property }) => {
+            assert_eq!(ids::property(names[section], property), id)
+        }
+        Ok(Ours::Variable { section, variable }) => {
+            assert!(!variable.is_empty());
+            assert_eq!(ids::variable(names[section], variable), id)
+        }
+        Ok(Ours::VariableProperty {
+            section,
+            variable,
+            property,
+        }) => assert_eq!(
+            ids::property(&ids::variable(names[section], variable), property),
+            id
+        ),
+        Err(e) => assert!(!e.to_string().is_empty()),
+    }
+}
+
+/// An OPCUA_USERS file: never a panic; an error names its line (within
+/// the text); a file read checks a password without panicking.
+pub fn opcua_users(data: &[u8]) {
+    use plccoms_opcua::users::{Users, MAX_USERS};
+    let text = String::from_utf8_lossy(data);
+    match Users::parse(&text) {
+        Ok(users) => {
+            assert!(users.len() <= MAX_USERS);
+            // Hashes cost MIN_ITERATIONS at least: check one name only.
+            if let Some(name) = text.split_whitespace().next() {
+                let _ = users.role(name);
+            }
+        }
+        Err(e) => {
+            assert!(e.line >= 1 && e.line <= text.lines().count().max(1), "{e}");
+            assert!(!e.problem.is_empty());
+        }
+    }
+}
+
+/// A written value (the Variant a client sends) for each IEC type: never a
+/// panic; a text made for SET reads back as a value of the type, and that
+/// value is again a Variant.
+pub fn opcua_write(data: &[u8]) {
+    use plccoms_opcua::convert::{variant, write_text};
+    use plccoms_opcua::opcua::types::{DateTime, UAString, Variant};
+    use plccoms_protocol::value::{FormatOptions, Value};
+    use plccoms_protocol::IecType;
+    let mut bytes = [0u8; 8];
+    for (i, b) in data.iter().take(8).enumerate() {
+        bytes[i] = *b;
+    }
+    let n = u64::from_le_bytes(bytes);
+    let text = String::from_utf8_lossy(data.get(8..).unwrap_or_default()).into_owned();
+    let variants = [
+        Variant::Boolean(n & 1 == 1),
+        Variant::SByte(n as i8),
+        Variant::Byte(n as u8),
+        Variant::Int16(n as i16),
+        Variant::UInt16(n as u16),
+        Variant::Int32(n as i32),
+        Variant::UInt32(n as u32),
+        Variant::Int64(n as i64),
+        Variant::UInt64(n),
+        Variant::Float(f32::from_bits(n as u32)),
+        Variant::Double(f64::from_bits(n)),
+        Variant::String(UAString::from(text.as_str())),
+        Variant::DateTime(Box::new(DateTime::from(n as i64))),
+    ];
+    let opts = FormatOptions::default();
+    let types = IecType::FIXED
+        .iter()
+        .copied()
+        .chain([IecType::String(40), IecType::String(255)]);
+    for ty in types {
+        for v in &variants {
+            if let Ok(set_text) = write_text(ty, v, &opts) {
+                if let Ok(value) = Value::parse(ty, &set_text, &opts) {
+                    let _ = variant(ty, &value);
+                }
+            }
+        }
+    }
+}

@@ -8,7 +8,10 @@ use std::time::Duration;
 
 use super::broker::BrokerUrl;
 use super::history::{self, Form};
-use super::{split_masks, Global, MqttFormat, Network, Protocol, Section, Simulator, MQTT_FORMATS};
+use super::{
+    split_masks, Global, MqttFormat, Network, Protocol, Section, Simulator, MQTT_FORMATS,
+    OPCUA_SECURITY_CHOICES,
+};
 
 pub use super::protocol::PROTOCOLS;
 
@@ -692,6 +695,33 @@ static KEYS: &[Key] = &[
     row("SPARKPLUG_HOST", None, Kind::Text,
         "Sparkplug B primary host id: publish only while its STATE says online (default: none, always publish)",
         Setter::Global(|g, v| g.mqtt.sparkplug_host = Some(v.text()))),
+    // OPC UA (apps/opcua/src/): the server, its security and its limits.
+    row("OPCUA_PORT", None, number(1, 65535, ""), "TCP port of the OPC UA server (4840 is the standard; unset = off)",
+        Setter::Global(|g, v| g.opcua.port = Some(v.number() as u16))),
+    row("OPCUA_HOST", Some("127.0.0.1"), Kind::Text, "address the OPC UA server binds and names in its endpoint URLs",
+        Setter::Global(|g, v| g.opcua.host = v.text())),
+    row("OPCUA_SECURITY", Some("None, Basic256Sha256 Sign, Basic256Sha256 SignAndEncrypt"),
+        Kind::Choices { what: "security policy and mode", choices: &OPCUA_SECURITY_CHOICES },
+        "endpoints offered; None only on a loopback OPCUA_HOST unless OPCUA_ANONYMOUS",
+        Setter::Global(|g, v| g.opcua.security = v.choices())),
+    row("OPCUA_USERS", None, Kind::Path(PathUse::Secret),
+        "file of users: name, role (read or write) and PBKDF2-SHA256 password hash per line",
+        Setter::Global(|g, v| g.opcua.users = Some(v.text()))),
+    row("OPCUA_ANONYMOUS", Some("No"), Kind::Bool,
+        "anonymous sessions and the None policy also when OPCUA_HOST is not a loopback address",
+        Setter::Global(|g, v| g.opcua.anonymous = v.bool())),
+    row("OPCUA_PKI", Some("opcua-pki"), Kind::Path(PathUse::State),
+        "folder of the server's certificate and key (made on first start), trusted/ and rejected/ client certificates",
+        Setter::Global(|g, v| g.opcua.pki = v.text())),
+    row("OPCUA_MAX_SESSIONS", Some("100"), number(1, 100_000, ""), "OPC UA sessions at once",
+        Setter::Global(|g, v| g.opcua.max_sessions = v.number() as usize)),
+    row("OPCUA_MAX_SUBSCRIPTIONS", Some("100"), number(1, 100_000, ""), "subscriptions per OPC UA session",
+        Setter::Global(|g, v| g.opcua.max_subscriptions = v.number() as usize)),
+    row("OPCUA_MAX_MONITORED_ITEMS", Some("100000"), number(1, 10_000_000, ""), "monitored items per OPC UA subscription",
+        Setter::Global(|g, v| g.opcua.max_monitored_items = v.number() as usize)),
+    row("OPCUA_MAX_NODES_PER_CALL", Some("100000"), number(100, 10_000_000, ""),
+        "nodes (or monitored items) one OPC UA Read, Write, Browse or CreateMonitoredItems may name",
+        Setter::Global(|g, v| g.opcua.max_nodes_per_call = v.number() as usize)),
 
     // A PLC section.
     row("IPADDR", None, Kind::Ipv4, "IP address of the PLC (0.0.0.0 = none yet)",
@@ -810,6 +840,11 @@ static KEYS: &[Key] = &[
     row("SPARKPLUG", Some("No"), Kind::Bool,
         "publish as a device of the Sparkplug B edge node (SPARKPLUG_GROUP, SPARKPLUG_NODE): MQTT_PUBLISH its metrics, MQTT_WRITE those DCMD may write",
         Setter::Section(|s, v| s.mqtt.sparkplug |= v.bool())),
+    // OPC UA, with OPCUA_PORT in [*] (apps/opcua/src/).
+    row("OPCUA_PUBLISH", None, Kind::Text, "masks of the variables in the OPC UA address space (default: every variable of the project)",
+        Setter::Section(|s, v| s.opcua.publish = Some(split_masks(&v.text())))),
+    row("OPCUA_WRITE", None, Kind::Text, "masks of the variables OPC UA users of role write may write (default none)",
+        Setter::Section(|s, v| s.opcua.write = split_masks(&v.text()))),
     // Modbus TCP (PROTOCOL = MODBUS_TCP).
     row("MODBUS_PORT", Some("502"), number(1, 65535, ""), "Modbus TCP port of the device",
         Setter::Section(|s, v| s.modbus.port = v.number() as u16)),

@@ -24,6 +24,7 @@ pub mod history;
 mod ini;
 mod keys;
 mod mqtt;
+mod opcua;
 mod protocol;
 pub mod serial;
 #[cfg(test)]
@@ -47,6 +48,7 @@ use diag::Diags;
 use ini::{Entry, RawSection};
 use keys::Settings;
 pub use mqtt::{check_prefix, split_masks, MqttFormat, MqttGlobal, MqttSection, MQTT_FORMATS};
+pub use opcua::{OpcuaGlobal, OpcuaSection, OPCUA_SECURITY_CHOICES};
 pub use protocol::Protocol;
 pub use serial::DevicePin;
 
@@ -217,6 +219,8 @@ pub struct Global {
     pub history_query_timeout: Duration,
     /// The MQTT_* keys (this server's own).
     pub mqtt: MqttGlobal,
+    /// The OPCUA_* keys (this server's own).
+    pub opcua: OpcuaGlobal,
     /// Every path a `[*]` key names ([`Kind::Path`]), for [`Config::own_paths`].
     pub paths: Vec<ConfiguredPath>,
 }
@@ -261,6 +265,7 @@ impl Default for Global {
             history_compact: Duration::ZERO,
             history_query_timeout: Duration::ZERO,
             mqtt: MqttGlobal::default(),
+            opcua: OpcuaGlobal::default(),
             paths: Vec::new(),
         })
     }
@@ -315,6 +320,8 @@ pub struct Section {
     pub history: History,
     /// The MQTT_* keys (this server's own).
     pub mqtt: MqttSection,
+    /// The OPCUA_* keys (this server's own).
+    pub opcua: OpcuaSection,
     /// The `MODBUS_*` keys (`PROTOCOL = MODBUS_TCP`).
     pub modbus: Modbus,
     /// Every path the section's keys name ([`Kind::Path`]), for
@@ -876,6 +883,7 @@ fn section_defaults(name: &str) -> Section {
         setconf_keys: None,
         history: History::default(),
         mqtt: MqttSection::default(),
+        opcua: OpcuaSection::default(),
         modbus: Modbus::default(),
         paths: Vec::new(),
     })

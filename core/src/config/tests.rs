@@ -1329,6 +1329,9 @@ fn every_key_naming_a_file_is_a_path_key() {
         "SPARKPLUG_NODE",
         "SPARKPLUG_GROUP",
         "SPARKPLUG_HOST",
+        "OPCUA_HOST",
+        "OPCUA_PUBLISH",
+        "OPCUA_WRITE",
     ];
     for key in keys() {
         if key.kind == Kind::Text {

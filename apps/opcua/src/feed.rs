@@ -1,0 +1,183 @@
+//! One task per section: each new snapshot of the change stream gives the
+//! stack the values of the monitored variables that changed (value or
+//! quality), which it hands to every monitored item on them through its
+//! filters (deadbands) and queues; a new variable table rebuilds the
+//! section's nodes, keeping every monitored item's variable enabled.
+
+use std::sync::Arc;
+
+use opcua::server::node_manager::memory::InMemoryNodeManager;
+use opcua::server::SubscriptionCache;
+use opcua::types::{DataValue, DateTime, NodeId, Variant};
+use tokio_util::sync::CancellationToken;
+use tracing::info;
+
+use plccoms_core::changes::Snapshot;
+
+use crate::ids;
+use crate::manager::Manager;
+use crate::space::{self, Shared, View};
+
+pub struct Feed {
+    pub shared: Arc<Shared>,
+    pub index: usize,
+    pub manager: Arc<InMemoryNodeManager<Manager>>,
+    pub subscriptions: Arc<SubscriptionCache>,
+    pub loop_delay_ms: f64,
+    pub stop: CancellationToken,
+}
+
+impl Feed {
+    pub async fn run(self) {
+        let nodes = &self.shared.sections[self.index];
+        let mut rx = nodes.section.snapshots();
+        loop {
+            let snapshot = rx.borrow_and_update().clone();
+            let stale_table = !Arc::ptr_eq(&nodes.lock().table, &snapshot.table);
+            if stale_table {
+                self.rebuild(&snapshot);
+            }
+            self.push(&snapshot);
+            tokio::select! {
+                changed = rx.changed() => if changed.is_err() { break },
+                () = self.stop.cancelled() => break,
+            }
+        }
+    }
+
+    /// A new table: the section's nodes again, and the monitored variables
+    /// enabled in it.
+    fn rebuild(&self, snapshot: &Snapshot) {
+        let shared = &self.shared;
+        let nodes = &shared.sections[self.index];
+        let mut view = View::new(&nodes.section, snapshot, shared.history.is_some());
+        let old = {
+            let mut current = nodes.lock();
+            view.monitored = std::mem::take(&mut current.monitored);
+            let names: Vec<String> = view.monitored.keys().cloned().collect();
+            for name in names {
+                if let Some(&id) = view.by_name.get(&name) {
+                    let node = shared.node(ids::variable(&nodes.name, &name));
+                    view.enable(id, node);
+                }
+            }
+            std::mem::replace(&mut *current, view)
+        };
+        // The address space before the view, as every service takes them.
+        let mut space = self.manager.address_space().write();
+        let view = nodes.lock();
+        space::build_section(
+            &mut space,
+            shared,
+            self.index,
+            Some(&old),
+            &view,
+            self.loop_delay_ms,
+        );
+        info!(
+            section = %nodes.name,
+            "OPC UA: address space rebuilt for the new variable table ({} variables shown)",
+            view.by_name.len()
+        );
+        drop(view);
+        drop(space);
+        self.model_changed();
+    }
+
+    /// A GeneralModelChangeEvent from the Server object: the section's
+    /// nodes were added and removed, for clients that cache the tree.
+    fn model_changed(&self) {
+        use opcua::core_namespace::events::{
+            BaseModelChangeEventType, GeneralModelChangeEventType,
+        };
+        use opcua::nodes::{BaseEventType, Event};
+        use opcua::types::{ByteString, ModelChangeStructureDataType, ObjectId, ObjectTypeId};
+        let nodes = &self.shared.sections[self.index];
+        let section = self.shared.node(nodes.name.clone());
+        let id = format!(
+            "plccoms:{}:{}",
+            nodes.name,
+            chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0)
+        );
+        let mut base = BaseEventType::new_now(
+            ObjectTypeId::GeneralModelChangeEventType,
+            ByteString::from(id.into_bytes()),
+            format!("[{}]: variables added and removed", nodes.name),
+        );
+        base.source_node = section.clone();
+        base.source_name = nodes.name.as_str().into();
+        base.severity = 100;
+        let event = GeneralModelChangeEventType {
+            base: BaseModelChangeEventType { base },
+            changes: ModelChangeStructureDataType {
+                affected: section,
+                affected_type: ObjectTypeId::BaseObjectType.into(),
+                // NodeAdded | NodeDeleted | ReferenceAdded | ReferenceDeleted
+                verb: 0b1111,
+            },
+        };
+        let server: NodeId = ObjectId::Server.into();
+        self.subscriptions
+            .notify_events([(&event as &dyn Event, &server)].into_iter());
+    }
+
+    /// Gives the stack what changed for the monitored variables, and the
+    /// section object's link state and last poll.
+    fn push(&self, snapshot: &Snapshot) {
+        let nodes = &self.shared.sections[self.index];
+        let opts = nodes.section.format();
+        let mut updates: Vec<(NodeId, DataValue)> = Vec::new();
+        {
+            let mut view = nodes.lock();
+            if !Arc::ptr_eq(&view.table, &snapshot.table) {
+                return;
+            }
+            let view = &mut *view;
+            for (&id, watched) in view.watched.iter_mut() {
+                let slot = snapshot.slot(id);
+                let quality = snapshot.quality(id);
+                if slot.changed_seq == watched.seq && Some(quality) == watched.quality {
+                    continue;
+                }
+                watched.seq = slot.changed_seq;
+                watched.quality = Some(quality);
+                let stamp = view.stamp_of.get(&id).copied();
+                updates.push((
+                    watched.node.clone(),
+                    space::data_value(snapshot, id, stamp, opts),
+                ));
+            }
+            let link = nodes.section.link_state().as_str();
+            let polled = snapshot.polled.map_or(0, |p| p.unix_ms);
+            if view.link_shown != Some((link, polled)) {
+                let link_changed = view.link_shown.map(|(l, _)| l) != Some(link);
+                view.link_shown = Some((link, polled));
+                if link_changed {
+                    updates.push((
+                        self.shared.node(ids::property(&nodes.name, "LinkState")),
+                        space::good_now(Variant::from(link)),
+                    ));
+                }
+                if let Some(time) =
+                    chrono::DateTime::from_timestamp_millis(polled).filter(|_| polled > 0)
+                {
+                    updates.push((
+                        self.shared.node(ids::property(&nodes.name, "LastPoll")),
+                        space::good_now(Variant::from(DateTime::from(time))),
+                    ));
+                }
+            }
+        }
+        if updates.is_empty() {
+            return;
+        }
+        // Every node exists: rebuild() ran for this table first.
+        let (ids, values): (Vec<NodeId>, Vec<DataValue>) = updates.into_iter().unzip();
+        let _ = self.manager.set_values(
+            &self.subscriptions,
+            ids.iter()
+                .zip(values)
+                .map(|(node, value)| (node, None, value)),
+        );
+    }
+}

@@ -1,0 +1,473 @@
+//! The address space of our namespace: Objects / plccoms / <Section> /
+//! <Variable>, built from each section's variable table and rebuilt when
+//! the table changes (a new public or tag file). Each section's [`View`]
+//! says which variables are shown, which may be written, which the
+//! historian records, and which monitored items watch, by name, so that a
+//! new table keeps them.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use opcua::nodes::{ObjectBuilder, VariableBuilder};
+use opcua::server::address_space::{AccessLevel, AddressSpace};
+use opcua::types::{
+    DataValue, DateTime, EUInformation, LocalizedText, NodeId, ObjectTypeId, QualifiedName, Range,
+    StatusCode, UAString, VariableTypeId, Variant,
+};
+use plccoms_core::changes::Interest;
+use plccoms_core::changes::{Quality, Snapshot};
+use plccoms_core::section::Section;
+use plccoms_core::vars::{VarId, VarTable};
+use plccoms_protocol::cp1250;
+use plccoms_protocol::value::Value;
+
+use crate::convert;
+use crate::ids;
+
+/// A variable a monitored item watches: what was last given to the stack.
+#[derive(Debug, Clone)]
+pub struct Watched {
+    pub node: NodeId,
+    /// `changed_seq` of the value given, and its quality.
+    pub seq: u64,
+    pub quality: Option<Quality>,
+}
+
+/// One section's part of the address space.
+pub struct View {
+    /// The table the nodes were built from.
+    pub table: Arc<VarTable>,
+    /// Its interest (what the poll reads).
+    pub interest: Arc<Interest>,
+    /// Shown variables by name (as shown: UTF-8, upper case).
+    pub by_name: HashMap<String, VarId>,
+    /// Per variable of `table`: shown, writable (OPCUA_WRITE), recorded.
+    pub shown: Vec<bool>,
+    pub writable: Vec<bool>,
+    pub historized: Vec<bool>,
+    /// Monitored items per variable name, over every session.
+    pub monitored: HashMap<String, u32>,
+    /// The monitored variables of `table`.
+    pub watched: HashMap<VarId, Watched>,
+    /// Last link state and poll shown on the section object.
+    pub link_shown: Option<(&'static str, i64)>,
+    /// HISTORY_STAMP: value variable -> the variable holding the PLC's time
+    /// of it (its SourceTimestamp).
+    pub stamp_of: HashMap<VarId, VarId>,
+}
+
+pub struct SectionNodes {
+    pub section: Arc<Section>,
+    pub name: String,
+    pub view: Mutex<View>,
+}
+
+impl SectionNodes {
+    pub fn lock(&self) -> MutexGuard<'_, View> {
+        self.view.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+/// What the node manager, the feed tasks and the authenticator share.
+pub struct Shared {
+    pub ns: std::sync::OnceLock<u16>,
+    pub sections: Vec<SectionNodes>,
+    pub names: Vec<String>,
+    pub history: Option<Arc<dyn plccoms_core::history_source::HistorySource>>,
+    pub users: Arc<crate::users::Users>,
+}
+
+impl Shared {
+    pub fn new(
+        sections: &[Arc<Section>],
+        history: Option<Arc<dyn plccoms_core::history_source::HistorySource>>,
+        users: Arc<crate::users::Users>,
+    ) -> Shared {
+        let sections: Vec<SectionNodes> = sections
+            .iter()
+            .map(|section| {
+                let snapshot = section.latest();
+                SectionNodes {
+                    section: section.clone(),
+                    name: section.name().to_string(),
+                    view: Mutex::new(View::new(section, &snapshot, history.is_some())),
+                }
+            })
+            .collect();
+        let names = sections.iter().map(|s| s.name.clone()).collect();
+        Shared {
+            ns: Default::default(),
+            sections,
+            names,
+            history,
+            users,
+        }
+    }
+
+    pub fn ns(&self) -> u16 {
+        self.ns.get().copied().unwrap_or(0)
+    }
+
+    pub fn node(&self, text: String) -> NodeId {
+        NodeId::new(self.ns(), text)
+    }
+
+    /// The section and variable a NodeId of ours names, if it is one of
+    /// the shown variables.
+    pub fn variable(&self, node: &NodeId) -> Option<(usize, String)> {
+        if node.namespace != self.ns() {
+            return None;
+        }
+        let opcua::types::Identifier::String(text) = &node.identifier else {
+            return None;
+        };
+        match ids::parse(text.as_ref(), &self.names).ok()? {
+            ids::Ours::Variable { section, variable } => Some((section, variable.to_string())),
+            _ => None,
+        }
+    }
+}
+
+/// A variable's name as shown (UTF-8).
+pub fn shown_name(table: &VarTable, id: VarId) -> String {
+    cp1250::decode(&table.var(id).name).into_owned()
+}
+
+impl View {
+    pub fn new(section: &Section, snapshot: &Snapshot, recorded: bool) -> View {
+        let mut view = View {
+            table: snapshot.table.clone(),
+            interest: snapshot.interest.clone(),
+            by_name: HashMap::new(),
+            shown: Vec::new(),
+            writable: Vec::new(),
+            historized: Vec::new(),
+            monitored: HashMap::new(),
+            watched: HashMap::new(),
+            link_shown: None,
+            stamp_of: HashMap::new(),
+        };
+        view.classify(section, recorded);
+        view
+    }
+
+    /// Enables `id` in the poll (with its HISTORY_STAMP variable) and hands
+    /// its changes to the monitored items on `node`.
+    pub fn enable(&mut self, id: VarId, node: NodeId) {
+        for enabled in [Some(id), self.stamp_of.get(&id).copied()]
+            .into_iter()
+            .flatten()
+        {
+            if !self.table.is_fixed(enabled) {
+                self.interest.add(enabled);
+            }
+        }
+        self.watched.insert(
+            id,
+            Watched {
+                node,
+                seq: u64::MAX,
+                quality: None,
+            },
+        );
+    }
+
+    /// Undoes [`View::enable`].
+    pub fn disable(&mut self, id: VarId) {
+        if self.watched.remove(&id).is_none() {
+            return;
+        }
+        for enabled in [Some(id), self.stamp_of.get(&id).copied()]
+            .into_iter()
+            .flatten()
+        {
+            if !self.table.is_fixed(enabled) {
+                self.interest.remove(enabled);
+            }
+        }
+    }
+
+    /// Which variables of `self.table` are shown, writable and recorded.
+    fn classify(&mut self, section: &Section, recorded: bool) {
+        let config = section.state().config.clone();
+        let table = &self.table;
+        let len = table.len();
+        let mark = |ids: Vec<VarId>| {
+            let mut marks = vec![false; len];
+            for id in ids {
+                marks[id as usize] = true;
+            }
+            marks
+        };
+        self.shown = match &config.opcua.publish {
+            None => vec![true; len],
+            Some(masks) => mark(table.matching_names(masks)),
+        };
+        let writable = mark(table.matching_names(&config.opcua.write));
+        self.writable = (0..len)
+            .map(|i| {
+                writable[i] && self.shown[i] && !config.read_only && table.var(i as VarId).writable
+            })
+            .collect();
+        self.historized = if recorded && config.history.enabled() {
+            mark(table.matching(&config.history.masks))
+        } else {
+            vec![false; len]
+        };
+        self.stamp_of = config
+            .history
+            .stamps
+            .iter()
+            .filter_map(|pair| {
+                let value = table.lookup(pair.value.as_bytes())?;
+                let stamp = table.lookup(pair.stamp.as_bytes())?;
+                use plccoms_protocol::IecType::*;
+                matches!(table.var(stamp).ty, Dt | Date | Lint | Ulint | Lword)
+                    .then_some((value, stamp))
+            })
+            .collect();
+        self.by_name = (0..len as VarId)
+            .filter(|&id| self.shown[id as usize])
+            .map(|id| (shown_name(table, id), id))
+            .collect();
+    }
+}
+
+/// Builds the root folder (at start).
+pub fn build_root(space: &mut AddressSpace, ns: u16) {
+    let root = NodeId::new(ns, ids::ROOT);
+    ObjectBuilder::new(
+        &root,
+        QualifiedName::new(ns, ids::ROOT),
+        LocalizedText::from(ids::ROOT),
+    )
+    .description("Every PLC section of this plccoms server")
+    .organized_by(NodeId::objects_folder_id())
+    .has_type_definition(ObjectTypeId::FolderType)
+    .insert(space);
+}
+
+/// Builds (or rebuilds, after a new table) one section's object and its
+/// variables. Old variables that the new table lacks are removed; every
+/// node of a name that stays keeps its NodeId.
+pub fn build_section(
+    space: &mut AddressSpace,
+    shared: &Shared,
+    index: usize,
+    old: Option<&View>,
+    view: &View,
+    loop_delay_ms: f64,
+) {
+    let ns = shared.ns();
+    let nodes = &shared.sections[index];
+    let name = &nodes.name;
+    let section_id = NodeId::new(ns, name.as_str());
+    if let Some(old) = old {
+        for shown in old.by_name.keys() {
+            remove_variable(space, ns, name, shown);
+        }
+    }
+    if space.find(&section_id).is_none() {
+        ObjectBuilder::new(
+            &section_id,
+            QualifiedName::new(ns, name.as_str()),
+            LocalizedText::from(name.as_str()),
+        )
+        .description(format!("PLC section [{name}]"))
+        .organized_by(NodeId::new(ns, ids::ROOT))
+        .has_type_definition(ObjectTypeId::BaseObjectType)
+        .insert(space);
+        let protocol = nodes.section.state().config.protocol.to_string();
+        for (property, value, ty) in [
+            (
+                "LinkState",
+                Variant::from(""),
+                opcua::types::DataTypeId::String,
+            ),
+            (
+                "LastPoll",
+                Variant::Empty,
+                opcua::types::DataTypeId::DateTime,
+            ),
+            (
+                "Backend",
+                Variant::from(protocol.as_str()),
+                opcua::types::DataTypeId::String,
+            ),
+        ] {
+            let id = NodeId::new(ns, ids::property(name, property));
+            VariableBuilder::new(
+                &id,
+                QualifiedName::new(ns, property),
+                LocalizedText::from(property),
+            )
+            .data_type(ty)
+            .value(value)
+            .property_of(section_id.clone())
+            .has_type_definition(VariableTypeId::PropertyType)
+            .insert(space);
+        }
+    }
+    let table = &view.table;
+    let mut ordered: Vec<(&String, &VarId)> = view.by_name.iter().collect();
+    ordered.sort_by_key(|(_, &id)| id);
+    for (shown, &id) in ordered {
+        let var = table.var(id);
+        let node = NodeId::new(ns, ids::variable(name, shown));
+        let mut access = AccessLevel::CURRENT_READ;
+        if view.writable[id as usize] {
+            access |= AccessLevel::CURRENT_WRITE;
+        }
+        let historized = view.historized[id as usize];
+        if historized {
+            access |= AccessLevel::HISTORY_READ;
+        }
+        let info = var.info.as_deref();
+        let range = info.and_then(|i| Some((i.min?, i.max?)));
+        let mut builder = VariableBuilder::new(
+            &node,
+            QualifiedName::new(ns, shown.as_str()),
+            LocalizedText::from(shown.as_str()),
+        )
+        .data_type(convert::data_type(var.ty))
+        .access_level(access)
+        .user_access_level(access)
+        .historizing(historized)
+        .minimum_sampling_interval(loop_delay_ms)
+        .value_rank(-1)
+        .component_of(section_id.clone())
+        .has_type_definition(if range.is_some() {
+            VariableTypeId::AnalogItemType
+        } else {
+            VariableTypeId::BaseDataVariableType
+        });
+        if let Some(description) = info
+            .map(|i| i.description.as_str())
+            .filter(|d| !d.is_empty())
+        {
+            builder = builder.description(description);
+        }
+        builder.insert(space);
+        if let Some(unit) = info.map(|i| i.unit.as_str()).filter(|u| !u.is_empty()) {
+            let eu = EUInformation {
+                namespace_uri: UAString::from("http://www.opcfoundation.org/UA/units/un/cefact"),
+                unit_id: -1,
+                display_name: LocalizedText::from(unit),
+                description: LocalizedText::from(unit),
+            };
+            add_property(
+                space,
+                ns,
+                &node,
+                "EngineeringUnits",
+                Variant::from(eu),
+                opcua::types::DataTypeId::EUInformation,
+            );
+        }
+        if let Some((low, high)) = range {
+            add_property(
+                space,
+                ns,
+                &node,
+                "EURange",
+                Variant::from(Range { low, high }),
+                opcua::types::DataTypeId::Range,
+            );
+        }
+    }
+}
+
+fn add_property(
+    space: &mut AddressSpace,
+    ns: u16,
+    owner: &NodeId,
+    property: &str,
+    value: Variant,
+    ty: opcua::types::DataTypeId,
+) {
+    let opcua::types::Identifier::String(owner_text) = &owner.identifier else {
+        return;
+    };
+    let id = NodeId::new(ns, ids::property(owner_text.as_ref(), property));
+    VariableBuilder::new(
+        &id,
+        QualifiedName::new(0, property),
+        LocalizedText::from(property),
+    )
+    .data_type(ty)
+    .value(value)
+    .property_of(owner.clone())
+    .has_type_definition(VariableTypeId::PropertyType)
+    .insert(space);
+}
+
+fn remove_variable(space: &mut AddressSpace, ns: u16, section: &str, shown: &str) {
+    let text = ids::variable(section, shown);
+    for property in ["EngineeringUnits", "EURange"] {
+        space.delete(&NodeId::new(ns, ids::property(&text, property)), true);
+    }
+    space.delete(&NodeId::new(ns, text), true);
+}
+
+/// The DataValue of variable `id` in `snapshot` (its value as last known,
+/// its quality as StatusCode, as SourceTimestamp the PLC's time from its
+/// HISTORY_STAMP variable `stamp` if it has one, else the poll's time).
+pub fn data_value(
+    snapshot: &Snapshot,
+    id: VarId,
+    stamp: Option<VarId>,
+    opts: &plccoms_protocol::value::FormatOptions,
+) -> DataValue {
+    let slot = snapshot.slot(id);
+    let var = snapshot.table.var(id);
+    let now = DateTime::now();
+    let Some(text) = slot.text() else {
+        return DataValue {
+            value: None,
+            status: Some(if snapshot.online {
+                StatusCode::BadWaitingForInitialData
+            } else {
+                StatusCode::BadNoCommunication
+            }),
+            source_timestamp: None,
+            source_picoseconds: None,
+            server_timestamp: Some(now),
+            server_picoseconds: None,
+        };
+    };
+    let (value, status) = match convert::variant_of_text(var.ty, text, opts) {
+        Some(v) => (Some(v), convert::status(snapshot.quality(id))),
+        None => (None, StatusCode::BadDataEncodingInvalid),
+    };
+    let plc_ms =
+        stamp.and_then(
+            |stamp| match snapshot.slot(stamp).value(snapshot.table.var(stamp))? {
+                Value::Date(secs) if secs.is_finite() => Some((secs * 1000.0).round() as i64),
+                Value::Signed(ms) => Some(ms),
+                Value::Unsigned(ms) => i64::try_from(ms).ok(),
+                _ => None,
+            },
+        );
+    let source_ms = plc_ms.unwrap_or(slot.changed_ms);
+    DataValue {
+        value,
+        status: Some(status),
+        source_timestamp: chrono::DateTime::from_timestamp_millis(source_ms).map(DateTime::from),
+        source_picoseconds: None,
+        server_timestamp: Some(now),
+        server_picoseconds: None,
+    }
+}
+
+/// A good value read now.
+pub fn good_now(value: Variant) -> DataValue {
+    let now = DateTime::now();
+    DataValue {
+        value: Some(value),
+        status: Some(StatusCode::Good),
+        source_timestamp: Some(now),
+        source_picoseconds: None,
+        server_timestamp: Some(now),
+        server_picoseconds: None,
+    }
+}

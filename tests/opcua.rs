@@ -1,0 +1,891 @@
+//! The OPC UA server against a real third-party client: asyncua (PyPI),
+//! driven through tests/opcua/client.py, on loopback, with the simulated
+//! PLC in-process (EPSNET) so the tests set values, lose the link and
+//! bring it back. `.ci/run` installs asyncua; without it these tests fail.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::Client;
+use plcsim::{SimConfig, SimHandle};
+use serde_json::Value;
+use tokio::io::{AsyncBufReadExt, BufReader};
+
+const SCRIPT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/opcua/client.py");
+
+/// Users of every test: `hmi` may write, `scada` only reads.
+fn users_file(dir: &Path) -> PathBuf {
+    let path = dir.join("opcua-users");
+    let text = [
+        plccoms_opcua::users::hash_line("hmi", "write", "hmi-pass", b"tests-salt-1", 1000),
+        plccoms_opcua::users::hash_line("scada", "read", "scada-pass", b"tests-salt-2", 1000),
+    ]
+    .join("\n");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+struct Ua {
+    server: plccoms::startup::Server,
+    sim: SimHandle,
+    port: u16,
+    url: String,
+    conf: tempfile::TempDir,
+    _files: tempfile::TempDir,
+}
+
+impl Ua {
+    async fn start(global: &str, section: &str) -> Ua {
+        let ua = Ua::start_with(global, section).await;
+        ua.wait_table(&[]).await;
+        ua
+    }
+
+    /// Starts; [`Ua::wait_table`] waits for the PLC's table.
+    async fn start_with(global: &str, section: &str) -> Ua {
+        let files = tempfile::tempdir().unwrap();
+        std::fs::write(files.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
+        let users = users_file(files.path());
+        let sim = plcsim::spawn(SimConfig {
+            bind: "127.0.0.1:0".parse().unwrap(),
+            files: Some(files.path().to_path_buf()),
+            program: "idle".parse().unwrap(),
+            ..SimConfig::default()
+        })
+        .await
+        .unwrap();
+        let epsport = sim.local_addr().port();
+        let (server, port, conf) = common::start_on_free_port(|port| {
+            let opc = common::process::free_port();
+            format!(
+                "[*]\nCOMM_LOOP_DELAY = 20\nOPCUA_PORT = {opc}\nOPCUA_USERS = {}\n{global}\n\
+                 [PLC]\nIPADDR = 127.0.0.1\nEPSPORT = {epsport}\nEPSTOUT = 100\nEPSTOUT_STEP = 0\n\
+                 IPADDR_LOCAL = 127.0.0.1\nSERVER_PORT = {port}\nPUBFILE_CRC = No\nPUBFILE = //demo.pub\n\
+                 OPCUA_WRITE = SETPOINT, COUNTER, NOTE, V_*, DAT, TIM\n{section}\n",
+                users.display()
+            )
+        })
+        .await;
+        let opcua = server.opcua.as_ref().expect("OPC UA running");
+        let url = format!("opc.tcp://127.0.0.1:{}/", opcua.local_addr.port());
+        Ua {
+            server,
+            sim,
+            port,
+            url,
+            conf,
+            _files: files,
+        }
+    }
+
+    async fn telnet(&self) -> Client {
+        Client::connect(([127, 0, 0, 1], self.port).into()).await
+    }
+
+    /// Until the demo table (from the PLC) is in the address space.
+    async fn wait_table(&self, options: &[&str]) {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        loop {
+            let names = browse(&self.url, options).await;
+            if names.iter().any(|v| v["name"] == "SETPOINT") {
+                return;
+            }
+            assert!(Instant::now() < deadline, "no demo table: {names:?}");
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    }
+
+    fn pki(&self) -> PathBuf {
+        self.conf.path().join("opcua-pki")
+    }
+
+    /// A client certificate (made in a new folder) that the server first
+    /// refuses, storing it in rejected/, then trusts once it is moved to
+    /// trusted/ as an administrator does; the client options that use it
+    /// with Basic256Sha256 SignAndEncrypt, and the folder.
+    async fn trusted_client(&self, options: &[&str]) -> (Vec<String>, tempfile::TempDir) {
+        let certs = tempfile::tempdir().unwrap();
+        let mut secure: Vec<String> = [
+            "--security",
+            "Basic256Sha256,SignAndEncrypt",
+            "--cert",
+            certs.path().to_str().unwrap(),
+        ]
+        .iter()
+        .chain(options)
+        .map(|s| s.to_string())
+        .collect();
+        let refused = run(args_of(&secure, "browse", &self.url, &[])).await;
+        assert_eq!(
+            refused[0]["error"], "BadCertificateUntrusted",
+            "{refused:?}"
+        );
+        self.trust_rejected();
+        secure.truncate(4);
+        (secure, certs)
+    }
+
+    /// Trusts the one client certificate in rejected/.
+    fn trust_rejected(&self) {
+        let rejected: Vec<_> = std::fs::read_dir(self.pki().join("rejected"))
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .collect();
+        assert_eq!(rejected.len(), 1, "{rejected:?}");
+        let name = rejected[0].file_name().unwrap();
+        std::fs::rename(&rejected[0], self.pki().join("trusted").join(name)).unwrap();
+    }
+}
+
+/// Runs the client to its end: its JSON lines.
+async fn run(args: Vec<String>) -> Vec<Value> {
+    let output = tokio::task::spawn_blocking(move || {
+        Command::new("python3")
+            .arg(SCRIPT)
+            .args(&args)
+            .stdin(Stdio::null())
+            .output()
+            .expect("python3")
+    })
+    .await
+    .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let lines: Vec<Value> = stdout
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect();
+    assert!(
+        output.status.success() || lines.iter().any(|l| l.get("error").is_some()),
+        "client.py failed ({}): {}\n{}",
+        output.status,
+        stdout,
+        String::from_utf8_lossy(&output.stderr)
+    );
+    lines
+}
+
+fn args_of(options: &[String], command: &str, url: &str, rest: &[&str]) -> Vec<String> {
+    let options: Vec<&str> = options.iter().map(String::as_str).collect();
+    args(&options, command, url, rest)
+}
+
+fn args(options: &[&str], command: &str, url: &str, rest: &[&str]) -> Vec<String> {
+    options
+        .iter()
+        .chain([command, url].iter())
+        .chain(rest.iter())
+        .map(|s| s.to_string())
+        .collect()
+}
+
+async fn browse(url: &str, options: &[&str]) -> Vec<Value> {
+    run(args(options, "browse", url, &[])).await
+}
+
+async fn write(url: &str, options: &[&str], node: &str, ty: &str, value: &str) -> String {
+    let lines = run(args(options, "write", url, &[node, ty, value])).await;
+    lines[0]["status"]
+        .as_str()
+        .or(lines[0]["error"].as_str())
+        .unwrap()
+        .to_string()
+}
+
+const HMI: &[&str] = &["--user", "hmi", "--password", "hmi-pass"];
+const SCADA: &[&str] = &["--user", "scada", "--password", "scada-pass"];
+
+/// SET through the telnet port; SET answers with the value read back.
+async fn set(c: &mut Client, name: &str, value: &str) {
+    // The line protocol speaks cp1250.
+    let request = format!("SET:{name},{value}\n");
+    c.send(&plccoms_protocol::cp1250::encode(&request)).await;
+    let line = String::from_utf8_lossy(&c.line().await).into_owned();
+    assert!(line.starts_with(&format!("DIFF:{name},")), "{line}");
+}
+
+/// GET through the telnet port: the value's text.
+async fn get(c: &mut Client, name: &str) -> String {
+    c.send(format!("GET:{name}\n").as_bytes()).await;
+    let line = String::from_utf8_lossy(&c.line().await).into_owned();
+    line.strip_prefix(&format!("GET:{name},"))
+        .unwrap_or_else(|| panic!("{line}"))
+        .trim_end()
+        .to_string()
+}
+
+async fn get_f64(c: &mut Client, name: &str) -> f64 {
+    get(c, name).await.parse().unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn browse_and_read_every_type() {
+    let ua = Ua::start("", "").await;
+    let mut c = ua.telnet().await;
+    set(&mut c, "SETPOINT", "21.5").await;
+    set(&mut c, "COUNTER", "-7").await;
+    set(&mut c, "V_ULINT", "18446744073709551615").await;
+    set(&mut c, "V_SINT", "-128").await;
+    set(&mut c, "NOTE", "\"Žluťoučký kůň\"").await;
+    let tree = browse(&ua.url, &[]).await;
+    let var = |name: &str| {
+        tree.iter()
+            .find(|v| v["name"] == name)
+            .unwrap_or_else(|| panic!("{name} not browsed: {tree:?}"))
+            .clone()
+    };
+    // The issue's table of types.
+    for (name, ty) in [
+        ("POSITIVE", "Boolean"),
+        ("V_SINT", "SByte"),
+        ("V_USINT", "Byte"),
+        ("V_BYTE", "Byte"),
+        ("COUNTER", "Int16"),
+        ("V_UINT", "UInt16"),
+        ("V_WORD", "UInt16"),
+        ("V_DINT", "Int32"),
+        ("V_UDINT", "UInt32"),
+        ("V_DWORD", "UInt32"),
+        ("V_LINT", "Int64"),
+        ("V_ULINT", "UInt64"),
+        ("V_LWORD", "UInt64"),
+        ("SETPOINT", "Float"),
+        ("SINUS", "Double"),
+        ("TEXT", "String"),
+        ("NOTE", "String"),
+        ("DAT", "DateTime"),
+        ("V_DT", "DateTime"),
+        ("TIM", "Duration"),
+    ] {
+        let v = var(name);
+        assert_eq!(v["type"], ty, "{name}: {v}");
+        assert_eq!(v["status"], "Good", "{name}: {v}");
+        assert_eq!(v["id"], format!("PLC.{name}"), "{name}: {v}");
+        assert!(v["source_ts"].is_string(), "{name}: {v}");
+    }
+    assert_eq!(var("SETPOINT")["value"], 21.5);
+    assert_eq!(var("COUNTER")["value"], -7);
+    assert_eq!(var("V_ULINT")["value"], u64::MAX);
+    assert_eq!(var("V_SINT")["value"], -128);
+    assert_eq!(var("NOTE")["value"], "Žluťoučký kůň");
+    assert_eq!(var("TIM")["variant"], "Double");
+    // AccessLevel: CurrentRead (1), CurrentWrite (2) where OPCUA_WRITE
+    // allows it.
+    assert_eq!(var("SETPOINT")["access"], 3);
+    assert_eq!(var("SINUS")["access"], 1);
+    // The section object's properties.
+    assert_eq!(var("LinkState")["value"], "online");
+    assert_eq!(var("Backend")["value"], "EPSNET");
+    // TranslateBrowsePaths, and Browse 5 references a call with BrowseNext.
+    let paths = run(args(&[], "paths", &ua.url, &["PLC", "SETPOINT", "5"])).await;
+    assert_eq!(paths[0]["translated"], "PLC.SETPOINT");
+    let names: Vec<&str> = paths[1]["names"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|n| n.as_str())
+        .collect();
+    let browsed: Vec<&str> = tree.iter().filter_map(|v| v["name"].as_str()).collect();
+    assert_eq!(names.len(), browsed.len(), "{names:?}");
+    assert!(browsed.iter().all(|b| names.contains(b)), "{names:?}");
+    assert!(paths[1]["calls"].as_u64().unwrap() >= 6, "{}", paths[1]);
+    ua.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn writes_go_through_the_core_and_refusals_say_why() {
+    let ua = Ua::start("", "").await;
+    let mut c = ua.telnet().await;
+    assert_eq!(
+        write(&ua.url, HMI, "PLC.SETPOINT", "Float", "21.5").await,
+        "Good"
+    );
+    assert_eq!(get_f64(&mut c, "SETPOINT").await, 21.5);
+    assert_eq!(
+        write(&ua.url, HMI, "PLC.COUNTER", "Int16", "-300").await,
+        "Good"
+    );
+    assert_eq!(get(&mut c, "COUNTER").await, "-300");
+    assert_eq!(
+        write(
+            &ua.url,
+            HMI,
+            "PLC.DAT",
+            "DateTime",
+            "2026-11-25T00:00:00+00:00"
+        )
+        .await,
+        "Good"
+    );
+    // Not in OPCUA_WRITE.
+    assert_eq!(
+        write(&ua.url, HMI, "PLC.SINUS", "Double", "1.0").await,
+        "BadNotWritable"
+    );
+    // An Int32 to a REAL.
+    assert_eq!(
+        write(&ua.url, HMI, "PLC.SETPOINT", "Int32", "5").await,
+        "BadTypeMismatch"
+    );
+    // 60 characters into a STRING[40].
+    let long = "x".repeat(60);
+    assert_eq!(
+        write(&ua.url, HMI, "PLC.NOTE", "String", &long).await,
+        "BadOutOfRange"
+    );
+    // A reader, and an anonymous session, may not write.
+    assert_eq!(
+        write(&ua.url, SCADA, "PLC.SETPOINT", "Float", "1").await,
+        "BadUserAccessDenied"
+    );
+    assert_eq!(
+        write(&ua.url, &[], "PLC.SETPOINT", "Float", "1").await,
+        "BadUserAccessDenied"
+    );
+    assert_eq!(get_f64(&mut c, "SETPOINT").await, 21.5);
+
+    // The link lost: refused at once, and never applied later.
+    ua.sim.set_loss(1.0);
+    let lost = Instant::now();
+    loop {
+        let tree = browse(&ua.url, &[]).await;
+        let setpoint = tree.iter().find(|v| v["name"] == "SETPOINT").unwrap();
+        if setpoint["status"] == "BadNoCommunication" {
+            // The last value stays, with its bad quality.
+            assert_eq!(setpoint["value"], 21.5);
+            break;
+        }
+        assert!(lost.elapsed() < Duration::from_secs(10), "{setpoint}");
+    }
+    assert_eq!(
+        write(&ua.url, HMI, "PLC.SETPOINT", "Float", "99").await,
+        "BadCommunicationError"
+    );
+    ua.sim.set_loss(0.0);
+    let back = Instant::now();
+    loop {
+        let (line, _) = common::health::answer(&mut c, "GET:SETPOINT\n").await;
+        if line.starts_with("GET:") {
+            assert!(line.starts_with("GET:SETPOINT,21.5"), "{line}");
+            break;
+        }
+        assert!(back.elapsed() < Duration::from_secs(10), "{line}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert_eq!(get_f64(&mut c, "SETPOINT").await, 21.5);
+    ua.server.shutdown().await;
+}
+
+/// A running subscription: its JSON lines as they come.
+struct Subscription {
+    child: tokio::process::Child,
+    lines: tokio::io::Lines<BufReader<tokio::process::ChildStdout>>,
+}
+
+impl Subscription {
+    async fn start(
+        url: &str,
+        options: &[&str],
+        command: &str,
+        rest: &[&str],
+    ) -> (Subscription, Value) {
+        let mut child = tokio::process::Command::new("python3")
+            .arg(SCRIPT)
+            .args(args(options, command, url, rest))
+            .stdout(Stdio::piped())
+            .stdin(Stdio::null())
+            .kill_on_drop(true)
+            .spawn()
+            .expect("python3");
+        let lines = BufReader::new(child.stdout.take().unwrap()).lines();
+        let mut sub = Subscription { child, lines };
+        let ready = sub.next().await.expect("ready line");
+        assert!(ready.get("ready").is_some(), "{ready}");
+        (sub, ready)
+    }
+
+    async fn next(&mut self) -> Option<Value> {
+        let line = tokio::time::timeout(Duration::from_secs(20), self.lines.next_line())
+            .await
+            .expect("a line within 20 s")
+            .ok()??;
+        Some(serde_json::from_str(&line).unwrap())
+    }
+
+    /// Values until `done`.
+    async fn values(&mut self) -> Vec<Value> {
+        let mut values = Vec::new();
+        while let Some(line) = self.next().await {
+            if line.get("done").is_some() {
+                break;
+            }
+            values.push(line);
+        }
+        values
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn subscriptions_get_every_change_once_and_deadbands() {
+    let ua = Ua::start("", "").await;
+    let mut c = ua.telnet().await;
+    set(&mut c, "COUNTER", "0").await;
+    set(&mut c, "V_DINT", "0").await;
+    // A DataChangeFilter of deadband 0 (trigger StatusValue): every change
+    // of value or quality. (async-opcua 0.19 compares only the value for
+    // an item without a filter.)
+    let (mut every, ready) = Subscription::start(
+        &ua.url,
+        &[],
+        "subscribe",
+        &["PLC.COUNTER", "absolute", "0", "6"],
+    )
+    .await;
+    // No sampling faster than COMM_LOOP_DELAY (20 ms).
+    assert_eq!(ready["status"], "Good");
+    assert!(
+        ready["revised_sampling"].as_f64().unwrap() >= 20.0,
+        "{ready}"
+    );
+    assert_eq!(ready["revised_queue"], 1000);
+    let (mut absolute, _) = Subscription::start(
+        &ua.url,
+        &[],
+        "subscribe",
+        &["PLC.V_DINT", "absolute", "2", "6"],
+    )
+    .await;
+    // One change per poll or slower: every one must arrive, once.
+    for n in 1..=20 {
+        set(&mut c, "COUNTER", &n.to_string()).await;
+        tokio::time::sleep(Duration::from_millis(60)).await;
+    }
+    for n in [1, 2, 4, 5, 8] {
+        set(&mut c, "V_DINT", &n.to_string()).await;
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let all = every.values().await;
+    // The value SET left (not polled yet: stale), then polled (good).
+    assert_eq!(all[0]["status"], "UncertainLastUsableValue", "{all:?}");
+    let got: Vec<i64> = all
+        .iter()
+        .filter(|v| v["status"] == "Good")
+        .map(|v| v["value"].as_i64().unwrap())
+        .collect();
+    assert_eq!(got, (0..=20).collect::<Vec<_>>());
+    let got: Vec<i64> = absolute
+        .values()
+        .await
+        .iter()
+        .filter(|v| v["status"] == "Good")
+        .map(|v| v["value"].as_i64().unwrap())
+        .collect();
+    // |change| > 2 from the last value reported.
+    assert_eq!(got, [0, 4, 8]);
+    ua.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_client_killed_mid_subscription_leaves_the_server_serving() {
+    let ua = Ua::start("", "").await;
+    let mut c = ua.telnet().await;
+    let (mut held, _) = Subscription::start(&ua.url, &[], "hold", &["PLC.COUNTER"]).await;
+    set(&mut c, "COUNTER", "5").await;
+    loop {
+        let v = held.next().await.expect("a value");
+        if v["value"] == 5 {
+            break;
+        }
+    }
+    held.child.kill().await.unwrap();
+    let (mut other, _) = Subscription::start(
+        &ua.url,
+        &[],
+        "subscribe",
+        &["PLC.COUNTER", "none", "0", "2"],
+    )
+    .await;
+    set(&mut c, "COUNTER", "6").await;
+    let got: Vec<Value> = other.values().await;
+    assert!(got.iter().any(|v| v["value"] == 6), "{got:?}");
+    assert_eq!(
+        write(&ua.url, HMI, "PLC.COUNTER", "Int16", "7").await,
+        "Good"
+    );
+    assert_eq!(get(&mut c, "COUNTER").await, "7");
+    ua.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn an_untrusted_certificate_is_rejected_then_signandencrypt_with_a_user() {
+    let ua = Ua::start("", "").await;
+    let (secure, _certs) = ua.trusted_client(HMI).await;
+    let secure: Vec<&str> = secure.iter().map(String::as_str).collect();
+    let with_user: Vec<&str> = secure.iter().chain(HMI).copied().collect();
+    assert_eq!(
+        write(&ua.url, &with_user, "PLC.SETPOINT", "Float", "3.5").await,
+        "Good"
+    );
+    let mut c = ua.telnet().await;
+    assert_eq!(get_f64(&mut c, "SETPOINT").await, 3.5);
+    // A wrong password is refused.
+    let wrong: Vec<&str> = secure
+        .iter()
+        .chain(&["--user", "hmi", "--password", "nope"])
+        .copied()
+        .collect();
+    let lines = run(args(&wrong, "browse", &ua.url, &[])).await;
+    assert!(lines[0].get("error").is_some(), "{lines:?}");
+    ua.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn anonymous_is_refused_off_loopback() {
+    // Bound to every address: not loopback, although the test connects
+    // through 127.0.0.1.
+    let ua = Ua::start_with("OPCUA_HOST = 0.0.0.0", "").await;
+    let (secure, _certs) = ua.trusted_client(HMI).await;
+    let secure: Vec<&str> = secure.iter().map(String::as_str).collect();
+    let with_user: Vec<&str> = secure.iter().chain(HMI).copied().collect();
+    ua.wait_table(&with_user).await;
+    // Anonymous: refused on the secure endpoint, and there is no None
+    // endpoint.
+    let lines = run(args(&secure, "browse", &ua.url, &[])).await;
+    assert!(lines[0].get("error").is_some(), "{lines:?}");
+    let lines = run(args(&[], "browse", &ua.url, &[])).await;
+    assert!(lines[0].get("error").is_some(), "{lines:?}");
+    assert_eq!(
+        write(&ua.url, &with_user, "PLC.COUNTER", "Int16", "9").await,
+        "Good"
+    );
+    ua.server.shutdown().await;
+}
+
+/// Until the link state shown on the section object is `state`.
+async fn until_link(ua: &Ua, state: &str) {
+    let deadline = Instant::now() + Duration::from_secs(15);
+    loop {
+        let tree = browse(&ua.url, &[]).await;
+        if tree
+            .iter()
+            .any(|v| v["name"] == "LinkState" && v["value"] == state)
+        {
+            return;
+        }
+        assert!(Instant::now() < deadline, "link never {state}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// Every value of a HistoryRead of `node` over the last hour, read in
+/// pages of `per_page`: (pages, values).
+async fn history(ua: &Ua, node: &str, per_page: usize) -> (usize, Vec<Value>) {
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_millis() as i64;
+    let pages = run(args(
+        &[],
+        "history",
+        &ua.url,
+        &[
+            node,
+            &(now - 3_600_000).to_string(),
+            &(now + 60_000).to_string(),
+            &per_page.to_string(),
+        ],
+    ))
+    .await;
+    let values = pages
+        .iter()
+        .flat_map(|p| p["values"].as_array().unwrap().clone())
+        .collect();
+    for page in &pages[..pages.len() - 1] {
+        assert_eq!(page["values"].as_array().unwrap().len(), per_page, "{page}");
+        assert_eq!(page["more"], true, "{page}");
+    }
+    (pages.len(), values)
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn history_read_pages_with_continuation_points_and_shows_outages() {
+    let ua = Ua::start("HISTORY_SYNC = 1", "HISTORY = COUNTER").await;
+    let tree = browse(&ua.url, &[]).await;
+    let counter = tree.iter().find(|v| v["name"] == "COUNTER").unwrap();
+    assert_eq!(counter["historizing"], true, "{counter}");
+    // AccessLevel: read, write and HistoryRead (4).
+    assert_eq!(counter["access"], 7, "{counter}");
+    let mut c = ua.telnet().await;
+    for n in 1..=25 {
+        set(&mut c, "COUNTER", &n.to_string()).await;
+        tokio::time::sleep(Duration::from_millis(40)).await;
+    }
+    // Recorded within HISTORY_SYNC.
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let (pages, values) = history(&ua, "PLC.COUNTER", 7).await;
+    let good: Vec<i64> = values
+        .iter()
+        .filter(|v| v["status"] == "Good")
+        .map(|v| v["value"].as_i64().unwrap())
+        .collect();
+    assert!(pages >= 4, "{pages} pages: {values:?}");
+    let from = good.iter().position(|&v| v == 1).expect("1 recorded");
+    assert_eq!(good[from..], (1..=25).collect::<Vec<_>>()[..], "{values:?}");
+
+    // Bounds: the values just outside the range, at its ends.
+    let ms = |v: &Value| {
+        chrono::DateTime::parse_from_rfc3339(v["ts"].as_str().unwrap())
+            .unwrap()
+            .timestamp_millis()
+    };
+    let at = |n: i64| values.iter().find(|v| v["value"] == n).unwrap();
+    let (after_5, before_7) = (ms(at(5)) + 1, ms(at(7)) - 1);
+    let bounded = run(args(
+        &["--bounds"],
+        "history",
+        &ua.url,
+        &[
+            "PLC.COUNTER",
+            &after_5.to_string(),
+            &before_7.to_string(),
+            "0",
+        ],
+    ))
+    .await;
+    let got: Vec<(Value, Value)> = bounded[0]["values"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| (v["value"].clone(), v["status"].clone()))
+        .collect();
+    assert_eq!(
+        got,
+        [
+            (Value::from(5), Value::from("Good")),
+            (Value::from(6), Value::from("Good")),
+            (Value::from(7), Value::from("Good")),
+        ]
+    );
+
+    // An outage comes back as Bad samples, not as silence.
+    ua.sim.set_loss(1.0);
+    until_link(&ua, "lost").await;
+    ua.sim.set_loss(0.0);
+    until_link(&ua, "online").await;
+    set(&mut c, "COUNTER", "26").await;
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let (_, values) = history(&ua, "PLC.COUNTER", 5).await;
+    let at_25 = values.iter().position(|v| v["value"] == 25).unwrap();
+    let at_26 = values.iter().position(|v| v["value"] == 26).unwrap();
+    assert!(
+        values[at_25..at_26]
+            .iter()
+            .any(|v| v["status"] == "BadNoCommunication"),
+        "{:?}",
+        &values[at_25..=at_26]
+    );
+    ua.server.shutdown().await;
+}
+
+const TAGS: &str =
+    "name,type,table,address,bit,order,scale,offset,access,unit,description,min,max\n\
+                    level,REAL,holding,0,,,,,,%,tank level,0,200\n\
+                    count,INT,holding,2,,,,,,,a counter,,\n";
+
+/// A Modbus section on the embedded simulated device, its tag file in
+/// `dir` (edited by the test).
+async fn modbus(dir: &Path) -> (plccoms::startup::Server, String, u16, tempfile::TempDir) {
+    let tags = dir.join("tags.csv");
+    std::fs::write(&tags, TAGS).unwrap();
+    let users = users_file(dir);
+    let (server, port, conf) = common::start_on_free_port(|port| {
+        let opc = common::process::free_port();
+        format!(
+            "[*]\nCOMM_LOOP_DELAY = 20\nOPCUA_PORT = {opc}\nOPCUA_USERS = {}\n[M]\nPROTOCOL = MODBUS_TCP\n\
+             SIMULATOR = Yes\nMODBUS_TAGS = {}\nSERVER_PORT = {port}\nIPADDR_LOCAL = 127.0.0.1\n\
+             OPCUA_WRITE = LEVEL\n",
+            users.display(),
+            tags.display()
+        )
+    })
+    .await;
+    let url = format!(
+        "opc.tcp://127.0.0.1:{}/",
+        server.opcua.as_ref().unwrap().local_addr.port()
+    );
+    (server, url, port, conf)
+}
+
+/// Browses until `check` holds for the variables of the tree.
+async fn until_tree(url: &str, what: &str, check: impl Fn(&[Value]) -> bool) -> Vec<Value> {
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        let tree = browse(url, &[]).await;
+        if check(&tree) {
+            return tree;
+        }
+        assert!(Instant::now() < deadline, "never {what}: {tree:?}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+fn names(tree: &[Value]) -> Vec<&str> {
+    tree.iter().filter_map(|v| v["name"].as_str()).collect()
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn tag_file_units_ranges_percent_deadband_and_a_live_edit() {
+    let files = tempfile::tempdir().unwrap();
+    let (server, url, port, _conf) = modbus(files.path()).await;
+    let tree = until_tree(&url, "LEVEL shown", |t| names(t).contains(&"LEVEL")).await;
+    let level = tree.iter().find(|v| v["name"] == "LEVEL").unwrap();
+    assert_eq!(level["type"], "Float", "{level}");
+    assert_eq!(level["description"], "tank level", "{level}");
+    assert_eq!(level["EngineeringUnits"]["unit"], "%", "{level}");
+    assert_eq!(level["EURange"]["low"], 0.0, "{level}");
+    assert_eq!(level["EURange"]["high"], 200.0, "{level}");
+    let count = tree.iter().find(|v| v["name"] == "COUNT").unwrap();
+    assert!(count.get("EURange").is_none(), "{count}");
+
+    // 10 % of the range 0-200: a change must exceed 20 from the last value
+    // reported.
+    let mut c = Client::connect(([127, 0, 0, 1], port).into()).await;
+    set(&mut c, "LEVEL", "0").await;
+    let (mut percent, _) =
+        Subscription::start(&url, &[], "subscribe", &["M.LEVEL", "percent", "10", "4"]).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    for level in ["5", "15", "25", "30", "50"] {
+        set(&mut c, "LEVEL", level).await;
+        tokio::time::sleep(Duration::from_millis(150)).await;
+    }
+    let got: Vec<f64> = percent
+        .values()
+        .await
+        .iter()
+        .filter(|v| v["status"] == "Good")
+        .map(|v| v["value"].as_f64().unwrap())
+        .collect();
+    assert_eq!(got, [0.0, 25.0, 50.0]);
+    // Writes stay within the range.
+    assert_eq!(
+        write(&url, HMI, "M.LEVEL", "Float", "250").await,
+        "BadOutOfRange"
+    );
+    assert_eq!(
+        write(&url, HMI, "M.LEVEL", "Float", "-1").await,
+        "BadOutOfRange"
+    );
+    assert_eq!(write(&url, HMI, "M.LEVEL", "Float", "120").await, "Good");
+    assert_eq!(get_f64(&mut c, "LEVEL").await, 120.0);
+
+    // The tag file edited: COUNT goes, EXTRA comes; LEVEL keeps its id;
+    // a client of model change events hears of it.
+    let (mut events, _) = Subscription::start(&url, &[], "events", &["20"]).await;
+    let edited = TAGS.replace(
+        "count,INT,holding,2,,,,,,,a counter,,\n",
+        "extra,DINT,holding,4,,,,,,,added later,,\n",
+    );
+    std::fs::write(files.path().join("tags.csv"), edited).unwrap();
+    let tree = until_tree(&url, "the edit", |t| {
+        names(t).contains(&"EXTRA") && !names(t).contains(&"COUNT")
+    })
+    .await;
+    let level = tree.iter().find(|v| v["name"] == "LEVEL").unwrap();
+    assert_eq!(level["id"], "M.LEVEL");
+    let extra = tree.iter().find(|v| v["name"] == "EXTRA").unwrap();
+    assert_eq!(extra["type"], "Int32", "{extra}");
+    let event = events.next().await.expect("a model change event");
+    assert_eq!(event["source"], "M", "{event}");
+    assert!(
+        event["event_type"].as_str().unwrap().contains("2133"),
+        "{event}"
+    );
+    server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_history_stamp_pair_gives_the_plcs_time_as_source_timestamp() {
+    let ua = Ua::start("", "HISTORY_STAMP = V_DINT:V_LINT").await;
+    let mut c = ua.telnet().await;
+    // Milliseconds since 1970, as the PLC's program writes them.
+    set(&mut c, "V_LINT", "1700000000123").await;
+    set(&mut c, "V_DINT", "5").await;
+    let (mut sub, _) = Subscription::start(
+        &ua.url,
+        &[],
+        "subscribe",
+        &["PLC.V_DINT", "absolute", "0", "2"],
+    )
+    .await;
+    let values = sub.values().await;
+    // The first value (async-opcua moves a later value's SourceTimestamp
+    // forward by the sampling interval when two come closer than it).
+    assert_eq!(values[0]["value"], 5, "{values:?}");
+    assert_eq!(
+        values[0]["source_ts"], "2023-11-14T22:13:20.123000+00:00",
+        "{values:?}"
+    );
+    ua.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn history_read_continues_across_a_day_file_boundary() {
+    use plccoms_historian::sample::{Sample, Stored};
+    use plccoms_historian::store::{day_of, DayFile, DAY_MS};
+    let ua = Ua::start("HISTORY_SYNC = 1", "HISTORY = COUNTER").await;
+    // Yesterday's day file: COUNTER 100..=109 in its last ten seconds.
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_millis() as i64;
+    let yesterday = day_of(now) - 1;
+    let table = std::sync::Arc::new(plccoms_core::vars::table_of(&[("COUNTER", "INT")]));
+    let counter = table.lookup(b"COUNTER").unwrap();
+    let end = (yesterday + 1) * DAY_MS;
+    let samples: Vec<Sample> = (0..10)
+        .map(|i| Sample {
+            t: end - 10_000 + i * 1000,
+            var: counter,
+            value: Stored::Int(100 + i),
+            quality: plccoms_core::changes::Quality::Good,
+            plc_time: None,
+        })
+        .collect();
+    let mut file = DayFile::open(&ua.conf.path().join("history"), "PLC", yesterday).unwrap();
+    file.write(&[(&table, &samples)], &[]).unwrap();
+    file.close();
+    // Today's, recorded live.
+    let mut c = ua.telnet().await;
+    for n in 1..=5 {
+        set(&mut c, "COUNTER", &n.to_string()).await;
+        tokio::time::sleep(Duration::from_millis(40)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let pages = run(args(
+        &[],
+        "history",
+        &ua.url,
+        &[
+            "PLC.COUNTER",
+            &(end - 60_000).to_string(),
+            &(now + 60_000).to_string(),
+            "3",
+        ],
+    ))
+    .await;
+    let good: Vec<i64> = pages
+        .iter()
+        .flat_map(|p| p["values"].as_array().unwrap().clone())
+        .filter(|v| v["status"] == "Good")
+        .map(|v| v["value"].as_i64().unwrap())
+        .collect();
+    let expected: Vec<i64> = (100..=109).chain(1..=5).collect();
+    let today: Vec<i64> = good.iter().copied().filter(|&v| v != 0).collect();
+    assert_eq!(today, expected, "{pages:?}");
+    // Three values a page: yesterday's ten end in the middle of a page.
+    assert!(pages.len() >= 5, "{pages:?}");
+    ua.server.shutdown().await;
+}

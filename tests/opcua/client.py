@@ -1,0 +1,340 @@
+"""An OPC UA client for tests/opcua.rs: asyncua (FreeOpcUa's Python
+stack), a third-party implementation, driven by the tests. Each command
+prints JSON lines on stdout; a failure to connect prints
+{"error": "<status name or message>"} and exits 2.
+
+  client.py browse URL                       the tree under plccoms, every variable read
+  client.py write URL NODE TYPE VALUE        one Write; prints its StatusCode's name
+  client.py subscribe URL NODE KIND DEADBAND SECONDS
+                                             one monitored item (KIND none, absolute,
+                                             percent); prints "ready", then each value
+  client.py history URL NODE FROM_MS TO_MS PER_PAGE
+                                             HistoryRead raw, page by page (--bounds:
+                                             with ReturnBounds)
+  client.py hold URL NODE                    subscribes and waits forever (to be killed)
+  client.py paths URL SECTION VARIABLE PAGE  TranslateBrowsePaths, and Browse with BrowseNext
+  client.py events URL SECONDS               GeneralModelChangeEvents of the Server object
+  client.py --cert DIR makecert -            only makes the client's certificate
+
+Options before the command: --user NAME --password PW, --security
+"Basic256Sha256,SignAndEncrypt" with --cert DIR (a certificate made there
+on first use).
+"""
+
+import argparse
+import asyncio
+import datetime
+import json
+import socket
+import sys
+
+from asyncua import Client, ua
+
+
+def out(obj):
+    print(json.dumps(obj, default=str), flush=True)
+
+
+def status_name(code):
+    try:
+        return ua.StatusCode(code.value if hasattr(code, "value") else code).name
+    except Exception:
+        return str(code)
+
+
+def plain(value):
+    if isinstance(value, datetime.datetime):
+        if value.tzinfo is None:
+            value = value.replace(tzinfo=datetime.timezone.utc)
+        return value.isoformat()
+    if hasattr(value, "Low") and hasattr(value, "High"):
+        return {"low": value.Low, "high": value.High}
+    if hasattr(value, "DisplayName") and hasattr(value, "UnitId"):
+        return {"unit": value.DisplayName.Text}
+    return value
+
+
+async def make_cert(folder):
+    """The client's certificate and key in `folder` (made once): its
+    application URI, and the two paths."""
+    from pathlib import Path
+
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    key, cert = folder / "key.pem", folder / "cert.der"
+    uri = "urn:plccoms-tests:asyncua"
+    if not cert.exists():
+        await setup_self_signed_certificate(
+            key, cert, uri, socket.gethostname(),
+            [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "plccoms tests"},
+        )
+    return uri, cert, key
+
+
+async def connect(args):
+    client = Client(url=args.url, timeout=10)
+    if args.user:
+        client.set_user(args.user)
+        client.set_password(args.password or "")
+    if args.security:
+        uri, cert, key = await make_cert(args.cert)
+        client.application_uri = uri
+        await client.set_security_string(f"{args.security},{cert},{key}")
+    await client.connect()
+    return client
+
+
+async def browse(client, args):
+    ns = await client.get_namespace_index("urn:plccoms")
+    root = client.get_node(ua.NodeId("plccoms", ns))
+    for section in await root.get_children():
+        sname = (await section.read_browse_name()).Name
+        for child in await section.get_children():
+            item = {"section": sname, "name": (await child.read_browse_name()).Name,
+                    "id": child.nodeid.Identifier}
+            if await child.read_node_class() == ua.NodeClass.Variable:
+                dtype = await child.read_data_type()
+                item["type"] = (await client.get_node(dtype).read_browse_name()).Name
+                dv = await child.read_data_value(raise_on_bad_status=False)
+                item["value"] = plain(dv.Value.Value) if dv.Value is not None else None
+                item["variant"] = dv.Value.VariantType.name if dv.Value is not None else None
+                item["status"] = status_name(dv.StatusCode)
+                item["source_ts"] = plain(dv.SourceTimestamp)
+                item["access"] = await child.read_attribute(ua.AttributeIds.AccessLevel)
+                item["access"] = item["access"].Value.Value
+                item["historizing"] = (await child.read_attribute(ua.AttributeIds.Historizing)).Value.Value
+                desc = (await child.read_attributes([ua.AttributeIds.Description]))[0]
+                text = desc.Value.Value if desc.StatusCode.is_good() and desc.Value else None
+                item["description"] = text.Text if text is not None else None
+                for prop in await child.get_properties():
+                    pname = (await prop.read_browse_name()).Name
+                    item[pname] = plain(await prop.read_value())
+            out(item)
+
+
+TYPES = {
+    "Boolean": lambda v: v.lower() == "true",
+    "SByte": int, "Byte": int, "Int16": int, "UInt16": int, "Int32": int,
+    "UInt32": int, "Int64": int, "UInt64": int, "Float": float, "Double": float,
+    "String": str,
+    "DateTime": lambda v: datetime.datetime.fromisoformat(v),
+}
+
+
+async def write(client, args):
+    ns = await client.get_namespace_index("urn:plccoms")
+    node = client.get_node(ua.NodeId(args.node, ns))
+    variant = ua.Variant(TYPES[args.type](args.value), getattr(ua.VariantType, args.type))
+    params = ua.WriteParameters()
+    params.NodesToWrite = [ua.WriteValue(NodeId=node.nodeid, AttributeId=ua.AttributeIds.Value,
+                                         Value=ua.DataValue(variant))]
+    results = await client.uaclient.write_value(params) if hasattr(client.uaclient, "write_value") \
+        else await client.uaclient.write(params)
+    out({"status": status_name(results[0])})
+
+
+async def drain(queue, seconds):
+    """Prints what comes on `queue` for `seconds`, then {"done": true}."""
+    deadline = asyncio.get_running_loop().time() + seconds
+    while True:
+        left = deadline - asyncio.get_running_loop().time()
+        if left <= 0:
+            break
+        try:
+            out(await asyncio.wait_for(queue.get(), timeout=left))
+        except asyncio.TimeoutError:
+            break
+    out({"done": True})
+
+
+class Handler:
+    def __init__(self):
+        self.values = asyncio.Queue()
+
+    def datachange_notification(self, node, val, data):
+        dv = data.monitored_item.Value
+        self.values.put_nowait({"value": plain(val), "status": status_name(dv.StatusCode),
+                                "source_ts": plain(dv.SourceTimestamp)})
+
+
+async def subscribe(client, args):
+    ns = await client.get_namespace_index("urn:plccoms")
+    node = client.get_node(ua.NodeId(args.node, ns))
+    handler = Handler()
+    sub = await client.create_subscription(20, handler)
+    kind = {"none": 0, "absolute": 1, "percent": 2}[args.kind]
+    params = ua.MonitoringParameters()
+    params.ClientHandle = 1
+    params.SamplingInterval = 0
+    params.QueueSize = 1000
+    params.DiscardOldest = True
+    if kind:
+        flt = ua.DataChangeFilter()
+        flt.Trigger = ua.DataChangeTrigger.StatusValue
+        flt.DeadbandType = kind
+        flt.DeadbandValue = float(args.deadband)
+        params.Filter = flt
+    request = ua.MonitoredItemCreateRequest()
+    request.ItemToMonitor.NodeId = node.nodeid
+    request.ItemToMonitor.AttributeId = ua.AttributeIds.Value
+    request.MonitoringMode = ua.MonitoringMode.Reporting
+    request.RequestedParameters = params
+    # Through asyncua's own bookkeeping (so notifications reach the
+    # handler), keeping the server's answer for its revised parameters.
+    answers = {}
+    create = sub.server.create_monitored_items
+
+    async def keep(params):
+        answers["results"] = await create(params)
+        return answers["results"]
+
+    sub.server.create_monitored_items = keep
+    await sub.create_monitored_items([request])
+    result = answers["results"][0]
+    out({"ready": True, "status": status_name(result.StatusCode),
+         "revised_sampling": result.RevisedSamplingInterval,
+         "revised_queue": result.RevisedQueueSize})
+    await drain(handler.values, float(args.seconds))
+
+
+async def history(client, args):
+    ns = await client.get_namespace_index("urn:plccoms")
+    node_id = ua.NodeId(args.node, ns)
+    details = ua.ReadRawModifiedDetails()
+    details.IsReadModified = False
+    details.StartTime = datetime.datetime.fromtimestamp(int(args.from_ms) / 1000, datetime.timezone.utc)
+    details.EndTime = datetime.datetime.fromtimestamp(int(args.to_ms) / 1000, datetime.timezone.utc)
+    details.NumValuesPerNode = int(args.per_page)
+    details.ReturnBounds = bool(args.bounds)
+    point = None
+    pages = 0
+    while True:
+        params = ua.HistoryReadParameters()
+        params.HistoryReadDetails = details
+        params.TimestampsToReturn = ua.TimestampsToReturn.Both
+        params.ReleaseContinuationPoints = False
+        rv = ua.HistoryReadValueId()
+        rv.NodeId = node_id
+        rv.ContinuationPoint = point
+        params.NodesToRead = [rv]
+        result = (await client.uaclient.history_read(params))[0]
+        pages += 1
+        values = result.HistoryData.DataValues if result.HistoryData is not None else []
+        out({"page": pages, "status": status_name(result.StatusCode),
+             "values": [{"value": plain(dv.Value.Value) if dv.Value is not None else None,
+                         "status": status_name(dv.StatusCode),
+                         "ts": plain(dv.SourceTimestamp)} for dv in (values or [])],
+             "more": bool(result.ContinuationPoint)})
+        point = result.ContinuationPoint
+        if not point:
+            break
+
+
+class EventHandler:
+    def __init__(self):
+        self.events = asyncio.Queue()
+
+    def event_notification(self, event):
+        self.events.put_nowait({"event_type": str(event.EventType),
+                                "source": getattr(event, "SourceName", None),
+                                "message": event.Message.Text if event.Message else None})
+
+
+async def events(client, args):
+    handler = EventHandler()
+    sub = await client.create_subscription(20, handler)
+    server = client.get_node(ua.ObjectIds.Server)
+    # Every event of the Server object (BaseEventType), as most clients
+    # subscribe; the test checks the type.
+    await sub.subscribe_events(server)
+    out({"ready": True})
+    await drain(handler.events, float(args.seconds))
+
+
+async def paths(client, args):
+    """TranslateBrowsePathsToNodeIds of plccoms/<section>/<variable>, and
+    Browse of the section PAGE references at a time, with BrowseNext."""
+    ns = await client.get_namespace_index("urn:plccoms")
+    objects = client.get_node(ua.ObjectIds.ObjectsFolder)
+    node = await objects.get_child([f"{ns}:plccoms", f"{ns}:{args.section}", f"{ns}:{args.variable}"])
+    out({"translated": node.nodeid.Identifier})
+    desc = ua.BrowseDescription()
+    desc.NodeId = ua.NodeId(args.section, ns)
+    desc.BrowseDirection = ua.BrowseDirection.Forward
+    desc.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HierarchicalReferences)
+    desc.IncludeSubtypes = True
+    desc.ResultMask = ua.BrowseResultMask.All
+    params = ua.BrowseParameters()
+    params.View.Timestamp = ua.get_win_epoch()  # as asyncua's own browse: no view
+    params.NodesToBrowse = [desc]
+    params.RequestedMaxReferencesPerNode = int(args.page)
+    result = (await client.uaclient.browse(params))[0]
+    names = [r.BrowseName.Name for r in result.References]
+    calls = 1
+    while result.ContinuationPoint:
+        more = ua.BrowseNextParameters()
+        more.ReleaseContinuationPoints = False
+        more.ContinuationPoints = [result.ContinuationPoint]
+        result = (await client.uaclient.browse_next(more))[0]
+        names += [r.BrowseName.Name for r in result.References]
+        calls += 1
+    out({"names": names, "calls": calls})
+
+
+async def hold(client, args):
+    ns = await client.get_namespace_index("urn:plccoms")
+    node = client.get_node(ua.NodeId(args.node, ns))
+    handler = Handler()
+    sub = await client.create_subscription(20, handler)
+    await sub.subscribe_data_change(node)
+    out({"ready": True})
+    while True:
+        item = await handler.values.get()
+        out(item)
+
+
+async def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--user")
+    parser.add_argument("--password")
+    parser.add_argument("--security")
+    parser.add_argument("--cert")
+    parser.add_argument("--bounds", action="store_true")
+    parser.add_argument("command")
+    parser.add_argument("url")
+    parser.add_argument("rest", nargs="*")
+    args = parser.parse_args()
+    names = {
+        "browse": [], "write": ["node", "type", "value"],
+        "subscribe": ["node", "kind", "deadband", "seconds"],
+        "history": ["node", "from_ms", "to_ms", "per_page"], "hold": ["node"],
+        "makecert": [], "events": ["seconds"], "paths": ["section", "variable", "page"],
+    }[args.command]
+    for name, value in zip(names, args.rest):
+        setattr(args, name, value)
+    if args.command == "makecert":
+        await make_cert(args.cert)
+        out({"made": True})
+        return
+    try:
+        client = await connect(args)
+    except ua.UaStatusCodeError as e:
+        out({"error": status_name(e.code)})
+        sys.exit(2)
+    except Exception as e:  # refused before a status: the channel
+        out({"error": f"{type(e).__name__}: {e}"})
+        sys.exit(2)
+    try:
+        await globals()[args.command](client, args)
+    finally:
+        try:
+            await client.disconnect()
+        except Exception:
+            pass
+
+
+if __name__ == "__main__":
+    asyncio.run(main())
