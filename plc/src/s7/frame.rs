@@ -322,9 +322,7 @@ impl Job {
                         .get(at..at + 4)
                         .ok_or_else(|| short("write data item", at + 4, data.len()))?;
                     let len = match h[1] {
-                        0x03..=0x05 => {
-                            usize::from(u16::from_be_bytes([h[2], h[3]])).div_ceil(8)
-                        }
+                        0x03..=0x05 => usize::from(u16::from_be_bytes([h[2], h[3]])).div_ceil(8),
                         _ => usize::from(u16::from_be_bytes([h[2], h[3]])),
                     };
                     let bytes = data
