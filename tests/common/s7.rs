@@ -154,6 +154,11 @@ impl Snap7 {
         );
     }
 
+    /// The server's process id (to stop it with SIGSTOP: a silent CPU).
+    pub fn pid(&mut self) -> u32 {
+        self.child.child().id()
+    }
+
     /// The CPU's mode (the C server's SZL 0x0424).
     pub fn set_run(&mut self, run: bool) {
         assert_eq!(self.command(if run { "run" } else { "stop" }), "ok");
