@@ -31,4 +31,5 @@ pub mod metrics;
 pub mod present;
 pub mod ratelimit;
 pub mod section;
+pub mod system_area;
 pub mod vars;

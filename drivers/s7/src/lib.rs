@@ -35,7 +35,7 @@ pub mod client;
 use std::net::{IpAddr, SocketAddr};
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::{Duration, Instant, SystemTime};
+use std::time::{Duration, Instant};
 
 use async_trait::async_trait;
 use bytes::Bytes;
@@ -49,7 +49,7 @@ use plccoms_core::driver::{
     WriteRequest,
 };
 use plccoms_core::metrics::BackendCounters;
-use plccoms_plc::memory::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
+use plccoms_core::system_area::SystemArea;
 use plccoms_plc::s7::frame::{cpu_running, Answer as S7Answer, Item, Job, Tsaps};
 use plccoms_plc::s7::pack::{self, Block, Budget};
 use plccoms_plc::s7::{address_text, Region, ReturnCode, BLOCK};
@@ -88,7 +88,7 @@ pub struct S7Backend {
     config: S7Config,
     connection: Option<Connection>,
     counters: Arc<BackendCounters>,
-    tag_crc: TagCrc,
+    system: SystemArea,
     /// RUN (true) or STOP as last read; `None` before the first answer.
     run: Option<bool>,
     /// When the mode was last asked for.
@@ -98,35 +98,6 @@ pub struct S7Backend {
     /// Writes go one item a job (the server kept only the first item of
     /// a multi-item write).
     single_item_writes: bool,
-}
-
-/// `__PF_CRC`: the tag file's CRC, taken again when the file changes.
-struct TagCrc {
-    path: Option<PathBuf>,
-    seen: Option<(SystemTime, u64)>,
-    crc: u32,
-}
-
-impl TagCrc {
-    fn refresh(&mut self) -> u32 {
-        let Some(path) = &self.path else { return 0 };
-        let Ok(meta) = std::fs::metadata(path) else {
-            return self.crc;
-        };
-        let stamp = (
-            meta.modified().unwrap_or(SystemTime::UNIX_EPOCH),
-            meta.len(),
-        );
-        if self.seen != Some(stamp) {
-            // A file being rewritten may be unreadable for a moment: keep
-            // the last CRC and look again at the next poll.
-            if let Ok(bytes) = std::fs::read(path) {
-                self.crc = plccoms_plc::pubfile::crc_of(&bytes);
-                self.seen = Some(stamp);
-            }
-        }
-        self.crc
-    }
 }
 
 fn not_connected() -> PlcError {
@@ -153,16 +124,12 @@ fn blocks_of(area: Area, offset: u32, len: u32) -> Option<Vec<Block>> {
 
 impl S7Backend {
     pub fn new(config: S7Config) -> S7Backend {
-        let tag_crc = TagCrc {
-            path: config.tags.clone(),
-            seen: None,
-            crc: 0,
-        };
+        let system = SystemArea::new(config.tags.clone());
         S7Backend {
             config,
             connection: None,
             counters: Arc::default(),
-            tag_crc,
+            system,
             run: None,
             run_read: None,
             no_cpu_state: false,
@@ -220,21 +187,6 @@ impl S7Backend {
             "S7 TSAP {:04X}/{:04X}, PDU {pdu} (asked {}), {jobs} parallel job(s)",
             tsaps.local, tsaps.remote, self.config.pdu
         ))
-    }
-
-    /// The S area: `__PLC_RUN` and `__PF_CRC`.
-    fn system(&mut self, offset: u32, len: u32) -> Answer<Vec<u8>> {
-        let mut image = [0u8; 4096];
-        if self.run.unwrap_or(true) {
-            image[PLC_RUN_BYTE as usize] |= 1 << PLC_RUN_BIT;
-        }
-        let crc = PF_CRC_OFFSET as usize;
-        image[crc..crc + 4].copy_from_slice(&self.tag_crc.refresh().to_le_bytes());
-        let end = offset.saturating_add(len) as usize;
-        image
-            .get(offset as usize..end)
-            .map(<[u8]>::to_vec)
-            .ok_or(Refusal::BAD_PARAMETERS)
     }
 
     /// Whether to ask for the CPU's mode with this cycle's jobs.
@@ -475,7 +427,10 @@ impl PlcBackend for S7Backend {
         let mut answers = Vec::with_capacity(reads.len());
         for (read, span) in reads.iter().zip(spans) {
             answers.push(match span {
-                None if read.area == Area::S => self.system(read.offset, read.len),
+                None if read.area == Area::S => self
+                    .system
+                    .read(self.run.unwrap_or(true), read.offset, read.len)
+                    .ok_or(Refusal::BAD_PARAMETERS),
                 None => Err(Refusal::BAD_PARAMETERS),
                 Some((first, count)) => {
                     let mut bytes = Vec::with_capacity(read.len as usize);
