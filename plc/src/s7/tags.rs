@@ -40,7 +40,7 @@ use plccoms_protocol::{cp1250, IecType};
 
 use super::value::Layout;
 use super::{Region, BLOCK};
-use crate::modbus::tags::{name_bytes, text, LineCounter, TagWarning};
+use crate::modbus::tags::{name_bytes, Row, Rows, TagWarning};
 use crate::value_codec::Codec;
 
 /// Most elements one ARRAY line may make.
@@ -285,33 +285,23 @@ const COLUMNS: [(&str, Column); 9] = [
 
 /// Parses a tag file. Never fails: bad lines become warnings.
 pub fn parse(bytes: &[u8]) -> TagFile {
-    let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
-    let utf8 = std::str::from_utf8(bytes).is_ok();
-    let mut reader = csv::ReaderBuilder::new()
-        .has_headers(false)
-        .flexible(true)
-        .trim(csv::Trim::All)
-        .comment(Some(b'#'))
-        .from_reader(bytes);
+    let mut rows = Rows::new(bytes);
+    let utf8 = rows.utf8;
     let mut file = TagFile::default();
     let mut columns: Option<HashMap<Column, usize>> = None;
     let mut seen: HashMap<Vec<u8>, usize> = HashMap::new();
-    let mut lines = LineCounter::default();
-    for record in reader.byte_records() {
-        let record = match record {
-            Ok(record) => record,
-            Err(e) => {
-                let line = e
-                    .position()
-                    .map_or(0, |p| lines.line_of(bytes, p.byte() as usize));
-                file.warn(line, 0, format!("unreadable CSV: {e}"));
+    for row in &mut rows {
+        let Row {
+            line,
+            fields,
+            record,
+        } = match row {
+            Ok(row) => row,
+            Err(warning) => {
+                file.warn(warning.line, 0, warning.message);
                 break;
             }
         };
-        let line = record
-            .position()
-            .map_or(0, |p| lines.line_of(bytes, p.byte() as usize));
-        let fields: Vec<String> = record.iter().map(|f| text(f, utf8)).collect();
         let Some(columns) = &columns else {
             let mut found = HashMap::new();
             for (i, name) in fields.iter().enumerate() {
