@@ -12,7 +12,7 @@ mod common;
 use std::time::Duration;
 
 use common::modbus::until;
-use common::process::{free_port, ServerProcess};
+use common::process::free_port;
 use common::s7::{s7_server, Kind, Snap7};
 use common::Client;
 
@@ -116,22 +116,6 @@ async fn getinfo(c: &mut Client) -> Vec<String> {
             return info;
         }
         info.push(line.trim_end().to_string());
-    }
-}
-
-/// The log, once it has `want`.
-async fn log_with(server: &ServerProcess, want: &str) -> String {
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
-    loop {
-        let log = server.log();
-        if log.contains(want) {
-            return log;
-        }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "{want:?} not in the log:\n{log}"
-        );
-        tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
 
@@ -281,9 +265,9 @@ async fn a_missing_tag_among_good_ones_is_split_out() {
         assert!(name != "MISSING" && name != "PAST", "{line}");
         seen.insert(name);
     }
-    let log = log_with(&server, "MISSING: the PLC refuses to read it").await;
+    let log = server.log_with("MISSING: the PLC refuses to read it").await;
     assert!(log.contains("DB99 does not exist in the CPU"), "{log}");
-    let log = log_with(&server, "PAST: the PLC refuses to read it").await;
+    let log = server.log_with("PAST: the PLC refuses to read it").await;
     assert!(log.contains("past the end of DB2"), "{log}");
     tokio::time::sleep(Duration::from_secs(2)).await;
     let log = server.log();
@@ -471,5 +455,5 @@ async fn server_killed_and_restarted() {
     areas[0].2[2..4].copy_from_slice(&99i16.to_be_bytes());
     let _device = Snap7::start(Kind::C, port, &areas);
     until(&mut c, "GET:int_a", "GET:INT_A,99", 10).await;
-    log_with(&server, "PLC connected again").await;
+    server.log_with("PLC connected again").await;
 }

@@ -327,6 +327,29 @@ impl Shared {
     }
 }
 
+/// Serves each connection `listener` accepts with `connection`, in a task
+/// of its own (the TCP devices: Modbus, S7).
+pub(crate) async fn accept<F, Fut>(
+    listener: tokio::net::TcpListener,
+    shared: Arc<Shared>,
+    connection: F,
+) where
+    F: Fn(tokio::net::TcpStream, Arc<Shared>) -> Fut,
+    Fut: std::future::Future<Output = ()> + Send + 'static,
+{
+    loop {
+        match listener.accept().await {
+            Ok((stream, _)) => {
+                tokio::spawn(connection(stream, shared.clone()));
+            }
+            Err(e) => {
+                tracing::debug!("plcsim: accept failed: {e}");
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+        }
+    }
+}
+
 /// A running simulator. Dropping it stops every task of it.
 pub struct SimHandle {
     local_addr: SocketAddr,

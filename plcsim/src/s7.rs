@@ -11,7 +11,6 @@
 //! delays each answer, answers leaving in the order their requests came.
 
 use std::sync::Arc;
-use std::time::Duration;
 
 use bytes::Bytes;
 use futures_util::StreamExt;
@@ -37,17 +36,7 @@ pub const MAP: MemoryMap = MemoryMap {
 const MAX_PDU: u16 = 960;
 
 pub(crate) async fn serve(listener: TcpListener, shared: Arc<Shared>) {
-    loop {
-        match listener.accept().await {
-            Ok((stream, _)) => {
-                tokio::spawn(connection(stream, shared.clone()));
-            }
-            Err(e) => {
-                tracing::debug!("plcsim: accept failed: {e}");
-                tokio::time::sleep(Duration::from_millis(10)).await;
-            }
-        }
-    }
+    crate::accept(listener, shared, connection).await
 }
 
 async fn connection(stream: TcpStream, shared: Arc<Shared>) {
