@@ -3,6 +3,8 @@ Snap7 C library in its wheel), serving the areas given as JSON:
 
     {"port": 1102, "areas": [["DB", 1, "<hex>"], ["MK", 0, "<hex>"], ...]}
 
+(a number in place of the hex: that many zero bytes).
+
 Prints "ready" once it listens. Commands on stdin, one a line:
     stop | run                         the CPU's mode (SZL 0x0424)
     peek <AREA> <index> <start> <len>  prints "peek <hex>"
@@ -30,7 +32,7 @@ else:
 server = snap7.server.Server(log=False)
 memory = {}
 for area, index, data in config["areas"]:
-    data = bytes.fromhex(data)
+    data = bytes(data) if isinstance(data, int) else bytes.fromhex(data)
     if legacy:
         buffer = (ctypes.c_uint8 * len(data)).from_buffer_copy(data)
     else:
