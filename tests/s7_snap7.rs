@@ -431,13 +431,21 @@ async fn python_server_pdu_480_writes_and_no_cpu_mode() {
 }
 
 /// The server killed: the link is declared lost (GET answers ERROR); the
-/// server started again on its port: values again.
+/// server started again on its port: values again. The section names its
+/// TSAPs (S7_TSAP) rather than rack and slot.
 #[tokio::test]
 async fn server_killed_and_restarted() {
     let device = Snap7::start(Kind::C, free_port(), &areas());
     let port = device.port;
     let dir = tempfile::tempdir().unwrap();
-    let server = s7_server(dir.path(), port, TAGS, "S7_TIMEOUT = 500");
+    // The TSAPs given as TIA Portal shows them (a LOGO!'s), instead of
+    // rack and slot.
+    let server = s7_server(
+        dir.path(),
+        port,
+        TAGS,
+        "S7_TIMEOUT = 500\nS7_TSAP = 01.00/02.00",
+    );
     let mut c = Client::connect(server.addr).await;
     c.ask("GET:int_a\r\n", "GET:INT_A,-1234\r\n").await;
     drop(device);
@@ -455,5 +463,6 @@ async fn server_killed_and_restarted() {
     areas[0].2[2..4].copy_from_slice(&99i16.to_be_bytes());
     let _device = Snap7::start(Kind::C, port, &areas);
     until(&mut c, "GET:int_a", "GET:INT_A,99", 10).await;
-    server.log_with("PLC connected again").await;
+    let log = server.log_with("PLC connected again").await;
+    assert!(log.contains("ident=S7 TSAP 0100/0200, PDU 960"), "{log}");
 }
