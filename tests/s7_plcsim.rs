@@ -26,7 +26,7 @@ async fn plcsim_s7_serves_the_demo_program() {
     .unwrap();
     let dir = tempfile::tempdir().unwrap();
     let tags = format!(
-        "{}nowhere,DB5.DBW0,INT\n",
+        "{}nowhere,DB99.DBW0,INT\n",
         String::from_utf8(DEMO_S7_TAGS.to_vec()).unwrap()
     );
     let server = s7_server(dir.path(), sim.local_addr().port(), &tags, "");

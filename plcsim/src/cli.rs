@@ -80,7 +80,8 @@ pub struct Args {
     pub modbus: Option<SocketAddr>,
 
     /// Serve S7comm over ISO-on-TCP on this address instead of EPSNET: an
-    /// S7 CPU with DB1 and the merkers (any rack and slot; PDU up to 960).
+    /// S7 CPU with DB1-DB16 and the merkers (any rack and slot; PDU up to
+    /// 960).
     #[arg(long, value_name = "ADDR:PORT", conflicts_with = "modbus")]
     pub s7: Option<SocketAddr>,
 

@@ -1,7 +1,8 @@
 //! The simulated PLC as a Siemens S7 CPU (`plcsim --s7`): the same device,
 //! program and fault injection as the EPSNET one, over ISO-on-TCP with the
 //! frames of `plccoms_plc::s7`. Its memory holds what [`MAP`] lays out:
-//! inputs, outputs, the merkers and DB1 (any other DB "does not exist");
+//! inputs, outputs, the merkers and DB1 to DB16 of 64 KiB each (any other
+//! DB "does not exist");
 //! its variables are named by an S7 tag file (default `conf/demo-s7.csv`).
 //! It grants the PDU asked for up to 960 and 20 items a job, takes bit
 //! items (the byte's other bits kept) and tells its RUN/STOP mode in SZL
@@ -27,9 +28,12 @@ use plccoms_plc::{MemoryImage, WriteData};
 
 use crate::Shared;
 
-/// Inputs, outputs, the system registers, the merkers and DB1.
+/// The data blocks served: DB1 to DB16.
+pub const DBS: u16 = 16;
+
+/// Inputs, outputs, the system registers, the merkers and the DBs.
 pub const MAP: MemoryMap = MemoryMap {
-    sizes: [BLOCK, BLOCK, 4096, 2 * BLOCK],
+    sizes: [BLOCK, BLOCK, 4096, (DBS as u32 + 1) * BLOCK],
 };
 
 /// Largest PDU granted.
@@ -73,9 +77,9 @@ async fn connection(stream: TcpStream, shared: Arc<Shared>) {
 
 /// The answer to `job` on the image; `run`: the CPU's mode.
 pub fn apply(image: &mut MemoryImage, run: bool, job: &Job) -> Answer {
-    // Where `len` bytes of `item` lie: within its block, and DB1 the only DB.
+    // Where `len` bytes of `item` lie: within its block, in a DB served.
     let place = |item: &Item, len: u32| match item.region {
-        Region::Db(n) if n != 1 => Err(ReturnCode::NO_OBJECT),
+        Region::Db(n) if n > DBS => Err(ReturnCode::NO_OBJECT),
         _ if item.start + len > BLOCK => Err(ReturnCode::OUT_OF_RANGE),
         region => Ok(region.place(item.start)),
     };
@@ -145,7 +149,7 @@ mod tests {
     use plccoms_plc::s7::frame::cpu_running;
 
     #[test]
-    fn serves_db1_merkers_and_bits() {
+    fn serves_dbs_merkers_and_bits() {
         let mut image = MemoryImage::new(MAP);
         let write = Job::Write(vec![
             (
@@ -161,7 +165,10 @@ mod tests {
                 },
                 Bytes::from_static(&[1]),
             ),
-            (Item::bytes(Region::Db(7), 0, 1), Bytes::from_static(&[1])),
+            (
+                Item::bytes(Region::Db(DBS + 1), 0, 1),
+                Bytes::from_static(&[1]),
+            ),
         ]);
         assert_eq!(
             apply(&mut image, true, &write),
