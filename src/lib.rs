@@ -30,6 +30,7 @@ pub const OUR_CRATES: &[&str] = &[
     "plccoms_core",
     "plccoms_driver_epsnet",
     "plccoms_driver_modbus",
+    "plccoms_driver_s7",
     "plccoms_driver_plugin",
     "plccoms_telnet",
     "plccoms_historian",
@@ -57,6 +58,8 @@ pub const DRIVERS: Drivers = Drivers(&[
     plccoms_driver_epsnet::DRIVER,
     #[cfg(feature = "modbus")]
     plccoms_driver_modbus::DRIVER,
+    #[cfg(feature = "s7")]
+    plccoms_driver_s7::DRIVER,
     #[cfg(feature = "plugin")]
     plccoms_driver_plugin::DRIVER,
 ]);

@@ -204,22 +204,6 @@ async fn every_type_order_and_table() {
         .await;
 }
 
-/// The log, once it has `want` (lines are written as the server goes).
-async fn log_with(server: &common::process::ServerProcess, want: &str) -> String {
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
-    loop {
-        let log = server.log();
-        if log.contains(want) {
-            return log;
-        }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "{want:?} not in the log:\n{log}"
-        );
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-}
-
 /// What an S7-1200 user behind MB_SERVER found: `scale 0.1` printed 22.3
 /// as 22.299999, and `Temperature,REAL,holding,40001` was refused with
 /// "illegal data address" and no hint. Now: the value as written (or
@@ -280,14 +264,12 @@ async fn scaled_values_print_as_meant_and_a_reference_is_explained() {
 
     let hint = "holding 40001 looks like the 1-based reference 40001, which is holding 0 \
                 (addresses are 0-based)";
-    let log = log_with(
-        &server,
-        &format!(
+    let log = server
+        .log_with(&format!(
             "TEMPERATURE: the PLC refuses to read it (Modbus exception 2 (illegal data address)); \
              polled alone, the others go on; {hint}"
-        ),
-    )
-    .await;
+        ))
+        .await;
     for want in [
         format!("tag file tags.csv: line 6, column 4: {hint}; the tag loads as written"),
         format!(

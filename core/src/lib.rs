@@ -33,4 +33,5 @@ pub mod ratelimit;
 pub mod section;
 pub mod sections;
 pub mod trace;
+pub mod system_area;
 pub mod vars;

@@ -51,18 +51,31 @@ impl From<&PubFile> for VarFile {
 
 impl From<&TagFile> for VarFile {
     fn from(file: &TagFile) -> VarFile {
+        let vars = file.tags.iter().map(|t| (t.var(), t.line));
+        VarFile::of_tags(vars, &file.warnings, file.more_warnings, file.too_many)
+    }
+}
+
+impl From<&plccoms_plc::s7::tags::TagFile> for VarFile {
+    fn from(file: &plccoms_plc::s7::tags::TagFile) -> VarFile {
+        let vars = file.tags.iter().map(|t| (t.var(), t.line));
+        VarFile::of_tags(vars, &file.warnings, file.more_warnings, file.too_many)
+    }
+}
+
+impl VarFile {
+    /// A tag file's variables (with their lines) and problems.
+    fn of_tags(
+        vars: impl Iterator<Item = (Var, usize)>,
+        warnings: &[plccoms_plc::modbus::tags::TagWarning],
+        more_warnings: usize,
+        too_many: Option<usize>,
+    ) -> VarFile {
         VarFile {
-            vars: file
-                .tags
-                .iter()
-                .map(|t| VarDef {
-                    var: t.var(),
-                    line: t.line,
-                })
-                .collect(),
-            warnings: file.warnings.iter().map(|w| w.to_string()).collect(),
-            more_warnings: file.more_warnings,
-            too_many: file.too_many,
+            vars: vars.map(|(var, line)| VarDef { var, line }).collect(),
+            warnings: warnings.iter().map(|w| w.to_string()).collect(),
+            more_warnings,
+            too_many,
         }
     }
 }

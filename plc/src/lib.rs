@@ -2,7 +2,8 @@
 //! outside. Memory areas and their image ([`memory`]), public files
 //! ([`pubfile`]), file attributes and times ([`files`], [`time`]), and the
 //! EPSNET wire format ([`epsnet`]: frames, codec, the one table of service
-//! codes), Modbus TCP ([`modbus`]: frames, codec, tag files), a device's
+//! codes), Modbus TCP ([`modbus`]: frames, codec, tag files), Siemens S7 ([`s7`]: frames,
+//! codec, packing, tag files), a device's
 //! refusal whatever its protocol ([`refusal`]), a variable ([`var`]) and how
 //! its bytes become a client's value ([`value_codec`]). Shared by the
 //! server's backends and the simulated PLC (`plcsim`), which reuse the same
@@ -14,6 +15,7 @@ pub mod memory;
 pub mod modbus;
 pub mod pubfile;
 pub mod refusal;
+pub mod s7;
 pub mod time;
 pub mod value_codec;
 pub mod var;

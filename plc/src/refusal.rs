@@ -17,6 +17,8 @@ pub enum Refusal {
     Epsnet(Exception),
     /// A Modbus device's exception code.
     Modbus(ExceptionCode),
+    /// An S7 server's return code for an item, or its error for a job.
+    S7(crate::s7::ReturnCode),
 }
 
 impl Refusal {
@@ -44,6 +46,7 @@ impl fmt::Display for Refusal {
         match self {
             Refusal::Epsnet(e) => e.fmt(f),
             Refusal::Modbus(code) => code.fmt(f),
+            Refusal::S7(code) => code.fmt(f),
         }
     }
 }

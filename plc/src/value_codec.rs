@@ -113,6 +113,9 @@ pub enum Codec {
     #[default]
     Native,
     Registers(Registers),
+    /// An S7 type in a non-optimised block, big-endian (see
+    /// [`crate::s7::value`]).
+    S7(crate::s7::value::Layout),
 }
 
 /// Why a value cannot be written (answered as ERROR:35).
@@ -153,14 +156,17 @@ impl Codec {
         match self {
             Codec::Native => ty.size() as u32,
             Codec::Registers(r) => r.raw.len(),
+            Codec::S7(layout) => layout.len(),
         }
     }
 
     /// The client's value of the bytes read (`byte_len` of them; missing
     /// ones count as 0). A BOOL's bit is the caller's to pick.
     pub fn decode(&self, ty: IecType, bytes: &[u8]) -> Value {
-        let Codec::Registers(r) = self else {
-            return Value::decode(ty, bytes);
+        let r = match self {
+            Codec::Native => return Value::decode(ty, bytes),
+            Codec::S7(layout) => return layout.decode(bytes),
+            Codec::Registers(r) => r,
         };
         let mut wire = [0u8; 8];
         let raw = match r.raw {
@@ -224,9 +230,13 @@ impl Codec {
     /// (`byte_len` of them), or why it cannot hold it.
     pub fn encode(&self, ty: IecType, value: &Value) -> Result<Vec<u8>, EncodeError> {
         let mut out = Vec::with_capacity(self.byte_len(ty) as usize);
-        let Codec::Registers(r) = self else {
-            value.encode(ty, &mut out);
-            return Ok(out);
+        let r = match self {
+            Codec::Native => {
+                value.encode(ty, &mut out);
+                return Ok(out);
+            }
+            Codec::S7(layout) => return layout.encode(value),
+            Codec::Registers(r) => r,
         };
         let raw = match r.scale {
             Some(scale) => unscale(value, scale, r.raw)?,

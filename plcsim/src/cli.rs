@@ -17,9 +17,11 @@ use crate::program::ProgramKind;
 /// directory as the PLC's file system, and can drop or delay packets and go
 /// HALT on request. Service codes other than SETTID are this project's own,
 /// unverified against a real PLC. With --modbus it is a Modbus TCP device
-/// instead, its registers named by a tag file (--tags).
+/// instead, its registers named by a tag file (--tags); with --s7 a Siemens
+/// S7 CPU (DB1 and the merkers), its variables named by an S7 tag file.
 #[derive(Debug, Parser)]
 #[command(name = "plcsim", version, after_help = CONTROL_HELP)]
+#[command(group = clap::ArgGroup::new("tcp_device").args(["modbus", "s7"]).multiple(false))]
 pub struct Args {
     /// UDP address to listen on.
     #[arg(long, default_value = "127.0.0.1:61682", value_name = "ADDR:PORT")]
@@ -77,12 +79,19 @@ pub struct Args {
     #[arg(long, value_name = "ADDR:PORT")]
     pub modbus: Option<SocketAddr>,
 
-    /// Modbus tag file (CSV) naming the variables the program and
-    /// --animate drive. Default: the built-in conf/demo-modbus.csv.
+    /// Serve S7comm over ISO-on-TCP on this address instead of EPSNET: an
+    /// S7 CPU with DB1-DB16 and the merkers (any rack and slot; PDU up to
+    /// 960).
+    #[arg(long, value_name = "ADDR:PORT", conflicts_with = "modbus")]
+    pub s7: Option<SocketAddr>,
+
+    /// Modbus or S7 tag file (CSV) naming the variables the program and
+    /// --animate drive. Default: the built-in conf/demo-modbus.csv
+    /// (conf/demo-s7.csv with --s7).
     #[arg(
         long,
         value_name = "FILE.csv",
-        requires = "modbus",
+        requires = "tcp_device",
         conflicts_with = "pubfile"
     )]
     pub tags: Option<PathBuf>,
@@ -91,7 +100,7 @@ pub struct Args {
     /// `socat -d -d pty,raw,echo=0,link=/tmp/plc pty,raw,echo=0,link=/tmp/srv`)
     /// instead of UDP. `--loss` then damages that fraction of the exchanges
     /// (answer lost, cut short, corrupted, or after noise).
-    #[arg(long, value_name = "DEVICE", conflicts_with = "modbus")]
+    #[arg(long, value_name = "DEVICE", conflicts_with_all = ["modbus", "s7"])]
     pub serial: Option<String>,
 
     /// Serial line speed, baud (8N1, no flow control).
@@ -115,7 +124,7 @@ Control port commands (one a line, answered OK or ERR <why>):
   latency <ms>        delay answers
   halt | run          switch the PLC to HALT or RUN (__PLC_RUN)
   pub <file>          load another public file (new program, new __PF_CRC),
-                      served under its own name (with --modbus: a tag file)
+                      served under its own name (with --modbus, --s7: a tag file)
   program demo|idle   switch the PLC program
   animate <mask>...   animate these variables (none: stop)
   status              show state";

@@ -1,5 +1,6 @@
 //! The simulated PLC: a UDP server speaking EPSNET (or a serial line,
-//! [`serial`], or a TCP server speaking Modbus TCP, [`modbus`]) over a
+//! [`serial`], or a TCP server speaking Modbus TCP, [`modbus`], or S7comm,
+//! [`s7`]) over a
 //! [`Device`], a PLC program engine, a directory-backed file store and fault
 //! injection.
 //!
@@ -15,6 +16,7 @@ pub mod device;
 pub mod genpub;
 pub mod modbus;
 pub mod program;
+pub mod s7;
 pub mod serial;
 pub mod server;
 pub mod store;
@@ -46,6 +48,8 @@ pub const DEMO_PUB: &[u8] = include_bytes!("../../conf/demo.pub");
 pub const FIXED_PUB: &[u8] = include_bytes!("../../conf/FIXED.pub");
 /// The demo program's variables as a Modbus tag file (`conf/demo-modbus.csv`).
 pub const DEMO_TAGS: &[u8] = include_bytes!("../../conf/demo-modbus.csv");
+/// The demo program's variables as an S7 tag file (`conf/demo-s7.csv`).
+pub const DEMO_S7_TAGS: &[u8] = include_bytes!("../../conf/demo-s7.csv");
 
 /// Answers delayed by injected latency and not yet sent; beyond this the
 /// simulator drops datagrams (memory stays bounded).
@@ -89,6 +93,10 @@ pub struct SimConfig {
     /// Serve Modbus TCP on this address instead of EPSNET; `pubfile` is then
     /// a Modbus tag file, and the memory is laid out as Modbus tables.
     pub modbus: Option<SocketAddr>,
+    /// Serve S7comm (ISO-on-TCP) on this address instead of EPSNET;
+    /// `pubfile` is then an S7 tag file, and the memory laid out as
+    /// [`s7::MAP`].
+    pub s7: Option<SocketAddr>,
 }
 
 impl Default for SimConfig {
@@ -109,6 +117,7 @@ impl Default for SimConfig {
             seed: None,
             serial: None,
             modbus: None,
+            s7: None,
         }
     }
 }
@@ -122,6 +131,8 @@ pub(crate) struct Shared {
     line: serial::LineStats,
     /// The variables come from Modbus tag files.
     modbus: bool,
+    /// The variables come from S7 tag files.
+    s7: bool,
 }
 
 struct SimState {
@@ -142,6 +153,16 @@ fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
 /// The variables of a Modbus tag file, and its CRC.
 pub fn load_tags_bytes(bytes: &[u8]) -> (Vec<Var>, u32) {
     let parsed = plccoms_plc::modbus::tags::parse(bytes);
+    for warning in &parsed.warnings {
+        tracing::warn!("plcsim: tag file {warning}");
+    }
+    let vars = parsed.tags.iter().map(|tag| tag.var()).collect();
+    (vars, pubfile::crc_of(bytes))
+}
+
+/// The variables of an S7 tag file, and its CRC.
+pub fn load_s7_tags_bytes(bytes: &[u8]) -> (Vec<Var>, u32) {
+    let parsed = plccoms_plc::s7::tags::parse(bytes);
     for warning in &parsed.warnings {
         tracing::warn!("plcsim: tag file {warning}");
     }
@@ -199,6 +220,8 @@ impl Shared {
     fn load_pub(&self, bytes: &[u8], name: Option<&str>) -> u32 {
         let (vars, crc) = if self.modbus {
             load_tags_bytes(bytes)
+        } else if self.s7 {
+            load_s7_tags_bytes(bytes)
         } else {
             load_pub_bytes(bytes)
         };
@@ -279,6 +302,20 @@ impl Shared {
         damage.apply(bytes, &mut lock(&self.state).rng)
     }
 
+    /// The answer to one S7 job, and its delay; `None` to drop it.
+    fn handle_s7(
+        &self,
+        job: &plccoms_plc::s7::frame::Job,
+    ) -> Option<(plccoms_plc::s7::frame::Answer, Duration)> {
+        let mut state = lock(&self.state);
+        if state.loss > 0.0 && state.rng.next_f64() < state.loss {
+            return None;
+        }
+        let mut device = lock(&self.device);
+        let run = device.run();
+        Some((s7::apply(&mut device.image, run, job), state.latency))
+    }
+
     /// The answer to one Modbus request, and its delay; `None` to drop it.
     fn handle_modbus(&self, adu: &plccoms_plc::modbus::codec::Adu) -> Option<(Vec<u8>, Duration)> {
         let mut state = lock(&self.state);
@@ -287,6 +324,29 @@ impl Shared {
         }
         let answer = modbus::answer(&mut lock(&self.device).image, adu);
         Some((answer, state.latency))
+    }
+}
+
+/// Serves each connection `listener` accepts with `connection`, in a task
+/// of its own (the TCP devices: Modbus, S7).
+pub(crate) async fn accept<F, Fut>(
+    listener: tokio::net::TcpListener,
+    shared: Arc<Shared>,
+    connection: F,
+) where
+    F: Fn(tokio::net::TcpStream, Arc<Shared>) -> Fut,
+    Fut: std::future::Future<Output = ()> + Send + 'static,
+{
+    loop {
+        match listener.accept().await {
+            Ok((stream, _)) => {
+                tokio::spawn(connection(stream, shared.clone()));
+            }
+            Err(e) => {
+                tracing::debug!("plcsim: accept failed: {e}");
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+        }
     }
 }
 
@@ -309,6 +369,8 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     }
     let map = if config.modbus.is_some() {
         plccoms_plc::modbus::MAP
+    } else if config.s7.is_some() {
+        s7::MAP
     } else {
         config.map
     };
@@ -335,6 +397,8 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     let cycle_ms = config.cycle.as_millis().clamp(1, 60_000) as u64;
     let (vars, crc) = if config.modbus.is_some() {
         load_tags_bytes(&pub_bytes)
+    } else if config.s7.is_some() {
+        load_s7_tags_bytes(&pub_bytes)
     } else {
         load_pub_bytes(&pub_bytes)
     };
@@ -351,6 +415,7 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
         }),
         line: serial::LineStats::default(),
         modbus: config.modbus.is_some(),
+        s7: config.s7.is_some(),
     });
     shared.set_loss(config.loss);
     shared.set_latency(config.latency);
@@ -376,6 +441,12 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
             let listener = tokio::net::TcpListener::bind(addr).await?;
             let local = listener.local_addr()?;
             tasks.push(tokio::spawn(modbus::serve(listener, shared.clone())));
+            local
+        }
+        (None, None) if config.s7.is_some() => {
+            let listener = tokio::net::TcpListener::bind(config.s7.unwrap_or(config.bind)).await?;
+            let local = listener.local_addr()?;
+            tasks.push(tokio::spawn(s7::serve(listener, shared.clone())));
             local
         }
         (None, None) => {

@@ -1,5 +1,5 @@
 //! plcsim: a simulated Tecomat PLC speaking EPSNET over UDP or a serial
-//! line, or a Modbus TCP device.
+//! line, a Modbus TCP device, or a Siemens S7 CPU.
 
 use std::time::Duration;
 
@@ -51,9 +51,16 @@ async fn main() -> std::process::ExitCode {
     }
     if let Some(addr) = args.modbus {
         config.modbus = Some(addr);
-        config.pubfile = match args.tags {
-            Some(path) => PubSource::Path(path),
+        config.pubfile = match &args.tags {
+            Some(path) => PubSource::Path(path.clone()),
             None => PubSource::Bytes(plcsim::DEMO_TAGS.to_vec()),
+        };
+    }
+    if let Some(addr) = args.s7 {
+        config.s7 = Some(addr);
+        config.pubfile = match &args.tags {
+            Some(path) => PubSource::Path(path.clone()),
+            None => PubSource::Bytes(plcsim::DEMO_S7_TAGS.to_vec()),
         };
     }
     if let Some(ident) = args.ident {
@@ -71,6 +78,8 @@ async fn main() -> std::process::ExitCode {
         match line {
             Some(line) => line,
             None if args.modbus.is_some() => format!("Modbus TCP on tcp://{}", handle.local_addr()),
+            None if args.s7.is_some() =>
+                format!("S7 (ISO-on-TCP) on tcp://{}", handle.local_addr()),
             None => format!("EPSNET on udp://{}", handle.local_addr()),
         },
         handle.pf_crc(),

@@ -9,7 +9,6 @@
 //! delays each answer, answers leaving in the order their requests came.
 
 use std::sync::Arc;
-use std::time::Duration;
 
 use futures_util::StreamExt;
 use tokio::io::AsyncWriteExt;
@@ -30,17 +29,7 @@ use crate::Shared;
 const MAX_QUEUED: usize = 256;
 
 pub(crate) async fn serve(listener: TcpListener, shared: Arc<Shared>) {
-    loop {
-        match listener.accept().await {
-            Ok((stream, _)) => {
-                tokio::spawn(connection(stream, shared.clone()));
-            }
-            Err(e) => {
-                tracing::debug!("plcsim: accept failed: {e}");
-                tokio::time::sleep(Duration::from_millis(10)).await;
-            }
-        }
-    }
+    crate::accept(listener, shared, connection).await
 }
 
 async fn connection(stream: TcpStream, shared: Arc<Shared>) {

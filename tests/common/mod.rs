@@ -10,6 +10,7 @@ pub mod memory;
 pub mod modbus;
 pub mod mqtt;
 pub mod process;
+pub mod s7;
 
 use std::net::SocketAddr;
 use std::path::Path;

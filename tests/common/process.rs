@@ -280,6 +280,23 @@ impl ServerProcess {
     }
 
     /// The server's log so far.
+    /// The log, once it has `want` (lines are written as the server goes);
+    /// fails after 30 s.
+    pub async fn log_with(&self, want: &str) -> String {
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+        loop {
+            let log = self.log();
+            if log.contains(want) {
+                return log;
+            }
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "{want:?} not in the log:\n{log}"
+            );
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    }
+
     pub fn log(&self) -> String {
         std::fs::read(self.dir.path().join("plccoms.log"))
             .map(|b| String::from_utf8_lossy(&b).into_owned())

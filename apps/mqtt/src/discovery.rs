@@ -117,6 +117,17 @@ impl Maker {
                 ),
                 hw_version: None,
             },
+            Protocol::S7 => Maker {
+                manufacturer: "Siemens".into(),
+                model: format!(
+                    "S7 CPU at {}:{}",
+                    section
+                        .ipaddr
+                        .map_or_else(|| "?".to_string(), |a| a.to_string()),
+                    section.s7.port
+                ),
+                hw_version: ident.map(str::to_string).filter(|i| !i.is_empty()),
+            },
         }
     }
 }

@@ -324,6 +324,8 @@ pub struct Section {
     pub opcua: OpcuaSection,
     /// The `MODBUS_*` keys (`PROTOCOL = MODBUS_TCP`).
     pub modbus: Modbus,
+    /// The `S7_*` keys (`PROTOCOL = S7`).
+    pub s7: S7,
     /// Every path the section's keys name ([`Kind::Path`]), for
     /// [`Config::own_paths`].
     pub paths: Vec<ConfiguredPath>,
@@ -432,6 +434,41 @@ pub struct Modbus {
     pub gap: u16,
     /// `MODBUS_INFLIGHT`: transactions in flight at once.
     pub inflight: u8,
+}
+
+/// The settings of a Siemens S7 section (`S7_*`); the key table sets every
+/// field's default.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct S7 {
+    /// `S7_PORT`: the CPU's ISO-on-TCP port.
+    pub port: u16,
+    /// `S7_RACK`, `S7_SLOT`: where the CPU sits (its remote TSAP).
+    pub rack: u8,
+    pub slot: u8,
+    /// `S7_TSAP`: local and remote TSAP, instead of rack and slot; `None`
+    /// also when the value is not two hex words (an error on load).
+    pub tsap: Option<(u16, u16)>,
+    /// `S7_PDU`: the PDU size asked for.
+    pub pdu: u16,
+    /// `S7_TAGS`: the tag file (path rules as PUBFILE).
+    pub tags: Option<String>,
+    /// `S7_TIMEOUT`: how long one request may take.
+    pub timeout: Duration,
+}
+
+impl S7 {
+    /// `0100/0200` (or `01.00/02.00`, as TIA Portal shows TSAPs): local and
+    /// remote TSAP.
+    pub fn parse_tsap(text: &str) -> Option<(u16, u16)> {
+        let word = |t: &str| {
+            let hex: String = t.trim().chars().filter(|&c| c != '.').collect();
+            (hex.len() == 4)
+                .then(|| u16::from_str_radix(&hex, 16).ok())
+                .flatten()
+        };
+        let (local, remote) = text.split_once('/')?;
+        Some((word(local)?, word(remote)?))
+    }
 }
 
 /// A loaded file with the warnings and skipped-section errors found on the way.
@@ -885,6 +922,7 @@ fn section_defaults(name: &str) -> Section {
         mqtt: MqttSection::default(),
         opcua: OpcuaSection::default(),
         modbus: Modbus::default(),
+        s7: S7::default(),
         paths: Vec::new(),
     })
 }
@@ -925,6 +963,43 @@ fn read_section(
         if let Some(message) = misplaced {
             diags.push(Severity::Warning, entry.line, message);
         }
+    }
+    // S7 keys likewise, with PROTOCOL = S7.
+    let s7 = section.protocol == Protocol::S7;
+    for (key, entry) in &map {
+        let misplaced = if s7 {
+            matches!(*key, "PUBFILE" | "PUBFILE_FIXED").then(|| {
+                format!("{key} has no effect with PROTOCOL = S7 (its variables come from S7_TAGS)")
+            })
+        } else {
+            key.starts_with("S7_")
+                .then(|| format!("{key} has no effect without PROTOCOL = S7"))
+        };
+        if let Some(message) = misplaced {
+            diags.push(Severity::Warning, entry.line, message);
+        }
+    }
+    if let Some(entry) = map.get("S7_TSAP") {
+        if section.s7.tsap.is_none() {
+            errors.push(diags.make(
+                Severity::Error,
+                entry.line,
+                format!(
+                    "S7_TSAP = {} is not local/remote TSAP in hex (e.g. 0100/0200)",
+                    entry.value
+                ),
+            ));
+        }
+    }
+    if s7 && section.s7.tags.is_none() && section.simulator.is_none() {
+        diags.push(
+            Severity::Warning,
+            raw.line,
+            format!(
+                "section [{}] has no S7_TAGS: it serves __PLC_RUN and __PF_CRC only",
+                raw.name
+            ),
+        );
     }
     if modbus && section.modbus.tags.is_none() && section.simulator.is_none() {
         diags.push(

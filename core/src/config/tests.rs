@@ -925,6 +925,10 @@ fn base(key: &str) -> &'static str {
         "SERVER_PORT = 5010\nPROTOCOL = MODBUS_TCP\nSIMULATOR = Yes"
     } else if key.starts_with("MODBUS_") {
         "SERVER_PORT = 5010\nPROTOCOL = MODBUS_TCP\nMODBUS_TAGS = t.csv"
+    } else if key == "S7_TAGS" {
+        "SERVER_PORT = 5010\nPROTOCOL = S7\nSIMULATOR = Yes"
+    } else if key.starts_with("S7_") {
+        "SERVER_PORT = 5010\nPROTOCOL = S7\nS7_TAGS = t.csv"
     } else {
         "SERVER_PORT = 5010"
     }
@@ -937,6 +941,7 @@ fn sample(key: &Key) -> Option<String> {
     match key.name {
         "MQTT_URL" => return Some("mqtt://broker.lan".into()),
         "MQTT_DELTA" => return Some("0.5".into()),
+        "S7_TSAP" => return Some("0100/0200".into()),
         _ => {}
     }
     Some(match key.kind {
@@ -1003,7 +1008,7 @@ fn protocol() {
     );
     assert_eq!(
         section_error("SERVER_PORT = 1\nPROTOCOL = modbus"),
-        "PLCComS.ini:4: PROTOCOL = modbus is not a protocol (allowed EPSNET, MODBUS_TCP)"
+        "PLCComS.ini:4: PROTOCOL = modbus is not a protocol (allowed EPSNET, MODBUS_TCP, S7)"
     );
 }
 
@@ -1332,6 +1337,7 @@ fn every_key_naming_a_file_is_a_path_key() {
         "OPCUA_HOST",
         "OPCUA_PUBLISH",
         "OPCUA_WRITE",
+        "S7_TSAP",
     ];
     for key in keys() {
         if key.kind == Kind::Text {
@@ -1393,5 +1399,32 @@ fn mqtt_url_is_parsed_once_at_load() {
     assert_eq!(
         global_error("MQTT_URL = http://b"),
         "PLCComS.ini:2: MQTT_URL = http://b has scheme 'http' (allowed mqtt, mqtts)"
+    );
+}
+
+#[test]
+fn s7_keys() {
+    let warnings = |body: &str| {
+        let loaded = with_section(body).unwrap_or_else(|e| panic!("{body}: {e}"));
+        messages(&loaded)
+    };
+    let s = section("SERVER_PORT = 1\nPROTOCOL = S7\nS7_TAGS = t.csv\nS7_TSAP = 01.00/02.00");
+    assert_eq!(s.s7.tsap, Some((0x0100, 0x0200)));
+    assert_eq!(
+        (s.s7.port, s.s7.rack, s.s7.slot, s.s7.pdu),
+        (102, 0, 1, 960)
+    );
+    let e = section_error("SERVER_PORT = 1\nPROTOCOL = S7\nS7_TAGS = t.csv\nS7_TSAP = 100/200");
+    assert!(
+        e.contains("S7_TSAP = 100/200 is not local/remote TSAP in hex (e.g. 0100/0200)"),
+        "{e}"
+    );
+    assert_eq!(
+        warnings("SERVER_PORT = 1\nS7_PDU = 480"),
+        ["PLCComS.ini:4: S7_PDU has no effect without PROTOCOL = S7"]
+    );
+    assert_eq!(
+        warnings("SERVER_PORT = 1\nPROTOCOL = S7"),
+        ["PLCComS.ini:2: section [PLC] has no S7_TAGS: it serves __PLC_RUN and __PF_CRC only"]
     );
 }

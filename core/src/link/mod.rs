@@ -505,7 +505,7 @@ impl Link {
             if let Err(err) = self.reload(NamedBy::Configuration).await {
                 let serving = match self.user_kind() {
                     UserKind::PubFile => "the fixed variables",
-                    UserKind::ModbusTags => "__PLC_RUN and __PF_CRC",
+                    UserKind::ModbusTags | UserKind::S7Tags => "__PLC_RUN and __PF_CRC",
                 };
                 warn!(section = %self.name, "{err}; serving {serving} only, tried again at the next connection");
             }
@@ -849,7 +849,7 @@ impl Link {
         } else {
             None
         };
-        let said = change.describe(tables.source.kind == UserKind::ModbusTags);
+        let said = change.describe(tables.source.kind != UserKind::PubFile);
         info!(section = %self.name, "SETCONF: {said}");
         self.set_config(config);
         let mut old_backend = None;

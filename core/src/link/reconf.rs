@@ -68,6 +68,10 @@ pub fn apply(config: &Section, change: &ConfChange) -> (Section, bool) {
             config.modbus.tags = Some(name.clone());
             true
         }
+        ConfChange::PubFile(name) if config.protocol == Protocol::S7 => {
+            config.s7.tags = Some(name.clone());
+            true
+        }
         ConfChange::PubFile(name) => {
             config.pubfile = Some(name.clone());
             false

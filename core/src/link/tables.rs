@@ -35,15 +35,17 @@ pub enum UserKind {
     PubFile,
     /// A Modbus tag file (MODBUS_TAGS), on this machine only.
     ModbusTags,
+    /// An S7 tag file (S7_TAGS), on this machine only.
+    S7Tags,
 }
 
 impl UserKind {
     /// The kind a section's backend reads.
     pub fn of(section: &Section) -> UserKind {
-        if section.protocol == Protocol::ModbusTcp {
-            UserKind::ModbusTags
-        } else {
-            UserKind::PubFile
+        match section.protocol {
+            Protocol::ModbusTcp => UserKind::ModbusTags,
+            Protocol::S7 => UserKind::S7Tags,
+            Protocol::Epsnet => UserKind::PubFile,
         }
     }
 
@@ -52,6 +54,7 @@ impl UserKind {
         match self {
             UserKind::PubFile => section.pubfile.as_ref(),
             UserKind::ModbusTags => section.modbus.tags.as_ref(),
+            UserKind::S7Tags => section.s7.tags.as_ref(),
         }
     }
 
@@ -59,7 +62,7 @@ impl UserKind {
     pub fn what(self) -> &'static str {
         match self {
             UserKind::PubFile => "public file",
-            UserKind::ModbusTags => "tag file",
+            UserKind::ModbusTags | UserKind::S7Tags => "tag file",
         }
     }
 
@@ -71,7 +74,7 @@ impl UserKind {
             UserKind::PubFile => format!(
                 "__PF_CRC changed ({last:08X} -> {now:08X}): the PLC's program changed, reloading the public file"
             ),
-            UserKind::ModbusTags => {
+            UserKind::ModbusTags | UserKind::S7Tags => {
                 format!("tag file changed, reloading (__PF_CRC {last:08X} -> {now:08X})")
             }
         }
@@ -165,7 +168,7 @@ impl PubSource {
                 })
                 .map_err(|e| LoadError::Failed(format!("{what} {}: {e}", local.display())));
         }
-        if self.kind == UserKind::ModbusTags {
+        if self.kind != UserKind::PubFile {
             return Err(LoadError::Failed(format!(
                 "tag file {} not found",
                 local.display()
@@ -237,6 +240,13 @@ impl PubSource {
                 user.map(|u| (u.name.as_str(), VarFile::from(&tags::parse(&u.bytes)))),
                 plccoms_plc::modbus::MAP,
             ),
+            UserKind::S7Tags => (
+                user.map(|u| {
+                    let file = plccoms_plc::s7::tags::parse(&u.bytes);
+                    (u.name.as_str(), VarFile::from(&file))
+                }),
+                plccoms_plc::s7::MAP,
+            ),
         };
         let mut warnings = Vec::new();
         let table = VarTable::build_from(
@@ -272,7 +282,7 @@ impl PubSource {
         user: Option<&UserFile>,
         from_plc: bool,
     ) -> String {
-        if self.kind == UserKind::ModbusTags {
+        if self.kind != UserKind::PubFile {
             return match user {
                 Some(user) => format!("tag file loaded: {}", user.name),
                 None => "no tag file: __PLC_RUN and __PF_CRC only".to_string(),
@@ -348,7 +358,7 @@ fn read_bounded(path: &Path) -> std::io::Result<Vec<u8>> {
 pub fn expected_crc(kind: UserKind, user: &UserFile) -> Option<u32> {
     match kind {
         UserKind::PubFile => pubfile::parse(&user.bytes).crc,
-        UserKind::ModbusTags => Some(pubfile::crc_of(&user.bytes)),
+        UserKind::ModbusTags | UserKind::S7Tags => Some(pubfile::crc_of(&user.bytes)),
     }
 }
 

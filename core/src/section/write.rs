@@ -65,7 +65,7 @@ impl WriteRefusal {
                 ErrorCode::WrongValue
             }
             WriteRefusal::Refused {
-                refusal: driver::Refusal::Modbus(_),
+                refusal: driver::Refusal::Modbus(_) | driver::Refusal::S7(_),
                 ..
             } => ErrorCode::MemSet,
             WriteRefusal::Refused { direct: false, .. } => ErrorCode::SendData,
@@ -87,6 +87,11 @@ impl WriteRefusal {
                 refusal: driver::Refusal::Modbus(code),
                 ..
             } => exception_context(name, *code),
+            WriteRefusal::Refused {
+                name,
+                refusal: driver::Refusal::S7(code),
+                ..
+            } => exception_context(name, *code),
             WriteRefusal::Refused { direct: false, .. } => Vec::new(),
             WriteRefusal::Refused { name, .. } => name.clone(),
         }
@@ -105,8 +110,9 @@ impl WriteRefusal {
     }
 }
 
-/// `NAME: Modbus exception 2 (illegal data address)`, an error's context.
-pub fn exception_context(name: &[u8], code: plccoms_plc::modbus::ExceptionCode) -> Vec<u8> {
+/// `NAME: Modbus exception 2 (illegal data address)` (or an S7 return
+/// code's text), an error's context.
+pub fn exception_context(name: &[u8], code: impl std::fmt::Display) -> Vec<u8> {
     let mut context = name.to_vec();
     context.extend_from_slice(format!(": {code}").as_bytes());
     context

@@ -43,7 +43,7 @@ pub mod layout;
 use std::net::{IpAddr, SocketAddr};
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::{Duration, SystemTime};
+use std::time::Duration;
 
 use async_trait::async_trait;
 use plccoms_protocol::Area;
@@ -57,7 +57,7 @@ use plccoms_core::driver::{
 };
 use plccoms_core::driver::{Driver, Opened};
 use plccoms_core::metrics::BackendCounters;
-use plccoms_plc::memory::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
+use plccoms_core::system_area::SystemArea;
 use plccoms_plc::modbus::frame::Request;
 use plccoms_plc::modbus::{
     ExceptionCode, Reference, Table, INPUT_BASE, MAX_WRITE_BITS, MAX_WRITE_REGISTERS,
@@ -106,49 +106,9 @@ pub struct ModbusBackend {
     config: ModbusConfig,
     connection: Option<Connection>,
     counters: Arc<BackendCounters>,
-    system: System,
+    system: SystemArea,
     /// The device takes FC 22 (until it says otherwise).
     mask_write: bool,
-}
-
-/// The system registers: `__PLC_RUN` and `__PF_CRC`.
-struct System {
-    tags: Option<PathBuf>,
-    /// Modification time and length of the tag file when its CRC was taken.
-    seen: Option<(SystemTime, u64)>,
-    crc: u32,
-}
-
-impl System {
-    /// Takes the tag file's CRC again when the file changed.
-    fn refresh(&mut self) {
-        let Some(path) = &self.tags else { return };
-        let Ok(meta) = std::fs::metadata(path) else {
-            return;
-        };
-        let stamp = (
-            meta.modified().unwrap_or(SystemTime::UNIX_EPOCH),
-            meta.len(),
-        );
-        if self.seen == Some(stamp) {
-            return;
-        }
-        // A file being rewritten may be unreadable for a moment: keep the
-        // last CRC and look again at the next poll.
-        if let Ok(bytes) = std::fs::read(path) {
-            self.crc = plccoms_plc::pubfile::crc_of(&bytes);
-            self.seen = Some(stamp);
-        }
-    }
-
-    fn read(&mut self, offset: u32, len: u32) -> Vec<u8> {
-        self.refresh();
-        let mut image = [0u8; 4096];
-        image[PLC_RUN_BYTE as usize] |= 1 << PLC_RUN_BIT;
-        let crc = PF_CRC_OFFSET as usize;
-        image[crc..crc + 4].copy_from_slice(&self.crc.to_le_bytes());
-        image[offset as usize..(offset + len) as usize].to_vec()
-    }
 }
 
 fn not_connected() -> PlcError {
@@ -160,11 +120,7 @@ fn not_connected() -> PlcError {
 
 impl ModbusBackend {
     pub fn new(config: ModbusConfig) -> ModbusBackend {
-        let system = System {
-            tags: config.tags.clone(),
-            seen: None,
-            crc: 0,
-        };
+        let system = SystemArea::new(config.tags.clone());
         ModbusBackend {
             config,
             connection: None,
@@ -498,9 +454,10 @@ impl PlcBackend for ModbusBackend {
                             failure.get_or_insert(Refusal::Modbus(*code));
                         }
                     },
-                    Source::System { offset, len } => {
-                        bytes.extend_from_slice(&self.system.read(offset, len))
-                    }
+                    Source::System { offset, len } => match self.system.read(true, offset, len) {
+                        Some(part) => bytes.extend_from_slice(&part),
+                        None => failure = Some(Refusal::BAD_PARAMETERS),
+                    },
                     Source::Refused(e) => {
                         failure.get_or_insert(e);
                     }

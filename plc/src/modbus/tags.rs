@@ -106,7 +106,7 @@ impl Tag {
         match (&self.codec, self.table.is_bits()) {
             (_, true) => 1,
             (Codec::Registers(r), false) => r.raw.len() / 2,
-            (Codec::Native, false) => 1,
+            (Codec::Native | Codec::S7(_), false) => 1,
         }
     }
 }
@@ -197,38 +197,24 @@ const MAX_NAME: usize = crate::pubfile::MAX_NAME;
 
 /// Parses a tag file. Never fails: bad lines become warnings.
 pub fn parse(bytes: &[u8]) -> TagFile {
-    let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
-    let utf8 = std::str::from_utf8(bytes).is_ok();
-    let mut reader = csv::ReaderBuilder::new()
-        .has_headers(false)
-        .flexible(true)
-        .trim(csv::Trim::All)
-        .comment(Some(b'#'))
-        .from_reader(bytes);
+    let mut rows = Rows::new(bytes);
+    let utf8 = rows.utf8;
     let mut file = TagFile::default();
     let mut columns: Option<HashMap<Column, usize>> = None;
     let mut seen: HashMap<Vec<u8>, usize> = HashMap::new();
-    let mut lines = LineCounter::default();
     let mut header_len = 0;
-    for record in reader.byte_records() {
-        let record = match record {
-            Ok(record) => record,
-            Err(e) => {
-                let line = e
-                    .position()
-                    .map_or(0, |p| lines.line_of(bytes, p.byte() as usize));
-                file.warn(TagWarning {
-                    line,
-                    column: None,
-                    message: format!("unreadable CSV: {e}"),
-                });
+    for row in &mut rows {
+        let Row {
+            line,
+            fields,
+            record,
+        } = match row {
+            Ok(row) => row,
+            Err(warning) => {
+                file.warn(warning);
                 break;
             }
         };
-        let line = record
-            .position()
-            .map_or(0, |p| lines.line_of(bytes, p.byte() as usize));
-        let fields: Vec<String> = record.iter().map(|f| text(f, utf8)).collect();
         let Some(columns) = &columns else {
             match header(&fields, line, &mut file.warnings) {
                 Some(found) => columns = Some(found),
@@ -303,6 +289,70 @@ pub fn parse(bytes: &[u8]) -> TagFile {
         });
     }
     file
+}
+
+/// The records of a CSV tag file (Modbus or S7): a BOM dropped, `#` lines
+/// skipped, fields trimmed, read as UTF-8 when the whole file is, else as
+/// cp1250. An unreadable record ends them with a warning naming its line.
+pub(crate) struct Rows<'a> {
+    bytes: &'a [u8],
+    records: csv::ByteRecordsIntoIter<&'a [u8]>,
+    lines: LineCounter,
+    pub(crate) utf8: bool,
+}
+
+/// One record: its 1-based line, its fields as text, and as read.
+pub(crate) struct Row {
+    pub(crate) line: usize,
+    pub(crate) fields: Vec<String>,
+    pub(crate) record: csv::ByteRecord,
+}
+
+impl<'a> Rows<'a> {
+    pub(crate) fn new(bytes: &'a [u8]) -> Rows<'a> {
+        let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
+        let records = csv::ReaderBuilder::new()
+            .has_headers(false)
+            .flexible(true)
+            .trim(csv::Trim::All)
+            .comment(Some(b'#'))
+            .from_reader(bytes)
+            .into_byte_records();
+        Rows {
+            bytes,
+            records,
+            lines: LineCounter::default(),
+            utf8: std::str::from_utf8(bytes).is_ok(),
+        }
+    }
+}
+
+impl Iterator for Rows<'_> {
+    type Item = Result<Row, TagWarning>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        let (bytes, lines) = (self.bytes, &mut self.lines);
+        Some(match self.records.next()? {
+            Ok(record) => {
+                let line = record
+                    .position()
+                    .map_or(0, |p| lines.line_of(bytes, p.byte() as usize));
+                let fields = record.iter().map(|f| text(f, self.utf8)).collect();
+                Ok(Row {
+                    line,
+                    fields,
+                    record,
+                })
+            }
+            Err(e) => Err(TagWarning {
+                line: e
+                    .position()
+                    .map_or(0, |p| lines.line_of(bytes, p.byte() as usize)),
+                column: None,
+                message: format!("unreadable CSV: {e}"),
+            }),
+        })
+    }
 }
 
 /// 1-based line numbers of records. The csv crate's own line count and
@@ -643,7 +693,7 @@ fn tag(
 }
 
 /// The name in cp1250, checked as a public file's names are.
-fn name_bytes(text: &str, utf8: bool, raw: &[u8]) -> Result<Box<[u8]>, String> {
+pub(crate) fn name_bytes(text: &str, utf8: bool, raw: &[u8]) -> Result<Box<[u8]>, String> {
     if text.is_empty() {
         return Err("empty name".to_string());
     }

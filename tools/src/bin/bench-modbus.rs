@@ -15,6 +15,9 @@
 //!
 //! Run: `cargo run --release -p plccoms-tools --bin bench-modbus -- --help`.
 
+#[path = "../timed.rs"]
+mod timed;
+
 use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::net::SocketAddr;
@@ -22,20 +25,17 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use async_trait::async_trait;
 use clap::Parser;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::TcpStream;
 
 use plccoms::startup::start_section;
-use plccoms_core::driver::{Answer, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteRequest};
 use plccoms_core::link::tables::PubSource;
 use plccoms_core::link::Tables;
-use plccoms_core::metrics::BackendCounters;
 use plccoms_driver_modbus::ModbusBackend;
-use plccoms_protocol::Area;
 use plcsim::program::ProgramKind;
 use plcsim::{PubSource as SimPub, SimConfig};
+use timed::{cycles, Timed};
 
 #[derive(Debug, Parser)]
 #[command(name = "bench-modbus")]
@@ -177,108 +177,6 @@ fn minimum_requests(project: &Project, max_regs: u32, max_bits: u32) -> usize {
         .sum()
 }
 
-/// One `read` call of the link.
-#[derive(Clone, Copy)]
-struct Read {
-    start: Instant,
-    end: Instant,
-    /// Its first block.
-    first: ReadRequest,
-    transactions: u64,
-    /// A SET's read-back (the read right after a write), not a poll slice.
-    readback: bool,
-}
-
-/// The Modbus backend, each `read` timed and its transactions counted.
-struct Timed {
-    inner: ModbusBackend,
-    counters: Arc<BackendCounters>,
-    reads: Arc<Mutex<Vec<Read>>>,
-    after_write: bool,
-}
-
-/// Poll cycles in `reads` (the link reads a poll in slices, SETs between
-/// them): each begins with the plan's first block. The partial cycles at
-/// either end are left out. Per cycle: duration and transactions.
-fn cycles(reads: &[Read]) -> Vec<(Duration, u64)> {
-    let polls: Vec<&Read> = reads.iter().filter(|r| !r.readback).collect();
-    let Some(first) = polls
-        .iter()
-        .map(|r| r.first)
-        .min_by_key(|r| (r.area, r.offset))
-    else {
-        return Vec::new();
-    };
-    let starts: Vec<usize> = (0..polls.len())
-        .filter(|&i| polls[i].first == first)
-        .collect();
-    starts
-        .windows(2)
-        .map(|w| {
-            let slices = &polls[w[0]..w[1]];
-            let end = slices.last().map_or(slices[0].end, |r| r.end);
-            (
-                end - slices[0].start,
-                slices.iter().map(|r| r.transactions).sum(),
-            )
-        })
-        .collect()
-}
-
-#[async_trait]
-impl PlcBackend for Timed {
-    fn describe(&self) -> String {
-        self.inner.describe()
-    }
-    fn max_read_block(&self, area: Area) -> u32 {
-        self.inner.max_read_block(area)
-    }
-    fn read_gap(&self, area: Area) -> Option<u32> {
-        self.inner.read_gap(area)
-    }
-    fn read_align(&self, area: Area) -> u32 {
-        self.inner.read_align(area)
-    }
-    fn probe_backoff(&self) -> (Duration, Duration) {
-        self.inner.probe_backoff()
-    }
-    fn max_file_block(&self) -> u32 {
-        self.inner.max_file_block()
-    }
-    fn answer_timeout(&self) -> Duration {
-        self.inner.answer_timeout()
-    }
-    fn set_counters(&mut self, counters: Arc<BackendCounters>) {
-        self.counters = counters.clone();
-        self.inner.set_counters(counters);
-    }
-    async fn connect(&mut self) -> Result<String, PlcError> {
-        self.inner.connect().await
-    }
-    async fn read(&mut self, requests: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
-        let before = self.counters.requests.get();
-        let start = Instant::now();
-        let answers = self.inner.read(requests).await;
-        if let Some(&first) = requests.first() {
-            self.reads.lock().unwrap().push(Read {
-                start,
-                end: Instant::now(),
-                first,
-                transactions: self.counters.requests.get() - before,
-                readback: std::mem::take(&mut self.after_write),
-            });
-        }
-        answers
-    }
-    async fn write(&mut self, requests: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {
-        self.after_write = true;
-        self.inner.write(requests).await
-    }
-    async fn status(&mut self) -> Result<PlcStatus, PlcError> {
-        self.inner.status().await
-    }
-}
-
 fn percentile(sorted: &[f64], p: f64) -> f64 {
     if sorted.is_empty() {
         return f64::NAN;
@@ -325,16 +223,14 @@ async fn run(args: &Args, project: &Project, inflight: u8, latency: u64) -> Run 
         .expect("tags");
     let table = source.build(&section.name, user.as_ref()).expect("table");
     let reads = Arc::new(Mutex::new(Vec::new()));
-    let backend = Timed {
-        inner: ModbusBackend::new(plccoms_driver_modbus::config_of(
+    let backend = Timed::new(
+        Box::new(ModbusBackend::new(plccoms_driver_modbus::config_of(
             &section,
             device.local_addr(),
             dir.path(),
-        )),
-        counters: Arc::default(),
-        reads: reads.clone(),
-        after_write: false,
-    };
+        ))),
+        reads.clone(),
+    );
     let running = start_section(
         Arc::new(loaded.config.global),
         section,

@@ -5,7 +5,9 @@
 //! EPSADDR and EPSPORT, MODBUS_TAGS (`2/33 [tags.csv]`: the system
 //! variables, all variables, the tag file) in place of PUBFILE, and no
 //! VERSION_EPSNET: nothing EPSNET speaks for it. Asked by name, those keys
-//! still answer (PUBFILE as MODBUS_TAGS: no FIXED.pub is read). An EPSNET
+//! still answer (PUBFILE as MODBUS_TAGS: no FIXED.pub is read). An S7
+//! section likewise, with S7_PORT and S7_TAGS (VERSION_PLC names the PDU
+//! the CPU granted). An EPSNET
 //! section's list is the vendor's (its PROTOCOL answers when asked by
 //! name).
 
@@ -27,9 +29,11 @@ const KEYS: &[&str] = &[
     "EPSPORT",
     "MODBUS_PORT",
     "MODBUS_UNIT",
+    "S7_PORT",
     "SERIAL_DEVICE",
     "PUBFILE",
     "MODBUS_TAGS",
+    "S7_TAGS",
     "NETWORK",
 ];
 
@@ -92,10 +96,13 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
     let state = cx.section.state();
     let (config, link) = (&state.config, &state.link);
     let modbus = config.protocol == Protocol::ModbusTcp;
+    let s7 = config.protocol == Protocol::S7;
     // The full list shows what the section's protocol has.
     let shown = match key {
-        "PROTOCOL" | "MODBUS_PORT" | "MODBUS_UNIT" | "MODBUS_TAGS" => modbus,
-        "VERSION_EPSNET" | "EPSADDR" | "EPSPORT" | "PUBFILE" => !modbus,
+        "PROTOCOL" => modbus || s7,
+        "MODBUS_PORT" | "MODBUS_UNIT" | "MODBUS_TAGS" => modbus,
+        "S7_PORT" | "S7_TAGS" => s7,
+        "VERSION_EPSNET" | "EPSADDR" | "EPSPORT" | "PUBFILE" => !modbus && !s7,
         _ => true,
     };
     if listing_all && !shown {
@@ -105,6 +112,7 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
         "PROTOCOL" => line(text, key, config.protocol.name()),
         "MODBUS_PORT" => line(text, key, &config.modbus.port.to_string()),
         "MODBUS_UNIT" => line(text, key, &config.modbus.unit.to_string()),
+        "S7_PORT" => line(text, key, &config.s7.port.to_string()),
         // The EPSNET code and the ini parser are built with the server.
         "VERSION" | "VERSION_EPSNET" => line(text, key, &version(SERVER_VERSION)),
         "VERSION_INI" => line(text, key, &version(INI_VERSION)),
@@ -140,9 +148,10 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
         }
         // Asked by name on an EPSNET section: it has no tag file.
         "MODBUS_TAGS" if !modbus => line(text, key, ""),
-        "PUBFILE" | "MODBUS_TAGS" => {
+        "S7_TAGS" if !s7 => line(text, key, ""),
+        "PUBFILE" | "MODBUS_TAGS" | "S7_TAGS" => {
             let table = cx.client.vars.table();
-            let files = match (&table.user_file, modbus) {
+            let files = match (&table.user_file, modbus || s7) {
                 (Some(user), false) => format!("{},{}", table.fixed_file, user),
                 (None, false) => table.fixed_file.clone(),
                 // The backend answers the system variables: no fixed file.
