@@ -132,6 +132,11 @@ fn every_target_runs_on_ordinary_input() {
     checks::modbus_answer(&[
         0, 2, 0, 1, 0, 0, 0, 7, 1, 3, 4, 0xBE, 0xEF, 0, 1, 0, 2, 0, 0, 0, 3, 1, 0x83, 2, 0, 3, 0,
     ]);
+    // An AMS/TCP Read answer of two bytes, then half a header.
+    checks::ads_stream(&[
+        0, 0, 42, 0, 0, 0, 10, 0, 0, 1, 1, 1, 0x89, 0x80, 5, 1, 2, 3, 1, 1, 0x53, 3, 2, 0, 5, 0,
+        10, 0, 0, 0, 0, 0, 0, 0, 7, 0, 0, 0, 0, 0, 0, 0, 2, 0, 0, 0, 0xBE, 0xEF, 0, 0, 9,
+    ]);
     checks::epsnet_device(&[
         0x00, 0x01, 0x02, 0x00, 0x00, 0x0A, 0x68, 0x04, 0x04, 0x68, 0x00, 0x7D, 0x63, 0x01, 0xE1,
         0x16,
@@ -156,5 +161,28 @@ proptest::proptest! {
         }
         checks::local_path(name.as_bytes());
         checks::local_path(name.trim_end_matches(['/', '\\']).as_bytes());
+    }
+}
+
+proptest::proptest! {
+    /// ADS packets with arbitrary data, framed right or cut anywhere, and
+    /// arbitrary bytes: the ADS decoders never panic and round-trip.
+    #[test]
+    fn ads_decoders_hold_on_any_stream(
+        data in proptest::collection::vec(proptest::num::u8::ANY, 0..200),
+        command in 0u16..12,
+        cut in 0usize..300,
+    ) {
+        let mut stream = vec![0u8, 0];
+        stream.extend_from_slice(&(32 + data.len() as u32).to_le_bytes());
+        stream.extend_from_slice(&[5, 1, 2, 3, 1, 1, 0x53, 3, 10, 0, 0, 1, 1, 1, 0x89, 0x80]);
+        stream.extend_from_slice(&command.to_le_bytes());
+        stream.extend_from_slice(&[5, 0]);
+        stream.extend_from_slice(&(data.len() as u32).to_le_bytes());
+        stream.extend_from_slice(&[0; 8]);
+        stream.extend_from_slice(&data);
+        checks::ads_stream(&stream);
+        checks::ads_stream(&stream[..cut.min(stream.len())]);
+        checks::ads_stream(&data);
     }
 }

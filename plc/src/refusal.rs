@@ -5,6 +5,7 @@
 
 use std::fmt;
 
+use crate::ads::AdsError;
 use crate::epsnet::Exception;
 use crate::modbus::ExceptionCode;
 
@@ -17,6 +18,8 @@ pub enum Refusal {
     Epsnet(Exception),
     /// A Modbus device's exception code.
     Modbus(ExceptionCode),
+    /// An ADS device's error code.
+    Ads(AdsError),
 }
 
 impl Refusal {
@@ -44,6 +47,7 @@ impl fmt::Display for Refusal {
         match self {
             Refusal::Epsnet(e) => e.fmt(f),
             Refusal::Modbus(code) => code.fmt(f),
+            Refusal::Ads(code) => code.fmt(f),
         }
     }
 }
