@@ -56,4 +56,6 @@ pub const DRIVERS: Drivers = Drivers(&[
     plccoms_driver_modbus::DRIVER,
     #[cfg(feature = "plugin")]
     plccoms_driver_plugin::DRIVER,
+    #[cfg(feature = "ads")]
+    plccoms_driver_ads::DRIVER,
 ]);

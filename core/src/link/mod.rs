@@ -489,7 +489,7 @@ impl Link {
         if self.tables.as_ref().is_some_and(|t| t.pending_fetch) {
             if let Err(err) = self.reload(NamedBy::Configuration).await {
                 let serving = match self.user_kind() {
-                    UserKind::PubFile => "the fixed variables",
+                    UserKind::PubFile | UserKind::DeviceSymbols => "the fixed variables",
                     UserKind::ModbusTags => "__PLC_RUN and __PF_CRC",
                 };
                 warn!(section = %self.name, "{err}; serving {serving} only, tried again at the next connection");

@@ -35,22 +35,26 @@ pub enum UserKind {
     PubFile,
     /// A Modbus tag file (MODBUS_TAGS), on this machine only.
     ModbusTags,
+    /// The device's own symbol table (ADS), always asked of the backend's
+    /// file service under the name PUBFILE holds; reloaded when its
+    /// `__PF_CRC` (the symbol version's file) changes.
+    DeviceSymbols,
 }
 
 impl UserKind {
     /// The kind a section's backend reads.
     pub fn of(section: &Section) -> UserKind {
-        if section.protocol == Protocol::ModbusTcp {
-            UserKind::ModbusTags
-        } else {
-            UserKind::PubFile
+        match section.protocol {
+            Protocol::ModbusTcp => UserKind::ModbusTags,
+            Protocol::Ads => UserKind::DeviceSymbols,
+            Protocol::Epsnet => UserKind::PubFile,
         }
     }
 
     /// The section's setting that names the user file.
     pub fn name(self, section: &Section) -> Option<&String> {
         match self {
-            UserKind::PubFile => section.pubfile.as_ref(),
+            UserKind::PubFile | UserKind::DeviceSymbols => section.pubfile.as_ref(),
             UserKind::ModbusTags => section.modbus.tags.as_ref(),
         }
     }
@@ -60,6 +64,7 @@ impl UserKind {
         match self {
             UserKind::PubFile => "public file",
             UserKind::ModbusTags => "tag file",
+            UserKind::DeviceSymbols => "symbol table",
         }
     }
 
@@ -74,6 +79,9 @@ impl UserKind {
             UserKind::ModbusTags => {
                 format!("tag file changed, reloading (__PF_CRC {last:08X} -> {now:08X})")
             }
+            UserKind::DeviceSymbols => format!(
+                "the PLC's symbols changed (__PF_CRC {last:08X} -> {now:08X}): a new program, reloading them"
+            ),
         }
     }
 }
@@ -143,6 +151,9 @@ impl PubSource {
         };
         let local = self.local_path(section, name);
         let what = self.kind.what();
+        if self.kind == UserKind::DeviceSymbols {
+            return Err(LoadError::FromPlc);
+        }
         if by == NamedBy::Client {
             let refused = || LoadError::Failed(format!("{what} {name} refused"));
             check_client_name(name).map_err(|_| refused())?;
@@ -232,6 +243,10 @@ impl PubSource {
             UserKind::PubFile => (
                 user.map(|u| (u.name.as_str(), VarFile::from(&pubfile::parse(&u.bytes)))),
                 MemoryMap::FOXTROT,
+            ),
+            UserKind::DeviceSymbols => (
+                user.map(|u| (u.name.as_str(), VarFile::from(&pubfile::parse(&u.bytes)))),
+                plccoms_plc::ads::MAP,
             ),
             UserKind::ModbusTags => (
                 user.map(|u| (u.name.as_str(), VarFile::from(&tags::parse(&u.bytes)))),
@@ -347,7 +362,7 @@ fn read_bounded(path: &Path) -> std::io::Result<Vec<u8>> {
 /// file's trailer; a tag file's content (the Modbus backend's `__PF_CRC`).
 pub fn expected_crc(kind: UserKind, user: &UserFile) -> Option<u32> {
     match kind {
-        UserKind::PubFile => pubfile::parse(&user.bytes).crc,
+        UserKind::PubFile | UserKind::DeviceSymbols => pubfile::parse(&user.bytes).crc,
         UserKind::ModbusTags => Some(pubfile::crc_of(&user.bytes)),
     }
 }

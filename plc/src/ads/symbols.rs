@@ -90,12 +90,13 @@ impl<'a> Cursor<'a> {
         Ok(self.rest.get_u32_le())
     }
 
-    /// `len` bytes of text and the NUL after them.
+    /// `len` bytes of text and the NUL after them; the entry's last text
+    /// may end with the entry (pyads's server leaves the comment's NUL out).
     fn text(&mut self, len: u16, field: &str) -> Result<String, UploadError> {
         let len = usize::from(len);
-        self.need(len + 1, field)?;
+        self.need(len, field)?;
         let text = String::from_utf8_lossy(&self.rest[..len]).into_owned();
-        self.rest = &self.rest[len + 1..];
+        self.rest = self.rest.get(len + 1..).unwrap_or_default();
         Ok(text)
     }
 }
@@ -763,12 +764,12 @@ pub(crate) mod tests {
         assert_eq!(err.entry, 1);
         assert!(err.to_string().contains("entry length 200"), "{err}");
         let mut short = symbol_entry("ABC", 1, 2, 2, 2, "INT");
-        short[0] = 33;
-        short.truncate(33);
+        short[0] = 31;
+        short.truncate(31);
         assert!(parse_symbols(&short)
             .unwrap_err()
             .to_string()
-            .contains("name needs 4 bytes"));
+            .contains("name needs 3 bytes, 1 left"));
     }
 
     #[test]

@@ -1,0 +1,143 @@
+//! The ADS backend against pyads's test server (tests/ads/fixture.py, its
+//! advanced handler extended where pyads falls short of a TwinCAT PLC):
+//! symbol upload with structures and arrays, every type, sum reads by
+//! handle, writes read back and refused, a symbol removed by a new program,
+//! and the server restarted; all through the line protocol of the real
+//! `plccoms` binary.
+
+mod common;
+#[path = "ads/fixture.rs"]
+mod fixture;
+
+use std::time::Duration;
+
+use common::modbus::until;
+use common::process::{free_port, ServerProcess};
+use common::Client;
+use fixture::{ads_ini, Fixture};
+
+/// Past whatever lines a reload left (its WARNING:250, answers `until`
+/// did not wait for).
+async fn sync(c: &mut Client) {
+    c.send(b"GET:__PLC_RUN\r\n").await;
+    c.wait_for_line(b"GET:__PLC_RUN,1\r\n", Duration::from_secs(5))
+        .await;
+}
+
+#[tokio::test]
+async fn symbols_types_sums_writes_and_a_new_program() {
+    let mut device = Fixture::start(0);
+    let port = free_port();
+    let server =
+        ServerProcess::with_config(&ads_ini(device.port, port, "ADS_TIMEOUT = 2000"), port);
+    let mut c = Client::connect(server.addr).await;
+    until(&mut c, "GET:MAIN.vint", "GET:MAIN.VINT,-1234", 15).await;
+    for (request, answer) in [
+        ("GET:MAIN.vbool", "GET:MAIN.VBOOL,1"),
+        ("GET:MAIN.vbyte", "GET:MAIN.VBYTE,18"),
+        ("GET:MAIN.vword", "GET:MAIN.VWORD,48879"),
+        ("GET:MAIN.vdword", "GET:MAIN.VDWORD,3735928559"),
+        ("GET:MAIN.vlword", "GET:MAIN.VLWORD,1099511627776"),
+        ("GET:MAIN.vsint", "GET:MAIN.VSINT,-5"),
+        ("GET:MAIN.vusint", "GET:MAIN.VUSINT,250"),
+        ("GET:MAIN.vuint", "GET:MAIN.VUINT,54321"),
+        ("GET:MAIN.vdint", "GET:MAIN.VDINT,-123456"),
+        ("GET:MAIN.vudint", "GET:MAIN.VUDINT,4000000000"),
+        ("GET:MAIN.vlint", "GET:MAIN.VLINT,-1099511627776"),
+        ("GET:MAIN.vulint", "GET:MAIN.VULINT,9223372036854775808"),
+        ("GET:MAIN.vreal", "GET:MAIN.VREAL,1.500000"),
+        ("GET:MAIN.vlreal", "GET:MAIN.VLREAL,-2.2500000000"),
+        ("GET:MAIN.vstring", "GET:MAIN.VSTRING,\"Hello ADS\""),
+        ("GET:MAIN.vtime", "GET:MAIN.VTIME,1500"),
+        ("GET:MAIN.vtod", "GET:MAIN.VTOD,3723000"),
+        ("GET:MAIN.vdate", "GET:MAIN.VDATE,1710460800"),
+        ("GET:MAIN.vdt", "GET:MAIN.VDT,1710510330"),
+        // A structure's fields, an array field's elements, an array.
+        ("GET:MAIN.st.on", "GET:MAIN.ST.ON,1"),
+        ("GET:MAIN.st.n[0]", "GET:MAIN.ST.N[0],10"),
+        ("GET:MAIN.st.n[2]", "GET:MAIN.ST.N[2],30"),
+        ("GET:MAIN.arr[1]", "GET:MAIN.ARR[1],7"),
+        ("GET:MAIN.arr[3]", "GET:MAIN.ARR[3],9"),
+        ("LIST:MAIN.st.n[1]", "LIST:MAIN.ST.N[1],WORD*\r\nLIST:"),
+        (
+            "LIST:MAIN.vstring",
+            "LIST:MAIN.VSTRING,STRING[80]*\r\nLIST:",
+        ),
+        ("GETINFO:PROTOCOL", "GETINFO:PROTOCOL,ADS"),
+    ] {
+        c.ask(&format!("{request}\r\n"), &format!("{answer}\r\n"))
+            .await;
+    }
+    // Many symbols in one GET: one sum read.
+    c.send(b"GET:MAIN.arr[*]\r\n").await;
+    for want in [
+        "GET:MAIN.ARR[1],7",
+        "GET:MAIN.ARR[2],-8",
+        "GET:MAIN.ARR[3],9",
+        "GET:",
+    ] {
+        assert_eq!(String::from_utf8(c.line().await).unwrap().trim_end(), want);
+    }
+
+    // Writes by handle, read back; the fixture holds the new bytes.
+    c.ask("SET:MAIN.vint,42\r\n", "DIFF:MAIN.VINT,42\r\n").await;
+    assert_eq!(device.ask("get MAIN.vint"), "2a00");
+    c.ask("SET:MAIN.st.n[1],513\r\n", "DIFF:MAIN.ST.N[1],513\r\n")
+        .await;
+    assert_eq!(device.ask("get MAIN.st"), "010a0001021e00");
+    c.ask("SET:MAIN.vbool,0\r\n", "DIFF:MAIN.VBOOL,0\r\n").await;
+    assert_eq!(device.ask("get MAIN.vbool"), "00");
+    // A change the PLC program makes is polled.
+    device.ask("set MAIN.vdint 01000000");
+    until(&mut c, "GET:MAIN.vdint", "GET:MAIN.VDINT,1", 5).await;
+
+    // A new program without MAIN.vword: the symbol version changes and the
+    // table is reloaded live.
+    device.ask("remove MAIN.vword");
+    until(
+        &mut c,
+        "GET:MAIN.vword",
+        "ERROR:33 Unknown variable name in request: 'GET:MAIN.vword'",
+        10,
+    )
+    .await;
+    sync(&mut c).await;
+    c.ask("GET:MAIN.vint\r\n", "GET:MAIN.VINT,42\r\n").await;
+    // A program with a new symbol.
+    device.ask("add MAIN.fresh INT 0700");
+    until(&mut c, "GET:MAIN.fresh", "GET:MAIN.FRESH,7", 10).await;
+    sync(&mut c).await;
+
+    // Handles: one per symbol read, none leaked by the reload.
+    let held = device.ask("count");
+    let handles: usize = held.split_whitespace().nth(1).unwrap().parse().unwrap();
+    assert!(handles <= 40, "{held}");
+    let log = server.log();
+    assert!(log.contains("symbols uploaded"), "{log}");
+}
+
+#[tokio::test]
+async fn refusals_are_named_and_the_restarted_server_is_found_again() {
+    let mut device = Fixture::start(0);
+    let device_port = device.port;
+    let port = free_port();
+    let server = ServerProcess::with_config(&ads_ini(device_port, port, ""), port);
+    let mut c = Client::connect(server.addr).await;
+    until(&mut c, "GET:MAIN.counter", "GET:MAIN.COUNTER,0", 15).await;
+    // The symbol is gone from the PLC but the program's version is the
+    // same: the device's own answer, named, with the symbol's name.
+    device.ask("forget MAIN.counter");
+    c.ask(
+        "GET:MAIN.counter\r\n",
+        "ERROR:80 Unable to get data from address: 'MAIN.COUNTER: ADS error 0x710 (symbol not found)'\r\n",
+    )
+    .await;
+    let log = server.log();
+    drop(device);
+    // The server restarted on its port: values again.
+    let mut device = Fixture::start(device_port);
+    until(&mut c, "GET:MAIN.counter", "GET:MAIN.COUNTER,0", 10).await;
+    device.ask("set MAIN.counter 05000000");
+    until(&mut c, "GET:MAIN.counter", "GET:MAIN.COUNTER,5", 5).await;
+    let _ = log;
+}
