@@ -105,10 +105,11 @@ impl Connection {
         self.notifications.drain(..).collect()
     }
 
-    /// Waits up to `wait` for a notification (or anything) to arrive and
-    /// keeps it; `Err` when the connection is gone.
-    pub async fn pump(&mut self, wait: Duration) -> Result<(), PlcError> {
-        if let Ok(next) = tokio::time::timeout(wait, self.framed.next()).await {
+    /// Waits until a notification has arrived (an answer nobody waits
+    /// for is dropped); `Err` when the connection is gone. Cancel-safe.
+    pub async fn until_notified(&mut self) -> Result<(), PlcError> {
+        while self.notifications.is_empty() {
+            let next = self.framed.next().await;
             self.take_packet(next)?;
         }
         Ok(())

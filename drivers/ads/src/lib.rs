@@ -25,25 +25,28 @@
 
 pub mod client;
 
+use std::collections::HashMap;
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
 use std::time::Duration;
 
 use async_trait::async_trait;
 use bytes::{BufMut, Bytes, BytesMut};
-use plccoms_protocol::Area;
+use plccoms_protocol::{Area, Mask};
 use tracing::{info, warn};
 
 use client::Connection;
 use plccoms_core::config::{Protocol, ADS_SYMBOLS};
 use plccoms_core::driver::{
-    Answer, Driver, FileInfo, Opened, PlcBackend, PlcError, PlcStatus, ReadRequest, Refusal,
-    WriteData, WriteRequest, FILE_ATTRIBUTE_READONLY,
+    Answer, Driver, FileInfo, Opened, PlcBackend, PlcError, PlcStatus, Pushed, ReadRequest,
+    Refusal, WriteData, WriteRequest, FILE_ATTRIBUTE_READONLY,
 };
 use plccoms_core::metrics::BackendCounters;
-use plccoms_plc::ads::command::{decode_sum_read, decode_sum_read_write, Request, Response};
+use plccoms_plc::ads::command::{
+    decode_sum_read, decode_sum_read_write, Request, Response, TransMode,
+};
 use plccoms_plc::ads::symbols::{parse_data_types, parse_symbols, Layout, Leaf};
-use plccoms_plc::ads::{group, AdsError, AmsAddr, NetId, MAX_SUM};
+use plccoms_plc::ads::{filetime_to_unix_ms, group, AdsError, AmsAddr, NetId, MAX_SUM};
 use plccoms_plc::memory::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
 
 /// Settings of one ADS link (the section's keys).
@@ -57,6 +60,10 @@ pub struct AdsConfig {
     pub source: Option<NetId>,
     /// ADS_TIMEOUT.
     pub timeout: Duration,
+    /// ADS_NOTIFY: masks of the variables that come by notification.
+    pub notify: Vec<String>,
+    /// ADS_CYCLE: the PLC's check cycle for them.
+    pub cycle: Duration,
 }
 
 /// The symbols as last uploaded, and what is served of them.
@@ -82,6 +89,17 @@ pub struct AdsBackend {
     run: bool,
     /// The device takes sum commands (until it says otherwise).
     sum: bool,
+    notes: Notes,
+}
+
+/// The device notifications registered on the present connection.
+#[derive(Default)]
+struct Notes {
+    /// Notification handle -> leaf.
+    by_handle: HashMap<u32, usize>,
+    /// Per notified leaf: the value last handed to the link (`None` until
+    /// the first), which its polls answer.
+    last: HashMap<usize, Option<Bytes>>,
 }
 
 fn not_connected() -> PlcError {
@@ -105,7 +123,83 @@ impl AdsBackend {
             device_name: String::new(),
             run: false,
             sum: true,
+            notes: Notes::default(),
         }
+    }
+
+    /// Notifications registered on the device now.
+    pub fn notifications(&self) -> usize {
+        self.notes.by_handle.len()
+    }
+
+    /// Registers a notification for every leaf ADS_NOTIFY names (on change,
+    /// checked every ADS_CYCLE). A refused one (0x716: the PLC has no
+    /// handles left) is logged, and its variable polled.
+    async fn register_notifications(&mut self) -> Result<(), PlcError> {
+        if self.config.notify.is_empty() {
+            return Ok(());
+        }
+        let masks: Vec<Mask> = self
+            .config
+            .notify
+            .iter()
+            .map(|m| Mask::new(m.as_bytes()))
+            .collect();
+        let wanted: Vec<usize> = (0..self.symbols.layout.leaves.len())
+            .filter(|&i| {
+                let upper = self.symbols.layout.leaves[i].name.to_ascii_uppercase();
+                masks.iter().any(|m| m.matches(upper.as_bytes()))
+            })
+            .collect();
+        let errors = self.ensure_handles(&wanted).await?;
+        let cycle = u32::try_from(self.config.cycle.as_nanos() / 100).unwrap_or(u32::MAX);
+        let mut refused = 0;
+        for (&i, error) in wanted.iter().zip(errors) {
+            let leaf = &self.symbols.layout.leaves[i];
+            let (name, size) = (leaf.name.clone(), leaf.size());
+            let outcome = match (error, self.symbols.handles[i]) {
+                (None, Some(handle)) => {
+                    let request = Request::AddNotification {
+                        group: group::SYM_VALBYHND,
+                        offset: handle,
+                        len: size,
+                        mode: TransMode::ON_CHANGE,
+                        max_delay: 0,
+                        cycle,
+                    };
+                    self.request(&request).await?
+                }
+                (error, _) => Err(error.unwrap_or(AdsError::SYMBOL_NOT_FOUND)),
+            };
+            match outcome {
+                Ok(Response::Handle(handle)) => {
+                    self.notes.by_handle.insert(handle, i);
+                    self.notes.last.insert(i, None);
+                }
+                Ok(_) => refused += 1,
+                Err(e) => {
+                    refused += 1;
+                    if refused <= 5 {
+                        self.log_refusal("notification", &name, e);
+                    }
+                }
+            }
+        }
+        info!(device = %self.config.device, "{} device notifications registered ({refused} refused: polled)", self.notes.by_handle.len());
+        Ok(())
+    }
+
+    /// Deletes every notification registered (best effort: the device
+    /// forgets them with the connection anyway).
+    async fn delete_notifications(&mut self) -> Result<(), PlcError> {
+        let handles: Vec<u32> = self.notes.by_handle.keys().copied().collect();
+        self.notes = Notes::default();
+        for handle in handles {
+            let _ = self
+                .request(&Request::DeleteNotification { handle })
+                .await?;
+        }
+        Ok(())
     }
 
     /// The variables as laid out now (for tests and tools).
@@ -156,6 +250,13 @@ impl AdsBackend {
     /// A new connection: the device's state sent once while probing, its
     /// name, and the symbols when their version is new.
     async fn connect_with(&mut self, probing: bool) -> Result<String, PlcError> {
+        if self.connection.is_some() && !self.notes.by_handle.is_empty() {
+            // A new link to a device that answers (HALT -> RUN): its
+            // notifications go first, within one timeout.
+            let timeout = self.config.timeout;
+            let _ = tokio::time::timeout(timeout, self.delete_notifications()).await;
+        }
+        self.notes = Notes::default();
         self.connection = None;
         let mut connection = Connection::open(
             self.config.device,
@@ -178,6 +279,9 @@ impl AdsBackend {
             self.device_name = format!("{name} {}.{}.{}", version.0, version.1, version.2);
         }
         self.check_symbols(true).await?;
+        if self.notes.by_handle.is_empty() {
+            self.register_notifications().await?;
+        }
         Ok(format!(
             "ADS {} ({} symbols)",
             self.device_name,
@@ -210,12 +314,17 @@ impl AdsBackend {
         if loaded && version.is_none() && !at_connect {
             return Ok(());
         }
+        let notified = !self.notes.by_handle.is_empty();
         if loaded {
             info!(device = %self.config.device, "symbol version {:?} -> {version:?}: uploading the symbols again", self.symbols.version);
+            self.delete_notifications().await?;
             self.release_handles().await?;
         }
         self.upload().await?;
         self.symbols.version = version;
+        if notified {
+            self.register_notifications().await?;
+        }
         Ok(())
     }
 
@@ -373,6 +482,35 @@ impl AdsBackend {
         &mut self,
         leaves: &[usize],
     ) -> Result<Vec<Result<Bytes, AdsError>>, PlcError> {
+        // A notified leaf answers the value last handed to the link.
+        let (known, asked): (Vec<_>, Vec<_>) = leaves
+            .iter()
+            .copied()
+            .enumerate()
+            .partition(|(_, i)| matches!(self.notes.last.get(i), Some(Some(_))));
+        if known.is_empty() {
+            return self.read_from_device(leaves).await;
+        }
+        let asked_leaves: Vec<usize> = asked.iter().map(|&(_, i)| i).collect();
+        let mut from_device = self.read_from_device(&asked_leaves).await?.into_iter();
+        let mut results = vec![Err(AdsError::SYMBOL_NOT_FOUND); leaves.len()];
+        for (k, i) in known {
+            if let Some(Some(bytes)) = self.notes.last.get(&i) {
+                results[k] = Ok(bytes.clone());
+            }
+        }
+        for (k, _) in asked {
+            if let Some(result) = from_device.next() {
+                results[k] = result;
+            }
+        }
+        Ok(results)
+    }
+
+    async fn read_from_device(
+        &mut self,
+        leaves: &[usize],
+    ) -> Result<Vec<Result<Bytes, AdsError>>, PlcError> {
         let handle_errors = self.ensure_handles(leaves).await?;
         let mut results: Vec<Option<Result<Bytes, AdsError>>> =
             handle_errors.into_iter().map(|e| e.map(Err)).collect();
@@ -485,7 +623,7 @@ impl AdsBackend {
             }
             data => {
                 // Part of a symbol: what is around it first.
-                let mut current = match self.read_leaves(&[index]).await?.remove(0) {
+                let mut current = match self.read_from_device(&[index]).await?.remove(0) {
                     Ok(bytes) => bytes.to_vec(),
                     Err(e) => return Ok(Err(refused(e))),
                 };
@@ -684,6 +822,51 @@ impl PlcBackend for AdsBackend {
         Ok(PlcStatus { run: self.run })
     }
 
+    /// The samples of the device notifications received so far, each with
+    /// the PLC's time stamp; the last of each variable is what its polls
+    /// answer from now on.
+    fn take_pushed(&mut self) -> Vec<Pushed> {
+        let Some(connection) = self.connection.as_mut() else {
+            return Vec::new();
+        };
+        let mut pushed = Vec::new();
+        for stamp in connection.take_notifications() {
+            let unix_ms = filetime_to_unix_ms(stamp.filetime);
+            for sample in stamp.samples {
+                // A notification deleted meanwhile, or of another size.
+                let Some(&i) = self.notes.by_handle.get(&sample.handle) else {
+                    continue;
+                };
+                let leaf = &self.symbols.layout.leaves[i];
+                if sample.data.len() as u32 != leaf.size() {
+                    continue;
+                }
+                pushed.push(Pushed {
+                    name: leaf.name.as_bytes().into(),
+                    bytes: sample.data.to_vec(),
+                    unix_ms,
+                });
+                self.notes.last.insert(i, Some(sample.data));
+            }
+        }
+        pushed
+    }
+
+    async fn wait_pushed(&mut self) -> Result<(), PlcError> {
+        let Some(connection) = self
+            .connection
+            .as_mut()
+            .filter(|_| !self.notes.by_handle.is_empty())
+        else {
+            return std::future::pending().await;
+        };
+        let result = connection.until_notified().await;
+        if result.is_err() {
+            self.connection = None;
+        }
+        result
+    }
+
     /// The public file of the symbols, `ADS_SYMBOLS.pub`; nothing else.
     async fn file_info(&mut self, path: &[u8]) -> Result<Answer<FileInfo>, PlcError> {
         if !is_symbol_file(path) || self.symbols.file.is_empty() {
@@ -769,5 +952,7 @@ pub fn config_of(
         },
         source,
         timeout: ads.timeout,
+        notify: ads.notify.clone(),
+        cycle: ads.cycle,
     })
 }

@@ -213,6 +213,12 @@ pub fn filetime_to_unix(filetime: u64) -> f64 {
     (filetime as f64 - EPOCH_DIFF as f64) / 1e7
 }
 
+/// A FILETIME as UTC milliseconds since the Unix epoch (truncated).
+pub fn filetime_to_unix_ms(filetime: u64) -> i64 {
+    const EPOCH_DIFF: i128 = 116_444_736_000_000_000;
+    ((i128::from(filetime) - EPOCH_DIFF).div_euclid(10_000)) as i64
+}
+
 /// Seconds since the Unix epoch as a FILETIME (0 before 1601).
 pub fn unix_to_filetime(unix: f64) -> u64 {
     let ticks = unix * 1e7 + 116_444_736_000_000_000.0;
@@ -262,5 +268,7 @@ mod tests {
         assert_eq!(ft, 133_549_839_305_000_000);
         assert!((filetime_to_unix(ft) - unix).abs() < 1e-6);
         assert_eq!(unix_to_filetime(-2e10), 0);
+        assert_eq!(filetime_to_unix_ms(ft), 1_710_510_330_500);
+        assert_eq!(filetime_to_unix_ms(0), -11_644_473_600_000);
     }
 }
