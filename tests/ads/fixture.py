@@ -11,6 +11,7 @@ and answers each with one line:
   remove <name>           a new program without that symbol (version + 1)
   add <name> <type> <hex> a new program with that symbol (version + 1)
   state RUN|STOP          the ADS state ReadState answers
+  silent 1|0              drop every request (a cable pulled), or answer again
   count                   `handles <n> notifications <m>` held for clients
   get <name>              the value's hex
   quit
@@ -88,6 +89,7 @@ class Handler(AdvancedHandler):
         # notification handle -> (connection, var, target/source addresses)
         self.notes = {}
         self.next_note = 100
+        self.silent = False
 
     # -- the program's symbols --------------------------------------------
 
@@ -326,6 +328,8 @@ class Connection(AdsClientConnection):
                 frame, buffer = buffer[:6 + length], buffer[6 + length:]
                 request = self.construct_request(frame)
                 handler = self.server.handler
+                if handler.silent:
+                    continue
                 with handler.lock:
                     handler.connection = self
                     response = handler.handle_request(request)
@@ -389,6 +393,17 @@ def demo_program(handler):
     handler.add("MAIN.st", "ST_Pair", b"\x01" + struct.pack("<HHH", 10, 20, 30))
     handler.add("MAIN.arr", "ARRAY [1..3] OF DINT", struct.pack("<iii", 7, -8, 9))
     handler.add("MAIN.counter", "DINT", struct.pack("<i", 0))
+    # The program's clock, written every cycle (10 ms): ms of the day, UTC.
+    handler.add("MAIN.tim", "UDINT", struct.pack("<I", 0))
+    tim = handler.find("MAIN.tim")
+
+    def cycle():
+        while True:
+            with handler.lock:
+                tim.write(struct.pack("<I", int(time.time() * 1000) % 86400000))
+            time.sleep(0.01)
+
+    threading.Thread(target=cycle, daemon=True).start()
 
 
 def main():
@@ -416,6 +431,8 @@ def main():
             elif words[0] == "add":
                 handler.add(words[1], words[2], bytes.fromhex(words[3]))
                 handler.version += 1
+            elif words[0] == "silent":
+                handler.silent = words[1] == "1"
             elif words[0] == "state":
                 handler.ads_state = constants.ADSSTATE_RUN if words[1] == "RUN" else ADSSTATE_STOP
             elif words[0] == "count":
