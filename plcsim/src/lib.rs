@@ -1,5 +1,6 @@
 //! The simulated PLC: a UDP server speaking EPSNET (or a serial line,
-//! [`serial`], or a TCP server speaking Modbus TCP, [`modbus`]) over a
+//! [`serial`], or a TCP server speaking Modbus TCP, [`modbus`], or
+//! Beckhoff ADS, [`ads`]) over a
 //! [`Device`], a PLC program engine, a directory-backed file store and fault
 //! injection.
 //!
@@ -9,6 +10,7 @@
 //! handle stops the simulator. The `plcsim` binary wraps the same API and
 //! adds a loopback TCP control port ([`control`]).
 
+pub mod ads;
 pub mod cli;
 pub mod control;
 pub mod device;
@@ -89,6 +91,9 @@ pub struct SimConfig {
     /// Serve Modbus TCP on this address instead of EPSNET; `pubfile` is then
     /// a Modbus tag file, and the memory is laid out as Modbus tables.
     pub modbus: Option<SocketAddr>,
+    /// Serve Beckhoff ADS (AMS/TCP) on this address instead of EPSNET: the
+    /// public file's variables as ADS symbols ([`ads`]).
+    pub ads: Option<SocketAddr>,
 }
 
 impl Default for SimConfig {
@@ -109,6 +114,7 @@ impl Default for SimConfig {
             seed: None,
             serial: None,
             modbus: None,
+            ads: None,
         }
     }
 }
@@ -363,6 +369,12 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
         Duration::from_millis(cycle_ms),
     ))];
     let local_addr = match (&config.serial, config.modbus) {
+        (None, None) if config.ads.is_some() => {
+            let listener = tokio::net::TcpListener::bind(config.ads.expect("checked")).await?;
+            let local = listener.local_addr()?;
+            tasks.push(tokio::spawn(ads::serve(listener, shared.clone())));
+            local
+        }
         (Some(line), _) => {
             let port = serial::open(line)?;
             tasks.push(tokio::spawn(serial::serve(

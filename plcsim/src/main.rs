@@ -1,5 +1,5 @@
 //! plcsim: a simulated Tecomat PLC speaking EPSNET over UDP or a serial
-//! line, or a Modbus TCP device.
+//! line, or a Modbus TCP or Beckhoff ADS device.
 
 use std::time::Duration;
 
@@ -56,6 +56,7 @@ async fn main() -> std::process::ExitCode {
             None => PubSource::Bytes(plcsim::DEMO_TAGS.to_vec()),
         };
     }
+    config.ads = args.ads;
     if let Some(ident) = args.ident {
         config.ident = ident;
     }
@@ -71,6 +72,7 @@ async fn main() -> std::process::ExitCode {
         match line {
             Some(line) => line,
             None if args.modbus.is_some() => format!("Modbus TCP on tcp://{}", handle.local_addr()),
+            None if args.ads.is_some() => format!("ADS on tcp://{}", handle.local_addr()),
             None => format!("EPSNET on udp://{}", handle.local_addr()),
         },
         handle.pf_crc(),

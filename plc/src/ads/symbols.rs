@@ -187,6 +187,35 @@ pub fn parse_symbols(bytes: &[u8]) -> Result<Vec<Symbol>, UploadError> {
     Ok(symbols)
 }
 
+/// One symbol table entry as a device writes it (SYM_UPLOAD).
+pub fn encode_symbol(symbol: &Symbol) -> Vec<u8> {
+    let (name, ty, comment) = (
+        symbol.name.as_bytes(),
+        symbol.type_name.as_bytes(),
+        symbol.comment.as_bytes(),
+    );
+    let len = 30 + name.len() + ty.len() + comment.len() + 3;
+    let mut entry = Vec::with_capacity(len);
+    entry.extend_from_slice(&(len as u32).to_le_bytes());
+    for field in [
+        symbol.group,
+        symbol.offset,
+        symbol.size,
+        symbol.data_type,
+        0,
+    ] {
+        entry.extend_from_slice(&field.to_le_bytes());
+    }
+    for text in [name, ty, comment] {
+        entry.extend_from_slice(&(text.len() as u16).to_le_bytes());
+    }
+    for text in [name, ty, comment] {
+        entry.extend_from_slice(text);
+        entry.push(0);
+    }
+    entry
+}
+
 /// The data types as SYM_DT_UPLOAD answers them.
 pub fn parse_data_types(bytes: &[u8]) -> Result<Vec<DataType>, UploadError> {
     let mut types = Vec::new();
@@ -770,6 +799,22 @@ pub(crate) mod tests {
             .unwrap_err()
             .to_string()
             .contains("name needs 3 bytes, 1 left"));
+    }
+
+    #[test]
+    fn encoded_symbols_parse_back() {
+        let symbol = Symbol {
+            name: "MAIN.x".into(),
+            group: 0x4020,
+            offset: 4,
+            size: 2,
+            data_type: 2,
+            type_name: "INT".into(),
+            comment: "a comment".into(),
+        };
+        let mut table = encode_symbol(&symbol);
+        table.extend(encode_symbol(&symbol));
+        assert_eq!(parse_symbols(&table).unwrap(), [symbol.clone(), symbol]);
     }
 
     #[test]
