@@ -37,8 +37,11 @@ async fn the_demo_program_as_an_ads_device() {
     c.ask("GET:flag_a\r\n", "GET:FLAG_A,0\r\n").await;
     c.ask("SET:note,\"over ADS\"\r\n", "DIFF:NOTE,\"over ADS\"\r\n")
         .await;
-    c.ask("GET:v_dt\r\n", "ERROR:33 Unknown variable name in request: 'GET:v_dt'\r\n")
-        .await;
+    c.ask(
+        "GET:v_dt\r\n",
+        "ERROR:33 Unknown variable name in request: 'GET:v_dt'\r\n",
+    )
+    .await;
     // The program clock by notification: its changes keep coming.
     c.send(b"EN:tim\r\n").await;
     let mut diffs = Vec::new();
@@ -66,5 +69,9 @@ async fn the_demo_program_as_an_ads_device() {
     other.extend_from_slice(DEMO_PUB);
     sim.load_pub(&other);
     until(&mut c, "GET:extra", "GET:EXTRA,0", 10).await;
-    assert!(server.log().contains("symbols uploaded"), "{}", server.log());
+    assert!(
+        server.log().contains("symbols uploaded"),
+        "{}",
+        server.log()
+    );
 }

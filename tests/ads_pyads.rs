@@ -141,3 +141,55 @@ async fn refusals_are_named_and_the_restarted_server_is_found_again() {
     until(&mut c, "GET:MAIN.counter", "GET:MAIN.COUNTER,5", 5).await;
     let _ = log;
 }
+
+#[tokio::test]
+async fn a_tag_file_names_symbols_and_index_groups() {
+    let mut device = Fixture::start(0);
+    let port = free_port();
+    // MAIN.vint is the eighth symbol: index group 0x4040, offset 0x8000.
+    let tags = "name,address,type,unit,description\n\
+                temp,MAIN.vint,INT,°C,\"kitchen, north\"\n\
+                raw,0x4040:0x8000,INT\n\
+                flag,MAIN.vbool,BOOL\n\
+                missing,MAIN.nothere,INT\n\
+                bad,MAIN.vint,FOO\n";
+    let ini = ads_ini(device.port, port, "ADS_TAGS = tags.csv");
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("plccoms.ini"), ini).unwrap();
+    std::fs::write(dir.path().join("tags.csv"), tags).unwrap();
+    let server = ServerProcess::with_config_in(dir, port);
+    let mut c = Client::connect(server.addr).await;
+    until(&mut c, "GET:temp", "GET:TEMP,-1234", 15).await;
+    c.ask("GET:raw\r\n", "GET:RAW,-1234\r\n").await;
+    c.ask("GET:flag\r\n", "GET:FLAG,1\r\n").await;
+    c.ask(
+        "GET:missing\r\n",
+        "ERROR:80 Unable to get data from address: 'MISSING: ADS error 0x710 (symbol not found)'\r\n",
+    )
+    .await;
+    c.ask("LIST:\r\n", "LIST:__PLC_RUN,BOOL\r\n").await;
+    for want in [
+        "LIST:__PF_CRC,DWORD",
+        "LIST:TEMP,INT*",
+        "LIST:RAW,INT*",
+        "LIST:FLAG,BOOL*",
+        "LIST:MISSING,INT*",
+        "LIST:",
+    ] {
+        assert_eq!(String::from_utf8(c.line().await).unwrap().trim_end(), want);
+    }
+    // Written at the index group, read back by handle.
+    c.ask("SET:raw,77\r\n", "DIFF:RAW,77\r\n").await;
+    assert_eq!(device.ask("get MAIN.vint"), "4d00");
+    until(&mut c, "GET:temp", "GET:TEMP,77", 5).await;
+    let log = server.log();
+    assert!(log.contains("line 6: unknown type 'FOO'"), "{log}");
+
+    // An edited tag file is loaded again.
+    std::fs::write(
+        server.dir.path().join("tags.csv"),
+        format!("{tags}extra,MAIN.vdint,DINT\n"),
+    )
+    .unwrap();
+    until(&mut c, "GET:extra", "GET:EXTRA,-123456", 10).await;
+}

@@ -185,4 +185,19 @@ proptest::proptest! {
         checks::ads_stream(&stream[..cut.min(stream.len())]);
         checks::ads_stream(&data);
     }
+
+    /// Tag file lines built from the pieces that matter to its parser.
+    #[test]
+    fn ads_tag_files_hold(
+        lines in proptest::collection::vec(
+            proptest::collection::vec(
+                proptest::sample::select(vec!["name", "MAIN.x", "0x4020:4", "1:x", "INT", "STRING(80)", "\"a,b\"", "", "#", "\u{e9}", "STRING[3]", ":"]),
+                0..7,
+            ),
+            0..8,
+        ),
+    ) {
+        let text: String = lines.iter().map(|l| l.join(",") + "\n").collect();
+        checks::ads_stream(text.as_bytes());
+    }
 }

@@ -1086,7 +1086,8 @@ pub fn modbus_answer(data: &[u8]) {
 
 /// ADS: an AMS/TCP stream through the codec, each packet's data through
 /// every answer decoder, the notification and sum decoders, and the symbol
-/// and data type upload parsers; a decoded packet encodes to its bytes.
+/// and data type upload and tag file parsers; a decoded packet encodes to
+/// its bytes.
 pub fn ads_stream(data: &[u8]) {
     use plccoms_plc::ads::command::{
         decode_notification, decode_sum_read, decode_sum_read_write, Request as AdsRequest,
@@ -1096,6 +1097,9 @@ pub fn ads_stream(data: &[u8]) {
     use plccoms_plc::ads::symbols::{parse_data_types, parse_symbols, Layout};
     use tokio_util::codec::{Decoder as _, Encoder as _};
 
+    let tags = plccoms_plc::ads::tags::parse(data);
+    assert!(tags.tags.len() <= plccoms_plc::pubfile::MAX_VARS);
+    assert!(tags.warnings.len() <= plccoms_plc::pubfile::MAX_WARNINGS);
     let symbols = parse_symbols(data).unwrap_or_default();
     let types = parse_data_types(data).unwrap_or_default();
     let layout = Layout::expand(&symbols, &types);

@@ -830,6 +830,9 @@ static KEYS: &[Key] = &[
     row("ADS_NOTIFY", None, Kind::Text,
         "masks of the variables sent by the PLC as device notifications (on change, PLC time stamps)",
         Setter::Section(|s, v| s.ads.notify = split_masks(&v.text()))),
+    row("ADS_TAGS", None, Kind::Path(PathUse::Input),
+        "ADS tag file (CSV: name,address,type,unit,description) for a PLC without a symbol table; //name = root folder",
+        Setter::Section(|s, v| s.ads.tags = Some(v.text()))),
     row("ADS_CYCLE", Some("10"), number(1, 60000, "ms"), "the PLC's check cycle for ADS_NOTIFY",
         Setter::Section(|s, v| s.ads.cycle = v.millis())),
     // Accepted in a PLC section for symmetry with [*]: no effect there.

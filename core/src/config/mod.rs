@@ -445,6 +445,9 @@ pub struct Ads {
     pub notify: Vec<String>,
     /// `ADS_CYCLE`: the PLC's check cycle for notifications.
     pub cycle: Duration,
+    /// `ADS_TAGS`: a tag file naming the variables instead of the PLC's
+    /// symbol table (path rules as PUBFILE).
+    pub tags: Option<String>,
 }
 
 /// The name the symbol table of an ADS section is served under (LIST,

@@ -27,8 +27,9 @@ pub mod client;
 
 use std::collections::HashMap;
 use std::net::{IpAddr, SocketAddr};
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, SystemTime};
 
 use async_trait::async_trait;
 use bytes::{BufMut, Bytes, BytesMut};
@@ -46,6 +47,7 @@ use plccoms_plc::ads::command::{
     decode_sum_read, decode_sum_read_write, Request, Response, TransMode,
 };
 use plccoms_plc::ads::symbols::{parse_data_types, parse_symbols, Layout, Leaf};
+use plccoms_plc::ads::tags::{self, Address};
 use plccoms_plc::ads::{filetime_to_unix_ms, group, AdsError, AmsAddr, NetId, MAX_SUM};
 use plccoms_plc::memory::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
 
@@ -64,6 +66,8 @@ pub struct AdsConfig {
     pub notify: Vec<String>,
     /// ADS_CYCLE: the PLC's check cycle for them.
     pub cycle: Duration,
+    /// ADS_TAGS: the variables from this file instead of the symbol table.
+    pub tags: Option<PathBuf>,
 }
 
 /// The symbols as last uploaded, and what is served of them.
@@ -90,6 +94,8 @@ pub struct AdsBackend {
     /// The device takes sum commands (until it says otherwise).
     sum: bool,
     notes: Notes,
+    /// Modification time and length of the tag file when it was loaded.
+    tags_seen: Option<(SystemTime, u64)>,
 }
 
 /// The device notifications registered on the present connection.
@@ -124,6 +130,7 @@ impl AdsBackend {
             run: false,
             sum: true,
             notes: Notes::default(),
+            tags_seen: None,
         }
     }
 
@@ -157,11 +164,11 @@ impl AdsBackend {
         for (&i, error) in wanted.iter().zip(errors) {
             let leaf = &self.symbols.layout.leaves[i];
             let (name, size) = (leaf.name.clone(), leaf.size());
-            let outcome = match (error, self.symbols.handles[i]) {
-                (None, Some(handle)) => {
+            let outcome = match (error, self.place(i)) {
+                (None, Some((group, offset))) => {
                     let request = Request::AddNotification {
-                        group: group::SYM_VALBYHND,
-                        offset: handle,
+                        group,
+                        offset,
                         len: size,
                         mode: TransMode::ON_CHANGE,
                         max_delay: 0,
@@ -308,6 +315,9 @@ impl AdsBackend {
             Err(_) => None,
         };
         let loaded = !self.symbols.file.is_empty();
+        if let Some(path) = self.config.tags.clone() {
+            return self.check_tags(&path, version, loaded).await;
+        }
         if loaded && version.is_some() && version == self.symbols.version {
             return Ok(());
         }
@@ -326,6 +336,58 @@ impl AdsBackend {
             self.register_notifications().await?;
         }
         Ok(())
+    }
+
+    /// With a tag file: the file loaded again when it changed; handles and
+    /// notifications made again when the PLC's program changed.
+    async fn check_tags(
+        &mut self,
+        path: &Path,
+        version: Option<u8>,
+        loaded: bool,
+    ) -> Result<(), PlcError> {
+        let stamp = std::fs::metadata(path)
+            .ok()
+            .map(|m| (m.modified().unwrap_or(SystemTime::UNIX_EPOCH), m.len()));
+        let new_file = !loaded || (stamp.is_some() && stamp != self.tags_seen);
+        let new_program = loaded && version.is_some() && version != self.symbols.version;
+        self.symbols.version = version;
+        if !new_file && !new_program {
+            return Ok(());
+        }
+        let notified = !self.notes.by_handle.is_empty();
+        if loaded {
+            self.delete_notifications().await?;
+            self.release_handles().await?;
+        }
+        if new_file {
+            // A file being rewritten may be unreadable for a moment: the
+            // last one stays, and it is looked at again at the next poll.
+            match load_tags(path, &self.config.device) {
+                Ok(layout) => {
+                    self.tags_seen = stamp;
+                    self.serve(layout);
+                }
+                Err(e) if loaded => warn!(device = %self.config.device, "{e}"),
+                Err(e) => return Err(PlcError::Protocol(e)),
+            }
+        }
+        if notified {
+            self.register_notifications().await?;
+        }
+        Ok(())
+    }
+
+    /// Serves `layout` from now on: its public file and `__PF_CRC`.
+    fn serve(&mut self, layout: Layout) {
+        let file = layout.public_file(&format!(
+            "{} at {}",
+            self.device_name, self.config.target.net_id
+        ));
+        self.symbols.crc = plccoms_plc::pubfile::crc_of(plccoms_plc::pubfile::crc_content(&file));
+        self.symbols.handles = vec![None; layout.leaves.len()];
+        self.symbols.layout = layout;
+        self.symbols.file = file;
     }
 
     async fn upload(&mut self) -> Result<(), PlcError> {
@@ -365,16 +427,8 @@ impl AdsBackend {
         if layout.skipped.count > layout.skipped.first.len() {
             warn!(device = %self.config.device, "{} more symbols not served", layout.skipped.count - layout.skipped.first.len());
         }
-        let file = layout.public_file(&format!(
-            "{} at {}",
-            self.device_name, self.config.target.net_id
-        ));
-        let crc = plccoms_plc::pubfile::crc_of(plccoms_plc::pubfile::crc_content(&file));
         info!(device = %self.config.device, symbols = symbols.len(), variables = layout.leaves.len(), "symbols uploaded");
-        self.symbols.handles = vec![None; layout.leaves.len()];
-        self.symbols.layout = layout;
-        self.symbols.file = file;
-        self.symbols.crc = crc;
+        self.serve(layout);
         Ok(())
     }
 
@@ -404,7 +458,10 @@ impl AdsBackend {
         let missing: Vec<(usize, usize)> = leaves
             .iter()
             .enumerate()
-            .filter(|(_, &i)| self.symbols.handles[i].is_none())
+            .filter(|(_, &i)| {
+                self.symbols.handles[i].is_none()
+                    && !self.symbols.layout.leaves[i].ads_name.is_empty()
+            })
             .map(|(k, &i)| (k, i))
             .collect();
         for chunk in missing.chunks(MAX_SUM) {
@@ -472,6 +529,16 @@ impl AdsBackend {
         Ok(errors)
     }
 
+    /// Where leaf `i` is read and written: by its handle, or at its index
+    /// group/offset (a tag file's `group:offset`); `None` without a handle.
+    fn place(&self, i: usize) -> Option<(u32, u32)> {
+        let leaf = &self.symbols.layout.leaves[i];
+        if leaf.ads_name.is_empty() {
+            return Some((leaf.group, leaf.offset));
+        }
+        self.symbols.handles[i].map(|handle| (group::SYM_VALBYHND, handle))
+    }
+
     fn no_sum(&mut self, error: AdsError) {
         info!(device = %self.config.device, "the device refuses ADS sum commands ({error}): one symbol a request from now on");
         self.sum = false;
@@ -514,21 +581,21 @@ impl AdsBackend {
         let handle_errors = self.ensure_handles(leaves).await?;
         let mut results: Vec<Option<Result<Bytes, AdsError>>> =
             handle_errors.into_iter().map(|e| e.map(Err)).collect();
-        let wanted: Vec<(usize, u32, u32)> = leaves
+        let wanted: Vec<(usize, (u32, u32), u32)> = leaves
             .iter()
             .enumerate()
             .filter(|(k, _)| results[*k].is_none())
             .filter_map(|(k, &i)| {
-                let leaf = &self.symbols.layout.leaves[i];
-                self.symbols.handles[i].map(|h| (k, h, leaf.size()))
+                let size = self.symbols.layout.leaves[i].size();
+                self.place(i).map(|place| (k, place, size))
             })
             .collect();
         for chunk in wanted.chunks(MAX_SUM) {
             let answers = if self.sum && chunk.len() > 1 {
                 let mut write = BytesMut::with_capacity(chunk.len() * 12);
-                for &(_, handle, size) in chunk {
-                    write.put_u32_le(group::SYM_VALBYHND);
-                    write.put_u32_le(handle);
+                for &(_, (group, offset), size) in chunk {
+                    write.put_u32_le(group);
+                    write.put_u32_le(offset);
                     write.put_u32_le(size);
                 }
                 let sizes: Vec<u32> = chunk.iter().map(|c| c.2).collect();
@@ -559,8 +626,8 @@ impl AdsBackend {
                 Some(answers) => answers,
                 None => {
                     let mut one_by_one = Vec::with_capacity(chunk.len());
-                    for &(_, handle, size) in chunk {
-                        one_by_one.push(self.read_data(group::SYM_VALBYHND, handle, size).await?);
+                    for &(_, (group, offset), size) in chunk {
+                        one_by_one.push(self.read_data(group, offset, size).await?);
                     }
                     one_by_one
                 }
@@ -644,16 +711,16 @@ impl AdsBackend {
                 Bytes::from(current)
             }
         };
-        let handle = match self.ensure_handles(&[index]).await?.remove(0) {
-            Some(e) => {
-                self.log_refusal("write", &name, e);
-                return Ok(Err(refused(e)));
-            }
-            None => self.symbols.handles[index].expect("just asked for"),
-        };
+        if let Some(e) = self.ensure_handles(&[index]).await?.remove(0) {
+            self.log_refusal("write", &name, e);
+            return Ok(Err(refused(e)));
+        }
+        let (group, offset) = self
+            .place(index)
+            .ok_or_else(|| PlcError::Protocol("no handle".into()))?;
         let request = Request::Write {
-            group: group::SYM_VALBYHND,
-            offset: handle,
+            group,
+            offset,
             data: whole,
         };
         match self.request(&request).await? {
@@ -667,6 +734,42 @@ impl AdsBackend {
             }
         }
     }
+}
+
+/// Largest tag file read.
+const MAX_TAG_FILE: u64 = 64 * 1024 * 1024;
+
+/// The variables of a tag file, laid out; its problems logged.
+fn load_tags(path: &Path, device: &SocketAddr) -> Result<Layout, String> {
+    let size = std::fs::metadata(path)
+        .map_err(|e| format!("tag file {}: {e}", path.display()))?
+        .len();
+    if size > MAX_TAG_FILE {
+        return Err(format!(
+            "tag file {}: {size} bytes, more than the {MAX_TAG_FILE} accepted",
+            path.display()
+        ));
+    }
+    let bytes = std::fs::read(path).map_err(|e| format!("tag file {}: {e}", path.display()))?;
+    let file = tags::parse(&bytes);
+    for warning in file.warnings.iter().take(5) {
+        warn!(device = %device, "tag file {}: {warning}", path.display());
+    }
+    let more = file.warnings.len().saturating_sub(5) + file.more_warnings;
+    if more > 0 {
+        warn!(device = %device, "tag file {}: {more} more problems not shown", path.display());
+    }
+    let mut layout = Layout::default();
+    for tag in file.tags {
+        match tag.address {
+            Address::Symbol(symbol) => layout.push(tag.name, symbol, 0, 0, tag.ty),
+            Address::Group { group, offset } => {
+                layout.push(tag.name, String::new(), group, offset, tag.ty)
+            }
+        }
+    }
+    info!(device = %device, variables = layout.leaves.len(), "tag file {} loaded", path.display());
+    Ok(layout)
 }
 
 fn data(response: Response) -> Bytes {
@@ -907,7 +1010,7 @@ pub const DRIVER: Driver = Driver { name: "ads", open };
 
 /// ADS to `IPADDR:ADS_TCP_PORT`, or `None` when the section has no device
 /// yet (`IPADDR` unset or `0.0.0.0`).
-fn open(section: &plccoms_core::config::Section, _dir: &std::path::Path) -> Option<Opened> {
+fn open(section: &plccoms_core::config::Section, dir: &std::path::Path) -> Option<Opened> {
     if section.protocol != Protocol::Ads {
         return None;
     }
@@ -922,7 +1025,7 @@ fn open(section: &plccoms_core::config::Section, _dir: &std::path::Path) -> Opti
         return Some(Ok(None));
     };
     Some(
-        config_of(section, ip)
+        config_of(section, ip, dir)
             .map(|config| Some(Box::new(AdsBackend::new(config)) as Box<dyn PlcBackend>)),
     )
 }
@@ -931,6 +1034,7 @@ fn open(section: &plccoms_core::config::Section, _dir: &std::path::Path) -> Opti
 pub fn config_of(
     section: &plccoms_core::config::Section,
     ip: std::net::Ipv4Addr,
+    dir: &std::path::Path,
 ) -> Result<AdsConfig, String> {
     let ads = &section.ads;
     let net_id = match &ads.net_id {
@@ -954,5 +1058,6 @@ pub fn config_of(
         timeout: ads.timeout,
         notify: ads.notify.clone(),
         cycle: ads.cycle,
+        tags: ads.tags.as_deref().map(|name| section.path_of(dir, name)),
     })
 }

@@ -1,7 +1,8 @@
 //! Beckhoff ADS over TCP (AMS/TCP, port 48898), as the server's ADS backend
 //! speaks it: frame types and the tokio-util codec ([`frame`]), the typed
 //! commands and answers ([`command`]), the symbol table and data types a
-//! TwinCAT PLC uploads ([`symbols`]).
+//! TwinCAT PLC uploads ([`symbols`]), and the tag file for devices without
+//! a symbol table ([`tags`]).
 //!
 //! Why our own codec: the ADS crates on crates.io are either blocking
 //! (`ads`: one thread per connection, no tokio) or bindings to Beckhoff's
@@ -21,6 +22,7 @@
 pub mod command;
 pub mod frame;
 pub mod symbols;
+pub mod tags;
 
 use std::fmt;
 
