@@ -193,3 +193,26 @@ async fn a_tag_file_names_symbols_and_index_groups() {
     .unwrap();
     until(&mut c, "GET:extra", "GET:EXTRA,-123456", 10).await;
 }
+
+/// The fixture is an ADS device pyads's own client accepts: its script
+/// (tests/ads/pyads_client.py) reads, writes, uploads, sum-reads, is
+/// notified and refused. pyads's router always dials 48898.
+#[test]
+fn pyads_own_client_works_against_the_fixture() {
+    assert!(
+        common::process::port_is_free(48898),
+        "TCP 48898 is taken: pyads's client can only reach the fixture there"
+    );
+    let _device = Fixture::start(48898);
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/ads/pyads_client.py");
+    let out = std::process::Command::new("python3")
+        .arg(script)
+        .output()
+        .expect("run python3");
+    assert!(
+        out.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
