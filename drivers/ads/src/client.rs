@@ -15,7 +15,6 @@
 use std::net::SocketAddr;
 use std::time::Duration;
 
-use bytes::Bytes;
 use futures::{SinkExt, StreamExt};
 use tokio::net::TcpStream;
 use tokio::time::Instant;
@@ -207,44 +206,5 @@ impl Connection {
             "{} did not answer ADS command {} within {:?}",
             self.device, command.0, self.timeout
         )))
-    }
-
-    /// A Read whose answer is data.
-    pub async fn read(
-        &mut self,
-        group: u32,
-        offset: u32,
-        len: u32,
-        counters: &BackendCounters,
-    ) -> Result<Result<Bytes, AdsError>, PlcError> {
-        Ok(self
-            .request(&Request::Read { group, offset, len }, counters)
-            .await?
-            .map(data))
-    }
-
-    /// A ReadWrite whose answer is data.
-    pub async fn read_write(
-        &mut self,
-        group: u32,
-        offset: u32,
-        read_len: u32,
-        write: Bytes,
-        counters: &BackendCounters,
-    ) -> Result<Result<Bytes, AdsError>, PlcError> {
-        let request = Request::ReadWrite {
-            group,
-            offset,
-            read_len,
-            data: write,
-        };
-        Ok(self.request(&request, counters).await?.map(data))
-    }
-}
-
-fn data(response: Response) -> Bytes {
-    match response {
-        Response::Data(data) => data,
-        _ => Bytes::new(),
     }
 }

@@ -44,7 +44,7 @@ use plccoms_core::driver::{
 };
 use plccoms_core::metrics::BackendCounters;
 use plccoms_plc::ads::command::{
-    decode_sum_read, decode_sum_read_write, Request, Response, TransMode,
+    decode_sum_read, decode_sum_read_write, BodyError, Request, Response, SumResult, TransMode,
 };
 use plccoms_plc::ads::symbols::{parse_data_types, parse_symbols, Layout, Leaf};
 use plccoms_plc::ads::tags::{self, Address};
@@ -483,25 +483,11 @@ impl AdsBackend {
                     write.put_slice(name);
                 }
                 let read_len = (chunk.len() * 12) as u32;
-                match self
-                    .read_write(
-                        group::SUMUP_READWRITE,
-                        chunk.len() as u32,
-                        read_len,
-                        write.freeze(),
-                    )
-                    .await?
-                {
-                    Ok(answer) => Some(
-                        decode_sum_read_write(&answer, chunk.len())
-                            .map_err(|e| PlcError::Protocol(e.to_string()))?,
-                    ),
-                    Err(e) if is_unsupported(e) => {
-                        self.no_sum(e);
-                        None
-                    }
-                    Err(e) => Some(vec![Err(e); chunk.len()]),
-                }
+                let count = chunk.len();
+                self.sum(group::SUMUP_READWRITE, count, read_len, write, |answer| {
+                    decode_sum_read_write(answer, count)
+                })
+                .await?
             } else {
                 None
             };
@@ -537,6 +523,33 @@ impl AdsBackend {
             return Some((leaf.group, leaf.offset));
         }
         self.symbols.handles[i].map(|handle| (group::SYM_VALBYHND, handle))
+    }
+
+    /// One sum command of `count` sub-requests, its answer split by
+    /// `decode`; `None` when the device has no sum commands (from now on,
+    /// one request a symbol), every sub-request the refusal when it refuses
+    /// the whole.
+    async fn sum(
+        &mut self,
+        group: u32,
+        count: usize,
+        read_len: u32,
+        write: BytesMut,
+        decode: impl FnOnce(&Bytes) -> Result<Vec<SumResult>, BodyError>,
+    ) -> Result<Option<Vec<SumResult>>, PlcError> {
+        match self
+            .read_write(group, count as u32, read_len, write.freeze())
+            .await?
+        {
+            Ok(answer) => decode(&answer)
+                .map(Some)
+                .map_err(|e| PlcError::Protocol(e.to_string())),
+            Err(e) if is_unsupported(e) => {
+                self.no_sum(e);
+                Ok(None)
+            }
+            Err(e) => Ok(Some(vec![Err(e); count])),
+        }
     }
 
     fn no_sum(&mut self, error: AdsError) {
@@ -600,25 +613,10 @@ impl AdsBackend {
                 }
                 let sizes: Vec<u32> = chunk.iter().map(|c| c.2).collect();
                 let read_len = 4 * chunk.len() as u32 + sizes.iter().sum::<u32>();
-                match self
-                    .read_write(
-                        group::SUMUP_READ,
-                        chunk.len() as u32,
-                        read_len,
-                        write.freeze(),
-                    )
-                    .await?
-                {
-                    Ok(answer) => Some(
-                        decode_sum_read(&answer, &sizes)
-                            .map_err(|e| PlcError::Protocol(e.to_string()))?,
-                    ),
-                    Err(e) if is_unsupported(e) => {
-                        self.no_sum(e);
-                        None
-                    }
-                    Err(e) => Some(vec![Err(e); chunk.len()]),
-                }
+                self.sum(group::SUMUP_READ, chunk.len(), read_len, write, |answer| {
+                    decode_sum_read(answer, &sizes)
+                })
+                .await?
             } else {
                 None
             };
