@@ -1,5 +1,6 @@
 """pyads's ADS test server, its advanced handler extended where it falls
-short of a TwinCAT PLC (each gap marked GAP), as the ADS tests' device.
+short of a TwinCAT PLC (each gap marked GAP), as the ADS tests' device;
+pyads's own client works against it (tests/ads/pyads_client.py).
 
 Started by tests/ads_*.rs: prints `port <n>` once listening (an ephemeral
 loopback port unless one is given), then takes one command a line on stdin
