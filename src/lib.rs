@@ -31,6 +31,7 @@ pub const OUR_CRATES: &[&str] = &[
     "plccoms_driver_epsnet",
     "plccoms_driver_modbus",
     "plccoms_driver_plugin",
+    "plccoms_driver_ads",
     "plccoms_telnet",
     "plccoms_historian",
     "plccoms_mqtt",

@@ -1059,3 +1059,51 @@ pub fn config_of(
         tags: ads.tags.as_deref().map(|name| section.path_of(dir, name)),
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn section(ini: &str) -> plccoms_core::config::Section {
+        let text = format!("[*]\n[A]\nSERVER_PORT = 1\nPROTOCOL = ADS\n{ini}\n");
+        let loaded = plccoms_core::config::parse(Path::new("t.ini"), &text).unwrap();
+        loaded.config.sections.into_iter().next().unwrap()
+    }
+
+    #[test]
+    fn net_ids_default_to_the_address_and_ports_to_twincat_3() {
+        let s = section("IPADDR = 10.1.2.3");
+        let config = config_of(&s, s.ipaddr.unwrap(), Path::new("/etc")).unwrap();
+        assert_eq!(config.target.net_id, NetId([10, 1, 2, 3, 1, 1]));
+        assert_eq!(config.target.port, 851);
+        assert_eq!(config.device, "10.1.2.3:48898".parse().unwrap());
+        assert_eq!(config.source, None);
+        let s = section(
+            "IPADDR = 10.1.2.3\nADS_NET_ID = 5.9.8.7.1.1\nADS_PORT = 801\n\
+             ADS_SOURCE_NET_ID = 10.0.0.9.1.1\nADS_TAGS = //t.csv",
+        );
+        let config = config_of(&s, s.ipaddr.unwrap(), Path::new("/etc")).unwrap();
+        assert_eq!(config.target.net_id, NetId([5, 9, 8, 7, 1, 1]));
+        assert_eq!(config.target.port, 801);
+        assert_eq!(config.source, Some(NetId([10, 0, 0, 9, 1, 1])));
+        assert_eq!(config.tags, Some(PathBuf::from("/etc/t.csv")));
+    }
+
+    #[test]
+    fn only_ads_sections_over_tcp_are_this_drivers() {
+        let dir = Path::new(".");
+        assert!((DRIVER.open)(&section("IPADDR = 0.0.0.0"), dir)
+            .unwrap()
+            .unwrap()
+            .is_none());
+        assert!((DRIVER.open)(&section("SIMULATOR = Yes"), dir)
+            .unwrap()
+            .is_err());
+        let mut epsnet = section("IPADDR = 10.1.2.3");
+        epsnet.protocol = Protocol::Epsnet;
+        assert!((DRIVER.open)(&epsnet, dir).is_none());
+        assert!(is_symbol_file(b"//ADS_SYMBOLS.pub"));
+        assert!(is_symbol_file(b"ads_symbols.pub"));
+        assert!(!is_symbol_file(b"other.pub"));
+    }
+}
