@@ -72,6 +72,13 @@ async fn notified_values_carry_the_plcs_time_into_diffs_and_history() {
     // Polled like any other variable, from the notified value.
     c.ask("GET:MAIN.counter\r\n", "GET:MAIN.COUNTER,20\r\n")
         .await;
+    // A write is read back from the PLC, not from the last notification.
+    c.send(b"DI:MAIN.counter\r\n").await;
+    warning_252(&mut c).await;
+    c.ask("SET:MAIN.counter,30\r\n", "DIFF:MAIN.COUNTER,30\r\n")
+        .await;
+    c.send(b"EN:MAIN.counter\r\n").await;
+    warning_252(&mut c).await;
 
     // The historian has every sample, each at the PLC's time.
     let from = MS0 - 1000;
@@ -118,6 +125,19 @@ async fn notified_values_carry_the_plcs_time_into_diffs_and_history() {
             "notifications left on the PLC"
         );
         std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// Past the WARNING:252 that an EN or DI answers.
+async fn warning_252(c: &mut Client) {
+    loop {
+        let line = c
+            .line_within(Duration::from_secs(5))
+            .await
+            .expect("WARNING:252");
+        if line.starts_with(b"WARNING:252") {
+            return;
+        }
     }
 }
 

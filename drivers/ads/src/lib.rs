@@ -722,7 +722,14 @@ impl AdsBackend {
             data: whole,
         };
         match self.request(&request).await? {
-            Ok(_) => Ok(Ok(())),
+            Ok(_) => {
+                // The link reads a write back: from the PLC, not the value
+                // last notified, until the next notification comes.
+                if let Some(last) = self.notes.last.get_mut(&index) {
+                    *last = None;
+                }
+                Ok(Ok(()))
+            }
             Err(e) => {
                 self.log_refusal("write", &name, e);
                 if forgets_handle(e) {
