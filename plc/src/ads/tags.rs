@@ -172,6 +172,18 @@ fn address(text: &str) -> Result<Address, String> {
 mod tests {
     use super::*;
 
+    /// The README's example tag file (the first block of its Beckhoff ADS
+    /// section) loads without a warning.
+    #[test]
+    fn the_readme_example_loads() {
+        let readme = include_str!("../../../README.md");
+        let section = readme.split("## Beckhoff ADS").nth(1).unwrap();
+        let block = section.split("```text\n").nth(1).unwrap();
+        let file = parse(block.split("```").next().unwrap().as_bytes());
+        assert!(file.warnings.is_empty(), "{:?}", file.warnings);
+        assert_eq!(file.tags.len(), 3);
+    }
+
     #[test]
     fn symbols_addresses_and_bad_lines() {
         let file = parse(
