@@ -32,6 +32,7 @@ pub const OUR_CRATES: &[&str] = &[
     "plccoms_driver_modbus",
     "plccoms_driver_s7",
     "plccoms_driver_plugin",
+    "plccoms_driver_ads",
     "plccoms_telnet",
     "plccoms_historian",
     "plccoms_mqtt",
@@ -62,4 +63,6 @@ pub const DRIVERS: Drivers = Drivers(&[
     plccoms_driver_s7::DRIVER,
     #[cfg(feature = "plugin")]
     plccoms_driver_plugin::DRIVER,
+    #[cfg(feature = "ads")]
+    plccoms_driver_ads::DRIVER,
 ]);

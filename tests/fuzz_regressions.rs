@@ -156,6 +156,11 @@ fn every_target_runs_on_ordinary_input() {
     checks::modbus_answer(&[
         0, 2, 0, 1, 0, 0, 0, 7, 1, 3, 4, 0xBE, 0xEF, 0, 1, 0, 2, 0, 0, 0, 3, 1, 0x83, 2, 0, 3, 0,
     ]);
+    // An AMS/TCP Read answer of two bytes, then half a header.
+    checks::ads_stream(&[
+        0, 0, 42, 0, 0, 0, 10, 0, 0, 1, 1, 1, 0x89, 0x80, 5, 1, 2, 3, 1, 1, 0x53, 3, 2, 0, 5, 0,
+        10, 0, 0, 0, 0, 0, 0, 0, 7, 0, 0, 0, 0, 0, 0, 0, 2, 0, 0, 0, 0xBE, 0xEF, 0, 0, 9,
+    ]);
     checks::epsnet_device(&[
         0x00, 0x01, 0x02, 0x00, 0x00, 0x0A, 0x68, 0x04, 0x04, 0x68, 0x00, 0x7D, 0x63, 0x01, 0xE1,
         0x16,
@@ -258,5 +263,43 @@ proptest::proptest! {
         let mut write = number.to_le_bytes().to_vec();
         write.extend_from_slice(text.as_bytes());
         checks::opcua_write(&write);
+    }
+}
+
+proptest::proptest! {
+    /// ADS packets with arbitrary data, framed right or cut anywhere, and
+    /// arbitrary bytes: the ADS decoders never panic and round-trip.
+    #[test]
+    fn ads_decoders_hold_on_any_stream(
+        data in proptest::collection::vec(proptest::num::u8::ANY, 0..200),
+        command in 0u16..12,
+        cut in 0usize..300,
+    ) {
+        let mut stream = vec![0u8, 0];
+        stream.extend_from_slice(&(32 + data.len() as u32).to_le_bytes());
+        stream.extend_from_slice(&[5, 1, 2, 3, 1, 1, 0x53, 3, 10, 0, 0, 1, 1, 1, 0x89, 0x80]);
+        stream.extend_from_slice(&command.to_le_bytes());
+        stream.extend_from_slice(&[5, 0]);
+        stream.extend_from_slice(&(data.len() as u32).to_le_bytes());
+        stream.extend_from_slice(&[0; 8]);
+        stream.extend_from_slice(&data);
+        checks::ads_stream(&stream);
+        checks::ads_stream(&stream[..cut.min(stream.len())]);
+        checks::ads_stream(&data);
+    }
+
+    /// Tag file lines built from the pieces that matter to its parser.
+    #[test]
+    fn ads_tag_files_hold(
+        lines in proptest::collection::vec(
+            proptest::collection::vec(
+                proptest::sample::select(vec!["name", "MAIN.x", "0x4020:4", "1:x", "INT", "STRING(80)", "\"a,b\"", "", "#", "\u{e9}", "STRING[3]", ":"]),
+                0..7,
+            ),
+            0..8,
+        ),
+    ) {
+        let text: String = lines.iter().map(|l| l.join(",") + "\n").collect();
+        checks::ads_stream(text.as_bytes());
     }
 }

@@ -71,6 +71,20 @@ impl PlcError {
 /// Answer to one request inside a batch: data, or the device's refusal.
 pub type Answer<T> = Result<T, Refusal>;
 
+/// A value the device sent of its own accord between polls (an ADS device
+/// notification), stamped with the device's own clock: the link publishes
+/// it with that time, so the change stream, the historian, DIFFs and MQTT
+/// carry the device's time rather than the poll's.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Pushed {
+    /// The variable, as the backend's variable file names it.
+    pub name: Box<[u8]>,
+    /// Its bytes, as a read of it answers them.
+    pub bytes: Vec<u8>,
+    /// The device's time stamp: UTC milliseconds since 1970.
+    pub unix_ms: i64,
+}
+
 /// PLC run state.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct PlcStatus {
@@ -78,7 +92,9 @@ pub struct PlcStatus {
 }
 
 /// One PLC, reached some way. The server owns one per PLC section, driven by
-/// one task (the section's link), so methods take `&mut self`.
+/// one task (the section's link), so methods take `&mut self`. The link
+/// wraps every backend in `link::traced::Traced`: a method added here must
+/// be forwarded there too, or its default hides the backend's own.
 #[async_trait]
 pub trait PlcBackend: Send {
     /// Where the PLC is, for logs and GETINFO (e.g. `127.0.0.1:61682`).
@@ -159,6 +175,22 @@ pub trait PlcBackend: Send {
     async fn write(&mut self, requests: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError>;
 
     async fn status(&mut self) -> Result<PlcStatus, PlcError>;
+
+    /// Values the device pushed since the last call, oldest first (none
+    /// for a device that is only polled). The link takes them before each
+    /// poll and whenever [`PlcBackend::wait_pushed`] returns; a backend
+    /// answers a pushed variable's reads with the value last taken, so a
+    /// poll never publishes a pushed change before its own stamp does.
+    fn take_pushed(&mut self) -> Vec<Pushed> {
+        Vec::new()
+    }
+
+    /// Returns when the device may have pushed something (never, by
+    /// default). Cancel-safe: the link drops it whenever a poll or a request
+    /// is due. An error is the link's failure, as from a read.
+    async fn wait_pushed(&mut self) -> Result<(), PlcError> {
+        std::future::pending().await
+    }
 
     // File services. A backend without a file system (a Modbus device)
     // keeps the defaults: "service not activated", as from a PLC without one.

@@ -32,6 +32,6 @@ pub mod present;
 pub mod ratelimit;
 pub mod section;
 pub mod sections;
-pub mod trace;
 pub mod system_area;
+pub mod trace;
 pub mod vars;

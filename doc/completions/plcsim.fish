@@ -12,6 +12,7 @@ complete -c plcsim -l ident -d 'Identification string the PLC reports' -r
 complete -c plcsim -l modbus -d 'Serve Modbus TCP on this address instead of EPSNET (coils, discrete inputs, holding and input registers; any unit id)' -r
 complete -c plcsim -l s7 -d 'Serve S7comm over ISO-on-TCP on this address instead of EPSNET: an S7 CPU with DB1-DB16 and the merkers (any rack and slot; PDU up to 960)' -r
 complete -c plcsim -l tags -d 'Modbus or S7 tag file (CSV) naming the variables the program and --animate drive. Default: the built-in conf/demo-modbus.csv (conf/demo-s7.csv with --s7)' -r -F
+complete -c plcsim -l ads -d 'Serve Beckhoff ADS (AMS/TCP, e.g. 127.0.0.1:48898) on this address instead of EPSNET: the public file\'s variables as ADS symbols (by handle, sum commands, device notifications), ADS state RUN/STOP from HALT/RUN, a new symbol version with each `pub`' -r
 complete -c plcsim -l serial -d 'Serve EPSNET on this serial device (a port, or one end of a pty pair: `socat -d -d pty,raw,echo=0,link=/tmp/plc pty,raw,echo=0,link=/tmp/srv`) instead of UDP. `--loss` then damages that fraction of the exchanges (answer lost, cut short, corrupted, or after noise)' -r
 complete -c plcsim -l speed -d 'Serial line speed, baud (8N1, no flow control)' -r
 complete -c plcsim -l emulate-line -d 'Hold each answer back for the time the request and the answer take on a real line at --speed (a pty passes bytes at memory speed)'

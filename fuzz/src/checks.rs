@@ -1210,3 +1210,46 @@ pub fn opcua_write(data: &[u8]) {
         }
     }
 }
+
+/// ADS: an AMS/TCP stream through the codec, each packet's data through
+/// every answer decoder, the notification and sum decoders, and the symbol
+/// and data type upload and tag file parsers; a decoded packet encodes to
+/// its bytes.
+pub fn ads_stream(data: &[u8]) {
+    use plccoms_plc::ads::command::{
+        decode_notification, decode_sum_read, decode_sum_read_write, Request as AdsRequest,
+        Response as AdsResponse,
+    };
+    use plccoms_plc::ads::frame::{AmsCodec, CommandId};
+    use plccoms_plc::ads::symbols::{parse_data_types, parse_symbols, Layout};
+    use tokio_util::codec::{Decoder as _, Encoder as _};
+
+    let tags = plccoms_plc::ads::tags::parse(data);
+    assert!(tags.tags.len() <= plccoms_plc::pubfile::MAX_VARS);
+    assert!(tags.warnings.len() <= plccoms_plc::pubfile::MAX_WARNINGS);
+    let symbols = parse_symbols(data).unwrap_or_default();
+    let types = parse_data_types(data).unwrap_or_default();
+    let layout = Layout::expand(&symbols, &types);
+    assert!(layout.leaves.len() <= plccoms_plc::pubfile::MAX_VARS);
+    let file = plccoms_plc::pubfile::parse(&layout.public_file("fuzz"));
+    assert_eq!(file.vars.len(), layout.leaves.len());
+
+    let mut buf = BytesMut::from(data);
+    let mut codec = AmsCodec;
+    while let Ok(Some(packet)) = codec.decode(&mut buf) {
+        for id in 0..=10 {
+            let command = CommandId(id);
+            let _ = AdsResponse::decode(command, &packet.data);
+            if let Ok(request) = AdsRequest::decode(command, &packet.data) {
+                assert_eq!(AdsRequest::decode(command, &request.encode()), Ok(request));
+            }
+        }
+        let _ = decode_notification(&packet.data);
+        let sizes: Vec<u32> = packet.data.iter().take(8).map(|&b| u32::from(b)).collect();
+        let _ = decode_sum_read(&packet.data, &sizes);
+        let _ = decode_sum_read_write(&packet.data, sizes.len());
+        let mut out = BytesMut::new();
+        codec.encode(packet.clone(), &mut out).unwrap();
+        assert_eq!(codec.decode(&mut out).unwrap(), Some(packet));
+    }
+}

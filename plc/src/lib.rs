@@ -9,6 +9,7 @@
 //! server's backends and the simulated PLC (`plcsim`), which reuse the same
 //! frames and codecs from opposite ends.
 
+pub mod ads;
 pub mod epsnet;
 pub mod files;
 pub mod memory;

@@ -5,6 +5,7 @@
 
 use std::fmt;
 
+use crate::ads::AdsError;
 use crate::epsnet::Exception;
 use crate::modbus::ExceptionCode;
 
@@ -19,6 +20,8 @@ pub enum Refusal {
     Modbus(ExceptionCode),
     /// An S7 server's return code for an item, or its error for a job.
     S7(crate::s7::ReturnCode),
+    /// An ADS device's error code.
+    Ads(AdsError),
 }
 
 impl Refusal {
@@ -47,6 +50,7 @@ impl fmt::Display for Refusal {
             Refusal::Epsnet(e) => e.fmt(f),
             Refusal::Modbus(code) => code.fmt(f),
             Refusal::S7(code) => code.fmt(f),
+            Refusal::Ads(code) => code.fmt(f),
         }
     }
 }

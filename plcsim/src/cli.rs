@@ -96,6 +96,13 @@ pub struct Args {
     )]
     pub tags: Option<PathBuf>,
 
+    /// Serve Beckhoff ADS (AMS/TCP, e.g. 127.0.0.1:48898) on this address
+    /// instead of EPSNET: the public file's variables as ADS symbols (by
+    /// handle, sum commands, device notifications), ADS state RUN/STOP from
+    /// HALT/RUN, a new symbol version with each `pub`.
+    #[arg(long, value_name = "ADDR:PORT", conflicts_with_all = ["modbus", "serial"])]
+    pub ads: Option<SocketAddr>,
+
     /// Serve EPSNET on this serial device (a port, or one end of a pty pair:
     /// `socat -d -d pty,raw,echo=0,link=/tmp/plc pty,raw,echo=0,link=/tmp/srv`)
     /// instead of UDP. `--loss` then damages that fraction of the exchanges

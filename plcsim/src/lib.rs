@@ -1,6 +1,6 @@
 //! The simulated PLC: a UDP server speaking EPSNET (or a serial line,
-//! [`serial`], or a TCP server speaking Modbus TCP, [`modbus`], or S7comm,
-//! [`s7`]) over a
+//! [`serial`], or a TCP server speaking Modbus TCP, [`modbus`], S7comm,
+//! [`s7`], or Beckhoff ADS, [`ads`]) over a
 //! [`Device`], a PLC program engine, a directory-backed file store and fault
 //! injection.
 //!
@@ -10,6 +10,7 @@
 //! handle stops the simulator. The `plcsim` binary wraps the same API and
 //! adds a loopback TCP control port ([`control`]).
 
+pub mod ads;
 pub mod cli;
 pub mod control;
 pub mod device;
@@ -97,6 +98,9 @@ pub struct SimConfig {
     /// `pubfile` is then an S7 tag file, and the memory laid out as
     /// [`s7::MAP`].
     pub s7: Option<SocketAddr>,
+    /// Serve Beckhoff ADS (AMS/TCP) on this address instead of EPSNET: the
+    /// public file's variables as ADS symbols ([`ads`]).
+    pub ads: Option<SocketAddr>,
 }
 
 impl Default for SimConfig {
@@ -118,6 +122,7 @@ impl Default for SimConfig {
             serial: None,
             modbus: None,
             s7: None,
+            ads: None,
         }
     }
 }
@@ -428,6 +433,12 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
         Duration::from_millis(cycle_ms),
     ))];
     let local_addr = match (&config.serial, config.modbus) {
+        (None, None) if config.ads.is_some() => {
+            let listener = tokio::net::TcpListener::bind(config.ads.expect("checked")).await?;
+            let local = listener.local_addr()?;
+            tasks.push(tokio::spawn(ads::serve(listener, shared.clone())));
+            local
+        }
         (Some(line), _) => {
             let port = serial::open(line)?;
             tasks.push(tokio::spawn(serial::serve(

@@ -1,5 +1,5 @@
 //! plcsim: a simulated Tecomat PLC speaking EPSNET over UDP or a serial
-//! line, a Modbus TCP device, or a Siemens S7 CPU.
+//! line, a Modbus TCP device, a Siemens S7 CPU or a Beckhoff ADS device.
 
 use std::time::Duration;
 
@@ -63,6 +63,7 @@ async fn main() -> std::process::ExitCode {
             None => PubSource::Bytes(plcsim::DEMO_S7_TAGS.to_vec()),
         };
     }
+    config.ads = args.ads;
     if let Some(ident) = args.ident {
         config.ident = ident;
     }
@@ -80,6 +81,7 @@ async fn main() -> std::process::ExitCode {
             None if args.modbus.is_some() => format!("Modbus TCP on tcp://{}", handle.local_addr()),
             None if args.s7.is_some() =>
                 format!("S7 (ISO-on-TCP) on tcp://{}", handle.local_addr()),
+            None if args.ads.is_some() => format!("ADS on tcp://{}", handle.local_addr()),
             None => format!("EPSNET on udp://{}", handle.local_addr()),
         },
         handle.pf_crc(),

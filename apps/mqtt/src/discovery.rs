@@ -128,6 +128,11 @@ impl Maker {
                 ),
                 hw_version: ident.map(str::to_string).filter(|i| !i.is_empty()),
             },
+            Protocol::Ads => Maker {
+                manufacturer: "Beckhoff".into(),
+                model: "TwinCAT PLC (ADS)".into(),
+                hw_version: ident.map(str::to_string).filter(|i| !i.is_empty()),
+            },
         }
     }
 }

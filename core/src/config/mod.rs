@@ -326,6 +326,9 @@ pub struct Section {
     pub modbus: Modbus,
     /// The `S7_*` keys (`PROTOCOL = S7`).
     pub s7: S7,
+
+    /// The `ADS_*` keys (`PROTOCOL = ADS`).
+    pub ads: Ads,
     /// Every path the section's keys name ([`Kind::Path`]), for
     /// [`Config::own_paths`].
     pub paths: Vec<ConfiguredPath>,
@@ -470,6 +473,34 @@ impl S7 {
         Some((word(local)?, word(remote)?))
     }
 }
+
+/// The settings of a Beckhoff ADS section (`ADS_*`); the key table sets
+/// every field's default. Net IDs are checked here and parsed by the driver.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Ads {
+    /// `ADS_NET_ID`: the PLC's AMS Net ID; `None`: IPADDR and `.1.1`.
+    pub net_id: Option<String>,
+    /// `ADS_PORT`: the PLC runtime's ADS port (851 TwinCAT 3, 801 TwinCAT 2).
+    pub port: u16,
+    /// `ADS_SOURCE_NET_ID`: ours, as the PLC's route names it; `None`: the
+    /// connection's local address and `.1.1`.
+    pub source_net_id: Option<String>,
+    /// `ADS_TCP_PORT`: the AMS/TCP port (48898; another for a test server).
+    pub tcp_port: u16,
+    /// `ADS_TIMEOUT`: how long one request may take.
+    pub timeout: Duration,
+    /// `ADS_NOTIFY`: masks of the variables that come by device notification.
+    pub notify: Vec<String>,
+    /// `ADS_CYCLE`: the PLC's check cycle for notifications.
+    pub cycle: Duration,
+    /// `ADS_TAGS`: a tag file naming the variables instead of the PLC's
+    /// symbol table (path rules as PUBFILE).
+    pub tags: Option<String>,
+}
+
+/// The name the symbol table of an ADS section is served under (LIST,
+/// GETINFO, PUBFILE_WRITE's copy).
+pub const ADS_SYMBOLS: &str = "ADS_SYMBOLS.pub";
 
 /// A loaded file with the warnings and skipped-section errors found on the way.
 #[derive(Debug, Clone)]
@@ -923,6 +954,8 @@ fn section_defaults(name: &str) -> Section {
         opcua: OpcuaSection::default(),
         modbus: Modbus::default(),
         s7: S7::default(),
+
+        ads: Ads::default(),
         paths: Vec::new(),
     })
 }
@@ -979,6 +1012,23 @@ fn read_section(
             diags.push(Severity::Warning, entry.line, message);
         }
     }
+    // ADS keys likewise, with PROTOCOL = ADS.
+    let ads = section.protocol == Protocol::Ads;
+    for (key, entry) in &map {
+        let misplaced = if ads {
+            matches!(*key, "PUBFILE" | "PUBFILE_FIXED").then(|| {
+                format!(
+                    "{key} has no effect with PROTOCOL = ADS (its variables are the PLC's symbols)"
+                )
+            })
+        } else {
+            key.starts_with("ADS_")
+                .then(|| format!("{key} has no effect without PROTOCOL = ADS"))
+        };
+        if let Some(message) = misplaced {
+            diags.push(Severity::Warning, entry.line, message);
+        }
+    }
     if let Some(entry) = map.get("S7_TSAP") {
         if section.s7.tsap.is_none() {
             errors.push(diags.make(
@@ -1000,6 +1050,20 @@ fn read_section(
                 raw.name
             ),
         );
+    }
+
+    if ads {
+        section.pubfile = Some(ADS_SYMBOLS.to_string());
+        for (key, id) in [
+            ("ADS_NET_ID", &section.ads.net_id),
+            ("ADS_SOURCE_NET_ID", &section.ads.source_net_id),
+        ] {
+            if let (Some(id), Some(entry)) = (id, map.get(key)) {
+                if let Err(why) = plccoms_plc::ads::NetId::parse(id) {
+                    errors.push(diags.make(Severity::Error, entry.line, format!("{key}: {why}")));
+                }
+            }
+        }
     }
     if modbus && section.modbus.tags.is_none() && section.simulator.is_none() {
         diags.push(

@@ -15,6 +15,8 @@ pub enum Protocol {
     ModbusTcp,
     /// Siemens S7comm over ISO-on-TCP, variables from a tag file (`S7_TAGS`).
     S7,
+    /// Beckhoff ADS over TCP, variables from the PLC's symbol table.
+    Ads,
 }
 
 /// The ini names, in [`Protocol::ALL`]'s order: the key table's choices.
@@ -30,7 +32,12 @@ pub const PROTOCOLS: &[&str] = &{
 
 impl Protocol {
     /// Every protocol, in the order the documentation lists them.
-    pub const ALL: [Protocol; 3] = [Protocol::Epsnet, Protocol::ModbusTcp, Protocol::S7];
+    pub const ALL: [Protocol; 4] = [
+        Protocol::Epsnet,
+        Protocol::ModbusTcp,
+        Protocol::S7,
+        Protocol::Ads,
+    ];
 
     /// The name in the ini file and in `GETINFO:PROTOCOL`.
     pub const fn name(self) -> &'static str {
@@ -38,6 +45,7 @@ impl Protocol {
             Protocol::Epsnet => "EPSNET",
             Protocol::ModbusTcp => "MODBUS_TCP",
             Protocol::S7 => "S7",
+            Protocol::Ads => "ADS",
         }
     }
 
@@ -61,7 +69,7 @@ mod tests {
 
     #[test]
     fn names_parse_back_in_any_case() {
-        assert_eq!(PROTOCOLS, ["EPSNET", "MODBUS_TCP", "S7"]);
+        assert_eq!(PROTOCOLS, ["EPSNET", "MODBUS_TCP", "S7", "ADS"]);
         for protocol in Protocol::ALL {
             assert_eq!(Protocol::parse(protocol.name()), Some(protocol));
             let lower = protocol.to_string().to_ascii_lowercase();

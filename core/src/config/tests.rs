@@ -929,6 +929,8 @@ fn base(key: &str) -> &'static str {
         "SERVER_PORT = 5010\nPROTOCOL = S7\nSIMULATOR = Yes"
     } else if key.starts_with("S7_") {
         "SERVER_PORT = 5010\nPROTOCOL = S7\nS7_TAGS = t.csv"
+    } else if key.starts_with("ADS_") {
+        "SERVER_PORT = 5010\nPROTOCOL = ADS"
     } else {
         "SERVER_PORT = 5010"
     }
@@ -942,6 +944,7 @@ fn sample(key: &Key) -> Option<String> {
         "MQTT_URL" => return Some("mqtt://broker.lan".into()),
         "MQTT_DELTA" => return Some("0.5".into()),
         "S7_TSAP" => return Some("0100/0200".into()),
+        "ADS_NET_ID" | "ADS_SOURCE_NET_ID" => return Some("5.1.2.3.1.1".into()),
         _ => {}
     }
     Some(match key.kind {
@@ -1008,7 +1011,33 @@ fn protocol() {
     );
     assert_eq!(
         section_error("SERVER_PORT = 1\nPROTOCOL = modbus"),
-        "PLCComS.ini:4: PROTOCOL = modbus is not a protocol (allowed EPSNET, MODBUS_TCP, S7)"
+        "PLCComS.ini:4: PROTOCOL = modbus is not a protocol (allowed EPSNET, MODBUS_TCP, S7, ADS)"
+    );
+}
+
+#[test]
+fn ads_sections_serve_the_symbols_and_check_their_net_ids() {
+    let warnings = |body: &str| {
+        let loaded = with_section(body).unwrap_or_else(|e| panic!("{body}: {e}"));
+        assert_eq!(loaded.config.sections.len(), 1, "{body}");
+        messages(&loaded)
+    };
+    let ads = section("SERVER_PORT = 1\nPROTOCOL = ADS\nADS_NET_ID = 5.1.2.3.1.1");
+    assert_eq!(ads.protocol, Protocol::Ads);
+    assert_eq!(ads.pubfile.as_deref(), Some(ADS_SYMBOLS));
+    assert_eq!(ads.ads.port, 851);
+    assert_eq!(ads.ads.tcp_port, 48898);
+    assert_eq!(
+        section_error("SERVER_PORT = 1\nPROTOCOL = ADS\nADS_NET_ID = 5.1.2.3"),
+        "PLCComS.ini:5: ADS_NET_ID: AMS Net ID '5.1.2.3' has 4 parts; expected six (e.g. 5.12.34.56.1.1)"
+    );
+    assert_eq!(
+        warnings("SERVER_PORT = 1\nADS_PORT = 801"),
+        ["PLCComS.ini:4: ADS_PORT has no effect without PROTOCOL = ADS"]
+    );
+    assert_eq!(
+        warnings("SERVER_PORT = 1\nPROTOCOL = ADS\nPUBFILE = x.pub"),
+        ["PLCComS.ini:5: PUBFILE has no effect with PROTOCOL = ADS (its variables are the PLC's symbols)"]
     );
 }
 
@@ -1338,6 +1367,9 @@ fn every_key_naming_a_file_is_a_path_key() {
         "OPCUA_PUBLISH",
         "OPCUA_WRITE",
         "S7_TSAP",
+        "ADS_NET_ID",
+        "ADS_SOURCE_NET_ID",
+        "ADS_NOTIFY",
     ];
     for key in keys() {
         if key.kind == Kind::Text {

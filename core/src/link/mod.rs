@@ -412,6 +412,12 @@ impl Link {
                     (self.deadline, missed) = next_deadline(self.deadline, self.loop_delay, Instant::now());
                     self.metrics.overruns.add(u64::from(missed));
                 }
+                pushed = wait_pushed(self.backend.as_deref_mut()), if self.health.state() == LinkState::Online => {
+                    match pushed {
+                        Ok(()) => self.deliver_pushed(),
+                        Err(err) => self.judge(&err),
+                    }
+                }
                 job = self.jobs.recv() => {
                     let Some(job) = job else { break };
                     let mut batch: Vec<Job> = self.held.drain(..).collect();
@@ -504,7 +510,7 @@ impl Link {
         if self.tables.as_ref().is_some_and(|t| t.pending_fetch) {
             if let Err(err) = self.reload(NamedBy::Configuration).await {
                 let serving = match self.user_kind() {
-                    UserKind::PubFile => "the fixed variables",
+                    UserKind::PubFile | UserKind::DeviceSymbols => "the fixed variables",
                     UserKind::ModbusTags | UserKind::S7Tags => "__PLC_RUN and __PF_CRC",
                 };
                 warn!(section = %self.name, "{err}; serving {serving} only, tried again at the next connection");
@@ -564,7 +570,35 @@ impl Link {
         }
     }
 
+    /// Publishes what the device pushed, each value with its own time: one
+    /// publish per run of distinct variables, so a follower (the historian)
+    /// sees every sample of a variable that changed twice.
+    fn deliver_pushed(&mut self) {
+        let Some(backend) = self.backend.as_deref_mut() else {
+            return;
+        };
+        let pushed = backend.take_pushed();
+        if pushed.is_empty() {
+            return;
+        }
+        let table = self.publisher.table().clone();
+        let mut pending = std::collections::HashSet::new();
+        for value in pushed {
+            let Some(id) = table.lookup(&value.name) else {
+                continue;
+            };
+            if !pending.insert(id) {
+                self.publisher.publish();
+                pending.clear();
+                pending.insert(id);
+            }
+            self.publisher.update(id, &value.bytes, value.unix_ms);
+        }
+        self.publisher.publish();
+    }
+
     async fn poll(&mut self) {
+        self.deliver_pushed();
         let Some(backend) = self.backend.as_deref_mut() else {
             return;
         };
@@ -1074,6 +1108,14 @@ fn set_realtime_priority(priority: u8) -> std::io::Result<()> {
         Ok(())
     } else {
         Err(std::io::Error::from_raw_os_error(rc))
+    }
+}
+
+/// What the backend pushes; never, without one.
+async fn wait_pushed(backend: Option<&mut (dyn PlcBackend + 'static)>) -> Result<(), PlcError> {
+    match backend {
+        Some(backend) => backend.wait_pushed().await,
+        None => std::future::pending().await,
     }
 }
 

@@ -37,6 +37,10 @@ pub enum UserKind {
     ModbusTags,
     /// An S7 tag file (S7_TAGS), on this machine only.
     S7Tags,
+    /// The device's own symbol table (ADS), always asked of the backend's
+    /// file service under the name PUBFILE holds; reloaded when its
+    /// `__PF_CRC` (the symbol version's file) changes.
+    DeviceSymbols,
 }
 
 impl UserKind {
@@ -45,6 +49,7 @@ impl UserKind {
         match section.protocol {
             Protocol::ModbusTcp => UserKind::ModbusTags,
             Protocol::S7 => UserKind::S7Tags,
+            Protocol::Ads => UserKind::DeviceSymbols,
             Protocol::Epsnet => UserKind::PubFile,
         }
     }
@@ -52,7 +57,7 @@ impl UserKind {
     /// The section's setting that names the user file.
     pub fn name(self, section: &Section) -> Option<&String> {
         match self {
-            UserKind::PubFile => section.pubfile.as_ref(),
+            UserKind::PubFile | UserKind::DeviceSymbols => section.pubfile.as_ref(),
             UserKind::ModbusTags => section.modbus.tags.as_ref(),
             UserKind::S7Tags => section.s7.tags.as_ref(),
         }
@@ -63,6 +68,7 @@ impl UserKind {
         match self {
             UserKind::PubFile => "public file",
             UserKind::ModbusTags | UserKind::S7Tags => "tag file",
+            UserKind::DeviceSymbols => "symbol table",
         }
     }
 
@@ -77,6 +83,9 @@ impl UserKind {
             UserKind::ModbusTags | UserKind::S7Tags => {
                 format!("tag file changed, reloading (__PF_CRC {last:08X} -> {now:08X})")
             }
+            UserKind::DeviceSymbols => format!(
+                "the PLC's symbols changed (__PF_CRC {last:08X} -> {now:08X}): a new program, reloading them"
+            ),
         }
     }
 }
@@ -146,6 +155,9 @@ impl PubSource {
         };
         let local = self.local_path(section, name);
         let what = self.kind.what();
+        if self.kind == UserKind::DeviceSymbols {
+            return Err(LoadError::FromPlc);
+        }
         if by == NamedBy::Client {
             let refused = || LoadError::Failed(format!("{what} {name} refused"));
             check_client_name(name).map_err(|_| refused())?;
@@ -235,6 +247,10 @@ impl PubSource {
             UserKind::PubFile => (
                 user.map(|u| (u.name.as_str(), VarFile::from(&pubfile::parse(&u.bytes)))),
                 MemoryMap::FOXTROT,
+            ),
+            UserKind::DeviceSymbols => (
+                user.map(|u| (u.name.as_str(), VarFile::from(&pubfile::parse(&u.bytes)))),
+                plccoms_plc::ads::MAP,
             ),
             UserKind::ModbusTags => (
                 user.map(|u| (u.name.as_str(), VarFile::from(&tags::parse(&u.bytes)))),
@@ -357,7 +373,7 @@ fn read_bounded(path: &Path) -> std::io::Result<Vec<u8>> {
 /// file's trailer; a tag file's content (the Modbus backend's `__PF_CRC`).
 pub fn expected_crc(kind: UserKind, user: &UserFile) -> Option<u32> {
     match kind {
-        UserKind::PubFile => pubfile::parse(&user.bytes).crc,
+        UserKind::PubFile | UserKind::DeviceSymbols => pubfile::parse(&user.bytes).crc,
         UserKind::ModbusTags | UserKind::S7Tags => Some(pubfile::crc_of(&user.bytes)),
     }
 }

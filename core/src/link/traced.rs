@@ -11,7 +11,7 @@ use async_trait::async_trait;
 use plccoms_protocol::Area;
 
 use crate::driver::{
-    Answer, DirEntry, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteData,
+    Answer, DirEntry, FileInfo, PlcBackend, PlcError, PlcStatus, Pushed, ReadRequest, WriteData,
     WriteRequest,
 };
 use crate::trace::{hex, FrameTrace};
@@ -179,6 +179,28 @@ impl PlcBackend for Traced {
             if s.run { "RUN" } else { "STOP" }.to_string()
         });
         result
+    }
+
+    fn take_pushed(&mut self) -> Vec<Pushed> {
+        let pushed = self.inner.take_pushed();
+        if self.trace.on() {
+            for value in &pushed {
+                self.trace.plc(
+                    "<-",
+                    format_args!(
+                        "pushed {} at {} ms: {}",
+                        String::from_utf8_lossy(&value.name),
+                        value.unix_ms,
+                        hex(&value.bytes)
+                    ),
+                );
+            }
+        }
+        pushed
+    }
+
+    async fn wait_pushed(&mut self) -> Result<(), PlcError> {
+        self.inner.wait_pushed().await
     }
 
     async fn file_info(&mut self, path: &[u8]) -> Result<Answer<FileInfo>, PlcError> {

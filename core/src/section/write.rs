@@ -68,6 +68,15 @@ impl WriteRefusal {
                 refusal: driver::Refusal::Modbus(_) | driver::Refusal::S7(_),
                 ..
             } => ErrorCode::MemSet,
+            // ADS: invalid data or parameter value (0x706, 0x70B).
+            WriteRefusal::Refused {
+                refusal: driver::Refusal::Ads(code),
+                ..
+            } if matches!(code.0, 0x706 | 0x70B) => ErrorCode::WrongValue,
+            WriteRefusal::Refused {
+                refusal: driver::Refusal::Ads(_),
+                ..
+            } => ErrorCode::MemSet,
             WriteRefusal::Refused { direct: false, .. } => ErrorCode::SendData,
             WriteRefusal::Refused { direct: true, .. } => ErrorCode::MemSet,
         }
@@ -92,6 +101,11 @@ impl WriteRefusal {
                 refusal: driver::Refusal::S7(code),
                 ..
             } => exception_context(name, *code),
+            WriteRefusal::Refused {
+                name,
+                refusal: refusal @ driver::Refusal::Ads(_),
+                ..
+            } => refusal_context(name, refusal),
             WriteRefusal::Refused { direct: false, .. } => Vec::new(),
             WriteRefusal::Refused { name, .. } => name.clone(),
         }
@@ -115,6 +129,14 @@ impl WriteRefusal {
 pub fn exception_context(name: &[u8], code: impl std::fmt::Display) -> Vec<u8> {
     let mut context = name.to_vec();
     context.extend_from_slice(format!(": {code}").as_bytes());
+    context
+}
+
+/// `NAME: ADS error 0x710 (symbol not found)`: a device's named refusal
+/// as an error's context.
+pub fn refusal_context(name: &[u8], refusal: &driver::Refusal) -> Vec<u8> {
+    let mut context = name.to_vec();
+    context.extend_from_slice(format!(": {refusal}").as_bytes());
     context
 }
 

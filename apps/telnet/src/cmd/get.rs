@@ -164,6 +164,15 @@ pub fn complete(cx: &mut Cx<'_>, then: ReadThen, reply: ReadReply, out: &mut Vec
                             out.extend_from_slice(eol);
                             return;
                         }
+                        Some(Err(refusal @ Refusal::Ads(_))) => {
+                            // The ADS error, named in the context.
+                            out.truncate(start);
+                            let context =
+                                plccoms_core::section::write::refusal_context(&var.name, &refusal);
+                            plccoms_protocol::answer::write_error(out, ErrorCode::MemGet, &context);
+                            out.extend_from_slice(eol);
+                            return;
+                        }
                         _ => {
                             out.truncate(start);
                             plccoms_protocol::answer::write_error(out, ErrorCode::GetData, b"");
