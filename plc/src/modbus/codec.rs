@@ -348,7 +348,19 @@ pub fn encode_response(
     answer: &Result<Response, ExceptionCode>,
     out: &mut Vec<u8>,
 ) {
-    let pdu = match (answer, request) {
+    let pdu = response_pdu(function, request, answer);
+    put_header(header, pdu.len(), out);
+    out.extend_from_slice(&pdu);
+}
+
+/// The PDU answering a request of `function` (the server's side, any
+/// framing).
+pub fn response_pdu(
+    function: u8,
+    request: Option<&Request>,
+    answer: &Result<Response, ExceptionCode>,
+) -> Vec<u8> {
+    match (answer, request) {
         (Err(code), _) => vec![function | 0x80, code.0],
         // Data without the request it answers: the server failed.
         (Ok(_), None) => vec![function | 0x80, ExceptionCode::SERVER_DEVICE_FAILURE.0],
@@ -375,9 +387,7 @@ pub fn encode_response(
             };
             echo.to_vec()
         }
-    };
-    put_header(header, pdu.len(), out);
-    out.extend_from_slice(&pdu);
+    }
 }
 
 #[cfg(test)]
