@@ -89,6 +89,9 @@ pub struct SimConfig {
     /// Serve Modbus TCP on this address instead of EPSNET; `pubfile` is then
     /// a Modbus tag file, and the memory is laid out as Modbus tables.
     pub modbus: Option<SocketAddr>,
+    /// Serve Modbus RTU on `serial` as this unit instead of EPSNET (the
+    /// memory and `pubfile` as with `modbus`).
+    pub modbus_rtu: Option<u8>,
 }
 
 impl Default for SimConfig {
@@ -109,6 +112,7 @@ impl Default for SimConfig {
             seed: None,
             serial: None,
             modbus: None,
+            modbus_rtu: None,
         }
     }
 }
@@ -307,7 +311,8 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     if let Some(path) = &config.fixed {
         check_fixed(&std::fs::read(path).map_err(|e| with_path(e, path))?);
     }
-    let map = if config.modbus.is_some() {
+    let modbus = config.modbus.is_some() || config.modbus_rtu.is_some();
+    let map = if modbus {
         plccoms_plc::modbus::MAP
     } else {
         config.map
@@ -333,7 +338,7 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
         device.files = Some(files);
     }
     let cycle_ms = config.cycle.as_millis().clamp(1, 60_000) as u64;
-    let (vars, crc) = if config.modbus.is_some() {
+    let (vars, crc) = if modbus {
         load_tags_bytes(&pub_bytes)
     } else {
         load_pub_bytes(&pub_bytes)
@@ -350,7 +355,7 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
             cycle_ms,
         }),
         line: serial::LineStats::default(),
-        modbus: config.modbus.is_some(),
+        modbus,
     });
     shared.set_loss(config.loss);
     shared.set_latency(config.latency);
@@ -363,6 +368,16 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
         Duration::from_millis(cycle_ms),
     ))];
     let local_addr = match (&config.serial, config.modbus) {
+        (Some(line), _) if config.modbus_rtu.is_some() => {
+            let port = serial::open(line)?;
+            tasks.push(tokio::spawn(modbus::serve_rtu(
+                port,
+                line.clone(),
+                config.modbus_rtu.unwrap_or(1),
+                shared.clone(),
+            )));
+            SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0))
+        }
         (Some(line), _) => {
             let port = serial::open(line)?;
             tasks.push(tokio::spawn(serial::serve(

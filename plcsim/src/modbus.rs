@@ -5,25 +5,34 @@
 //! first), its variables named by a tag file. Every address of every table
 //! exists.
 //!
+//! The same device speaks Modbus RTU on a serial line ([`serve_rtu`]).
+//!
 //! Faults: a lost request is never answered (the client's retry is); latency
 //! delays each answer, answers leaving in the order their requests came.
 
 use std::sync::Arc;
 use std::time::Duration;
 
+use std::sync::atomic::Ordering;
+
+use bytes::BytesMut;
 use futures_util::StreamExt;
-use tokio::io::AsyncWriteExt;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
-use tokio_util::codec::FramedRead;
+use tokio_util::codec::{Decoder, FramedRead};
 
-use plccoms_plc::modbus::codec::{decode_request, encode_response, Adu, AduDecoder};
+use plccoms_plc::modbus::codec::{
+    decode_request, encode_response, Adu, AduDecoder, Header, HEADER_LEN,
+};
 use plccoms_plc::modbus::frame::{Request, Response};
+use plccoms_plc::modbus::rtu::{self, RtuDecoder, RtuItem, Side};
 use plccoms_plc::modbus::{ExceptionCode, Table};
 use plccoms_plc::{MemoryImage, WriteData};
 use plccoms_protocol::Area;
 
+use crate::serial::SerialLine;
 use crate::Shared;
 
 /// Answers of one connection waiting for their latency.
@@ -75,6 +84,89 @@ async fn connection(stream: TcpStream, shared: Arc<Shared>) {
     }
     drop(answers);
     let _ = writer.await;
+}
+
+/// Serves Modbus RTU as `unit` on a serial line until the task is aborted:
+/// requests to `unit` are answered, broadcasts (unit 0) obeyed silently,
+/// other units' frames ignored (the line is shared). With
+/// [`SerialLine::emulate`] each answer is held back for the line time of the
+/// request and the answer at 11 bits a character (8E1).
+pub(crate) async fn serve_rtu(
+    mut port: tokio_serial::SerialStream,
+    line: SerialLine,
+    unit: u8,
+    shared: Arc<Shared>,
+) {
+    let mut decoder = RtuDecoder::new(Side::Requests);
+    let mut buf = BytesMut::with_capacity(rtu::MAX_FRAME);
+    let stats = &shared.line;
+    // A frame stopped half-way is given up after this quiet time.
+    let idle = Duration::from_millis(20);
+    loop {
+        while let Ok(Some(item)) = decoder.decode(&mut buf) {
+            let frame = match item {
+                RtuItem::Frame(frame) => frame,
+                RtuItem::Skipped { bytes, .. } => {
+                    stats.rx_skipped.fetch_add(bytes as u64, Ordering::Relaxed);
+                    continue;
+                }
+            };
+            stats.rx_frames.fetch_add(1, Ordering::Relaxed);
+            if frame.unit != unit && frame.unit != rtu::BROADCAST {
+                continue;
+            }
+            let adu = Adu {
+                header: Header {
+                    transaction: 0,
+                    unit: frame.unit,
+                },
+                pdu: frame.pdu.clone(),
+            };
+            let Some((tcp, latency)) = shared.handle_modbus(&adu) else {
+                continue;
+            };
+            if frame.unit == rtu::BROADCAST {
+                continue;
+            }
+            let mut bytes = Vec::with_capacity(rtu::MAX_FRAME);
+            rtu::encode_pdu(unit, tcp.get(HEADER_LEN..).unwrap_or_default(), &mut bytes);
+            let mut delay = latency;
+            if line.emulate {
+                let on_line = frame.pdu.len() + 3 + bytes.len();
+                delay += rtu::line_time(line.speed, 11, on_line);
+            }
+            if !delay.is_zero() {
+                tokio::time::sleep(delay).await;
+            }
+            if port.write_all(&bytes).await.is_err() || port.flush().await.is_err() {
+                tracing::warn!("plcsim: cannot write to {}", line.device);
+                return;
+            }
+            stats.tx_frames.fetch_add(1, Ordering::Relaxed);
+            stats
+                .tx_bytes
+                .fetch_add(bytes.len() as u64, Ordering::Relaxed);
+        }
+        let read = if buf.is_empty() {
+            Ok(port.read_buf(&mut buf).await)
+        } else {
+            tokio::time::timeout(idle, port.read_buf(&mut buf)).await
+        };
+        match read {
+            Ok(Ok(0)) | Ok(Err(_)) => {
+                // The other end is gone (a pty's peer closed): wait for it.
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            Ok(Ok(n)) => {
+                stats.rx_bytes.fetch_add(n as u64, Ordering::Relaxed);
+            }
+            Err(_idle) => {
+                if let Some(RtuItem::Skipped { bytes, .. }) = decoder.abandon_partial(&mut buf) {
+                    stats.rx_skipped.fetch_add(bytes as u64, Ordering::Relaxed);
+                }
+            }
+        }
+    }
 }
 
 /// The answer ADU to `adu`.

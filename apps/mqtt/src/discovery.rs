@@ -117,6 +117,27 @@ impl Maker {
                 ),
                 hw_version: None,
             },
+            Protocol::ModbusRtu => Maker {
+                manufacturer: "Modbus RTU device".into(),
+                model: format!(
+                    "{} unit {}",
+                    section.serial_device.as_deref().unwrap_or("?"),
+                    section.modbus.unit
+                ),
+                hw_version: None,
+            },
+            Protocol::ModbusRtuTcp => Maker {
+                manufacturer: "Modbus RTU device".into(),
+                model: format!(
+                    "{}:{} (RTU over TCP) unit {}",
+                    section
+                        .ipaddr
+                        .map_or_else(|| "?".to_string(), |a| a.to_string()),
+                    section.modbus.port,
+                    section.modbus.unit
+                ),
+                hw_version: None,
+            },
         }
     }
 }

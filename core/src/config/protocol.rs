@@ -13,6 +13,11 @@ pub enum Protocol {
     Epsnet,
     /// Modbus TCP, variables from a tag file (`MODBUS_TAGS`).
     ModbusTcp,
+    /// Modbus RTU on a serial line (`SERIAL_DEVICE`), the same tag files.
+    ModbusRtu,
+    /// Modbus RTU frames over TCP to a serial device server (`IPADDR`,
+    /// `MODBUS_PORT`).
+    ModbusRtuTcp,
 }
 
 /// The ini names, in [`Protocol::ALL`]'s order: the key table's choices.
@@ -28,14 +33,26 @@ pub const PROTOCOLS: &[&str] = &{
 
 impl Protocol {
     /// Every protocol, in the order the documentation lists them.
-    pub const ALL: [Protocol; 2] = [Protocol::Epsnet, Protocol::ModbusTcp];
+    pub const ALL: [Protocol; 4] = [
+        Protocol::Epsnet,
+        Protocol::ModbusTcp,
+        Protocol::ModbusRtu,
+        Protocol::ModbusRtuTcp,
+    ];
 
     /// The name in the ini file and in `GETINFO:PROTOCOL`.
     pub const fn name(self) -> &'static str {
         match self {
             Protocol::Epsnet => "EPSNET",
             Protocol::ModbusTcp => "MODBUS_TCP",
+            Protocol::ModbusRtu => "MODBUS_RTU",
+            Protocol::ModbusRtuTcp => "MODBUS_RTU_TCP",
         }
+    }
+
+    /// Whether the section's variables come from a Modbus tag file.
+    pub const fn is_modbus(self) -> bool {
+        !matches!(self, Protocol::Epsnet)
     }
 
     /// The protocol `text` names, ignoring case as the ini file does.
@@ -58,7 +75,10 @@ mod tests {
 
     #[test]
     fn names_parse_back_in_any_case() {
-        assert_eq!(PROTOCOLS, ["EPSNET", "MODBUS_TCP"]);
+        assert_eq!(
+            PROTOCOLS,
+            ["EPSNET", "MODBUS_TCP", "MODBUS_RTU", "MODBUS_RTU_TCP"]
+        );
         for protocol in Protocol::ALL {
             assert_eq!(Protocol::parse(protocol.name()), Some(protocol));
             let lower = protocol.to_string().to_ascii_lowercase();

@@ -2,7 +2,7 @@
 //! and whether the link must be made anew. The link applies the result
 //! (reconnect, reload the public file, tell every client).
 
-use crate::config::{Protocol, Section};
+use crate::config::Section;
 
 /// A section setting changed at run time (SETCONF).
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -64,7 +64,7 @@ pub fn apply(config: &Section, change: &ConfChange) -> (Section, bool) {
         }
         // On a Modbus section it names the tag file, which the backend
         // watches (its CRC is `__PF_CRC`): a new link.
-        ConfChange::PubFile(name) if config.protocol == Protocol::ModbusTcp => {
+        ConfChange::PubFile(name) if config.protocol.is_modbus() => {
             config.modbus.tags = Some(name.clone());
             true
         }

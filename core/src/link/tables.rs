@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 
 use tracing::{info, warn};
 
-use crate::config::{Protocol, Section};
+use crate::config::Section;
 use crate::driver::{PlcBackend, Refusal};
 use crate::vars::{VarFile, VarTable, STANDARD_FIXED};
 use plccoms_plc::modbus::tags;
@@ -40,7 +40,7 @@ pub enum UserKind {
 impl UserKind {
     /// The kind a section's backend reads.
     pub fn of(section: &Section) -> UserKind {
-        if section.protocol == Protocol::ModbusTcp {
+        if section.protocol.is_modbus() {
             UserKind::ModbusTags
         } else {
             UserKind::PubFile

@@ -196,7 +196,8 @@ impl tokio_util::codec::Decoder for RtuDecoder {
     }
 }
 
-fn put_frame(unit: u8, pdu: &[u8], out: &mut Vec<u8>) {
+/// Appends the frame of `pdu` to or from `unit`.
+pub fn encode_pdu(unit: u8, pdu: &[u8], out: &mut Vec<u8>) {
     let start = out.len();
     out.push(unit);
     out.extend_from_slice(pdu);
@@ -206,7 +207,7 @@ fn put_frame(unit: u8, pdu: &[u8], out: &mut Vec<u8>) {
 
 /// Appends the frame of `request` to `unit` (the master's side).
 pub fn encode_request(unit: u8, request: &Request, out: &mut Vec<u8>) {
-    put_frame(unit, &request_pdu(request), out);
+    encode_pdu(unit, &request_pdu(request), out);
 }
 
 /// Appends the frame answering a request of `function` (a unit's side).
@@ -217,7 +218,7 @@ pub fn encode_response(
     answer: &Result<Response, ExceptionCode>,
     out: &mut Vec<u8>,
 ) {
-    put_frame(unit, &response_pdu(function, request, answer), out);
+    encode_pdu(unit, &response_pdu(function, request, answer), out);
 }
 
 /// Bits one character takes on the line: start, data, parity, stop.

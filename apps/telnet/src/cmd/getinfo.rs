@@ -14,7 +14,6 @@ use std::fmt::Write;
 use plccoms_protocol::answer::ErrorCode;
 
 use super::{error, Cx, Reply};
-use plccoms_core::config::Protocol;
 
 const KEYS: &[&str] = &[
     "VERSION",
@@ -91,7 +90,7 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
     // The settings as SETCONF left them, and the link as it is.
     let state = cx.section.state();
     let (config, link) = (&state.config, &state.link);
-    let modbus = config.protocol == Protocol::ModbusTcp;
+    let modbus = config.protocol.is_modbus();
     // The full list shows what the section's protocol has.
     let shown = match key {
         "PROTOCOL" | "MODBUS_PORT" | "MODBUS_UNIT" | "MODBUS_TAGS" => modbus,
