@@ -498,3 +498,100 @@ fn open_serial(s: &SerialLine) -> std::io::Result<SerialStream> {
         .open_native_async()
         .map_err(std::io::Error::from)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tokio::net::TcpListener;
+
+    fn read(count: u16) -> Request {
+        Request::ReadHoldingRegisters { address: 0, count }
+    }
+
+    /// Sections on one address share one connection, closed with the last.
+    #[tokio::test]
+    async fn one_connection_per_line_closed_with_the_last_section() {
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let endpoint = Endpoint::Tcp {
+            server: listener.local_addr().unwrap(),
+            local: None,
+        };
+        let (a, b) = (attach(&endpoint), attach(&endpoint));
+        assert!(Arc::ptr_eq(&a, &b));
+        let counters = Arc::new(BackendCounters::default());
+        let device = tokio::spawn(async move {
+            let (mut stream, _) = listener.accept().await.unwrap();
+            let mut decoder = RtuDecoder::new(Side::Requests);
+            let mut buf = BytesMut::new();
+            let mut answered = 0;
+            loop {
+                while let Some(RtuItem::Frame(frame)) = decoder.decode(&mut buf).unwrap() {
+                    let mut out = Vec::new();
+                    rtu::encode_response(
+                        frame.unit,
+                        3,
+                        Some(&read(1)),
+                        &Ok(Response::Registers(vec![u16::from(frame.unit)])),
+                        &mut out,
+                    );
+                    stream.write_all(&out).await.unwrap();
+                    answered += 1;
+                }
+                if stream.read_buf(&mut buf).await.unwrap() == 0 {
+                    // Closed: and no second connection comes.
+                    return answered;
+                }
+            }
+        });
+        for (line, unit) in [(&a, 1), (&b, 2), (&a, 1)] {
+            let outcomes = line
+                .exchange(unit, &[read(1)], Duration::from_secs(5), 1, &counters)
+                .await
+                .unwrap();
+            assert_eq!(outcomes, [Ok(Response::Registers(vec![u16::from(unit)]))]);
+        }
+        drop(a);
+        drop(b);
+        let closed = tokio::time::timeout(Duration::from_secs(10), device).await;
+        assert_eq!(closed.expect("the port closed").unwrap(), 3);
+    }
+
+    /// A unit that did not answer is not asked again within the second.
+    #[tokio::test]
+    async fn a_silent_unit_is_tried_at_most_once_a_second() {
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let endpoint = Endpoint::Tcp {
+            server: listener.local_addr().unwrap(),
+            local: None,
+        };
+        let _silent = tokio::spawn(async move {
+            let (mut stream, _) = listener.accept().await.unwrap();
+            let mut buf = BytesMut::new();
+            while stream.read_buf(&mut buf).await.unwrap_or(0) > 0 {}
+        });
+        let line = attach(&endpoint);
+        let counters = Arc::new(BackendCounters::default());
+        let timeout = Duration::from_millis(50);
+        let first = line.exchange(7, &[read(1)], timeout, 1, &counters).await;
+        assert!(
+            matches!(&first, Err(PlcError::Timeout(t)) if t.contains("after 2 attempts")),
+            "{first:?}"
+        );
+        let second = line.exchange(7, &[read(1)], timeout, 0, &counters).await;
+        assert!(
+            matches!(&second, Err(PlcError::Timeout(t)) if t.contains("at most once a second")),
+            "{second:?}"
+        );
+        assert_eq!(counters.requests.get(), 2, "the second went nowhere");
+        // A broadcast write is not waited for.
+        let write = Request::WriteSingleRegister {
+            address: 0,
+            value: 1,
+        };
+        let outcomes = line
+            .exchange(BROADCAST, &[write], timeout, 1, &counters)
+            .await
+            .unwrap();
+        assert_eq!(outcomes, [Ok(Response::Written)]);
+    }
+}
