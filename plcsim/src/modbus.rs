@@ -17,7 +17,7 @@ use std::sync::atomic::Ordering;
 
 use bytes::BytesMut;
 use futures_util::StreamExt;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::io::AsyncWriteExt;
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
@@ -32,7 +32,7 @@ use plccoms_plc::modbus::{ExceptionCode, Table};
 use plccoms_plc::{MemoryImage, WriteData};
 use plccoms_protocol::Area;
 
-use crate::serial::SerialLine;
+use crate::serial::{self, SerialLine};
 use crate::Shared;
 
 /// Answers of one connection waiting for their latency.
@@ -138,32 +138,13 @@ pub(crate) async fn serve_rtu(
             if !delay.is_zero() {
                 tokio::time::sleep(delay).await;
             }
-            if port.write_all(&bytes).await.is_err() || port.flush().await.is_err() {
-                tracing::warn!("plcsim: cannot write to {}", line.device);
+            if !serial::send(&mut port, &bytes, &line, stats).await {
                 return;
             }
-            stats.tx_frames.fetch_add(1, Ordering::Relaxed);
-            stats
-                .tx_bytes
-                .fetch_add(bytes.len() as u64, Ordering::Relaxed);
         }
-        let read = if buf.is_empty() {
-            Ok(port.read_buf(&mut buf).await)
-        } else {
-            tokio::time::timeout(idle, port.read_buf(&mut buf)).await
-        };
-        match read {
-            Ok(Ok(0)) | Ok(Err(_)) => {
-                // The other end is gone (a pty's peer closed): wait for it.
-                tokio::time::sleep(Duration::from_millis(50)).await;
-            }
-            Ok(Ok(n)) => {
-                stats.rx_bytes.fetch_add(n as u64, Ordering::Relaxed);
-            }
-            Err(_idle) => {
-                if let Some(RtuItem::Skipped { bytes, .. }) = decoder.abandon_partial(&mut buf) {
-                    stats.rx_skipped.fetch_add(bytes as u64, Ordering::Relaxed);
-                }
+        if serial::read_more(&mut port, &mut buf, stats, idle).await {
+            if let Some(RtuItem::Skipped { bytes, .. }) = decoder.abandon_partial(&mut buf) {
+                stats.rx_skipped.fetch_add(bytes as u64, Ordering::Relaxed);
             }
         }
     }

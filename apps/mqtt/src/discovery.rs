@@ -105,18 +105,6 @@ impl Maker {
                 model: "Tecomat PLC".into(),
                 hw_version: ident.map(str::to_string).filter(|i| !i.is_empty()),
             },
-            Protocol::ModbusTcp => Maker {
-                manufacturer: "Modbus TCP device".into(),
-                model: format!(
-                    "{}:{} unit {}",
-                    section
-                        .ipaddr
-                        .map_or_else(|| "?".to_string(), |a| a.to_string()),
-                    section.modbus.port,
-                    section.modbus.unit
-                ),
-                hw_version: None,
-            },
             Protocol::ModbusRtu => Maker {
                 manufacturer: "Modbus RTU device".into(),
                 model: format!(
@@ -126,10 +114,14 @@ impl Maker {
                 ),
                 hw_version: None,
             },
-            Protocol::ModbusRtuTcp => Maker {
-                manufacturer: "Modbus RTU device".into(),
+            Protocol::ModbusTcp | Protocol::ModbusRtuTcp => Maker {
+                manufacturer: if section.protocol == Protocol::ModbusTcp {
+                    "Modbus TCP device".into()
+                } else {
+                    "Modbus RTU device".into()
+                },
                 model: format!(
-                    "{}:{} (RTU over TCP) unit {}",
+                    "{}:{} unit {}",
                     section
                         .ipaddr
                         .map_or_else(|| "?".to_string(), |a| a.to_string()),

@@ -260,6 +260,7 @@ mod tests {
     use tokio_util::codec::Decoder;
 
     use super::*;
+    use crate::modbus::codec::tests::{answer_to, every_request};
     use crate::modbus::codec::{decode_request, decode_response};
 
     #[test]
@@ -290,34 +291,7 @@ mod tests {
 
     #[test]
     fn requests_and_answers_round_trip_through_both_ends() {
-        let requests = [
-            Request::ReadCoils {
-                address: 1,
-                count: 10,
-            },
-            Request::ReadInputRegisters {
-                address: 0,
-                count: 125,
-            },
-            Request::WriteSingleCoil {
-                address: 7,
-                value: true,
-            },
-            Request::WriteMultipleCoils {
-                address: 9,
-                values: vec![true; 9],
-            },
-            Request::WriteMultipleRegisters {
-                address: 10,
-                values: vec![1, 2, 3],
-            },
-            Request::MaskWriteRegister {
-                address: 11,
-                and_mask: 0xFFFE,
-                or_mask: 1,
-            },
-        ];
-        for request in requests {
+        for request in every_request() {
             let mut wire = Vec::new();
             encode_request(7, &request, &mut wire);
             let [RtuItem::Frame(frame)] = &frames(Side::Requests, &wire)[..] else {
@@ -325,15 +299,7 @@ mod tests {
             };
             assert_eq!(frame.unit, 7);
             assert_eq!(decode_request(&frame.pdu), Ok(request.clone()));
-            let answer = match &request {
-                Request::ReadCoils { count, .. } => {
-                    Response::Bits((0..*count).map(|i| i % 3 == 0).collect())
-                }
-                Request::ReadInputRegisters { count, .. } => {
-                    Response::Registers((0..*count).collect())
-                }
-                _ => Response::Written,
-            };
+            let answer = answer_to(&request);
             let mut wire = Vec::new();
             encode_response(
                 7,
