@@ -315,7 +315,7 @@ async fn modbus_rtu_values_again_within_2_s_of_the_return() {
             speed: 115_200,
             emulate: false,
         }),
-        modbus_rtu: Some(1),
+        modbus_rtu: vec![1],
         ..SimConfig::default()
     };
     let sim = respawn(&config).await;

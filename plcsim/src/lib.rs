@@ -89,9 +89,10 @@ pub struct SimConfig {
     /// Serve Modbus TCP on this address instead of EPSNET; `pubfile` is then
     /// a Modbus tag file, and the memory is laid out as Modbus tables.
     pub modbus: Option<SocketAddr>,
-    /// Serve Modbus RTU on `serial` as this unit instead of EPSNET (the
-    /// memory and `pubfile` as with `modbus`).
-    pub modbus_rtu: Option<u8>,
+    /// Serve Modbus RTU on `serial` as these units (one memory for all)
+    /// instead of EPSNET, when not empty (the memory and `pubfile` as with
+    /// `modbus`).
+    pub modbus_rtu: Vec<u8>,
 }
 
 impl Default for SimConfig {
@@ -112,7 +113,7 @@ impl Default for SimConfig {
             seed: None,
             serial: None,
             modbus: None,
-            modbus_rtu: None,
+            modbus_rtu: Vec::new(),
         }
     }
 }
@@ -311,7 +312,7 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     if let Some(path) = &config.fixed {
         check_fixed(&std::fs::read(path).map_err(|e| with_path(e, path))?);
     }
-    let modbus = config.modbus.is_some() || config.modbus_rtu.is_some();
+    let modbus = config.modbus.is_some() || !config.modbus_rtu.is_empty();
     let map = if modbus {
         plccoms_plc::modbus::MAP
     } else {
@@ -368,12 +369,12 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
         Duration::from_millis(cycle_ms),
     ))];
     let local_addr = match (&config.serial, config.modbus) {
-        (Some(line), _) if config.modbus_rtu.is_some() => {
+        (Some(line), _) if !config.modbus_rtu.is_empty() => {
             let port = serial::open(line)?;
             tasks.push(tokio::spawn(modbus::serve_rtu(
                 port,
                 line.clone(),
-                config.modbus_rtu.unwrap_or(1),
+                config.modbus_rtu.clone(),
                 shared.clone(),
             )));
             SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0))

@@ -86,15 +86,16 @@ async fn connection(stream: TcpStream, shared: Arc<Shared>) {
     let _ = writer.await;
 }
 
-/// Serves Modbus RTU as `unit` on a serial line until the task is aborted:
-/// requests to `unit` are answered, broadcasts (unit 0) obeyed silently,
-/// other units' frames ignored (the line is shared). With
+/// Serves Modbus RTU as `units` (one memory) on a serial line until the
+/// task is aborted: requests to them are answered, broadcasts (unit 0)
+/// obeyed silently, other units' frames ignored (the line is shared). With
 /// [`SerialLine::emulate`] each answer is held back for the line time of the
-/// request and the answer at 11 bits a character (8E1).
+/// request and the answer at 11 bits a character (8E1) and the 3.5
+/// characters of silence that end the request.
 pub(crate) async fn serve_rtu(
     mut port: tokio_serial::SerialStream,
     line: SerialLine,
-    unit: u8,
+    units: Vec<u8>,
     shared: Arc<Shared>,
 ) {
     let mut decoder = RtuDecoder::new(Side::Requests);
@@ -112,7 +113,7 @@ pub(crate) async fn serve_rtu(
                 }
             };
             stats.rx_frames.fetch_add(1, Ordering::Relaxed);
-            if frame.unit != unit && frame.unit != rtu::BROADCAST {
+            if !units.contains(&frame.unit) && frame.unit != rtu::BROADCAST {
                 continue;
             }
             let adu = Adu {
@@ -129,14 +130,25 @@ pub(crate) async fn serve_rtu(
                 continue;
             }
             let mut bytes = Vec::with_capacity(rtu::MAX_FRAME);
-            rtu::encode_pdu(unit, tcp.get(HEADER_LEN..).unwrap_or_default(), &mut bytes);
-            let mut delay = latency;
+            rtu::encode_pdu(
+                frame.unit,
+                tcp.get(HEADER_LEN..).unwrap_or_default(),
+                &mut bytes,
+            );
+            let mut due = Instant::now() + latency;
             if line.emulate {
                 let on_line = frame.pdu.len() + 3 + bytes.len();
-                delay += rtu::line_time(line.speed, 11, on_line);
-            }
-            if !delay.is_zero() {
-                tokio::time::sleep(delay).await;
+                due += rtu::line_time(line.speed, 11, on_line) + rtu::silence(line.speed, 11);
+                // To the microsecond: the timer's millisecond steps would
+                // add up to 4 % to a transaction at 115,200 baud.
+                if due > Instant::now() + Duration::from_millis(2) {
+                    tokio::time::sleep_until(due - Duration::from_millis(1)).await;
+                }
+                while Instant::now() < due {
+                    tokio::task::yield_now().await;
+                }
+            } else if !latency.is_zero() {
+                tokio::time::sleep_until(due).await;
             }
             if !serial::send(&mut port, &bytes, &line, stats).await {
                 return;
