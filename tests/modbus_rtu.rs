@@ -401,3 +401,63 @@ async fn a_unit_that_drops_every_answer_leaves_the_others_polling() {
     assert_eq!(log.matches("PLC lost").count(), 1, "{log}");
     assert_eq!(log.matches("PLC connected again").count(), 1, "{log}");
 }
+
+/// RS-485 direction on a GPIO pin (SERIAL_RTS): exported as an output, high
+/// while a frame is on the line (the line time at 9600 baud: 9 ms for a
+/// request, seen by a thread reading the pin), low after. The backend in
+/// this process, its GPIO folder a temporary one.
+#[tokio::test]
+async fn rts_on_a_gpio_pin_is_high_while_sending() {
+    use plccoms_core::driver::{PlcBackend, ReadRequest};
+    use plccoms_driver_modbus::line::{Endpoint, SerialLine};
+    use plccoms_driver_modbus::{ModbusBackend, ModbusConfig};
+    use plccoms_protocol::Area;
+
+    let line = PtyLine::new();
+    let _device = Pymodbus::rtu(RtuOn::Serial(&line.plc_device()), &[(1, &small(5))]);
+    let gpio = tempfile::tempdir().unwrap();
+    std::fs::create_dir(gpio.path().join("gpio17")).unwrap();
+    let value = gpio.path().join("gpio17/value");
+    let mut serial = SerialLine::new(&line.server_device());
+    serial.rts = Some(17);
+    serial.gpio_root = gpio.path().to_path_buf();
+    let mut config = ModbusConfig::new(std::net::SocketAddr::from(([0, 0, 0, 0], 0)));
+    config.rtu = Some(Endpoint::Serial(serial));
+    config.timeout = Duration::from_secs(2);
+    let mut backend = ModbusBackend::new(config);
+
+    let seen_high = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let watcher = {
+        let (seen_high, stop, value) = (seen_high.clone(), stop.clone(), value.clone());
+        std::thread::spawn(move || {
+            while !stop.load(std::sync::atomic::Ordering::SeqCst) {
+                if std::fs::read_to_string(&value).is_ok_and(|v| v == "1") {
+                    seen_high.store(true, std::sync::atomic::Ordering::SeqCst);
+                }
+                std::thread::sleep(Duration::from_micros(200));
+            }
+        })
+    };
+    backend.connect().await.expect("unit 1 answers");
+    for _ in 0..10 {
+        let read = ReadRequest {
+            area: Area::R,
+            offset: 0,
+            len: 2,
+        };
+        let answers = backend.read(&[read]).await.expect("read");
+        assert_eq!(answers, [Ok(vec![0, 5])]);
+    }
+    stop.store(true, std::sync::atomic::Ordering::SeqCst);
+    watcher.join().unwrap();
+    assert_eq!(
+        std::fs::read_to_string(gpio.path().join("gpio17/direction")).unwrap(),
+        "out"
+    );
+    assert_eq!(std::fs::read_to_string(&value).unwrap(), "0");
+    assert!(
+        seen_high.load(std::sync::atomic::Ordering::SeqCst),
+        "RTS never seen high in 11 requests"
+    );
+}

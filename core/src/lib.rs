@@ -30,5 +30,6 @@ pub mod logring;
 pub mod metrics;
 pub mod present;
 pub mod ratelimit;
+pub mod rs485;
 pub mod section;
 pub mod vars;

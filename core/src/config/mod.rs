@@ -872,10 +872,6 @@ fn read_section(
                 format!("{key} has no effect without PROTOCOL = MODBUS_RTU (EPSNET's line is 8N1)")
             })
         });
-        let misplaced = misplaced.or_else(|| {
-            (section.protocol == Protocol::ModbusRtu && *key == "SERIAL_RTS")
-                .then(|| format!("{key} has no effect with PROTOCOL = MODBUS_RTU (no flow control; use an adapter that switches direction by itself)"))
-        });
         if let Some(message) = misplaced {
             diags.push(Severity::Warning, entry.line, message);
         }

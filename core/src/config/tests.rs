@@ -1055,14 +1055,6 @@ fn modbus_rtu_keys_load_and_warn_elsewhere() {
         ),
         (Some(super::serial::Parity::None), Some(8), Some(2), 7)
     );
-    let loaded = with_section(
-        "SERVER_PORT = 1\nPROTOCOL = MODBUS_RTU\nMODBUS_TAGS = t.csv\nSERIAL_RTS = 17",
-    )
-    .unwrap();
-    assert_eq!(
-        messages(&loaded),
-        ["PLCComS.ini:6: SERIAL_RTS has no effect with PROTOCOL = MODBUS_RTU (no flow control; use an adapter that switches direction by itself)"]
-    );
     let loaded = with_section("SERVER_PORT = 1\nSERIAL_PARITY = EVEN").unwrap();
     assert_eq!(
         messages(&loaded),

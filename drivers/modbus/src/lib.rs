@@ -655,13 +655,20 @@ fn open(section: &plccoms_core::config::Section, dir: &std::path::Path) -> Optio
 }
 
 /// The serial line a MODBUS_RTU section names: SERIAL_SPEED and the
-/// character format, the Modbus defaults (9600 8E1) where not set.
+/// character format, the Modbus defaults (9600 8E1) where not set, and the
+/// RTS pin (SERIAL_RTS, else the device's in SERIAL_DEVICE_CFG).
 pub fn serial_line_of(section: &plccoms_core::config::Section, device: &str) -> SerialLine {
     let mut line = SerialLine::new(device);
     line.speed = section.serial_speed.unwrap_or(line.speed);
     line.parity = section.serial_parity.unwrap_or(line.parity);
     line.data_bits = section.serial_data_bits.unwrap_or(line.data_bits);
     line.stop_bits = section.serial_stop_bits.unwrap_or(line.stop_bits);
+    line.rts = section.serial_rts.or_else(|| {
+        plccoms_core::config::serial::pin_of(
+            section.serial_device_cfg.as_deref().unwrap_or_default(),
+            device,
+        )
+    });
     line
 }
 

@@ -24,6 +24,8 @@
 
 use std::collections::HashMap;
 use std::net::{IpAddr, SocketAddr};
+use std::os::fd::AsRawFd;
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::time::Duration;
 
@@ -40,6 +42,7 @@ use tracing::{debug, warn};
 use plccoms_core::config::serial::Parity;
 use plccoms_core::driver::PlcError;
 use plccoms_core::metrics::BackendCounters;
+use plccoms_core::rs485::{self, Gpio, SYSFS_GPIO};
 use plccoms_plc::modbus::codec::decode_response;
 use plccoms_plc::modbus::frame::{Request, Response};
 use plccoms_plc::modbus::rtu::{self, RtuDecoder, RtuItem, Side, BROADCAST, MAX_FRAME};
@@ -62,6 +65,10 @@ pub struct SerialLine {
     pub parity: Parity,
     pub data_bits: u8,
     pub stop_bits: u8,
+    /// The GPIO pin driven high while a frame is sent (RS-485 direction).
+    pub rts: Option<u32>,
+    /// The GPIO sysfs folder ([`SYSFS_GPIO`]; another for tests).
+    pub gpio_root: PathBuf,
 }
 
 impl SerialLine {
@@ -73,6 +80,8 @@ impl SerialLine {
             parity: Parity::Even,
             data_bits: 8,
             stop_bits: 1,
+            rts: None,
+            gpio_root: PathBuf::from(SYSFS_GPIO),
         }
     }
 
@@ -106,15 +115,21 @@ impl Endpoint {
 impl std::fmt::Display for Endpoint {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            Endpoint::Serial(s) => write!(
-                f,
-                "{} {} {}{}{}",
-                s.device,
-                s.speed,
-                s.data_bits,
-                s.parity.letter(),
-                s.stop_bits
-            ),
+            Endpoint::Serial(s) => {
+                write!(
+                    f,
+                    "{} {} {}{}{}",
+                    s.device,
+                    s.speed,
+                    s.data_bits,
+                    s.parity.letter(),
+                    s.stop_bits
+                )?;
+                match s.rts {
+                    Some(pin) => write!(f, " RTS on GPIO {pin}"),
+                    None => Ok(()),
+                }
+            }
             Endpoint::Tcp { server, .. } => write!(f, "{server} (RTU over TCP)"),
         }
     }
@@ -246,6 +261,8 @@ impl Port {
 struct Owner {
     endpoint: Endpoint,
     port: Option<Port>,
+    /// The RTS pin, high while a frame is sent.
+    gpio: Option<Gpio>,
     buf: BytesMut,
     decoder: RtuDecoder,
     /// When the line went quiet (last byte sent or seen).
@@ -260,6 +277,7 @@ impl Owner {
         Owner {
             endpoint,
             port: None,
+            gpio: None,
             buf: BytesMut::with_capacity(MAX_FRAME),
             decoder: RtuDecoder::new(Side::Responses),
             quiet_since: Instant::now(),
@@ -306,9 +324,20 @@ impl Owner {
             return Ok(());
         }
         let port = match &self.endpoint {
-            Endpoint::Serial(s) => Port::Serial(open_serial(s).map_err(|e| {
-                PlcError::Io(std::io::Error::new(e.kind(), format!("{}: {e}", s.device)))
-            })?),
+            Endpoint::Serial(s) => {
+                if let (Some(pin), None) = (s.rts, &self.gpio) {
+                    let gpio = Gpio::open(&s.gpio_root, pin).map_err(|e| {
+                        PlcError::Io(std::io::Error::new(
+                            e.kind(),
+                            format!("RTS GPIO {pin} in {}: {e}", s.gpio_root.display()),
+                        ))
+                    })?;
+                    self.gpio = Some(gpio);
+                }
+                Port::Serial(open_serial(s).map_err(|e| {
+                    PlcError::Io(std::io::Error::new(e.kind(), format!("{}: {e}", s.device)))
+                })?)
+            }
             Endpoint::Tcp { server, local } => {
                 Port::Tcp(connect_tcp(*server, *local, timeout).await?)
             }
@@ -362,9 +391,8 @@ impl Owner {
             }
             attempts += 1;
             let started = Instant::now();
-            let port = self.port.as_mut().ok_or(PlcError::NotConfigured)?;
             let frame = std::mem::take(&mut self.out);
-            let written = tokio::time::timeout(job.timeout, port.write_all(&frame)).await;
+            let written = tokio::time::timeout(job.timeout, self.send(&frame, started)).await;
             self.out = frame;
             match written {
                 Ok(result) => result?,
@@ -405,6 +433,22 @@ impl Owner {
                 return Err(PlcError::Timeout(text));
             }
         }
+    }
+
+    /// Writes a frame, with RTS (when set) high until its last bit is out.
+    async fn send(&mut self, frame: &[u8], started: Instant) -> std::io::Result<()> {
+        let on_line = self.line_time(frame.len());
+        let port = self.port.as_mut().ok_or(std::io::ErrorKind::NotConnected)?;
+        if let Some(gpio) = &self.gpio {
+            gpio.set(true)?;
+        }
+        let written = port.write_all(frame).await;
+        if let (Some(gpio), Port::Serial(serial)) = (&self.gpio, port) {
+            wait_until(started + on_line).await;
+            rs485::drain(serial.as_raw_fd());
+            gpio.set(false)?;
+        }
+        written
     }
 
     /// Waits until `deadline` for `unit`'s answer to `request`; `None`:
