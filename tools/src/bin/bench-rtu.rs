@@ -22,11 +22,12 @@ use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use clap::Parser;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::TcpStream;
 
 use plccoms_plc::modbus::rtu;
 use plcsim::serial::SerialLine;
+
+#[path = "common/line.rs"]
+mod line;
 use plcsim::{PubSource, SimConfig};
 
 #[derive(Debug, Parser)]
@@ -70,16 +71,8 @@ async fn run(args: &Args, speed: u32, dir: &Path) -> Figures {
     let per_unit = args.regs.div_ceil(3);
     let tag_file = tags(per_unit);
     std::fs::write(dir.join("tags.csv"), &tag_file).unwrap();
-    let (plc_end, server_end) = (dir.join("plc"), dir.join("server"));
-    let end = |p: &Path| format!("pty,raw,echo=0,link={}", p.display());
-    let mut socat = std::process::Command::new("socat")
-        .args([end(&plc_end), end(&server_end)])
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .expect("socat (apt-get install socat)");
-    while !(plc_end.exists() && server_end.exists()) {
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
+    let pty = line::PtyPair::new(dir).await;
+    let (plc_end, server_end) = (&pty.plc, &pty.server);
     let sim = plcsim::spawn(SimConfig {
         pubfile: PubSource::Bytes(tag_file.into_bytes()),
         program: "idle".parse().unwrap(),
@@ -111,15 +104,7 @@ async fn run(args: &Args, speed: u32, dir: &Path) -> Figures {
         .await
         .expect("start");
     for unit in 0..3 {
-        let mut client = TcpStream::connect(("127.0.0.1", args.port + unit))
-            .await
-            .unwrap();
-        client.write_all(b"EN:*\n").await.unwrap();
-        // Drain DIFFs in the background.
-        tokio::spawn(async move {
-            let mut buf = vec![0u8; 1 << 16];
-            while matches!(client.read(&mut buf).await, Ok(n) if n > 0) {}
-        });
+        line::enable_all(args.port + unit).await;
     }
     let failures = || {
         server
@@ -160,8 +145,7 @@ async fn run(args: &Args, speed: u32, dir: &Path) -> Figures {
     let window = end - start;
     drop(server);
     drop(sim);
-    let _ = socat.kill();
-    let _ = socat.wait();
+    drop(pty);
     let (bytes, frames) = (line1.0 - line0.0, line1.1 - line0.1);
     let silence = rtu::silence(speed, 11).as_secs_f64();
     let limit =
