@@ -123,6 +123,10 @@ impl ModbusConfig {
 pub struct ModbusBackend {
     config: ModbusConfig,
     connection: Option<Link>,
+    /// The RTU line, held from the first connection on, across losses:
+    /// closing the port at each would lose what the line brings meanwhile,
+    /// and the other end of a pty takes the last close for a hang-up.
+    line: Option<Arc<Line>>,
     counters: Arc<BackendCounters>,
     system: System,
     /// The device takes FC 22 (until it says otherwise).
@@ -205,6 +209,7 @@ impl ModbusBackend {
         ModbusBackend {
             config,
             connection: None,
+            line: None,
             counters: Arc::default(),
             system,
             mask_write: true,
@@ -280,7 +285,10 @@ impl ModbusBackend {
                 .await?,
             ),
             Some(endpoint) => Link::Rtu {
-                line: line::attach(endpoint),
+                line: self
+                    .line
+                    .get_or_insert_with(|| line::attach(endpoint))
+                    .clone(),
                 retries: client::RETRIES,
             },
         };

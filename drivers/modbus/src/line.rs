@@ -518,15 +518,11 @@ impl Owner {
     }
 }
 
-/// Waits until `deadline` to within a few microseconds: the timer's
-/// millisecond steps would add up to a millisecond to every silence, 4 % of
-/// a transaction at 115,200 baud. The last millisecond is spent yielding.
+/// Waits until `deadline` (at once when it has passed: the timer would
+/// round even that up to its next millisecond step).
 async fn wait_until(deadline: Instant) {
-    if deadline > Instant::now() + Duration::from_millis(2) {
-        tokio::time::sleep_until(deadline - Duration::from_millis(1)).await;
-    }
-    while Instant::now() < deadline {
-        tokio::task::yield_now().await;
+    if deadline > Instant::now() {
+        tokio::time::sleep_until(deadline).await;
     }
 }
 
