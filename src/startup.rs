@@ -748,6 +748,15 @@ async fn backend_for(
     server: &mut Simulated,
 ) -> Result<Option<Box<dyn PlcBackend>>, String> {
     if let Some(simulator) = section.simulator.clone() {
+        if matches!(
+            section.protocol,
+            Protocol::ModbusRtu | Protocol::ModbusRtuTcp
+        ) {
+            return Err(format!(
+                "SIMULATOR = Yes with PROTOCOL = {}: the simulated device speaks MODBUS_TCP (set PROTOCOL = MODBUS_TCP)",
+                section.protocol
+            ));
+        }
         let device = if section.protocol == Protocol::ModbusTcp {
             let device = spawn_modbus_simulator(section, &simulator, dir, server).await?;
             section.modbus.port = device.port();

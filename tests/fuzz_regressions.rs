@@ -161,6 +161,10 @@ fn every_target_runs_on_ordinary_input() {
         0, 0, 42, 0, 0, 0, 10, 0, 0, 1, 1, 1, 0x89, 0x80, 5, 1, 2, 3, 1, 1, 0x53, 3, 2, 0, 5, 0,
         10, 0, 0, 0, 0, 0, 0, 0, 7, 0, 0, 0, 0, 0, 0, 0, 2, 0, 0, 0, 0xBE, 0xEF, 0, 0, 9,
     ]);
+    // A read answer from unit 1, a damaged copy, noise, half a frame.
+    checks::modbus_rtu(&[
+        3, 1, 3, 4, 0, 5, 0, 6, 0x5B, 0xF0, 1, 3, 4, 0, 5, 0, 7, 0x5B, 0xF0, 0x42, 1, 3,
+    ]);
     checks::epsnet_device(&[
         0x00, 0x01, 0x02, 0x00, 0x00, 0x0A, 0x68, 0x04, 0x04, 0x68, 0x00, 0x7D, 0x63, 0x01, 0xE1,
         0x16,
@@ -212,6 +216,12 @@ proptest::proptest! {
         checks::sparkplug_command(&bytes);
         let keep = if bytes.is_empty() { 0 } else { cut % bytes.len() };
         checks::sparkplug_command(&bytes[..keep]);
+    }
+
+    /// The RTU decoder over any bytes, cut anywhere.
+    #[test]
+    fn modbus_rtu_framing_holds_for_any_bytes(data in proptest::collection::vec(proptest::num::u8::ANY, 0..600)) {
+        checks::modbus_rtu(&data);
     }
 
     /// Names built from the characters that matter to the path rules.

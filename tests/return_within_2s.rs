@@ -1,7 +1,7 @@
 //! Values again within 2 s of a PLC's return, whatever the outage's length,
 //! for every backend that a simulated device can play here: EPSNET over
-//! UDP and over a serial line (a pty pair), and Modbus TCP (`plcsim
-//! --modbus`), each against the real server on loopback, at the vendor's
+//! UDP and over a serial line (a pty pair), Modbus TCP (`plcsim
+//! --modbus`) and Modbus RTU on a pty pair (plcsim as unit 1), each against the real server on loopback, at the vendor's
 //! default timeouts (EPSTOUT 1000 ms, EPSTOUT_STEP 500 ms, MODBUS_TIMEOUT
 //! 1000 ms) and COMM_LOOP_DELAY 100 ms (the default, set explicitly: the
 //! promise is made at it).
@@ -300,4 +300,38 @@ async fn epsnet_serial_values_again_within_2_s_of_the_return() {
         sim: Some(sim),
     };
     outages("EPSNET serial", port, &mut device).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn modbus_rtu_values_again_within_2_s_of_the_return() {
+    let dir = tempfile::tempdir().unwrap();
+    let tags = dir.path().join("tags.csv");
+    std::fs::write(&tags, DEMO_TAGS).unwrap();
+    let line = PtyLine::new();
+    let config = SimConfig {
+        pubfile: PubSource::Bytes(DEMO_TAGS.to_vec()),
+        serial: Some(SerialLine {
+            device: line.plc_device(),
+            speed: 115_200,
+            emulate: false,
+        }),
+        modbus_rtu: vec![1],
+        ..SimConfig::default()
+    };
+    let sim = respawn(&config).await;
+    let serial = line.server_device();
+    let (_server, port, _conf) = common::start_on_free_port(|port| {
+        format!(
+            "{GLOBAL}[M]\nPROTOCOL = MODBUS_RTU\nSERIAL_DEVICE = {serial}\nSERIAL_SPEED = 115200\n\
+             MODBUS_UNIT = 1\nMODBUS_TAGS = {}\nSERVER_PORT = {port}\n",
+            tags.display()
+        )
+    })
+    .await;
+    let mut device = Serial {
+        line,
+        config,
+        sim: Some(sim),
+    };
+    outages("Modbus RTU", port, &mut device).await;
 }

@@ -30,6 +30,7 @@ pub mod logring;
 pub mod metrics;
 pub mod present;
 pub mod ratelimit;
+pub mod rs485;
 pub mod section;
 pub mod sections;
 pub mod system_area;

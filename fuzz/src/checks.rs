@@ -1253,3 +1253,62 @@ pub fn ads_stream(data: &[u8]) {
         assert_eq!(codec.decode(&mut out).unwrap(), Some(packet));
     }
 }
+
+/// Modbus RTU framing, both sides, the stream cut in pieces of the first
+/// byte's size: every byte is either in a frame (whose CRC is good and whose
+/// bytes encode back the same) or skipped with a reason; the buffer never
+/// holds more than one frame.
+pub fn modbus_rtu(data: &[u8]) {
+    use plccoms_plc::modbus::codec::decode_request;
+    use plccoms_plc::modbus::rtu::{RtuDecoder, RtuItem, Side, CRC, MAX_FRAME};
+    use tokio_util::codec::Decoder as _;
+
+    let [piece, ref stream @ ..] = *data else {
+        return;
+    };
+    let piece = usize::from(piece).max(1);
+    for side in [Side::Responses, Side::Requests] {
+        let mut decoder = RtuDecoder::new(side);
+        let mut src = BytesMut::new();
+        let mut accounted = 0;
+        let mut items = Vec::new();
+        for chunk in stream.chunks(piece) {
+            src.extend_from_slice(chunk);
+            while let Some(item) = decoder.decode(&mut src).expect("decoding never fails") {
+                items.push(item);
+            }
+            assert!(src.len() < MAX_FRAME + piece, "{} bytes held", src.len());
+        }
+        items.extend(decoder.abandon_partial(&mut src));
+        assert!(src.is_empty());
+        for item in items {
+            match item {
+                RtuItem::Frame(frame) => {
+                    let mut wire = vec![frame.unit];
+                    wire.extend_from_slice(&frame.pdu);
+                    let crc = CRC.checksum(&wire);
+                    wire.extend_from_slice(&crc.to_le_bytes());
+                    assert_eq!(
+                        &stream[accounted..accounted + wire.len()],
+                        &wire[..],
+                        "a frame is the bytes it came from"
+                    );
+                    accounted += wire.len();
+                    if side == Side::Requests {
+                        let _ = decode_request(&frame.pdu);
+                    }
+                }
+                RtuItem::Skipped { bytes, why } => {
+                    assert!(bytes > 0);
+                    assert!(!why.to_string().is_empty());
+                    accounted += bytes;
+                }
+            }
+        }
+        assert_eq!(
+            accounted,
+            stream.len(),
+            "every byte is a frame's or skipped"
+        );
+    }
+}

@@ -101,6 +101,10 @@ pub struct SimConfig {
     /// Serve Beckhoff ADS (AMS/TCP) on this address instead of EPSNET: the
     /// public file's variables as ADS symbols ([`ads`]).
     pub ads: Option<SocketAddr>,
+    /// Serve Modbus RTU on `serial` as these units (one memory for all)
+    /// instead of EPSNET, when not empty (the memory and `pubfile` as with
+    /// `modbus`).
+    pub modbus_rtu: Vec<u8>,
 }
 
 impl Default for SimConfig {
@@ -123,6 +127,7 @@ impl Default for SimConfig {
             modbus: None,
             s7: None,
             ads: None,
+            modbus_rtu: Vec::new(),
         }
     }
 }
@@ -372,7 +377,8 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     if let Some(path) = &config.fixed {
         check_fixed(&std::fs::read(path).map_err(|e| with_path(e, path))?);
     }
-    let map = if config.modbus.is_some() {
+    let modbus = config.modbus.is_some() || !config.modbus_rtu.is_empty();
+    let map = if modbus {
         plccoms_plc::modbus::MAP
     } else if config.s7.is_some() {
         s7::MAP
@@ -400,7 +406,7 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
         device.files = Some(files);
     }
     let cycle_ms = config.cycle.as_millis().clamp(1, 60_000) as u64;
-    let (vars, crc) = if config.modbus.is_some() {
+    let (vars, crc) = if modbus {
         load_tags_bytes(&pub_bytes)
     } else if config.s7.is_some() {
         load_s7_tags_bytes(&pub_bytes)
@@ -419,7 +425,7 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
             cycle_ms,
         }),
         line: serial::LineStats::default(),
-        modbus: config.modbus.is_some(),
+        modbus,
         s7: config.s7.is_some(),
     });
     shared.set_loss(config.loss);
@@ -438,6 +444,16 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
             let local = listener.local_addr()?;
             tasks.push(tokio::spawn(ads::serve(listener, shared.clone())));
             local
+        }
+        (Some(line), _) if !config.modbus_rtu.is_empty() => {
+            let port = serial::open(line)?;
+            tasks.push(tokio::spawn(modbus::serve_rtu(
+                port,
+                line.clone(),
+                config.modbus_rtu.clone(),
+                shared.clone(),
+            )));
+            SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0))
         }
         (Some(line), _) => {
             let port = serial::open(line)?;

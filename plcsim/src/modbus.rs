@@ -5,24 +5,34 @@
 //! first), its variables named by a tag file. Every address of every table
 //! exists.
 //!
+//! The same device speaks Modbus RTU on a serial line ([`serve_rtu`]).
+//!
 //! Faults: a lost request is never answered (the client's retry is); latency
 //! delays each answer, answers leaving in the order their requests came.
 
 use std::sync::Arc;
+use std::time::Duration;
 
+use std::sync::atomic::Ordering;
+
+use bytes::BytesMut;
 use futures_util::StreamExt;
 use tokio::io::AsyncWriteExt;
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
-use tokio_util::codec::FramedRead;
+use tokio_util::codec::{Decoder, FramedRead};
 
-use plccoms_plc::modbus::codec::{decode_request, encode_response, Adu, AduDecoder};
+use plccoms_plc::modbus::codec::{
+    decode_request, encode_response, Adu, AduDecoder, Header, HEADER_LEN,
+};
 use plccoms_plc::modbus::frame::{Request, Response};
+use plccoms_plc::modbus::rtu::{self, RtuDecoder, RtuItem, Side};
 use plccoms_plc::modbus::{ExceptionCode, Table};
 use plccoms_plc::{MemoryImage, WriteData};
 use plccoms_protocol::Area;
 
+use crate::serial::{self, SerialLine};
 use crate::Shared;
 
 /// Answers of one connection waiting for their latency.
@@ -64,6 +74,82 @@ async fn connection(stream: TcpStream, shared: Arc<Shared>) {
     }
     drop(answers);
     let _ = writer.await;
+}
+
+/// Serves Modbus RTU as `units` (one memory) on a serial line until the
+/// task is aborted: requests to them are answered, broadcasts (unit 0)
+/// obeyed silently, other units' frames ignored (the line is shared). With
+/// [`SerialLine::emulate`] each answer is held back for the line time of the
+/// request and the answer at 11 bits a character (8E1) and the 3.5
+/// characters of silence that end the request.
+pub(crate) async fn serve_rtu(
+    mut port: tokio_serial::SerialStream,
+    line: SerialLine,
+    units: Vec<u8>,
+    shared: Arc<Shared>,
+) {
+    let mut decoder = RtuDecoder::new(Side::Requests);
+    let mut buf = BytesMut::with_capacity(rtu::MAX_FRAME);
+    let stats = &shared.line;
+    // A frame stopped half-way is given up after this quiet time.
+    let idle = Duration::from_millis(20);
+    loop {
+        while let Ok(Some(item)) = decoder.decode(&mut buf) {
+            let frame = match item {
+                RtuItem::Frame(frame) => frame,
+                RtuItem::Skipped { bytes, .. } => {
+                    stats.rx_skipped.fetch_add(bytes as u64, Ordering::Relaxed);
+                    continue;
+                }
+            };
+            stats.rx_frames.fetch_add(1, Ordering::Relaxed);
+            if !units.contains(&frame.unit) && frame.unit != rtu::BROADCAST {
+                continue;
+            }
+            let adu = Adu {
+                header: Header {
+                    transaction: 0,
+                    unit: frame.unit,
+                },
+                pdu: frame.pdu.clone(),
+            };
+            let Some((tcp, latency)) = shared.handle_modbus(&adu) else {
+                continue;
+            };
+            if frame.unit == rtu::BROADCAST {
+                continue;
+            }
+            let mut bytes = Vec::with_capacity(rtu::MAX_FRAME);
+            rtu::encode_pdu(
+                frame.unit,
+                tcp.get(HEADER_LEN..).unwrap_or_default(),
+                &mut bytes,
+            );
+            let mut due = Instant::now() + latency;
+            if line.emulate {
+                let on_line = frame.pdu.len() + 3 + bytes.len();
+                due += rtu::line_time(line.speed, 11, on_line) + rtu::silence(line.speed, 11);
+                // To the microsecond: the timer's millisecond steps would
+                // add up to 4 % to a transaction at 115,200 baud.
+                if due > Instant::now() + Duration::from_millis(2) {
+                    tokio::time::sleep_until(due - Duration::from_millis(1)).await;
+                }
+                while Instant::now() < due {
+                    tokio::task::yield_now().await;
+                }
+            } else if !latency.is_zero() {
+                tokio::time::sleep_until(due).await;
+            }
+            if !serial::send(&mut port, &bytes, &line, stats).await {
+                return;
+            }
+        }
+        if serial::read_more(&mut port, &mut buf, stats, idle).await {
+            if let Some(RtuItem::Skipped { bytes, .. }) = decoder.abandon_partial(&mut buf) {
+                stats.rx_skipped.fetch_add(bytes as u64, Ordering::Relaxed);
+            }
+        }
+    }
 }
 
 /// The answer ADU to `adu`.

@@ -155,34 +155,61 @@ pub(crate) async fn serve(mut port: SerialStream, line: SerialLine, shared: Arc<
             if bytes.is_empty() {
                 continue;
             }
-            if port.write_all(&bytes).await.is_err() || port.flush().await.is_err() {
-                tracing::warn!("plcsim: cannot write to {}", line.device);
+            if !send(&mut port, &bytes, &line, stats).await {
                 return;
             }
-            stats.tx_frames.fetch_add(1, Ordering::Relaxed);
-            stats
-                .tx_bytes
-                .fetch_add(bytes.len() as u64, Ordering::Relaxed);
         }
-        let read = if buf.is_empty() {
-            Ok(port.read_buf(&mut buf).await)
-        } else {
-            tokio::time::timeout(idle, port.read_buf(&mut buf)).await
-        };
-        match read {
-            Ok(Ok(0)) | Ok(Err(_)) => {
-                // The other end is gone (a pty's peer closed): wait for it.
-                tokio::time::sleep(Duration::from_millis(50)).await;
-            }
-            Ok(Ok(n)) => {
-                stats.rx_bytes.fetch_add(n as u64, Ordering::Relaxed);
-            }
-            Err(_idle) => {
-                if let Some(StreamItem::Skipped { bytes, .. }) = codec.abandon_partial(&mut buf) {
-                    stats.rx_skipped.fetch_add(bytes as u64, Ordering::Relaxed);
-                }
+        if read_more(&mut port, &mut buf, stats, idle).await {
+            if let Some(StreamItem::Skipped { bytes, .. }) = codec.abandon_partial(&mut buf) {
+                stats.rx_skipped.fetch_add(bytes as u64, Ordering::Relaxed);
             }
         }
+    }
+}
+
+/// Writes an answer to the line and counts it; `false` when the line fails.
+pub(crate) async fn send(
+    port: &mut SerialStream,
+    bytes: &[u8],
+    line: &SerialLine,
+    stats: &LineStats,
+) -> bool {
+    if port.write_all(bytes).await.is_err() || port.flush().await.is_err() {
+        tracing::warn!("plcsim: cannot write to {}", line.device);
+        return false;
+    }
+    stats.tx_frames.fetch_add(1, Ordering::Relaxed);
+    stats
+        .tx_bytes
+        .fetch_add(bytes.len() as u64, Ordering::Relaxed);
+    true
+}
+
+/// Reads more of the line into `buf` (waiting for the other end while it is
+/// gone); `true` when the line stayed quiet for `idle` with part of a frame
+/// in `buf`, which the caller then gives up.
+pub(crate) async fn read_more(
+    port: &mut SerialStream,
+    buf: &mut BytesMut,
+    stats: &LineStats,
+    idle: Duration,
+) -> bool {
+    let read = if buf.is_empty() {
+        Ok(port.read_buf(buf).await)
+    } else {
+        tokio::time::timeout(idle, port.read_buf(buf)).await
+    };
+    match read {
+        Ok(Ok(0)) | Ok(Err(_)) => {
+            // The other end is gone (a pty's peer closed): wait for it.
+            tokio::time::sleep(Duration::from_millis(50)).await;
+            false
+        }
+        Ok(Ok(n)) => {
+            stats.rx_bytes.fetch_add(n as u64, Ordering::Relaxed);
+            false
+        }
+        Err(_idle) => true,
     }
 }
 

@@ -105,8 +105,21 @@ impl Maker {
                 model: "Tecomat PLC".into(),
                 hw_version: ident.map(str::to_string).filter(|i| !i.is_empty()),
             },
-            Protocol::ModbusTcp => Maker {
-                manufacturer: "Modbus TCP device".into(),
+            Protocol::ModbusRtu => Maker {
+                manufacturer: "Modbus RTU device".into(),
+                model: format!(
+                    "{} unit {}",
+                    section.serial_device.as_deref().unwrap_or("?"),
+                    section.modbus.unit
+                ),
+                hw_version: None,
+            },
+            Protocol::ModbusTcp | Protocol::ModbusRtuTcp => Maker {
+                manufacturer: if section.protocol == Protocol::ModbusTcp {
+                    "Modbus TCP device".into()
+                } else {
+                    "Modbus RTU device".into()
+                },
                 model: format!(
                     "{}:{} unit {}",
                     section

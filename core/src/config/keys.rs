@@ -8,6 +8,7 @@ use std::time::Duration;
 
 use super::broker::BrokerUrl;
 use super::history::{self, Form};
+use super::serial;
 use super::{
     split_masks, Global, MqttFormat, Network, Protocol, Section, Simulator, MQTT_FORMATS,
     OPCUA_SECURITY_CHOICES,
@@ -750,6 +751,13 @@ static KEYS: &[Key] = &[
         .setconf("serial_speed", SetConfScope::Section),
     row("SERIAL_RTS", None, number(0, U32_MAX, ""), "serial RTS control",
         Setter::Section(|s, v| s.serial_rts = Some(v.number() as u32))),
+    row("SERIAL_PARITY", None, choice("parity", &serial::PARITIES),
+        "serial parity of PROTOCOL = MODBUS_RTU (default EVEN)",
+        Setter::Section(|s, v| s.serial_parity = serial::Parity::parse(&v.text()))),
+    row("SERIAL_DATA_BITS", None, number(7, 8, ""), "serial data bits of PROTOCOL = MODBUS_RTU (default 8)",
+        Setter::Section(|s, v| s.serial_data_bits = Some(v.number() as u8))),
+    row("SERIAL_STOP_BITS", None, number(1, 2, ""), "serial stop bits of PROTOCOL = MODBUS_RTU (default 1)",
+        Setter::Section(|s, v| s.serial_stop_bits = Some(v.number() as u8))),
     row("SHM_NAME", None, Kind::Path(PathUse::Input), "shared-memory module of a SoftPLC",
         Setter::Section(|s, v| s.shm_name = Some(v.text()))),
     row("SHM_SOCKET", None, number(0, U32_MAX, ""), "shared-memory socket of a SoftPLC",
@@ -769,7 +777,7 @@ static KEYS: &[Key] = &[
         Setter::Section(|s, v| s.pubfile_fixed = Some(v.text()))),
     // This server's own keys.
     row("PROTOCOL", Some(Protocol::Epsnet.name()), choice("protocol", PROTOCOLS),
-        "backend: EPSNET (default), MODBUS_TCP or ADS",
+        "backend: EPSNET (default), MODBUS_TCP, MODBUS_RTU, MODBUS_RTU_TCP, S7 or ADS",
         Setter::Section(|s, v| s.protocol = v.protocol())),
     row("SIMULATOR", Some("No"), Kind::Bool,
         "Yes runs a simulated PLC (EPSNET, or Modbus TCP) inside the server on a loopback port",
@@ -845,7 +853,7 @@ static KEYS: &[Key] = &[
         Setter::Section(|s, v| s.opcua.publish = Some(split_masks(&v.text())))),
     row("OPCUA_WRITE", None, Kind::Text, "masks of the variables OPC UA users of role write may write (default none)",
         Setter::Section(|s, v| s.opcua.write = split_masks(&v.text()))),
-    // Modbus TCP (PROTOCOL = MODBUS_TCP).
+    // Modbus (PROTOCOL = MODBUS_TCP, MODBUS_RTU, MODBUS_RTU_TCP).
     row("MODBUS_PORT", Some("502"), number(1, 65535, ""), "Modbus TCP port of the device",
         Setter::Section(|s, v| s.modbus.port = v.number() as u16)),
     row("MODBUS_UNIT", Some("1"), number(0, 255, ""), "Modbus unit id (slave address)",

@@ -291,6 +291,10 @@ pub struct Section {
     pub serial_device: Option<String>,
     pub serial_speed: Option<u32>,
     pub serial_rts: Option<u32>,
+    /// SERIAL_PARITY, SERIAL_DATA_BITS, SERIAL_STOP_BITS (MODBUS_RTU).
+    pub serial_parity: Option<serial::Parity>,
+    pub serial_data_bits: Option<u8>,
+    pub serial_stop_bits: Option<u8>,
     pub shm_name: Option<String>,
     pub shm_socket: Option<u32>,
     pub shm_port: Option<u32>,
@@ -322,7 +326,7 @@ pub struct Section {
     pub mqtt: MqttSection,
     /// The OPCUA_* keys (this server's own).
     pub opcua: OpcuaSection,
-    /// The `MODBUS_*` keys (`PROTOCOL = MODBUS_TCP`).
+    /// The `MODBUS_*` keys (a Modbus `PROTOCOL`).
     pub modbus: Modbus,
     /// The `S7_*` keys (`PROTOCOL = S7`).
     pub s7: S7,
@@ -935,6 +939,9 @@ fn section_defaults(name: &str) -> Section {
         serial_device: None,
         serial_speed: None,
         serial_rts: None,
+        serial_parity: None,
+        serial_data_bits: None,
+        serial_stop_bits: None,
         shm_name: None,
         shm_socket: None,
         shm_port: None,
@@ -982,17 +989,31 @@ fn read_section(
         }
     }
     history::warn_unused(&section.history, &map, diags);
-    // Modbus keys: only with PROTOCOL = MODBUS_TCP; such a section reads a
-    // tag file, not public files.
-    let modbus = section.protocol == Protocol::ModbusTcp;
+    // Modbus keys: only with a Modbus PROTOCOL; such a section reads a
+    // tag file, not public files. The character format is RTU's.
+    let modbus = section.protocol.is_modbus();
     for (key, entry) in &map {
         let misplaced = if modbus {
-            matches!(*key, "PUBFILE" | "PUBFILE_FIXED")
-                .then(|| format!("{key} has no effect with PROTOCOL = MODBUS_TCP (its variables come from MODBUS_TAGS)"))
+            matches!(*key, "PUBFILE" | "PUBFILE_FIXED").then(|| {
+                format!(
+                    "{key} has no effect with PROTOCOL = {} (its variables come from MODBUS_TAGS)",
+                    section.protocol
+                )
+            })
         } else {
             key.starts_with("MODBUS_")
-                .then(|| format!("{key} has no effect without PROTOCOL = MODBUS_TCP"))
+                .then(|| format!("{key} has no effect without PROTOCOL = MODBUS_TCP, MODBUS_RTU or MODBUS_RTU_TCP"))
         };
+        let misplaced = misplaced.or_else(|| {
+            (section.protocol != Protocol::ModbusRtu
+                && matches!(
+                    *key,
+                    "SERIAL_PARITY" | "SERIAL_DATA_BITS" | "SERIAL_STOP_BITS"
+                ))
+            .then(|| {
+                format!("{key} has no effect without PROTOCOL = MODBUS_RTU (EPSNET's line is 8N1)")
+            })
+        });
         if let Some(message) = misplaced {
             diags.push(Severity::Warning, entry.line, message);
         }

@@ -13,6 +13,11 @@ pub enum Protocol {
     Epsnet,
     /// Modbus TCP, variables from a tag file (`MODBUS_TAGS`).
     ModbusTcp,
+    /// Modbus RTU on a serial line (`SERIAL_DEVICE`), the same tag files.
+    ModbusRtu,
+    /// Modbus RTU frames over TCP to a serial device server (`IPADDR`,
+    /// `MODBUS_PORT`).
+    ModbusRtuTcp,
     /// Siemens S7comm over ISO-on-TCP, variables from a tag file (`S7_TAGS`).
     S7,
     /// Beckhoff ADS over TCP, variables from the PLC's symbol table.
@@ -32,9 +37,11 @@ pub const PROTOCOLS: &[&str] = &{
 
 impl Protocol {
     /// Every protocol, in the order the documentation lists them.
-    pub const ALL: [Protocol; 4] = [
+    pub const ALL: [Protocol; 6] = [
         Protocol::Epsnet,
         Protocol::ModbusTcp,
+        Protocol::ModbusRtu,
+        Protocol::ModbusRtuTcp,
         Protocol::S7,
         Protocol::Ads,
     ];
@@ -44,9 +51,19 @@ impl Protocol {
         match self {
             Protocol::Epsnet => "EPSNET",
             Protocol::ModbusTcp => "MODBUS_TCP",
+            Protocol::ModbusRtu => "MODBUS_RTU",
+            Protocol::ModbusRtuTcp => "MODBUS_RTU_TCP",
             Protocol::S7 => "S7",
             Protocol::Ads => "ADS",
         }
+    }
+
+    /// Whether the section's variables come from a Modbus tag file.
+    pub const fn is_modbus(self) -> bool {
+        matches!(
+            self,
+            Protocol::ModbusTcp | Protocol::ModbusRtu | Protocol::ModbusRtuTcp
+        )
     }
 
     /// The protocol `text` names, ignoring case as the ini file does.
@@ -69,7 +86,17 @@ mod tests {
 
     #[test]
     fn names_parse_back_in_any_case() {
-        assert_eq!(PROTOCOLS, ["EPSNET", "MODBUS_TCP", "S7", "ADS"]);
+        assert_eq!(
+            PROTOCOLS,
+            [
+                "EPSNET",
+                "MODBUS_TCP",
+                "MODBUS_RTU",
+                "MODBUS_RTU_TCP",
+                "S7",
+                "ADS"
+            ]
+        );
         for protocol in Protocol::ALL {
             assert_eq!(Protocol::parse(protocol.name()), Some(protocol));
             let lower = protocol.to_string().to_ascii_lowercase();

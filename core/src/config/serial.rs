@@ -1,5 +1,38 @@
 //! `[*] SERIAL_DEVICE_CFG`: the RTS GPIO pin of each serial device, parsed
-//! once when the configuration is loaded.
+//! once when the configuration is loaded; and the character format of a
+//! line (`SERIAL_PARITY`, `SERIAL_DATA_BITS`, `SERIAL_STOP_BITS`).
+
+/// `SERIAL_PARITY`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Parity {
+    None,
+    Even,
+    Odd,
+}
+
+/// The key's choices.
+pub const PARITIES: [&str; 3] = ["NONE", "EVEN", "ODD"];
+
+impl Parity {
+    /// One of [`PARITIES`], any case.
+    pub fn parse(text: &str) -> Option<Parity> {
+        Some(match text.to_ascii_uppercase().as_str() {
+            "NONE" => Parity::None,
+            "EVEN" => Parity::Even,
+            "ODD" => Parity::Odd,
+            _ => return None,
+        })
+    }
+
+    /// The letter of `8E1`.
+    pub fn letter(self) -> char {
+        match self {
+            Parity::None => 'N',
+            Parity::Even => 'E',
+            Parity::Odd => 'O',
+        }
+    }
+}
 
 /// One entry of SERIAL_DEVICE_CFG: a serial device and its RTS pin.
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -931,6 +931,11 @@ fn base(key: &str) -> &'static str {
         "SERVER_PORT = 5010\nPROTOCOL = S7\nS7_TAGS = t.csv"
     } else if key.starts_with("ADS_") {
         "SERVER_PORT = 5010\nPROTOCOL = ADS"
+    } else if matches!(
+        key,
+        "SERIAL_PARITY" | "SERIAL_DATA_BITS" | "SERIAL_STOP_BITS"
+    ) {
+        "SERVER_PORT = 5010\nPROTOCOL = MODBUS_RTU\nMODBUS_TAGS = t.csv"
     } else {
         "SERVER_PORT = 5010"
     }
@@ -1011,7 +1016,7 @@ fn protocol() {
     );
     assert_eq!(
         section_error("SERVER_PORT = 1\nPROTOCOL = modbus"),
-        "PLCComS.ini:4: PROTOCOL = modbus is not a protocol (allowed EPSNET, MODBUS_TCP, S7, ADS)"
+        "PLCComS.ini:4: PROTOCOL = modbus is not a protocol (allowed EPSNET, MODBUS_TCP, MODBUS_RTU, MODBUS_RTU_TCP, S7, ADS)"
     );
 }
 
@@ -1050,7 +1055,7 @@ fn modbus_keys_where_they_do_nothing_are_warnings() {
     };
     assert_eq!(
         warnings("SERVER_PORT = 1\nMODBUS_PORT = 1502"),
-        ["PLCComS.ini:4: MODBUS_PORT has no effect without PROTOCOL = MODBUS_TCP"]
+        ["PLCComS.ini:4: MODBUS_PORT has no effect without PROTOCOL = MODBUS_TCP, MODBUS_RTU or MODBUS_RTU_TCP"]
     );
     assert_eq!(
         warnings("SERVER_PORT = 1\nPROTOCOL = MODBUS_TCP\nMODBUS_TAGS = t.csv\nPUBFILE = x.pub"),
@@ -1062,6 +1067,40 @@ fn modbus_keys_where_they_do_nothing_are_warnings() {
     assert_eq!(
         warnings("SERVER_PORT = 1\nPROTOCOL = MODBUS_TCP"),
         ["PLCComS.ini:2: section [PLC] has no MODBUS_TAGS: it serves __PLC_RUN and __PF_CRC only"]
+    );
+}
+
+#[test]
+fn modbus_rtu_keys_load_and_warn_elsewhere() {
+    let loaded = with_section(
+        "SERVER_PORT = 1\nPROTOCOL = modbus_rtu\nSERIAL_DEVICE = /dev/ttyUSB0\nSERIAL_SPEED = 9600\n\
+         SERIAL_PARITY = none\nSERIAL_DATA_BITS = 8\nSERIAL_STOP_BITS = 2\nMODBUS_UNIT = 7\nMODBUS_TAGS = t.csv",
+    )
+    .unwrap();
+    assert!(loaded.diagnostics.is_empty(), "{:?}", messages(&loaded));
+    let s = &loaded.config.sections[0];
+    assert_eq!(s.protocol, Protocol::ModbusRtu);
+    assert_eq!(
+        (
+            s.serial_parity,
+            s.serial_data_bits,
+            s.serial_stop_bits,
+            s.modbus.unit
+        ),
+        (Some(super::serial::Parity::None), Some(8), Some(2), 7)
+    );
+    let loaded = with_section("SERVER_PORT = 1\nSERIAL_PARITY = EVEN").unwrap();
+    assert_eq!(
+        messages(&loaded),
+        ["PLCComS.ini:4: SERIAL_PARITY has no effect without PROTOCOL = MODBUS_RTU (EPSNET's line is 8N1)"]
+    );
+    assert!(
+        with_section("SERVER_PORT = 1\nPROTOCOL = MODBUS_RTU\nSERIAL_PARITY = MARK").is_err()
+            || !messages(
+                &with_section("SERVER_PORT = 1\nPROTOCOL = MODBUS_RTU\nSERIAL_PARITY = MARK")
+                    .unwrap()
+            )
+            .is_empty()
     );
 }
 

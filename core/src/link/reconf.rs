@@ -64,7 +64,7 @@ pub fn apply(config: &Section, change: &ConfChange) -> (Section, bool) {
         }
         // On a Modbus section it names the tag file, which the backend
         // watches (its CRC is `__PF_CRC`): a new link.
-        ConfChange::PubFile(name) if config.protocol == Protocol::ModbusTcp => {
+        ConfChange::PubFile(name) if config.protocol.is_modbus() => {
             config.modbus.tags = Some(name.clone());
             true
         }

@@ -47,10 +47,10 @@ impl UserKind {
     /// The kind a section's backend reads.
     pub fn of(section: &Section) -> UserKind {
         match section.protocol {
-            Protocol::ModbusTcp => UserKind::ModbusTags,
+            protocol if protocol.is_modbus() => UserKind::ModbusTags,
             Protocol::S7 => UserKind::S7Tags,
             Protocol::Ads => UserKind::DeviceSymbols,
-            Protocol::Epsnet => UserKind::PubFile,
+            _ => UserKind::PubFile,
         }
     }
 

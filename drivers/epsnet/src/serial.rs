@@ -17,7 +17,7 @@
 //! - The port is opened at each connection: an adapter unplugged and plugged
 //!   back, or a device that appears later, is found again.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Duration;
 
 use async_trait::async_trait;
@@ -30,14 +30,14 @@ use tokio_util::codec::Decoder;
 use super::{EpsnetClient, Exchange, Timing, Transport};
 use plccoms_core::config::serial::{pin_of, DevicePin};
 use plccoms_core::driver::{Answer, PlcError};
+use plccoms_core::rs485::Gpio;
 use plccoms_plc::epsnet::service::{Request, Response};
 use plccoms_plc::epsnet::stream::{self, StreamCodec, StreamItem, MAX_FRAME};
 
 /// SERIAL_SPEED when the section does not set it (the manual's example).
 pub const DEFAULT_SPEED: u32 = 115_200;
 
-/// Where the kernel's GPIO pins are.
-pub const SYSFS_GPIO: &str = "/sys/class/gpio";
+pub use plccoms_core::rs485::SYSFS_GPIO;
 
 /// How the line's RTS is driven.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -117,31 +117,6 @@ pub fn open_port(device: &str, speed: u32, rts: &Rts) -> std::io::Result<SerialS
         .exclusive(false)
         .open_native_async()
         .map_err(std::io::Error::from)
-}
-
-/// A GPIO pin through sysfs, driven as RTS.
-#[derive(Debug)]
-struct Gpio {
-    value: PathBuf,
-}
-
-impl Gpio {
-    fn open(root: &Path, pin: u32) -> std::io::Result<Gpio> {
-        let dir = root.join(format!("gpio{pin}"));
-        if !dir.exists() {
-            std::fs::write(root.join("export"), pin.to_string())?;
-        }
-        std::fs::write(dir.join("direction"), "out")?;
-        let gpio = Gpio {
-            value: dir.join("value"),
-        };
-        gpio.set(false)?;
-        Ok(gpio)
-    }
-
-    fn set(&self, high: bool) -> std::io::Result<()> {
-        std::fs::write(&self.value, if high { "1" } else { "0" })
-    }
 }
 
 /// The serial transport.
@@ -271,10 +246,7 @@ impl Serial {
 /// Waits until the UART has sent everything written.
 fn drain(port: &SerialStream) {
     use std::os::fd::AsRawFd;
-    // SAFETY: tcdrain on the port's own open descriptor.
-    unsafe {
-        libc::tcdrain(port.as_raw_fd());
-    }
+    plccoms_core::rs485::drain(port.as_raw_fd());
 }
 
 #[async_trait]
@@ -385,27 +357,5 @@ mod tests {
         assert_eq!(byte_time(115_200, 11_520), Duration::from_secs(1));
         assert_eq!(idle_gap(115_200), Duration::from_millis(20));
         assert_eq!(idle_gap(9600), Duration::from_micros(31_250));
-    }
-
-    #[test]
-    fn gpio_is_exported_set_out_and_low() {
-        let root = tempfile::tempdir().unwrap();
-        std::fs::create_dir(root.path().join("gpio17")).unwrap();
-        let gpio = Gpio::open(root.path(), 17).unwrap();
-        assert_eq!(
-            std::fs::read_to_string(root.path().join("gpio17/direction")).unwrap(),
-            "out"
-        );
-        gpio.set(true).unwrap();
-        assert_eq!(
-            std::fs::read_to_string(root.path().join("gpio17/value")).unwrap(),
-            "1"
-        );
-        // Not exported yet: asks the kernel to.
-        assert!(Gpio::open(root.path(), 4).is_err());
-        assert_eq!(
-            std::fs::read_to_string(root.path().join("export")).unwrap(),
-            "4"
-        );
     }
 }

@@ -32,7 +32,7 @@ use plccoms_plc::modbus::frame::{Request, Response};
 use plccoms_plc::modbus::ExceptionCode;
 
 /// Retries of a transaction after its first attempt.
-const RETRIES: u32 = 1;
+pub const RETRIES: u32 = 1;
 
 /// What one transaction got: the data, or the device's exception.
 pub type Outcome = Result<Response, ExceptionCode>;
@@ -56,6 +56,32 @@ struct Slot {
     done: bool,
 }
 
+/// A TCP connection to `device` (from `local`, when given) within
+/// `timeout`.
+pub async fn connect_tcp(
+    device: SocketAddr,
+    local: Option<std::net::IpAddr>,
+    timeout: Duration,
+) -> Result<TcpStream, PlcError> {
+    let connect = async {
+        let socket = if device.is_ipv4() {
+            TcpSocket::new_v4()?
+        } else {
+            TcpSocket::new_v6()?
+        };
+        if let Some(ip) = local {
+            socket.bind(SocketAddr::new(ip, 0))?;
+        }
+        socket.connect(device).await
+    };
+    let stream: TcpStream = tokio::time::timeout(timeout, connect).await.map_err(|_| {
+        PlcError::Timeout(format!("no TCP connection to {device} within {timeout:?}"))
+    })??;
+    // Requests are small and waited for: never hold one back.
+    stream.set_nodelay(true)?;
+    Ok(stream)
+}
+
 impl Connection {
     /// Connects to `device` (from `local`, when given) within `timeout`.
     pub async fn open(
@@ -64,22 +90,7 @@ impl Connection {
         unit: u8,
         timeout: Duration,
     ) -> Result<Connection, PlcError> {
-        let connect = async {
-            let socket = if device.is_ipv4() {
-                TcpSocket::new_v4()?
-            } else {
-                TcpSocket::new_v6()?
-            };
-            if let Some(ip) = local {
-                socket.bind(SocketAddr::new(ip, 0))?;
-            }
-            socket.connect(device).await
-        };
-        let stream: TcpStream = tokio::time::timeout(timeout, connect).await.map_err(|_| {
-            PlcError::Timeout(format!("no TCP connection to {device} within {timeout:?}"))
-        })??;
-        // Requests are small and waited for: never hold one back.
-        stream.set_nodelay(true)?;
+        let stream = connect_tcp(device, local, timeout).await?;
         let (read, write) = stream.into_split();
         Ok(Connection {
             device,

@@ -1,6 +1,8 @@
 //! Modbus TCP: the backend for Siemens (MB_SERVER), Beckhoff, B&R, Saia,
 //! Schneider PLCs and energy meters, behind the same line protocol as a
-//! Tecomat PLC.
+//! Tecomat PLC; and Modbus RTU (`PROTOCOL = MODBUS_RTU` on a serial line,
+//! `MODBUS_RTU_TCP` through a serial device server), the same backend over
+//! another transport: a line shared by every section on it ([`line`]).
 //!
 //! Its variables come from a tag file (`MODBUS_TAGS`, see
 //! `plccoms_plc::modbus::tags`) and live in this layout of the X/Y/S/R
@@ -39,6 +41,7 @@
 
 pub mod client;
 pub mod layout;
+pub mod line;
 
 use std::net::{IpAddr, SocketAddr};
 use std::path::PathBuf;
@@ -51,6 +54,7 @@ use tracing::{info, warn};
 
 use client::{Connection, Outcome};
 use layout::{answer_bytes, plan_read, DeviceLimits, Source};
+use line::{Endpoint, Line, SerialLine};
 use plccoms_core::config::Protocol;
 use plccoms_core::driver::{
     Answer, PlcBackend, PlcError, PlcStatus, ReadRequest, Refusal, WriteData, WriteRequest,
@@ -82,6 +86,19 @@ pub struct ModbusConfig {
     pub inflight: usize,
     /// The tag file, whose CRC is `__PF_CRC`.
     pub tags: Option<PathBuf>,
+    /// Modbus RTU on this line (shared with the other sections on it)
+    /// instead of Modbus TCP to `device`.
+    pub rtu: Option<Endpoint>,
+}
+
+impl ModbusConfig {
+    /// Where the device is, for messages.
+    pub fn place(&self) -> String {
+        match &self.rtu {
+            Some(line) => format!("{line} unit {}", self.unit),
+            None => format!("{} unit {}", self.device, self.unit),
+        }
+    }
 }
 
 impl ModbusConfig {
@@ -98,17 +115,41 @@ impl ModbusConfig {
             gap: 8,
             inflight: 1,
             tags: None,
+            rtu: None,
         }
     }
 }
 
 pub struct ModbusBackend {
     config: ModbusConfig,
-    connection: Option<Connection>,
+    connection: Option<Link>,
+    /// The RTU line, held from the first connection on, across losses:
+    /// closing the port at each would lose what the line brings meanwhile,
+    /// and the other end of a pty takes the last close for a hang-up.
+    line: Option<Arc<Line>>,
     counters: Arc<BackendCounters>,
     system: SystemArea,
     /// The device takes FC 22 (until it says otherwise).
     mask_write: bool,
+}
+
+/// The transport of a connected backend.
+enum Link {
+    Tcp(Connection),
+    /// A hold on a shared RTU line; `retries` per transaction.
+    Rtu {
+        line: Arc<Line>,
+        retries: u32,
+    },
+}
+
+impl Link {
+    fn probing(&mut self, probing: bool) {
+        match self {
+            Link::Tcp(connection) => connection.probing(probing),
+            Link::Rtu { retries, .. } => *retries = if probing { 0 } else { client::RETRIES },
+        }
+    }
 }
 
 fn not_connected() -> PlcError {
@@ -124,6 +165,7 @@ impl ModbusBackend {
         ModbusBackend {
             config,
             connection: None,
+            line: None,
             counters: Arc::default(),
             system,
             mask_write: true,
@@ -146,9 +188,23 @@ impl ModbusBackend {
             return Ok(Vec::new());
         }
         let connection = self.connection.as_mut().ok_or_else(not_connected)?;
-        let result = connection
-            .exchange(requests, window, self.config.timeout, &self.counters)
-            .await;
+        let result = match connection {
+            Link::Tcp(connection) => {
+                connection
+                    .exchange(requests, window, self.config.timeout, &self.counters)
+                    .await
+            }
+            Link::Rtu { line, retries } => {
+                line.exchange(
+                    self.config.unit,
+                    requests,
+                    self.config.timeout,
+                    *retries,
+                    &self.counters,
+                )
+                .await
+            }
+        };
         let outcomes = match result {
             Ok(outcomes) => outcomes,
             Err(err) => {
@@ -163,8 +219,8 @@ impl ModbusBackend {
             self.counters.errors.inc();
             self.connection = None;
             return Err(PlcError::Timeout(format!(
-                "{} unit {}: {code}",
-                self.config.device, self.config.unit
+                "{}: {code}",
+                self.config.place()
             )));
         }
         Ok(outcomes)
@@ -174,13 +230,24 @@ impl ModbusBackend {
     /// `probing`: that request is sent once.
     async fn connect_with(&mut self, probing: bool) -> Result<String, PlcError> {
         self.connection = None;
-        let mut connection = Connection::open(
-            self.config.device,
-            self.config.local_ip,
-            self.config.unit,
-            self.config.timeout,
-        )
-        .await?;
+        let mut connection = match &self.config.rtu {
+            None => Link::Tcp(
+                Connection::open(
+                    self.config.device,
+                    self.config.local_ip,
+                    self.config.unit,
+                    self.config.timeout,
+                )
+                .await?,
+            ),
+            Some(endpoint) => Link::Rtu {
+                line: self
+                    .line
+                    .get_or_insert_with(|| line::attach(endpoint))
+                    .clone(),
+                retries: client::RETRIES,
+            },
+        };
         connection.probing(probing);
         self.connection = Some(connection);
         // Any answer, an exception included, says the device is there; a
@@ -194,7 +261,10 @@ impl ModbusBackend {
         if let Some(connection) = self.connection.as_mut() {
             connection.probing(false);
         }
-        Ok(format!("Modbus TCP unit {}", self.config.unit))
+        Ok(match self.config.rtu {
+            None => format!("Modbus TCP unit {}", self.config.unit),
+            Some(_) => format!("Modbus RTU unit {}", self.config.unit),
+        })
     }
 
     async fn one(&mut self, request: Request) -> Result<Outcome, PlcError> {
@@ -281,7 +351,7 @@ impl ModbusBackend {
             match self.one(request).await? {
                 Ok(_) => return Ok(Ok(())),
                 Err(ExceptionCode::ILLEGAL_FUNCTION) => {
-                    info!(device = %self.config.device, "the device has no mask write (FC 22): register bits are written by read-modify-write");
+                    info!(device = %self.config.place(), "the device has no mask write (FC 22): register bits are written by read-modify-write");
                     self.mask_write = false;
                 }
                 Err(code) => return Ok(Err(Refusal::Modbus(code))),
@@ -365,10 +435,10 @@ fn chunks(first: u32, last: u32, max: u32) -> impl Iterator<Item = (u32, u32)> {
 #[async_trait]
 impl PlcBackend for ModbusBackend {
     fn describe(&self) -> String {
-        format!(
-            "Modbus TCP {} unit {}",
-            self.config.device, self.config.unit
-        )
+        match self.config.rtu {
+            None => format!("Modbus TCP {}", self.config.place()),
+            Some(_) => format!("Modbus RTU {}", self.config.place()),
+        }
     }
 
     fn max_read_block(&self, area: Area) -> u32 {
@@ -483,7 +553,7 @@ impl PlcBackend for ModbusBackend {
                     .refusal_hint(write.area, write.offset, e)
                     .map(|hint| format!("; {hint}"))
                     .unwrap_or_default();
-                warn!(device = %self.config.device, "write of {place} refused: {e}{hint}");
+                warn!(device = %self.config.place(), "write of {place} refused: {e}{hint}");
             }
             answers.push(answer);
         }
@@ -498,7 +568,8 @@ impl PlcBackend for ModbusBackend {
     }
 }
 
-/// This driver, for the binary's list: sections with `PROTOCOL = MODBUS_TCP`.
+/// This driver, for the binary's list: sections with `PROTOCOL =
+/// MODBUS_TCP`, `MODBUS_RTU` or `MODBUS_RTU_TCP`.
 pub const DRIVER: Driver = Driver {
     name: "modbus",
     open,
@@ -507,24 +578,63 @@ pub const DRIVER: Driver = Driver {
 /// Modbus TCP to `IPADDR:MODBUS_PORT`, or `None` when the section has no
 /// device yet (`IPADDR` unset or `0.0.0.0`).
 fn open(section: &plccoms_core::config::Section, dir: &std::path::Path) -> Option<Opened> {
-    if section.protocol != Protocol::ModbusTcp {
+    if !section.protocol.is_modbus() {
         return None;
     }
-    if section.serial_device.is_some() || section.shm_name.is_some() {
-        return Some(Err(
-            "PROTOCOL = MODBUS_TCP runs over TCP: SERIAL_DEVICE and SHM_NAME do not apply"
-                .to_string(),
-        ));
+    if section.shm_name.is_some() {
+        return Some(Err(format!(
+            "PROTOCOL = {}: SHM_NAME does not apply",
+            section.protocol
+        )));
+    }
+    if section.protocol == Protocol::ModbusRtu {
+        let Some(device) = &section.serial_device else {
+            return Some(Err(
+                "PROTOCOL = MODBUS_RTU needs SERIAL_DEVICE (the serial line)".to_string(),
+            ));
+        };
+        let mut config = config_of(section, SocketAddr::from(([0, 0, 0, 0], 0)), dir);
+        config.rtu = Some(Endpoint::Serial(serial_line_of(section, device)));
+        return Some(Ok(Some(Box::new(ModbusBackend::new(config)))));
+    }
+    if section.serial_device.is_some() {
+        return Some(Err(format!(
+            "PROTOCOL = {} runs over TCP: SERIAL_DEVICE does not apply (MODBUS_RTU: a serial line)",
+            section.protocol
+        )));
     }
     Some(match section.ipaddr {
         Some(ip) if !ip.is_unspecified() => {
             let device = SocketAddr::new(IpAddr::V4(ip), section.modbus.port);
-            Ok(Some(Box::new(ModbusBackend::new(config_of(
-                section, device, dir,
-            )))))
+            let mut config = config_of(section, device, dir);
+            if section.protocol == Protocol::ModbusRtuTcp {
+                config.rtu = Some(Endpoint::Tcp {
+                    server: device,
+                    local: config.local_ip,
+                });
+            }
+            Ok(Some(Box::new(ModbusBackend::new(config))))
         }
         _ => Ok(None),
     })
+}
+
+/// The serial line a MODBUS_RTU section names: SERIAL_SPEED and the
+/// character format, the Modbus defaults (9600 8E1) where not set, and the
+/// RTS pin (SERIAL_RTS, else the device's in SERIAL_DEVICE_CFG).
+pub fn serial_line_of(section: &plccoms_core::config::Section, device: &str) -> SerialLine {
+    let mut line = SerialLine::new(device);
+    line.speed = section.serial_speed.unwrap_or(line.speed);
+    line.parity = section.serial_parity.unwrap_or(line.parity);
+    line.data_bits = section.serial_data_bits.unwrap_or(line.data_bits);
+    line.stop_bits = section.serial_stop_bits.unwrap_or(line.stop_bits);
+    line.rts = section.serial_rts.or_else(|| {
+        plccoms_core::config::serial::pin_of(
+            section.serial_device_cfg.as_deref().unwrap_or_default(),
+            device,
+        )
+    });
+    line
 }
 
 /// Modbus settings from a section's keys, for a device at `device`.

@@ -348,7 +348,19 @@ pub fn encode_response(
     answer: &Result<Response, ExceptionCode>,
     out: &mut Vec<u8>,
 ) {
-    let pdu = match (answer, request) {
+    let pdu = response_pdu(function, request, answer);
+    put_header(header, pdu.len(), out);
+    out.extend_from_slice(&pdu);
+}
+
+/// The PDU answering a request of `function` (the server's side, any
+/// framing).
+pub fn response_pdu(
+    function: u8,
+    request: Option<&Request>,
+    answer: &Result<Response, ExceptionCode>,
+) -> Vec<u8> {
+    match (answer, request) {
         (Err(code), _) => vec![function | 0x80, code.0],
         // Data without the request it answers: the server failed.
         (Ok(_), None) => vec![function | 0x80, ExceptionCode::SERVER_DEVICE_FAILURE.0],
@@ -375,18 +387,17 @@ pub fn encode_response(
             };
             echo.to_vec()
         }
-    };
-    put_header(header, pdu.len(), out);
-    out.extend_from_slice(&pdu);
+    }
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use tokio_util::codec::Decoder;
 
     use super::*;
 
-    fn every_request() -> Vec<Request> {
+    /// One request of every function, for the framings' tests.
+    pub(crate) fn every_request() -> Vec<Request> {
         vec![
             Request::ReadCoils {
                 address: 1,
@@ -428,6 +439,20 @@ mod tests {
         ]
     }
 
+    /// A granted answer to `request`.
+    pub(crate) fn answer_to(request: &Request) -> Response {
+        match request {
+            Request::ReadCoils { count, .. } | Request::ReadDiscreteInputs { count, .. } => {
+                Response::Bits((0..*count).map(|i| i % 3 == 0).collect())
+            }
+            Request::ReadHoldingRegisters { count, .. }
+            | Request::ReadInputRegisters { count, .. } => {
+                Response::Registers((0..*count).collect())
+            }
+            _ => Response::Written,
+        }
+    }
+
     #[test]
     fn requests_and_answers_round_trip_through_both_ends() {
         for (i, request) in every_request().into_iter().enumerate() {
@@ -442,16 +467,7 @@ mod tests {
             assert!(buf.is_empty());
             assert_eq!(adu.header, header);
             assert_eq!(decode_request(&adu.pdu), Ok(request.clone()));
-            let answer = match &request {
-                Request::ReadCoils { count, .. } | Request::ReadDiscreteInputs { count, .. } => {
-                    Response::Bits((0..*count).map(|i| i % 3 == 0).collect())
-                }
-                Request::ReadHoldingRegisters { count, .. }
-                | Request::ReadInputRegisters { count, .. } => {
-                    Response::Registers((0..*count).collect())
-                }
-                _ => Response::Written,
-            };
+            let answer = answer_to(&request);
             let mut out = Vec::new();
             encode_response(
                 header,

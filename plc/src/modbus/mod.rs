@@ -26,6 +26,7 @@
 
 pub mod codec;
 pub mod frame;
+pub mod rtu;
 pub mod tags;
 
 use std::fmt;

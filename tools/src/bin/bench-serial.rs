@@ -21,10 +21,11 @@ use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use clap::Parser;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::TcpStream;
 
 use plcsim::serial::SerialLine;
+
+#[path = "common/line.rs"]
+mod line;
 use plcsim::{PubSource, SimConfig};
 
 #[derive(Debug, Parser)]
@@ -106,13 +107,7 @@ async fn measure(
         .await
         .expect("start");
     let metrics = server.sections[0].section.metrics().clone();
-    let mut client = TcpStream::connect(("127.0.0.1", port)).await.unwrap();
-    client.write_all(b"EN:*\n").await.unwrap();
-    // Drain DIFFs in the background.
-    tokio::spawn(async move {
-        let mut buf = vec![0u8; 1 << 16];
-        while matches!(client.read(&mut buf).await, Ok(n) if n > 0) {}
-    });
+    line::enable_all(port).await;
     tokio::time::sleep(Duration::from_secs(2)).await;
     // Both ends of the window just after a cycle ends, so the line's bytes
     // are those of whole cycles.
@@ -159,16 +154,8 @@ async fn main() {
     let port = args.port;
 
     // The line: socat's pty pair.
-    let (plc_end, server_end) = (dir.path().join("plc"), dir.path().join("server"));
-    let end = |p: &Path| format!("pty,raw,echo=0,link={}", p.display());
-    let mut socat = std::process::Command::new("socat")
-        .args([end(&plc_end), end(&server_end)])
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .expect("socat (apt-get install socat)");
-    while !(plc_end.exists() && server_end.exists()) {
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
+    let pty = line::PtyPair::new(dir.path()).await;
+    let (plc_end, server_end) = (&pty.plc, &pty.server);
     let sim = plcsim::spawn(SimConfig {
         pubfile: PubSource::Bytes(project.clone()),
         program: "idle".parse().unwrap(),
@@ -197,8 +184,7 @@ async fn main() {
     };
     let serial = measure(dir.path(), &serial_ini, port, args.seconds, &counters).await;
     drop(sim);
-    let _ = socat.kill();
-    let _ = socat.wait();
+    drop(pty);
 
     let plugin = args.plugin.unwrap_or_else(|| {
         std::env::current_exe()

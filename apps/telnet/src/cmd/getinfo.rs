@@ -16,7 +16,6 @@ use std::fmt::Write;
 use plccoms_protocol::answer::ErrorCode;
 
 use super::{error, Cx, Reply};
-use plccoms_core::config::Protocol;
 
 const KEYS: &[&str] = &[
     "VERSION",
@@ -95,8 +94,8 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
     // The settings as SETCONF left them, and the link as it is.
     let state = cx.section.state();
     let (config, link) = (&state.config, &state.link);
-    let modbus = config.protocol == Protocol::ModbusTcp;
-    let s7 = config.protocol == Protocol::S7;
+    let modbus = config.protocol.is_modbus();
+    let s7 = config.protocol == plccoms_core::config::Protocol::S7;
     // The full list shows what the section's protocol has.
     let shown = match key {
         "PROTOCOL" => modbus || s7,
