@@ -2,7 +2,8 @@
 //! outside. Memory areas and their image ([`memory`]), public files
 //! ([`pubfile`]), file attributes and times ([`files`], [`time`]), and the
 //! EPSNET wire format ([`epsnet`]: frames, codec, the one table of service
-//! codes), Modbus TCP ([`modbus`]: frames, codec, tag files), a device's
+//! codes), Modbus TCP ([`modbus`]: frames, codec, tag files), OPC UA ([`opcua`]: node
+//! ids, tag files, StatusCode names), a device's
 //! refusal whatever its protocol ([`refusal`]), a variable ([`var`]) and how
 //! its bytes become a client's value ([`value_codec`]). Shared by the
 //! server's backends and the simulated PLC (`plcsim`), which reuse the same
@@ -12,6 +13,7 @@ pub mod epsnet;
 pub mod files;
 pub mod memory;
 pub mod modbus;
+pub mod opcua;
 pub mod pubfile;
 pub mod refusal;
 pub mod time;

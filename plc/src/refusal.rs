@@ -17,6 +17,8 @@ pub enum Refusal {
     Epsnet(Exception),
     /// A Modbus device's exception code.
     Modbus(ExceptionCode),
+    /// An OPC UA server's StatusCode (Bad or Uncertain) for one node.
+    Opcua(u32),
 }
 
 impl Refusal {
@@ -44,6 +46,10 @@ impl fmt::Display for Refusal {
         match self {
             Refusal::Epsnet(e) => e.fmt(f),
             Refusal::Modbus(code) => code.fmt(f),
+            Refusal::Opcua(code) => match crate::opcua::status::name(*code) {
+                Some(name) => write!(f, "OPC UA {name} (0x{code:08X})"),
+                None => write!(f, "OPC UA status 0x{code:08X}"),
+            },
         }
     }
 }
@@ -65,6 +71,10 @@ mod tests {
         assert_eq!(
             Refusal::from(ExceptionCode(2)).to_string(),
             "Modbus exception 2 (illegal data address)"
+        );
+        assert_eq!(
+            Refusal::Opcua(0x803B_0000).to_string(),
+            "OPC UA BadNotWritable (0x803B0000)"
         );
     }
 }

@@ -310,13 +310,13 @@ pub fn parse(bytes: &[u8]) -> TagFile {
 /// offset is where the skipped lines begin), so the record's line is found
 /// from that offset by skipping them here, counting as it goes.
 #[derive(Default)]
-struct LineCounter {
+pub(crate) struct LineCounter {
     at: usize,
     line: usize,
 }
 
 impl LineCounter {
-    fn line_of(&mut self, bytes: &[u8], offset: usize) -> usize {
+    pub(crate) fn line_of(&mut self, bytes: &[u8], offset: usize) -> usize {
         let mut start = offset.min(bytes.len());
         loop {
             match bytes.get(start) {
@@ -342,7 +342,7 @@ impl LineCounter {
     }
 }
 
-fn text(field: &[u8], utf8: bool) -> String {
+pub(crate) fn text(field: &[u8], utf8: bool) -> String {
     if utf8 {
         String::from_utf8_lossy(field).into_owned()
     } else {
@@ -643,7 +643,7 @@ fn tag(
 }
 
 /// The name in cp1250, checked as a public file's names are.
-fn name_bytes(text: &str, utf8: bool, raw: &[u8]) -> Result<Box<[u8]>, String> {
+pub(crate) fn name_bytes(text: &str, utf8: bool, raw: &[u8]) -> Result<Box<[u8]>, String> {
     if text.is_empty() {
         return Err("empty name".to_string());
     }
