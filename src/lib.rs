@@ -56,4 +56,6 @@ pub const DRIVERS: Drivers = Drivers(&[
     plccoms_driver_modbus::DRIVER,
     #[cfg(feature = "plugin")]
     plccoms_driver_plugin::DRIVER,
+    #[cfg(feature = "opcua-client")]
+    plccoms_driver_opcua::DRIVER,
 ]);

@@ -117,6 +117,11 @@ impl Maker {
                 ),
                 hw_version: None,
             },
+            Protocol::Opcua => Maker {
+                manufacturer: "OPC UA server".into(),
+                model: section.opcua.url.clone().unwrap_or_default(),
+                hw_version: ident.map(str::to_string).filter(|i| !i.is_empty()),
+            },
         }
     }
 }

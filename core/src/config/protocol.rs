@@ -13,6 +13,9 @@ pub enum Protocol {
     Epsnet,
     /// Modbus TCP, variables from a tag file (`MODBUS_TAGS`).
     ModbusTcp,
+    /// A PLC's own OPC UA server (`OPCUA_URL`), variables browsed
+    /// (`OPCUA_BROWSE`) or from a tag file (`OPCUA_TAGS`).
+    Opcua,
 }
 
 /// The ini names, in [`Protocol::ALL`]'s order: the key table's choices.
@@ -28,13 +31,14 @@ pub const PROTOCOLS: &[&str] = &{
 
 impl Protocol {
     /// Every protocol, in the order the documentation lists them.
-    pub const ALL: [Protocol; 2] = [Protocol::Epsnet, Protocol::ModbusTcp];
+    pub const ALL: [Protocol; 3] = [Protocol::Epsnet, Protocol::ModbusTcp, Protocol::Opcua];
 
     /// The name in the ini file and in `GETINFO:PROTOCOL`.
     pub const fn name(self) -> &'static str {
         match self {
             Protocol::Epsnet => "EPSNET",
             Protocol::ModbusTcp => "MODBUS_TCP",
+            Protocol::Opcua => "OPCUA",
         }
     }
 
@@ -58,7 +62,7 @@ mod tests {
 
     #[test]
     fn names_parse_back_in_any_case() {
-        assert_eq!(PROTOCOLS, ["EPSNET", "MODBUS_TCP"]);
+        assert_eq!(PROTOCOLS, ["EPSNET", "MODBUS_TCP", "OPCUA"]);
         for protocol in Protocol::ALL {
             assert_eq!(Protocol::parse(protocol.name()), Some(protocol));
             let lower = protocol.to_string().to_ascii_lowercase();

@@ -490,7 +490,7 @@ impl Link {
             if let Err(err) = self.reload(NamedBy::Configuration).await {
                 let serving = match self.user_kind() {
                     UserKind::PubFile => "the fixed variables",
-                    UserKind::ModbusTags => "__PLC_RUN and __PF_CRC",
+                    UserKind::ModbusTags | UserKind::Opcua => "__PLC_RUN and __PF_CRC",
                 };
                 warn!(section = %self.name, "{err}; serving {serving} only, tried again at the next connection");
             }

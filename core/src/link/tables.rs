@@ -35,15 +35,19 @@ pub enum UserKind {
     PubFile,
     /// A Modbus tag file (MODBUS_TAGS), on this machine only.
     ModbusTags,
+    /// The variables an OPC UA backend found (OPCUA_BROWSE, or OPCUA_TAGS
+    /// with the server's types), always fetched from the backend as a tag
+    /// file ([`plccoms_plc::opcua::VARS_FILE`]).
+    Opcua,
 }
 
 impl UserKind {
     /// The kind a section's backend reads.
     pub fn of(section: &Section) -> UserKind {
-        if section.protocol == Protocol::ModbusTcp {
-            UserKind::ModbusTags
-        } else {
-            UserKind::PubFile
+        match section.protocol {
+            Protocol::ModbusTcp => UserKind::ModbusTags,
+            Protocol::Opcua => UserKind::Opcua,
+            Protocol::Epsnet => UserKind::PubFile,
         }
     }
 
@@ -52,6 +56,7 @@ impl UserKind {
         match self {
             UserKind::PubFile => section.pubfile.as_ref(),
             UserKind::ModbusTags => section.modbus.tags.as_ref(),
+            UserKind::Opcua => None,
         }
     }
 
@@ -60,6 +65,7 @@ impl UserKind {
         match self {
             UserKind::PubFile => "public file",
             UserKind::ModbusTags => "tag file",
+            UserKind::Opcua => "OPC UA variable list",
         }
     }
 
@@ -74,6 +80,9 @@ impl UserKind {
             UserKind::ModbusTags => {
                 format!("tag file changed, reloading (__PF_CRC {last:08X} -> {now:08X})")
             }
+            UserKind::Opcua => format!(
+                "the OPC UA server's variables changed, reloading (__PF_CRC {last:08X} -> {now:08X})"
+            ),
         }
     }
 }
@@ -138,6 +147,9 @@ impl PubSource {
         section: &Section,
         by: NamedBy,
     ) -> Result<Option<UserFile>, LoadError> {
+        if self.kind == UserKind::Opcua {
+            return Err(LoadError::FromPlc);
+        }
         let Some(name) = self.kind.name(section) else {
             return Ok(None);
         };
@@ -194,7 +206,10 @@ impl PubSource {
             Err(LoadError::Failed(message)) => return Err(message),
             Err(LoadError::FromPlc) => {}
         }
-        let name = section.pubfile.as_deref().unwrap_or_default();
+        let name = match self.kind {
+            UserKind::Opcua => plccoms_plc::opcua::VARS_FILE,
+            _ => section.pubfile.as_deref().unwrap_or_default(),
+        };
         let local = self.local_path(section, name);
         let Some(backend) = backend else {
             return Err(format!(
@@ -211,8 +226,8 @@ impl PubSource {
                 )
             })?;
         let display = file_name(name);
-        info!(section = %section.name, "public file {name} fetched from the PLC ({} bytes)", bytes.len());
-        if section.pubfile_write {
+        info!(section = %section.name, "{} {name} fetched from the PLC ({} bytes)", self.kind.what(), bytes.len());
+        if section.pubfile_write && self.kind == UserKind::PubFile {
             if let Some(parent) = local.parent() {
                 let _ = std::fs::create_dir_all(parent);
             }
@@ -236,6 +251,13 @@ impl PubSource {
             UserKind::ModbusTags => (
                 user.map(|u| (u.name.as_str(), VarFile::from(&tags::parse(&u.bytes)))),
                 plccoms_plc::modbus::MAP,
+            ),
+            UserKind::Opcua => (
+                user.map(|u| {
+                    let file = plccoms_plc::opcua::tags::parse(&u.bytes);
+                    (u.name.as_str(), VarFile::from(&file))
+                }),
+                plccoms_plc::opcua::MAP,
             ),
         };
         let mut warnings = Vec::new();
@@ -272,6 +294,12 @@ impl PubSource {
         user: Option<&UserFile>,
         from_plc: bool,
     ) -> String {
+        if self.kind == UserKind::Opcua {
+            return match user {
+                Some(user) => format!("OPC UA variables loaded: {}", user.name),
+                None => "OPC UA variables are looked for when the server answers".to_string(),
+            };
+        }
         if self.kind == UserKind::ModbusTags {
             return match user {
                 Some(user) => format!("tag file loaded: {}", user.name),
@@ -348,7 +376,7 @@ fn read_bounded(path: &Path) -> std::io::Result<Vec<u8>> {
 pub fn expected_crc(kind: UserKind, user: &UserFile) -> Option<u32> {
     match kind {
         UserKind::PubFile => pubfile::parse(&user.bytes).crc,
-        UserKind::ModbusTags => Some(pubfile::crc_of(&user.bytes)),
+        UserKind::ModbusTags | UserKind::Opcua => Some(pubfile::crc_of(&user.bytes)),
     }
 }
 

@@ -155,11 +155,11 @@ pub fn complete(cx: &mut Cx<'_>, then: ReadThen, reply: ReadReply, out: &mut Vec
                 } else {
                     match answers.next() {
                         Some(Ok(bytes)) => var.format(&var.decode(&bytes), format, out),
-                        Some(Err(Refusal::Modbus(code))) => {
+                        Some(Err(refusal @ (Refusal::Modbus(_) | Refusal::Opcua(_)))) => {
                             // The device's exception, named in the context.
                             out.truncate(start);
                             let context =
-                                plccoms_core::section::write::exception_context(&var.name, code);
+                                plccoms_core::section::write::exception_context(&var.name, refusal);
                             plccoms_protocol::answer::write_error(out, ErrorCode::MemGet, &context);
                             out.extend_from_slice(eol);
                             return;
