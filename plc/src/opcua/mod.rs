@@ -34,7 +34,7 @@ pub const VARS_FILE: &str = "OPCUA_VARS.csv";
 /// Joins browse names into a variable name: `.` between them; in each,
 /// the characters a name cannot hold on the line protocol (space and
 /// control characters, `, : * " ;`, `.` itself, and characters cp1250 lacks)
-/// become `_`, as does a leading `%`. Cut to [`crate::pubfile::MAX_NAME`]
+/// become `_`, as does a leading `%` or `#`. Cut to [`crate::pubfile::MAX_NAME`]
 /// bytes.
 pub fn path_name<S: AsRef<str>>(path: &[S]) -> String {
     let mut name = String::new();
@@ -54,7 +54,8 @@ pub fn path_name<S: AsRef<str>>(path: &[S]) -> String {
             name.push(if bad { '_' } else { c });
         }
     }
-    if name.starts_with('%') {
+    // `%` marks direct addresses; `#` starts a comment line in a tag file.
+    if name.starts_with(['%', '#']) {
         name.replace_range(..1, "_");
     }
     let mut end = name.len();
@@ -104,6 +105,7 @@ mod tests {
             "_DB_1_.a_b.x_y_z__.€"
         );
         assert_eq!(path_name(&["%I0", ""]), "_I0._");
+        assert_eq!(path_name(&["#x"]), "_x");
         assert_eq!(path_name(&["日本"]), "__");
         assert_eq!(path_name(&["x".repeat(300)]).len(), 255);
     }
