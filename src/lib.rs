@@ -31,6 +31,7 @@ pub const OUR_CRATES: &[&str] = &[
     "plccoms_driver_epsnet",
     "plccoms_driver_modbus",
     "plccoms_driver_plugin",
+    "plccoms_driver_opcua",
     "plccoms_telnet",
     "plccoms_historian",
     "plccoms_mqtt",
@@ -38,12 +39,22 @@ pub const OUR_CRATES: &[&str] = &[
     "plcsim",
 ];
 
+/// Libraries that report what our own crates report once, in our terms:
+/// async-opcua's client logs every failed connection attempt (several
+/// lines a second while a server is away) and each refused request; the
+/// OPC UA driver says what matters once per outage. Shown with `-vv`.
+pub const QUIET_CRATES: &[&str] = &["opcua_client", "opcua_core::comms::secure_channel"];
+
 /// The log filter for `level` (`info`, `debug`, `trace`): our crates at
-/// that level, every other at `info`.
+/// that level, every other at `info` ([`QUIET_CRATES`] off but at `trace`).
 pub fn log_filter(level: &str) -> String {
     let mut filter = String::from("info");
     for name in OUR_CRATES {
         filter.push_str(&format!(",{name}={level}"));
+    }
+    for name in QUIET_CRATES {
+        let quiet = if level == "trace" { "debug" } else { "off" };
+        filter.push_str(&format!(",{name}={quiet}"));
     }
     filter
 }

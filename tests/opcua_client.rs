@@ -393,3 +393,43 @@ async fn server_restart_mid_subscription_and_nodes_added() {
     let log = plc.log();
     assert_eq!(log.matches("PLC lost").count(), 1, "{log}");
 }
+
+#[tokio::test]
+async fn a_slow_server() {
+    let mut server = OpcServer::start(free_port(), None);
+    let plc = plccoms(&server.url(), "OPCUA_MODE = read\nOPCUA_TIMEOUT = 1000");
+    let mut c = Client::connect(plc.addr).await;
+    listed(&mut c, "DB_LINE1.MOTOR.SPEED").await;
+    // Slow, within the timeout: values as ever.
+    server.command("slow 300");
+    for _ in 0..3 {
+        c.ask(
+            "GET:db_line1.motor.count\r\n",
+            "GET:DB_LINE1.MOTOR.COUNT,7\r\n",
+        )
+        .await;
+    }
+    // Slower than OPCUA_TIMEOUT: the link is lost, errors answer.
+    server.command("slow 2500");
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        c.send(b"GET:db_line1.motor.count\r\n").await;
+        let line = String::from_utf8(c.line().await).unwrap();
+        if common::health::is_link_error(&line) {
+            break;
+        }
+        assert!(Instant::now() < deadline, "still served: {line:?}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    // Fast again: values again.
+    server.command("slow 0");
+    until(
+        &mut c,
+        "GET:db_line1.motor.count",
+        "GET:DB_LINE1.MOTOR.COUNT,7",
+        10,
+    )
+    .await;
+    let log = plc.log();
+    assert_eq!(log.matches("PLC lost").count(), 1, "{log}");
+}

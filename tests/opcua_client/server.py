@@ -12,6 +12,7 @@ Objects/
 Prints "ready" once it listens. Commands on stdin, one a line:
   add NAME   adds a Double variable NAME (= 1.5) to DB_LINE1/MOTOR
   set NAME V sets TYPES or MOTOR variable NAME to the number V
+  slow MS    answers every Read MS milliseconds late (0: at once again)
 """
 
 import asyncio
@@ -21,8 +22,22 @@ import sys
 from asyncua import Server, ua
 from asyncua.server.user_managers import UserManager
 from asyncua.crypto.permission_rules import User, UserRole
+from asyncua.server.internal_session import InternalSession
 
 NS_URI = "http://plccoms.test/s7like"
+
+# A slow server: every Read waits this long (seconds) before it is answered.
+READ_DELAY = [0.0]
+_read = InternalSession.read
+
+
+async def _slow_read(self, params):
+    if READ_DELAY[0]:
+        await asyncio.sleep(READ_DELAY[0])
+    return await _read(self, params)
+
+
+InternalSession.read = _slow_read
 
 
 class Users(UserManager):
@@ -104,6 +119,8 @@ async def main():
             words = line.split()
             if words[:1] == ["add"]:
                 await var(motor, "DB_LINE1.MOTOR", words[1], 1.5, ua.VariantType.Double)
+            elif words[:1] == ["slow"]:
+                READ_DELAY[0] = int(words[1]) / 1000
             elif words[:1] == ["set"]:
                 node, vtype = nodes[words[1]]
                 await node.write_value(ua.Variant(type(await node.read_value())(words[2]) if vtype != ua.VariantType.Boolean else words[2] == "1", vtype))

@@ -12,7 +12,7 @@ use opcua::types::{
     BrowseDescription, BrowseDirection, BrowseResultMask, ByteString, Guid, NodeClass,
     NodeClassMask, NodeId, ReadValueId, TimestampsToReturn, Variant,
 };
-use tracing::{info, warn};
+use tracing::warn;
 
 use plccoms_core::driver::PlcError;
 use plccoms_plc::opcua::nodeid::{Identifier, Namespace, NodeRef};
@@ -43,6 +43,8 @@ const CURRENT_WRITE: u8 = 0x02;
 pub struct Built {
     pub tags: Vec<Tag>,
     pub builtins: HashMap<String, Builtin>,
+    /// What was left out, for the log when the list is new.
+    pub skipped: Vec<String>,
 }
 
 /// A node id of the server's for `node`; `nsu=` through its NamespaceArray.
@@ -171,19 +173,23 @@ pub async fn build(
             line: tags.len() + 2,
         });
     }
+    let mut skipped = Vec::new();
     if structures > 0 {
-        info!(section, "{structures} structured variables skipped (their fields are served where the server shows them as child variables)");
+        skipped.push(format!("{structures} structured variables skipped (their fields are served where the server shows them as child variables)"));
     }
     if arrays > 0 {
-        info!(
-            section,
+        skipped.push(format!(
             "{arrays} array variables skipped (arrays are not served yet)"
-        );
+        ));
     }
     if unknown > 0 {
-        info!(section, "{unknown} variables of types plccoms does not serve skipped (ByteString, Guid, NodeId, ...)");
+        skipped.push(format!("{unknown} variables of types plccoms does not serve skipped (ByteString, Guid, NodeId, ...)"));
     }
-    Ok(Built { tags, builtins })
+    Ok(Built {
+        tags,
+        builtins,
+        skipped,
+    })
 }
 
 /// Browses from `starts` down hierarchical references (not properties),

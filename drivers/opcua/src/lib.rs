@@ -484,10 +484,13 @@ impl OpcuaBackend {
             self.served = list_of(bytes, &built.builtins);
             self.newest = None;
         } else {
-            if self.newest.as_ref().is_none_or(|(b, _)| *b != bytes)
-                && !self.served.bytes.is_empty()
-            {
-                info!(section = %section, "the server's variables changed: {} now", built.tags.len());
+            if self.newest.as_ref().is_none_or(|(b, _)| *b != bytes) {
+                if !self.served.bytes.is_empty() {
+                    info!(section = %section, "the server's variables changed: {} now", built.tags.len());
+                }
+                for line in &built.skipped {
+                    info!(section = %section, "{line}");
+                }
             }
             self.newest = Some((bytes, built.builtins));
         }
