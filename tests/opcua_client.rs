@@ -119,6 +119,9 @@ fn plccoms(url: &str, extra: &str) -> ServerProcess {
 const LIST: &str = "\
 LIST:__PLC_RUN,BOOL
 LIST:__PF_CRC,DWORD
+LIST:ARRAY_V[0],INT*
+LIST:ARRAY_V[1],INT*
+LIST:ARRAY_V[2],INT*
 LIST:TYPES.BOOL_V,BOOL*
 LIST:TYPES.SBYTE_V,SINT*
 LIST:TYPES.BYTE_V,USINT*
@@ -225,6 +228,8 @@ async fn browse_get_set(mode: &str) {
             "DIFF:TYPES.STRING_V,\"Žluťoučký\"",
         ),
         ("SET:types.duration_v,2500", "DIFF:TYPES.DURATION_V,2500"),
+        ("SET:array_v[2],-9", "DIFF:ARRAY_V[2],-9"),
+        ("GET:array_v[0]", "GET:ARRAY_V[0],1"),
         (
             "SET:db_line1.motor.count,3",
             "ERROR:30 Bad client request: 'SET:db_line1.motor.count,3'",
@@ -241,7 +246,7 @@ async fn browse_get_set(mode: &str) {
     // EN: the server's own changes come as DIFFs.
     c.ask(
         "EN:db_line1.motor.speed\r\n",
-        "WARNING:252 Changed active variables in public file: '[3/19]'\r\n",
+        "WARNING:252 Changed active variables in public file: '[3/22]'\r\n",
     )
     .await;
     c.expect(b"DIFF:DB_LINE1.MOTOR.SPEED,1450.5000000000\r\n")
@@ -337,7 +342,7 @@ async fn server_restart_mid_subscription_and_nodes_added() {
     listed(&mut c, "DB_LINE1.MOTOR.SPEED").await;
     c.ask(
         "EN:db_line1.motor.running\r\n",
-        "WARNING:252 Changed active variables in public file: '[3/19]'\r\n",
+        "WARNING:252 Changed active variables in public file: '[3/22]'\r\n",
     )
     .await;
     c.expect(b"DIFF:DB_LINE1.MOTOR.RUNNING,1\r\n").await;

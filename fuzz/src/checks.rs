@@ -1008,8 +1008,8 @@ pub fn opcua_tags(data: &[u8]) {
         assert_eq!(again.tags.len(), file.tags.len(), "{:?}", again.warnings);
         for (a, b) in again.tags.iter().zip(&file.tags) {
             assert_eq!(
-                (&a.name, &a.node, a.ty, a.writable),
-                (&b.name, &b.node, b.ty, b.writable)
+                (&a.name, &a.node, a.ty, a.writable, a.index),
+                (&b.name, &b.node, b.ty, b.writable, b.index)
             );
         }
     }

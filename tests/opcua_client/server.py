@@ -6,7 +6,7 @@ stack), for tests/opcua_client.rs.
 Objects/
   DB_LINE1/MOTOR/  SPEED (Double, rw), RUNNING (Boolean, rw), COUNT (UInt32, ro)
   TYPES/           one writable variable of every scalar type plccoms serves
-  ARRAY_V          Int16[3] (arrays are skipped, with a log line)
+  ARRAY_V          Int16[3], writable (served as ARRAY_V[0] .. ARRAY_V[2])
   EMPTY/SUB/       a folder tree without variables
 
 Prints "ready" once it listens. Commands on stdin, one a line:
@@ -105,6 +105,8 @@ async def main():
         ua.Variant([1, 2, 3], ua.VariantType.Int16),
     )
     await arr.write_value_rank(1)
+    await arr.write_array_dimensions([3])
+    await arr.set_writable()
     empty = await objects.add_folder(ua.NodeId("EMPTY", ns), ua.QualifiedName("EMPTY", ns))
     await empty.add_folder(ua.NodeId("EMPTY.SUB", ns), ua.QualifiedName("SUB", ns))
 

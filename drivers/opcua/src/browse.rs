@@ -37,6 +37,9 @@ const HAS_PROPERTY: u32 = 46;
 const HIERARCHICAL: u32 = 33;
 /// UserAccessLevel's CurrentWrite bit.
 const CURRENT_WRITE: u8 = 0x02;
+/// Most elements of an array served as variables (`NAME[0]` ...); a longer
+/// array is skipped.
+pub const MAX_ELEMENTS: u32 = 1024;
 
 /// The list built: tags with their type and access, and each node's
 /// built-in type (by node id text) for writes.
@@ -145,10 +148,21 @@ pub async fn build(
             tags.push(tag);
             continue;
         }
-        if attrs.value_rank.is_some_and(|rank| rank != -1) {
-            arrays += 1;
-            continue;
-        }
+        let elements = match attrs.value_rank {
+            None | Some(-1) => None,
+            // One dimension of a known length: its elements.
+            Some(1) => match attrs.length {
+                Some(n) if n <= MAX_ELEMENTS => Some(n),
+                _ => {
+                    arrays += 1;
+                    continue;
+                }
+            },
+            Some(_) => {
+                arrays += 1;
+                continue;
+            }
+        };
         let Some(builtin) = builtin else {
             match &attrs.data_type {
                 Some(d)
@@ -161,17 +175,25 @@ pub async fn build(
             }
             continue;
         };
-        // path_name keeps cp1250's characters only.
-        let name = cp1250::encode(&found.name).into_owned().into_boxed_slice();
         builtins.insert(text, builtin);
-        tags.push(Tag {
-            name,
-            node,
+        let tag = |name: &str, index| Tag {
+            // path_name keeps cp1250's characters only.
+            name: cp1250::encode(name).into_owned().into_boxed_slice(),
+            node: node.clone(),
             ty: Some(builtin.iec()),
             writable: Some(attrs.writable(builtin)),
+            index,
             info: VarInfo::default(),
-            line: tags.len() + 2,
-        });
+            line: 0,
+        };
+        match elements {
+            None => tags.push(tag(&found.name, None)),
+            Some(n) => {
+                for i in 0..n {
+                    tags.push(tag(&format!("{}[{i}]", found.name), Some(i)));
+                }
+            }
+        }
     }
     let mut skipped = Vec::new();
     if structures > 0 {
@@ -179,7 +201,7 @@ pub async fn build(
     }
     if arrays > 0 {
         skipped.push(format!(
-            "{arrays} array variables skipped (arrays are not served yet)"
+            "{arrays} array variables skipped (more than one dimension, more than {MAX_ELEMENTS} elements, or a length the server does not tell)"
         ));
     }
     if unknown > 0 {
@@ -321,6 +343,8 @@ struct Attributes {
     data_type: Option<NodeId>,
     value_rank: Option<i32>,
     user_access: Option<u8>,
+    /// A one-dimensional array's length (ArrayDimensions, else its value's).
+    length: Option<u32>,
 }
 
 impl Attributes {
@@ -334,8 +358,8 @@ async fn read_attributes(
     limits: &Limits,
     found: &[Found],
 ) -> Result<Vec<Attributes>, PlcError> {
-    // DataType (14), ValueRank (15), UserAccessLevel (18).
-    const ATTRIBUTES: [u32; 3] = [14, 15, 18];
+    // DataType (14), ValueRank (15), ArrayDimensions (16), UserAccessLevel (18).
+    const ATTRIBUTES: [u32; 4] = [14, 15, 16, 18];
     let mut out = Vec::with_capacity(found.len());
     let per_read = (limits.per_read / ATTRIBUTES.len()).max(1);
     for chunk in found.chunks(per_read) {
@@ -360,12 +384,12 @@ async fn read_attributes(
                 values.len()
             )));
         }
-        for three in values.chunks(3) {
+        for four in values.chunks(ATTRIBUTES.len()) {
             let good = |i: usize| {
-                three[i]
+                four[i]
                     .status
                     .is_none_or(|s| s.is_good())
-                    .then(|| three[i].value.clone())
+                    .then(|| four[i].value.clone())
                     .flatten()
             };
             out.push(Attributes {
@@ -377,11 +401,38 @@ async fn read_attributes(
                     Some(Variant::Int32(rank)) => Some(rank),
                     _ => None,
                 },
-                user_access: match good(2) {
+                length: match good(2) {
+                    Some(Variant::Array(a)) => match a.values.as_slice() {
+                        [Variant::UInt32(n)] if *n > 0 => Some(*n),
+                        _ => None,
+                    },
+                    _ => None,
+                },
+                user_access: match good(3) {
                     Some(Variant::Byte(a)) => Some(a),
                     _ => None,
                 },
             });
+        }
+    }
+    // Arrays whose length the server leaves open (ArrayDimensions 0):
+    // the length of their value now.
+    let open: Vec<usize> = (0..out.len())
+        .filter(|&i| out[i].value_rank == Some(1) && out[i].length.is_none())
+        .collect();
+    for chunk in open.chunks(limits.per_read.max(1)) {
+        let ids: Vec<ReadValueId> = chunk
+            .iter()
+            .map(|&i| found[i].node.clone().into())
+            .collect();
+        let values = session
+            .read(&ids, TimestampsToReturn::Neither, 0.0)
+            .await
+            .map_err(|e| service_error("Read", e))?;
+        for (&i, value) in chunk.iter().zip(values) {
+            if let Some(Variant::Array(a)) = value.value {
+                out[i].length = u32::try_from(a.values.len()).ok().filter(|&n| n > 0);
+            }
         }
     }
     Ok(out)

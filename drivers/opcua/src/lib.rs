@@ -24,6 +24,9 @@
 //! - Quality: Good is a value; Uncertain is served as a value (the core has
 //!   no per-value quality to mark it stale with); Bad is the refusal of
 //!   that variable, with the StatusCode's name.
+//! - Arrays: each element is a variable (`NAME[i]`); the array node is
+//!   read or monitored once for all ([`List::sources`]), and a write of an
+//!   element writes the whole array read just before.
 //! - `__PLC_RUN` (S2.2) is the server's ServerStatus.State = Running.
 //! - Session loss (the server closes, a request times out): the link
 //!   probes (a new session, a GetEndpoints and the session's own requests)
@@ -158,6 +161,10 @@ struct Entry {
     ty: IecType,
     builtin: Builtin,
     node: NodeId,
+    /// The element of an array node.
+    index: Option<u32>,
+    /// Its node in [`List::sources`]: an array's elements share one.
+    source: usize,
 }
 
 /// The variable list the link's table was built from.
@@ -165,6 +172,9 @@ struct Entry {
 struct List {
     bytes: Vec<u8>,
     entries: Vec<Entry>,
+    /// The nodes read or monitored, each once: a whole array for all its
+    /// elements (servers differ in honouring index ranges).
+    sources: Vec<NodeId>,
 }
 
 struct Connection {
@@ -203,7 +213,7 @@ pub struct OpcuaBackend {
     built_at: Option<Instant>,
     subscription: Option<Subscription>,
     notified: Notified,
-    /// Written since their last notification: read from the server.
+    /// Sources written since their last notification: read from the server.
     written: HashSet<usize>,
     /// When the link's last read started, and the gap before it.
     last_read: Option<Instant>,
@@ -537,7 +547,7 @@ impl OpcuaBackend {
     ) -> Result<HashMap<usize, DataValue>, PlcError> {
         let mut reads: Vec<ReadValueId> = indexes
             .iter()
-            .map(|&i| self.served.entries[i].node.clone().into())
+            .map(|&s| self.served.sources[s].clone().into())
             .collect();
         if state {
             reads.push(NodeId::from(opcua::types::VariableId::Server_ServerStatus_State).into());
@@ -614,7 +624,7 @@ impl OpcuaBackend {
             let items: Vec<MonitoredItemCreateRequest> = chunk
                 .iter()
                 .map(|&i| MonitoredItemCreateRequest {
-                    item_to_monitor: self.served.entries[i].node.clone().into(),
+                    item_to_monitor: self.served.sources[i].clone().into(),
                     monitoring_mode: MonitoringMode::Reporting,
                     requested_parameters: MonitoringParameters {
                         client_handle: i as u32 + 1,
@@ -657,18 +667,19 @@ impl OpcuaBackend {
         let mut bytes = vec![0u8; read.len as usize];
         for i in self.covered(read.offset, read.len) {
             let entry = &self.served.entries[i];
-            let Some(value) = values.get(&i) else {
+            let Some(value) = values.get(&entry.source) else {
                 return Err(Refusal::Opcua(StatusCode::BadWaitingForInitialData.bits()));
             };
             let status = value.status.unwrap_or(StatusCode::Good);
             if status.is_bad() {
                 return Err(refusal(status));
             }
-            let Some(own) = value
-                .value
-                .as_ref()
-                .and_then(|v| convert::bytes_of(v, entry.ty))
-            else {
+            let element = match (&value.value, entry.index) {
+                (Some(Variant::Array(array)), Some(at)) => array.values.get(at as usize),
+                (value, None) => value.as_ref(),
+                (_, Some(_)) => None,
+            };
+            let Some(own) = element.and_then(|v| convert::bytes_of(v, entry.ty)) else {
                 return Err(Refusal::Opcua(StatusCode::BadTypeMismatch.bits()));
             };
             // The overlap of the entry's bytes and the read.
@@ -682,18 +693,98 @@ impl OpcuaBackend {
         Ok(bytes)
     }
 
+    /// Writes in one Write call per MaxNodesPerWrite. An array element is
+    /// written as its whole array, read just before with the element
+    /// changed (servers differ in honouring an index range on Write:
+    /// asyncua's replaces the whole array by the one element): a change
+    /// the PLC makes to the array's other elements in between is lost.
     async fn write_all(&mut self, writes: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {
         let mut answers: Vec<Answer<()>> = Vec::with_capacity(writes.len());
-        let mut values = Vec::new();
-        let mut sent = Vec::new();
+        // (write, entry, value) of scalars and of array elements.
+        let mut scalars = Vec::new();
+        let mut elements = Vec::new();
         for (n, write) in writes.iter().enumerate() {
             match self.write_value(write) {
                 Ok((i, value)) => {
                     answers.push(Ok(()));
-                    values.push(value);
-                    sent.push((n, i));
+                    if self.served.entries[i].index.is_some() {
+                        elements.push((n, i, value));
+                    } else {
+                        scalars.push((n, i, value));
+                    }
                 }
                 Err(e) => answers.push(Err(e)),
+            }
+        }
+        // Each WriteValue, and the writes it answers.
+        let mut values: Vec<WriteValue> = Vec::new();
+        let mut serves: Vec<Vec<(usize, usize)>> = Vec::new();
+        for (n, i, value) in scalars {
+            values.push(WriteValue {
+                node_id: self.served.entries[i].node.clone(),
+                attribute_id: 13,
+                value: DataValue::new_now(value),
+                ..Default::default()
+            });
+            serves.push(vec![(n, i)]);
+        }
+        if !elements.is_empty() {
+            let mut nodes: Vec<NodeId> = Vec::new();
+            for (_, i, _) in &elements {
+                let node = &self.served.entries[*i].node;
+                if !nodes.contains(node) {
+                    nodes.push(node.clone());
+                }
+            }
+            let session = self.session()?;
+            let reads: Vec<ReadValueId> = nodes.iter().map(|n| n.clone().into()).collect();
+            let mut current = Vec::with_capacity(reads.len());
+            for chunk in reads.chunks(self.limits.per_read.max(1)) {
+                current.extend(
+                    self.call(
+                        "Read",
+                        session.read(chunk, TimestampsToReturn::Neither, 0.0),
+                    )
+                    .await?,
+                );
+            }
+            for (node, now) in nodes.into_iter().zip(current) {
+                let mine: Vec<&(usize, usize, Variant)> = elements
+                    .iter()
+                    .filter(|(_, i, _)| self.served.entries[*i].node == node)
+                    .collect();
+                let status = now.status.unwrap_or(StatusCode::Good);
+                let Some(Variant::Array(mut array)) = now.value.filter(|_| !status.is_bad()) else {
+                    let why = if status.is_bad() {
+                        status
+                    } else {
+                        StatusCode::BadTypeMismatch
+                    };
+                    for (n, _, _) in mine {
+                        answers[*n] = Err(refusal(why));
+                    }
+                    continue;
+                };
+                let mut served = Vec::new();
+                for (n, i, value) in mine {
+                    let at = self.served.entries[*i].index.unwrap_or(0) as usize;
+                    match array.values.get_mut(at) {
+                        Some(slot) => {
+                            *slot = value.clone();
+                            served.push((*n, *i));
+                        }
+                        None => answers[*n] = Err(refusal(StatusCode::BadIndexRangeNoData)),
+                    }
+                }
+                if !served.is_empty() {
+                    values.push(WriteValue {
+                        node_id: node,
+                        attribute_id: 13,
+                        value: DataValue::new_now(Variant::Array(array)),
+                        ..Default::default()
+                    });
+                    serves.push(served);
+                }
             }
         }
         if values.is_empty() {
@@ -712,21 +803,24 @@ impl OpcuaBackend {
             }
             results.extend(answer);
         }
-        for ((n, i), status) in sent.into_iter().zip(results) {
-            if status.is_bad() {
-                let entry = &self.served.entries[i];
-                warn!(section = %self.config.section, "write of {} refused: {}", entry.node, refusal(status));
-                answers[n] = Err(refusal(status));
-            } else {
-                self.written.insert(i);
+        for (served, status) in serves.into_iter().zip(results) {
+            for (n, i) in served {
+                if status.is_bad() {
+                    let entry = &self.served.entries[i];
+                    warn!(section = %self.config.section, "write of {} refused: {}", entry.node, refusal(status));
+                    answers[n] = Err(refusal(status));
+                } else {
+                    let source = self.served.entries[i].source;
+                    self.written.insert(source);
+                }
             }
         }
         Ok(answers)
     }
 
-    /// The node and value of one write; a write that matches no variable
+    /// The entry and value of one write; a write that matches no variable
     /// (a `%R` address across two) is refused here.
-    fn write_value(&self, write: &WriteRequest) -> Result<(usize, WriteValue), Refusal> {
+    fn write_value(&self, write: &WriteRequest) -> Result<(usize, Variant), Refusal> {
         if write.area != Area::R {
             return Err(Refusal::BAD_PARAMETERS);
         }
@@ -742,15 +836,7 @@ impl OpcuaBackend {
         };
         let variant = convert::variant_of(&bytes, entry.ty, entry.builtin)
             .ok_or(Refusal::Opcua(StatusCode::BadNotWritable.bits()))?;
-        Ok((
-            i,
-            WriteValue {
-                node_id: entry.node.clone(),
-                attribute_id: 13,
-                value: DataValue::new_now(variant),
-                ..Default::default()
-            },
-        ))
+        Ok((i, variant))
     }
 }
 
@@ -835,6 +921,8 @@ fn read_tag_file(section: &str, path: &std::path::Path) -> Vec<Tag> {
 fn list_of(bytes: Vec<u8>, builtins: &HashMap<String, Builtin>) -> List {
     let file = tags::parse(&bytes);
     let placed = tags::vars(&file.tags);
+    let mut sources: Vec<NodeId> = Vec::new();
+    let mut source_of: HashMap<NodeId, usize> = HashMap::new();
     let entries = file
         .tags
         .iter()
@@ -842,6 +930,11 @@ fn list_of(bytes: Vec<u8>, builtins: &HashMap<String, Builtin>) -> List {
         .zip(placed)
         .map(|(tag, var)| {
             let text = tag.node.to_string();
+            let node = node_of(&tag.node);
+            let source = *source_of.entry(node.clone()).or_insert_with(|| {
+                sources.push(node.clone());
+                sources.len() - 1
+            });
             Entry {
                 offset: var.offset,
                 ty: var.ty,
@@ -849,11 +942,17 @@ fn list_of(bytes: Vec<u8>, builtins: &HashMap<String, Builtin>) -> List {
                     .get(&text)
                     .copied()
                     .unwrap_or_else(|| Builtin::of_iec(var.ty)),
-                node: node_of(&tag.node),
+                node,
+                index: tag.index,
+                source,
             }
         })
         .collect();
-    List { bytes, entries }
+    List {
+        bytes,
+        entries,
+        sources,
+    }
 }
 
 /// The node id of a list's node (namespace indexes only: the list is
@@ -925,6 +1024,11 @@ impl PlcBackend for OpcuaBackend {
                 _ => state = true,
             }
         }
+        // The sources the entries read: an array once for its elements.
+        let mut wanted: Vec<usize> = wanted
+            .into_iter()
+            .map(|i| self.served.entries[i].source)
+            .collect();
         wanted.sort_unstable();
         wanted.dedup();
         let values = if self.config.subscribe {

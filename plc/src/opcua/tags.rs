@@ -13,6 +13,9 @@
 //! - `type`: an IEC type as in a public file; empty: the node's DataType,
 //!   read from the server when the section connects.
 //! - `access`: `ro` or `rw`; empty: as the node's AccessLevel says.
+//! - `index`: an element of an array node (0-based); the backend names a
+//!   browsed array's elements `NAME[0]`, `NAME[1]`, ... as public files
+//!   name array elements.
 //! - `unit`, `description`: for people (MQTT, the web page), as a Modbus
 //!   tag file's.
 //!
@@ -41,6 +44,8 @@ pub struct Tag {
     pub ty: Option<IecType>,
     /// `None`: the node's AccessLevel decides.
     pub writable: Option<bool>,
+    /// The element of an array node, when the variable is one.
+    pub index: Option<u32>,
     pub info: VarInfo,
     /// 1-based line in the file.
     pub line: usize,
@@ -119,15 +124,17 @@ enum Column {
     Access,
     Unit,
     Description,
+    Index,
 }
 
-const COLUMNS: [(&str, Column); 6] = [
+const COLUMNS: [(&str, Column); 7] = [
     ("name", Column::Name),
     ("node", Column::Node),
     ("type", Column::Type),
     ("access", Column::Access),
     ("unit", Column::Unit),
     ("description", Column::Description),
+    ("index", Column::Index),
 ];
 
 /// Parses a tag file. Never fails: bad lines become warnings.
@@ -265,6 +272,15 @@ fn tag(
         "rw" => Some(true),
         _ => return Err((access_col, format!("access '{access}' is not ro or rw"))),
     };
+    let (index, index_col) = field(Column::Index);
+    let index = match index {
+        "" => None,
+        index => Some(
+            index
+                .parse::<u32>()
+                .map_err(|_| (index_col, format!("index '{index}' is not 0-4294967295")))?,
+        ),
+    };
     let info = VarInfo {
         unit: field(Column::Unit).0.to_string(),
         description: field(Column::Description).0.to_string(),
@@ -275,6 +291,7 @@ fn tag(
         node,
         ty,
         writable,
+        index,
         info,
         line,
     })
@@ -286,7 +303,15 @@ pub fn write(tags: &[Tag]) -> Vec<u8> {
         .terminator(csv::Terminator::Any(b'\n'))
         .from_writer(Vec::new());
     // Writing to a Vec cannot fail.
-    let _ = out.write_record(["name", "node", "type", "access", "unit", "description"]);
+    let _ = out.write_record([
+        "name",
+        "node",
+        "type",
+        "access",
+        "unit",
+        "description",
+        "index",
+    ]);
     for tag in tags {
         let ty = tag.ty.map(|t| t.to_string()).unwrap_or_default();
         let access = match tag.writable {
@@ -294,6 +319,7 @@ pub fn write(tags: &[Tag]) -> Vec<u8> {
             Some(false) => "ro",
             None => "",
         };
+        let index = tag.index.map(|i| i.to_string()).unwrap_or_default();
         let _ = out.write_record([
             cp1250::decode(&tag.name).as_ref(),
             tag.node.to_string().as_str(),
@@ -301,6 +327,7 @@ pub fn write(tags: &[Tag]) -> Vec<u8> {
             access,
             tag.info.unit.as_str(),
             tag.info.description.as_str(),
+            index.as_str(),
         ]);
     }
     out.into_inner().unwrap_or_default()
@@ -349,7 +376,7 @@ mod tests {
     #[test]
     fn typed_tags_are_placed_one_after_another_and_written_back() {
         let file =
-            parse(b"name,node,type\nA,i=1,BOOL\nB,i=2\nC,i=3,LREAL\nD,i=4,STRING[10]\nE,i=5,INT\n");
+            parse(b"name,node,type,index\nA,i=1,BOOL\nB,i=2\nC,i=3,LREAL\nD,i=4,STRING[10]\nE[1],i=5,INT,1\n");
         let defs = file.var_defs();
         let placed: Vec<_> = defs
             .iter()
@@ -366,6 +393,10 @@ mod tests {
             file.tags.iter().map(|t| &t.node).collect::<Vec<_>>()
         );
         assert_eq!(vars(&again.tags), vars(&file.tags));
+        assert_eq!(again.tags[4].index, Some(1));
+        assert!(parse(b"name,node,index\nA,i=1,-1\n").warnings[0]
+            .to_string()
+            .contains("column 3: index '-1'"));
     }
 
     #[test]
