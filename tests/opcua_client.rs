@@ -243,6 +243,33 @@ async fn browse_get_set(mode: &str) {
         "GET:TYPES.STRING_V,\"Žluťoučký\"\r\n",
     )
     .await;
+    c.send(b"GETINFO:\r\n").await;
+    let mut info = Vec::new();
+    loop {
+        let line = String::from_utf8(c.line().await).unwrap();
+        if line == "GETINFO:\r\n" {
+            break;
+        }
+        info.push(line.trim_end().to_string());
+    }
+    for want in [
+        "GETINFO:PROTOCOL,OPCUA".to_string(),
+        format!("GETINFO:OPCUA_URL,{}", server.url()),
+        "GETINFO:PUBFILE,2/22 [OPCUA_VARS.csv]".into(),
+        "GETINFO:VERSION_PLC,OPC UA FreeOpcUa Python Server 1.0pre".into(),
+    ] {
+        assert!(info.contains(&want), "{want} not in {info:?}");
+    }
+    for epsnet in [
+        "VERSION_EPSNET",
+        "EPSADDR",
+        "EPSPORT",
+        "IPADDR",
+        "MODBUS_TAGS",
+    ] {
+        let key = format!("GETINFO:{epsnet},");
+        assert!(!info.iter().any(|l| l.starts_with(&key)), "{info:?}");
+    }
     // EN: the server's own changes come as DIFFs.
     c.ask(
         "EN:db_line1.motor.speed\r\n",

@@ -28,6 +28,10 @@ use crate::{service_error, Limits};
 /// deeper one is a loop through references the visited set cannot see.
 const MAX_DEPTH: usize = 32;
 
+/// Most nodes a browse visits (objects and variables): a server that
+/// shows endless folders is browsed this far, not until memory runs out.
+const MAX_NODES: usize = 4 * plccoms_plc::pubfile::MAX_VARS;
+
 /// The Server object (i=2253): its diagnostics are not the PLC's variables.
 const SERVER_OBJECT: u32 = 2253;
 /// HasProperty (i=46): a variable's properties (EURange, EngineeringUnits)
@@ -258,7 +262,7 @@ async fn browse(
             let mut point = result.continuation_point.clone();
             // Continuation points bring the rest of a long list.
             let mut pages = 0;
-            while !point.is_null() && pages < 10_000 {
+            while !point.is_null() && pages < 10_000 && references.len() < MAX_NODES {
                 pages += 1;
                 let next = session
                     .browse_next(false, &[point.clone()])
@@ -280,6 +284,13 @@ async fn browse(
                 let node = reference.node_id.node_id.clone();
                 if node == NodeId::new(0, SERVER_OBJECT) || !visited.insert(node.clone()) {
                     continue;
+                }
+                if visited.len() > MAX_NODES {
+                    warn!(
+                        section,
+                        "more than {MAX_NODES} nodes below OPCUA_BROWSE: the rest is left out"
+                    );
+                    return Ok(named(section, found));
                 }
                 let mut child = path.clone();
                 child.push(

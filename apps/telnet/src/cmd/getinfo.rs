@@ -27,6 +27,7 @@ const KEYS: &[&str] = &[
     "EPSPORT",
     "MODBUS_PORT",
     "MODBUS_UNIT",
+    "OPCUA_URL",
     "SERIAL_DEVICE",
     "PUBFILE",
     "MODBUS_TAGS",
@@ -92,10 +93,16 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
     let state = cx.section.state();
     let (config, link) = (&state.config, &state.link);
     let modbus = config.protocol == Protocol::ModbusTcp;
+    let opcua = config.protocol == Protocol::Opcua;
     // The full list shows what the section's protocol has.
     let shown = match key {
-        "PROTOCOL" | "MODBUS_PORT" | "MODBUS_UNIT" | "MODBUS_TAGS" => modbus,
-        "VERSION_EPSNET" | "EPSADDR" | "EPSPORT" | "PUBFILE" => !modbus,
+        "PROTOCOL" => modbus || opcua,
+        "MODBUS_PORT" | "MODBUS_UNIT" | "MODBUS_TAGS" => modbus,
+        "OPCUA_URL" => opcua,
+        "VERSION_EPSNET" | "EPSADDR" | "EPSPORT" => !modbus && !opcua,
+        "IPADDR" => !opcua,
+        // An OPC UA section's variable list (OPCUA_VARS.csv) shows here.
+        "PUBFILE" => !modbus,
         _ => true,
     };
     if listing_all && !shown {
@@ -105,6 +112,7 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
         "PROTOCOL" => line(text, key, config.protocol.name()),
         "MODBUS_PORT" => line(text, key, &config.modbus.port.to_string()),
         "MODBUS_UNIT" => line(text, key, &config.modbus.unit.to_string()),
+        "OPCUA_URL" => line(text, key, config.opcua.url.as_deref().unwrap_or("")),
         // The EPSNET code and the ini parser are built with the server.
         "VERSION" | "VERSION_EPSNET" => line(text, key, &version(SERVER_VERSION)),
         "VERSION_INI" => line(text, key, &version(INI_VERSION)),
@@ -142,7 +150,7 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
         "MODBUS_TAGS" if !modbus => line(text, key, ""),
         "PUBFILE" | "MODBUS_TAGS" => {
             let table = cx.client.vars.table();
-            let files = match (&table.user_file, modbus) {
+            let files = match (&table.user_file, modbus || opcua) {
                 (Some(user), false) => format!("{},{}", table.fixed_file, user),
                 (None, false) => table.fixed_file.clone(),
                 // The backend answers the system variables: no fixed file.
