@@ -157,6 +157,20 @@ async fn listed(c: &mut Client, name: &str) {
     }
 }
 
+/// Asks `request` until it is answered with a link error, within `secs`.
+async fn until_lost(c: &mut Client, request: &str, secs: u64) {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        c.send(format!("{request}\r\n").as_bytes()).await;
+        let line = String::from_utf8(c.line().await).unwrap();
+        if common::health::is_link_error(&line) {
+            return;
+        }
+        assert!(Instant::now() < deadline, "still served: {line:?}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
 async fn browse_get_set(mode: &str) {
     let server = OpcServer::start(free_port(), None);
     let plc = plccoms(&server.url(), &format!("OPCUA_MODE = {mode}"));
@@ -243,15 +257,7 @@ async fn browse_get_set(mode: &str) {
         "GET:TYPES.STRING_V,\"Žluťoučký\"\r\n",
     )
     .await;
-    c.send(b"GETINFO:\r\n").await;
-    let mut info = Vec::new();
-    loop {
-        let line = String::from_utf8(c.line().await).unwrap();
-        if line == "GETINFO:\r\n" {
-            break;
-        }
-        info.push(line.trim_end().to_string());
-    }
+    let info = c.getinfo().await;
     for want in [
         "GETINFO:PROTOCOL,OPCUA".to_string(),
         format!("GETINFO:OPCUA_URL,{}", server.url()),
@@ -389,16 +395,7 @@ async fn server_restart_mid_subscription_and_nodes_added() {
 
     // The server goes away: no value is served as live.
     drop(server);
-    let deadline = Instant::now() + Duration::from_secs(5);
-    loop {
-        c.send(b"GET:db_line1.motor.speed\r\n").await;
-        let line = String::from_utf8(c.line().await).unwrap();
-        if common::health::is_link_error(&line) {
-            break;
-        }
-        assert!(Instant::now() < deadline, "still served: {line:?}");
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
+    until_lost(&mut c, "GET:db_line1.motor.speed", 5).await;
     // It returns (a new process, no TORQUE): values again within 2 s of
     // its listening, the subscription made anew.
     let server = OpcServer::start(port, None);
@@ -443,16 +440,7 @@ async fn a_slow_server() {
     }
     // Slower than OPCUA_TIMEOUT: the link is lost, errors answer.
     server.command("slow 2500");
-    let deadline = Instant::now() + Duration::from_secs(10);
-    loop {
-        c.send(b"GET:db_line1.motor.count\r\n").await;
-        let line = String::from_utf8(c.line().await).unwrap();
-        if common::health::is_link_error(&line) {
-            break;
-        }
-        assert!(Instant::now() < deadline, "still served: {line:?}");
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    }
+    until_lost(&mut c, "GET:db_line1.motor.count", 10).await;
     // Fast again: values again.
     server.command("slow 0");
     until(

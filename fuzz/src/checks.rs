@@ -937,7 +937,7 @@ pub fn user_value(data: &[u8]) {
 /// decodes any bytes, and a value it decoded encodes to bytes that decode
 /// to the same value.
 pub fn modbus_tags(data: &[u8]) {
-    use plccoms_core::vars::{VarFile, VarTable};
+    use plccoms_core::vars::VarFile;
     use plccoms_plc::modbus::{tags, MAP};
 
     let file = tags::parse(data);
@@ -966,19 +966,24 @@ pub fn modbus_tags(data: &[u8]) {
             }
         }
     }
+    let table = tag_table(&VarFile::from(&file), &MAP);
+    assert_eq!(table.len(), 2 + file.tags.len());
+}
+
+/// The table of the standard fixed file and a tag file's variables.
+fn tag_table(user: &plccoms_core::vars::VarFile, map: &MemoryMap) -> VarTable {
     let fixed = plccoms_plc::pubfile::parse(
         b" __PLC_RUN S B 2 .2 BOOL PUB_INOUT\r\n __PF_CRC S B 70 DWORD PUB_INOUT\r\n",
     );
     let mut warnings = Vec::new();
-    let table = VarTable::build_from(
+    VarTable::build_from(
         "FIXED.pub",
-        &VarFile::from(&fixed),
-        Some(("fuzz.csv", &VarFile::from(&file))),
-        &MAP,
+        &plccoms_core::vars::VarFile::from(&fixed),
+        Some(("fuzz.csv", user)),
+        map,
         &mut warnings,
     )
-    .expect("the standard fixed file defines the system variables");
-    assert_eq!(table.len(), 2 + file.tags.len());
+    .expect("the standard fixed file defines the system variables")
 }
 
 fn value_is_nan(value: &Value) -> bool {
@@ -1020,18 +1025,7 @@ pub fn opcua_tags(data: &[u8]) {
         end += var.ty.size() as u32;
         assert!(MAP.contains(var.area, var.offset, var.ty.size() as u32));
     }
-    let fixed = plccoms_plc::pubfile::parse(
-        b" __PLC_RUN S B 2 .2 BOOL PUB_INOUT\r\n __PF_CRC S B 70 DWORD PUB_INOUT\r\n",
-    );
-    let mut warnings = Vec::new();
-    let table = VarTable::build_from(
-        "FIXED.pub",
-        &VarFile::from(&fixed),
-        Some(("fuzz.csv", &VarFile::from(&file))),
-        &MAP,
-        &mut warnings,
-    )
-    .expect("the standard fixed file defines the system variables");
+    let table = tag_table(&VarFile::from(&file), &MAP);
     assert_eq!(table.len(), 2 + vars.len());
 }
 

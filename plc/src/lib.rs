@@ -16,6 +16,7 @@ pub mod modbus;
 pub mod opcua;
 pub mod pubfile;
 pub mod refusal;
+pub mod tag_csv;
 pub mod time;
 pub mod value_codec;
 pub mod var;

@@ -46,13 +46,13 @@
 //! reference, decimals that do not apply) gets a warning too. Pure: bytes
 //! in, tags out.
 
-use std::collections::HashMap;
 use std::fmt;
 
 use plccoms_protocol::value::REAL_MAX_DECIMALS;
-use plccoms_protocol::{cp1250, Area, IecType};
+use plccoms_protocol::{Area, IecType};
 
 use super::{Reference, Table};
+use crate::tag_csv::{self, name_bytes};
 use crate::value_codec::{Codec, Raw, Registers, Scale, WordOrder};
 
 /// One tag.
@@ -131,28 +131,7 @@ impl fmt::Display for TagWarning {
 }
 
 /// A parsed tag file.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct TagFile {
-    pub tags: Vec<Tag>,
-    /// The first [`crate::pubfile::MAX_WARNINGS`] problems, in file order.
-    pub warnings: Vec<TagWarning>,
-    /// Problems beyond those, counted only (a file of garbage must not
-    /// become megabytes of messages).
-    pub more_warnings: usize,
-    /// The line of the first tag past [`crate::pubfile::MAX_VARS`]: the file
-    /// is too large, and its parse stopped there.
-    pub too_many: Option<usize>,
-}
-
-impl TagFile {
-    fn warn(&mut self, warning: TagWarning) {
-        if self.warnings.len() < crate::pubfile::MAX_WARNINGS {
-            self.warnings.push(warning);
-        } else {
-            self.more_warnings += 1;
-        }
-    }
-}
+pub type TagFile = tag_csv::TagFile<Tag>;
 
 /// The columns a tag file may have.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -173,118 +152,54 @@ enum Column {
     Decimals,
 }
 
-const COLUMNS: [(&str, Column); 14] = [
-    ("name", Column::Name),
-    ("type", Column::Type),
-    ("table", Column::Table),
-    ("address", Column::Address),
-    ("bit", Column::Bit),
-    ("order", Column::Order),
-    ("scale", Column::Scale),
-    ("offset", Column::Offset),
-    ("access", Column::Access),
-    ("unit", Column::Unit),
-    ("description", Column::Description),
-    ("min", Column::Min),
-    ("max", Column::Max),
-    ("decimals", Column::Decimals),
-];
-
-const REQUIRED: [Column; 4] = [Column::Name, Column::Type, Column::Table, Column::Address];
-
-/// Longest name accepted, as in a public file.
-const MAX_NAME: usize = crate::pubfile::MAX_NAME;
+const COLUMNS: tag_csv::Columns<Column> = tag_csv::Columns {
+    all: &[
+        ("name", Column::Name),
+        ("type", Column::Type),
+        ("table", Column::Table),
+        ("address", Column::Address),
+        ("bit", Column::Bit),
+        ("order", Column::Order),
+        ("scale", Column::Scale),
+        ("offset", Column::Offset),
+        ("access", Column::Access),
+        ("unit", Column::Unit),
+        ("description", Column::Description),
+        ("min", Column::Min),
+        ("max", Column::Max),
+        ("decimals", Column::Decimals),
+    ],
+    required: &[Column::Name, Column::Type, Column::Table, Column::Address],
+    expected: "name,type,table,address,...",
+};
 
 /// Parses a tag file. Never fails: bad lines become warnings.
 pub fn parse(bytes: &[u8]) -> TagFile {
-    let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
-    let utf8 = std::str::from_utf8(bytes).is_ok();
-    let mut reader = csv::ReaderBuilder::new()
-        .has_headers(false)
-        .flexible(true)
-        .trim(csv::Trim::All)
-        .comment(Some(b'#'))
-        .from_reader(bytes);
     let mut file = TagFile::default();
-    let mut columns: Option<HashMap<Column, usize>> = None;
-    let mut seen: HashMap<Vec<u8>, usize> = HashMap::new();
-    let mut lines = LineCounter::default();
-    let mut header_len = 0;
-    for record in reader.byte_records() {
-        let record = match record {
-            Ok(record) => record,
-            Err(e) => {
-                let line = e
-                    .position()
-                    .map_or(0, |p| lines.line_of(bytes, p.byte() as usize));
-                file.warn(TagWarning {
-                    line,
-                    column: None,
-                    message: format!("unreadable CSV: {e}"),
-                });
-                break;
-            }
-        };
-        let line = record
-            .position()
-            .map_or(0, |p| lines.line_of(bytes, p.byte() as usize));
-        let fields: Vec<String> = record.iter().map(|f| text(f, utf8)).collect();
-        let Some(columns) = &columns else {
-            match header(&fields, line, &mut file.warnings) {
-                Some(found) => columns = Some(found),
-                None => return file,
-            }
-            header_len = fields.len();
-            continue;
-        };
-        if fields.iter().all(String::is_empty) {
-            continue;
-        }
-        // A value under no column is a mistake (a column left out of the
-        // header), not something to drop quietly; empty trailing fields
-        // (spreadsheets write them) are fine.
-        if let Some(extra) = (header_len..fields.len()).find(|&i| !fields[i].is_empty()) {
-            file.warn(TagWarning {
-                line,
-                column: Some(extra + 1),
-                message: format!(
-                    "'{}' is under no column (the header names {header_len}); line skipped",
-                    fields[extra]
-                ),
-            });
-            continue;
-        }
-        let field = |c: Column| -> (&str, usize) {
-            columns.get(&c).map_or(("", 0), |&i| {
-                (fields.get(i).map_or("", String::as_str), i + 1)
-            })
-        };
+    tag_csv::read(bytes, &COLUMNS, &mut file, TagFile::warn, |file, row| {
+        let line = row.line;
+        let field = |c: Column| row.field(c);
         let mut notes = Vec::new();
-        let raw_name = record.get(columns[&Column::Name]);
-        match tag(&field, line, utf8, raw_name, &mut notes) {
+        match tag(
+            &field,
+            line,
+            row.utf8,
+            Some(row.raw(Column::Name)),
+            &mut notes,
+        ) {
             Ok(tag) => {
-                let folded = cp1250::to_upper(&tag.name);
-                if let Some(&first) = seen.get(&folded) {
-                    file.warn(TagWarning {
-                        line,
-                        column: Some(field(Column::Name).1),
-                        message: format!(
-                            "duplicate name '{}' (first defined on line {first}); skipped",
-                            cp1250::decode(&tag.name)
-                        ),
-                    });
-                } else if file.tags.len() == crate::pubfile::MAX_VARS {
-                    file.too_many = Some(line);
-                    break;
-                } else {
-                    seen.insert(folded, line);
-                    file.tags.push(tag);
-                    for (column, message) in notes {
-                        file.warn(TagWarning {
-                            line,
-                            column: Some(column),
-                            message,
-                        });
+                let name = tag.name.clone();
+                match file.add(&name, line, field(Column::Name).1, tag) {
+                    None => return false,
+                    Some(false) => {}
+                    Some(true) => {
+                        for (column, message) in notes {
+                            file.warn(TagWarning {
+                                line,
+                                column: Some(column),
+                                message,
+                            });
+                        }
                     }
                 }
             }
@@ -294,104 +209,9 @@ pub fn parse(bytes: &[u8]) -> TagFile {
                 message,
             }),
         }
-    }
-    if columns.is_none() {
-        file.warn(TagWarning {
-            line: 1,
-            column: None,
-            message: "no header line (expected name,type,table,address,...)".to_string(),
-        });
-    }
-    file
-}
-
-/// 1-based line numbers of records. The csv crate's own line count and
-/// record offsets are off after blank and comment lines (csv 1.4: the
-/// offset is where the skipped lines begin), so the record's line is found
-/// from that offset by skipping them here, counting as it goes.
-#[derive(Default)]
-pub(crate) struct LineCounter {
-    at: usize,
-    line: usize,
-}
-
-impl LineCounter {
-    pub(crate) fn line_of(&mut self, bytes: &[u8], offset: usize) -> usize {
-        let mut start = offset.min(bytes.len());
-        loop {
-            match bytes.get(start) {
-                Some(b'\n') => start += 1,
-                Some(b'\r') if bytes.get(start + 1) == Some(&b'\n') => start += 2,
-                Some(b'#') => match bytes[start..].iter().position(|&b| b == b'\n') {
-                    Some(end) => start += end + 1,
-                    None => start = bytes.len(),
-                },
-                _ => break,
-            }
-        }
-        if start < self.at {
-            self.at = 0;
-            self.line = 0;
-        }
-        self.line += bytes[self.at..start]
-            .iter()
-            .filter(|&&b| b == b'\n')
-            .count();
-        self.at = start;
-        self.line + 1
-    }
-}
-
-pub(crate) fn text(field: &[u8], utf8: bool) -> String {
-    if utf8 {
-        String::from_utf8_lossy(field).into_owned()
-    } else {
-        cp1250::decode(field).into_owned()
-    }
-}
-
-/// The header's columns by name; `None` (with a warning) when a required
-/// one is missing.
-fn header(
-    fields: &[String],
-    line: usize,
-    warnings: &mut Vec<TagWarning>,
-) -> Option<HashMap<Column, usize>> {
-    let mut columns = HashMap::new();
-    for (i, name) in fields.iter().enumerate() {
-        match COLUMNS.iter().find(|(n, _)| n.eq_ignore_ascii_case(name)) {
-            Some(&(_, column)) if !columns.contains_key(&column) => {
-                columns.insert(column, i);
-            }
-            Some(_) => warnings.push(TagWarning {
-                line,
-                column: Some(i + 1),
-                message: format!("column '{name}' given twice; the first counts"),
-            }),
-            None => warnings.push(TagWarning {
-                line,
-                column: Some(i + 1),
-                message: format!("unknown column '{name}' ignored"),
-            }),
-        }
-    }
-    let missing: Vec<&str> = REQUIRED
-        .iter()
-        .filter(|c| !columns.contains_key(c))
-        .map(|c| COLUMNS.iter().find(|(_, k)| k == c).map_or("", |(n, _)| *n))
-        .collect();
-    if missing.is_empty() {
-        return Some(columns);
-    }
-    warnings.push(TagWarning {
-        line,
-        column: None,
-        message: format!(
-            "the header lacks the column(s) {}; no tag loaded",
-            missing.join(", ")
-        ),
+        true
     });
-    None
+    file
 }
 
 type Field<'a> = dyn Fn(Column) -> (&'a str, usize) + 'a;
@@ -640,37 +460,6 @@ fn tag(
         ));
     }
     Ok(tag)
-}
-
-/// The name in cp1250, checked as a public file's names are.
-pub(crate) fn name_bytes(text: &str, utf8: bool, raw: &[u8]) -> Result<Box<[u8]>, String> {
-    if text.is_empty() {
-        return Err("empty name".to_string());
-    }
-    let bytes: Vec<u8> = if utf8 {
-        cp1250::try_encode(text)
-            .ok_or_else(|| format!("name '{text}' has characters cp1250 lacks"))?
-    } else {
-        raw.to_vec()
-    };
-    if bytes.len() > MAX_NAME {
-        return Err(format!("name longer than {MAX_NAME} characters"));
-    }
-    if let Some(&bad) = bytes
-        .iter()
-        .find(|&&b| b <= 0x20 || b == 0x7f || matches!(b, b',' | b':' | b'*' | b'"' | b';'))
-    {
-        return Err(format!(
-            "invalid character '{}' in name '{text}'",
-            cp1250::decode(&[bad])
-        ));
-    }
-    if bytes[0] == b'%' {
-        return Err(format!(
-            "name '{text}' starts with %, which marks direct addresses"
-        ));
-    }
-    Ok(bytes.into_boxed_slice())
 }
 
 #[cfg(test)]

@@ -25,12 +25,11 @@
 //! that do not fit are skipped with a warning naming line and column; the
 //! rest loads. Pure: bytes in, tags out.
 
-use std::collections::HashMap;
-
 use plccoms_protocol::{cp1250, Area, IecType};
 
 use super::nodeid::{self, NodeRef};
-use crate::modbus::tags::{name_bytes, text, LineCounter, TagWarning};
+use crate::modbus::tags::TagWarning;
+use crate::tag_csv::{self, name_bytes};
 use crate::value_codec::Codec;
 use crate::var::{Var, VarDef, VarInfo};
 
@@ -52,31 +51,9 @@ pub struct Tag {
 }
 
 /// A parsed tag file.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct TagFile {
-    pub tags: Vec<Tag>,
-    /// The first [`crate::pubfile::MAX_WARNINGS`] problems, in file order.
-    pub warnings: Vec<TagWarning>,
-    /// Problems beyond those, counted only.
-    pub more_warnings: usize,
-    /// The line of the first tag past [`crate::pubfile::MAX_VARS`]: the file
-    /// is too large, and its parse stopped there.
-    pub too_many: Option<usize>,
-}
+pub type TagFile = tag_csv::TagFile<Tag>;
 
 impl TagFile {
-    fn warn(&mut self, line: usize, column: Option<usize>, message: String) {
-        if self.warnings.len() < crate::pubfile::MAX_WARNINGS {
-            self.warnings.push(TagWarning {
-                line,
-                column,
-                message,
-            });
-        } else {
-            self.more_warnings += 1;
-        }
-    }
-
     /// The section's variables: every typed tag, placed by [`vars`].
     pub fn var_defs(&self) -> Vec<VarDef> {
         let placed = vars(&self.tags);
@@ -127,122 +104,44 @@ enum Column {
     Index,
 }
 
-const COLUMNS: [(&str, Column); 7] = [
-    ("name", Column::Name),
-    ("node", Column::Node),
-    ("type", Column::Type),
-    ("access", Column::Access),
-    ("unit", Column::Unit),
-    ("description", Column::Description),
-    ("index", Column::Index),
-];
+const COLUMNS: tag_csv::Columns<Column> = tag_csv::Columns {
+    all: &[
+        ("name", Column::Name),
+        ("node", Column::Node),
+        ("type", Column::Type),
+        ("access", Column::Access),
+        ("unit", Column::Unit),
+        ("description", Column::Description),
+        ("index", Column::Index),
+    ],
+    required: &[Column::Name, Column::Node],
+    expected: "name,node,type,access,...",
+};
 
 /// Parses a tag file. Never fails: bad lines become warnings.
 pub fn parse(bytes: &[u8]) -> TagFile {
-    let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
-    let utf8 = std::str::from_utf8(bytes).is_ok();
-    let mut reader = csv::ReaderBuilder::new()
-        .has_headers(false)
-        .flexible(true)
-        .trim(csv::Trim::All)
-        .comment(Some(b'#'))
-        .from_reader(bytes);
     let mut file = TagFile::default();
-    let mut columns: Option<HashMap<Column, usize>> = None;
-    let mut seen: HashMap<Vec<u8>, usize> = HashMap::new();
-    let mut lines = LineCounter::default();
-    for record in reader.byte_records() {
-        let record = match record {
-            Ok(record) => record,
-            Err(e) => {
-                let line = e
-                    .position()
-                    .map_or(0, |p| lines.line_of(bytes, p.byte() as usize));
-                file.warn(line, None, format!("unreadable CSV: {e}"));
-                break;
-            }
-        };
-        let line = record
-            .position()
-            .map_or(0, |p| lines.line_of(bytes, p.byte() as usize));
-        let fields: Vec<String> = record.iter().map(|f| text(f, utf8)).collect();
-        let Some(columns) = &columns else {
-            match header(&fields, line, &mut file) {
-                Some(found) => columns = Some(found),
-                None => return file,
-            }
-            continue;
-        };
-        if fields.iter().all(String::is_empty) {
-            continue;
-        }
-        let field = |c: Column| -> (&str, usize) {
-            columns.get(&c).map_or(("", 0), |&i| {
-                (fields.get(i).map_or("", String::as_str), i + 1)
-            })
-        };
-        let raw_name = record.get(columns[&Column::Name]).unwrap_or_default();
-        match tag(&field, line, utf8, raw_name) {
+    tag_csv::read(bytes, &COLUMNS, &mut file, TagFile::warn, |file, row| {
+        let line = row.line;
+        match tag(&|c| row.field(c), line, row.utf8, row.raw(Column::Name)) {
             Ok(tag) => {
-                let folded = cp1250::to_upper(&tag.name);
-                if let Some(&first) = seen.get(&folded) {
-                    file.warn(
-                        line,
-                        Some(field(Column::Name).1),
-                        format!(
-                            "duplicate name '{}' (first defined on line {first}); skipped",
-                            cp1250::decode(&tag.name)
-                        ),
-                    );
-                } else if file.tags.len() == crate::pubfile::MAX_VARS {
-                    file.too_many = Some(line);
-                    break;
-                } else {
-                    seen.insert(folded, line);
-                    file.tags.push(tag);
+                let name = tag.name.clone();
+                if file
+                    .add(&name, line, row.field(Column::Name).1, tag)
+                    .is_none()
+                {
+                    return false;
                 }
             }
-            Err((column, message)) => file.warn(line, (column > 0).then_some(column), message),
+            Err((column, message)) => file.warn(TagWarning {
+                line,
+                column: (column > 0).then_some(column),
+                message,
+            }),
         }
-    }
-    if columns.is_none() {
-        file.warn(
-            1,
-            None,
-            "no header line (expected name,node,type,access,...)".to_string(),
-        );
-    }
+        true
+    });
     file
-}
-
-fn header(fields: &[String], line: usize, file: &mut TagFile) -> Option<HashMap<Column, usize>> {
-    let mut columns = HashMap::new();
-    for (i, name) in fields.iter().enumerate() {
-        match COLUMNS.iter().find(|(n, _)| n.eq_ignore_ascii_case(name)) {
-            Some(&(_, column)) if !columns.contains_key(&column) => {
-                columns.insert(column, i);
-            }
-            Some(_) => file.warn(
-                line,
-                Some(i + 1),
-                format!("column '{name}' given twice; the first counts"),
-            ),
-            None => file.warn(
-                line,
-                Some(i + 1),
-                format!("unknown column '{name}' ignored"),
-            ),
-        }
-    }
-    if columns.contains_key(&Column::Name) && columns.contains_key(&Column::Node) {
-        return Some(columns);
-    }
-    file.warn(
-        line,
-        None,
-        "the header lacks the column name or node; no tag loaded".to_string(),
-    );
-    None
 }
 
 type Field<'a> = dyn Fn(Column) -> (&'a str, usize) + 'a;
@@ -397,6 +296,24 @@ mod tests {
         assert!(parse(b"name,node,index\nA,i=1,-1\n").warnings[0]
             .to_string()
             .contains("column 3: index '-1'"));
+    }
+
+    /// The README's example tag file loads without a warning.
+    #[test]
+    fn the_readme_example_loads() {
+        let readme = include_str!("../../../README.md");
+        let section = readme
+            .split("## OPC UA client (PROTOCOL = OPCUA)")
+            .nth(1)
+            .unwrap();
+        let block = section
+            .split("```text\n")
+            .nth(1)
+            .and_then(|rest| rest.split("```").next())
+            .unwrap();
+        let file = parse(block.as_bytes());
+        assert!(file.warnings.is_empty(), "{:?}", file.warnings);
+        assert_eq!(file.tags.len(), 3);
     }
 
     #[test]
