@@ -136,6 +136,8 @@ LIST:TYPES.DOUBLE_V,LREAL*
 LIST:TYPES.STRING_V,STRING[255]*
 LIST:TYPES.DATETIME_V,DT*
 LIST:TYPES.DURATION_V,TIME*
+LIST:RECIPE.TEMP,LREAL*
+LIST:RECIPE.TIME,UDINT*
 LIST:DB_LINE1.MOTOR.SPEED,LREAL*
 LIST:DB_LINE1.MOTOR.RUNNING,BOOL*
 LIST:DB_LINE1.MOTOR.COUNT,UDINT*
@@ -217,6 +219,9 @@ async fn browse_get_set(mode: &str) {
             "GET:db_line1.motor.count",
             "GET:DB_LINE1.MOTOR.COUNT,7".into(),
         ),
+        ("GET:array_v[1]", "GET:ARRAY_V[1],2".into()),
+        // A structure's fields, shown by the server as child variables.
+        ("GET:recipe.time", "GET:RECIPE.TIME,30".into()),
     ] {
         c.ask(&format!("{request}\r\n"), &format!("{answer}\r\n"))
             .await;
@@ -261,7 +266,7 @@ async fn browse_get_set(mode: &str) {
     for want in [
         "GETINFO:PROTOCOL,OPCUA".to_string(),
         format!("GETINFO:OPCUA_URL,{}", server.url()),
-        "GETINFO:PUBFILE,2/22 [OPCUA_VARS.csv]".into(),
+        "GETINFO:PUBFILE,2/24 [OPCUA_VARS.csv]".into(),
         "GETINFO:VERSION_PLC,OPC UA FreeOpcUa Python Server 1.0pre".into(),
     ] {
         assert!(info.contains(&want), "{want} not in {info:?}");
@@ -279,7 +284,7 @@ async fn browse_get_set(mode: &str) {
     // EN: the server's own changes come as DIFFs.
     c.ask(
         "EN:db_line1.motor.speed\r\n",
-        "WARNING:252 Changed active variables in public file: '[3/22]'\r\n",
+        "WARNING:252 Changed active variables in public file: '[3/24]'\r\n",
     )
     .await;
     c.expect(b"DIFF:DB_LINE1.MOTOR.SPEED,1450.5000000000\r\n")
@@ -291,6 +296,13 @@ async fn browse_get_set(mode: &str) {
         Duration::from_secs(5),
     )
     .await;
+    // The structure itself is skipped, said once.
+    let log = plc.log();
+    assert_eq!(
+        log.matches("1 structured variables skipped").count(),
+        1,
+        "{log}"
+    );
 }
 
 #[tokio::test]
@@ -375,7 +387,7 @@ async fn server_restart_mid_subscription_and_nodes_added() {
     listed(&mut c, "DB_LINE1.MOTOR.SPEED").await;
     c.ask(
         "EN:db_line1.motor.running\r\n",
-        "WARNING:252 Changed active variables in public file: '[3/22]'\r\n",
+        "WARNING:252 Changed active variables in public file: '[3/24]'\r\n",
     )
     .await;
     c.expect(b"DIFF:DB_LINE1.MOTOR.RUNNING,1\r\n").await;

@@ -7,6 +7,8 @@ Objects/
   DB_LINE1/MOTOR/  SPEED (Double, rw), RUNNING (Boolean, rw), COUNT (UInt32, ro)
   TYPES/           one writable variable of every scalar type plccoms serves
   ARRAY_V          Int16[3], writable (served as ARRAY_V[0] .. ARRAY_V[2])
+  RECIPE           a structure (RecipeT: TEMP Double, TIME UInt32) whose fields
+                   are child variables too, as an S7-1500 shows a UDT
   EMPTY/SUB/       a folder tree without variables
 
 Prints "ready" once it listens. Commands on stdin, one a line:
@@ -20,6 +22,7 @@ import datetime
 import sys
 
 from asyncua import Server, ua
+from asyncua.common.structures104 import new_struct, new_struct_field
 from asyncua.server.user_managers import UserManager
 from asyncua.crypto.permission_rules import User, UserRole
 from asyncua.server.internal_session import InternalSession
@@ -107,6 +110,17 @@ async def main():
     await arr.write_value_rank(1)
     await arr.write_array_dimensions([3])
     await arr.set_writable()
+    recipe_t, _ = await new_struct(
+        server, ns, "RecipeT",
+        [new_struct_field("TEMP", ua.VariantType.Double), new_struct_field("TIME", ua.VariantType.UInt32)],
+    )
+    await server.load_data_type_definitions()
+    recipe = await objects.add_variable(
+        ua.NodeId("RECIPE", ns), ua.QualifiedName("RECIPE", ns),
+        ua.RecipeT(TEMP=21.5, TIME=30), datatype=recipe_t.nodeid,
+    )
+    await var(recipe, "RECIPE", "TEMP", 21.5, ua.VariantType.Double)
+    await var(recipe, "RECIPE", "TIME", 30, ua.VariantType.UInt32)
     empty = await objects.add_folder(ua.NodeId("EMPTY", ns), ua.QualifiedName("EMPTY", ns))
     await empty.add_folder(ua.NodeId("EMPTY.SUB", ns), ua.QualifiedName("SUB", ns))
 
