@@ -30,6 +30,12 @@ impl OpcServer {
     /// Starts it (with a user `user:password` when given); returns once it
     /// listens.
     fn start(port: u16, user: Option<&str>) -> OpcServer {
+        OpcServer::start_with(port, user, None)
+    }
+
+    /// With `secure`: SignAndEncrypt only, certificates made in that folder
+    /// (see server.py).
+    fn start_with(port: u16, user: Option<&str>, secure: Option<&std::path::Path>) -> OpcServer {
         let python = which("python3")
             .unwrap_or_else(|| panic!("python3 is not installed: this test runs asyncua's server"));
         let probe = Command::new(&python)
@@ -45,7 +51,10 @@ impl OpcServer {
         let mut command = Command::new(python);
         command.arg(SCRIPT).arg(port.to_string());
         if let Some(user) = user {
-            command.arg(user);
+            command.args(["--user", user]);
+        }
+        if let Some(dir) = secure {
+            command.arg("--secure").arg(dir);
         }
         let mut child = ChildGuard::spawn(
             "asyncua",
@@ -464,4 +473,68 @@ async fn a_slow_server() {
     .await;
     let log = plc.log();
     assert_eq!(log.matches("PLC lost").count(), 1, "{log}");
+}
+
+#[tokio::test]
+async fn security_first_contact_and_a_user() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = OpcServer::start_with(free_port(), Some("op:secret"), Some(dir.path()));
+    let pki = dir.path().join("client-pki");
+    let plc = plccoms(
+        &server.url(),
+        &format!(
+            "OPCUA_SECURITY = SignAndEncrypt:Basic256Sha256\nOPCUA_PKI = {}\n\
+             OPCUA_USER = op\nOPCUA_PASSWORD = secret",
+            pki.display()
+        ),
+    );
+    // First contact: the server's certificate is refused and stored in
+    // rejected/, and the log says where to move it.
+    let rejected = pki.join("rejected");
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let stored = loop {
+        let found: Vec<_> = std::fs::read_dir(&rejected)
+            .map(|d| d.flatten().map(|e| e.path()).collect())
+            .unwrap_or_default();
+        if let Some(file) = found.into_iter().next() {
+            break file;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "nothing in {}: {}",
+            rejected.display(),
+            plc.log()
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    let mut c = Client::connect(plc.addr).await;
+    c.ask(
+        "GET:__PLC_RUN\r\n",
+        "ERROR:10 Unable to connect to PLC.\r\n",
+    )
+    .await;
+    let log = plc.log();
+    assert!(
+        log.contains("not trusted") && log.contains("trusted to trust it"),
+        "{log}"
+    );
+    // Trusted by hand: values within the next probes.
+    let trusted = pki.join("trusted");
+    std::fs::create_dir_all(&trusted).unwrap();
+    std::fs::rename(&stored, trusted.join(stored.file_name().unwrap())).unwrap();
+    until(
+        &mut c,
+        "GET:db_line1.motor.count",
+        "GET:DB_LINE1.MOTOR.COUNT,7",
+        30,
+    )
+    .await;
+    // A new session: the one above may have answers still on the way.
+    let mut c = Client::connect(plc.addr).await;
+    c.ask(
+        "SET:db_line1.motor.speed,3.5\r\n",
+        "DIFF:DB_LINE1.MOTOR.SPEED,3.5000000000\r\n",
+    )
+    .await;
+    drop(server);
 }

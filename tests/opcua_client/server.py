@@ -1,7 +1,12 @@
 """An OPC UA server modelled on a small S7-1500 (asyncua, a third-party
 stack), for tests/opcua_client.rs.
 
-    python3 server.py PORT [USER:PASSWORD]
+    python3 server.py PORT [--user USER:PASSWORD] [--secure DIR]
+
+--secure: SignAndEncrypt with Basic256Sha256 only, the server's certificate
+made in DIR/server, and a client certificate for plccoms made in
+DIR/client-pki (own/cert.der, private/private.pem), so the test need not
+wait for a key pair made by a debug build.
 
 Objects/
   DB_LINE1/MOTOR/  SPEED (Double, rw), RUNNING (Boolean, rw), COUNT (UInt32, ro)
@@ -53,13 +58,52 @@ class Users(UserManager):
         return None
 
 
+def option(name):
+    return sys.argv[sys.argv.index(name) + 1] if name in sys.argv else None
+
+
+async def certificates(base):
+    from pathlib import Path
+    from cryptography import x509
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+
+    base = Path(base)
+    uses = [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]
+    (base / "server").mkdir(parents=True, exist_ok=True)
+    server = (base / "server" / "key.pem", base / "server" / "cert.der")
+    await setup_self_signed_certificate(
+        server[0], server[1], SERVER_URI, "127.0.0.1", uses, {"commonName": "asyncua test PLC"}
+    )
+    for sub in ["own", "private"]:
+        (base / "client-pki" / sub).mkdir(parents=True, exist_ok=True)
+    await setup_self_signed_certificate(
+        base / "client-pki" / "private" / "private.pem",
+        base / "client-pki" / "own" / "cert.der",
+        "urn:plccoms:client", "localhost", uses, {"commonName": "plccoms"},
+    )
+    return server
+
+
+SERVER_URI = "urn:plccoms:test:plc"
+
+
 async def main():
     port = int(sys.argv[1])
-    server = Server(user_manager=Users(*sys.argv[2].split(":", 1)) if len(sys.argv) > 2 else None)
+    user = option("--user")
+    secure = option("--secure")
+    server = Server(user_manager=Users(*user.split(":", 1)) if user else None)
     await server.init()
     server.set_endpoint(f"opc.tcp://127.0.0.1:{port}/plc")
-    server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
-    if len(sys.argv) > 2:
+    if secure:
+        key, cert = await certificates(secure)
+        await server.set_application_uri(SERVER_URI)
+        await server.load_certificate(str(cert))
+        await server.load_private_key(str(key))
+        server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+    else:
+        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+    if user:
         server.set_identity_tokens([ua.UserNameIdentityToken])
     ns = await server.register_namespace(NS_URI)
     objects = server.nodes.objects
