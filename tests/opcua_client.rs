@@ -514,8 +514,10 @@ async fn security_first_contact_and_a_user() {
     )
     .await;
     let log = plc.log();
+    // The file and its thumbprint, and where it goes.
+    let said = format!("as {}, thumbprint ", stored.display());
     assert!(
-        log.contains("not trusted") && log.contains("trusted to trust it"),
+        log.contains("not trusted") && log.contains(&said) && log.contains("/trusted to trust it"),
         "{log}"
     );
     // Trusted by hand: values within the next probes.

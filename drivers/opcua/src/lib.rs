@@ -860,6 +860,20 @@ fn new_client(config: &OpcuaConfig) -> Result<opcua::client::Client, PlcError> {
         .map_err(|e| PlcError::Protocol(format!("OPC UA client settings: {}", e.join("; "))))
 }
 
+/// The certificate last stored in `dir` and its SHA-1 thumbprint, as the
+/// server's configuration tools show it.
+fn newest_certificate(dir: &std::path::Path) -> Option<(PathBuf, String)> {
+    let newest = std::fs::read_dir(dir)
+        .ok()?
+        .flatten()
+        .filter_map(|e| Some((e.metadata().ok()?.modified().ok()?, e.path())))
+        .max()?
+        .1;
+    let der = std::fs::read(&newest).ok()?;
+    let cert = opcua::crypto::X509::from_der(&der).ok()?;
+    Some((newest, cert.thumbprint().as_hex_string()))
+}
+
 fn connect_error(url: &str, pki: &std::path::Path, status: StatusCode, detail: &str) -> PlcError {
     if matches!(
         status,
@@ -867,9 +881,13 @@ fn connect_error(url: &str, pki: &std::path::Path, status: StatusCode, detail: &
             | StatusCode::BadSecurityChecksFailed
             | StatusCode::BadCertificateInvalid
     ) {
+        let rejected = pki.join("rejected");
+        let stored = newest_certificate(&rejected).map_or_else(
+            || format!("in {}", rejected.display()),
+            |(path, thumbprint)| format!("as {}, thumbprint {thumbprint}", path.display()),
+        );
         return PlcError::Protocol(format!(
-            "{url}: {status}: the server's certificate is not trusted; it was stored in {}/rejected: check its thumbprint (the server's own configuration shows it) and move it to {}/trusted to trust it",
-            pki.display(),
+            "{url}: {status}: the server's certificate is not trusted; it was stored {stored}: check the thumbprint against the server's own (its configuration shows it) and move the file to {}/trusted to trust it",
             pki.display()
         ));
     }
