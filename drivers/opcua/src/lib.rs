@@ -217,7 +217,8 @@ pub struct OpcuaBackend {
     written: HashSet<usize>,
     /// When the link's last read started, and the gap before it.
     last_read: Option<Instant>,
-    poll_gap: Option<Duration>,
+    /// The last three periods between poll cycles.
+    poll_gaps: [Option<Duration>; 3],
 }
 
 fn not_connected() -> PlcError {
@@ -280,7 +281,7 @@ impl OpcuaBackend {
             notified: Arc::default(),
             written: HashSet::new(),
             last_read: None,
-            poll_gap: None,
+            poll_gaps: [None; 3],
         }
     }
 
@@ -577,11 +578,18 @@ impl OpcuaBackend {
 
     /// Subscribe mode: monitored items for `indexes` not yet monitored.
     async fn monitor(&mut self, indexes: &[usize]) -> Result<(), PlcError> {
+        // Until the poll's period is known (the median of three cycles: a
+        // client's EN polls at once, the first after a connection is
+        // late), values are read directly.
+        let gaps: Option<Vec<Duration>> = self.poll_gaps.iter().copied().collect();
+        let Some(gap) = gaps.map(|mut g| {
+            g.sort_unstable();
+            g[1]
+        }) else {
+            return Ok(());
+        };
         let session = self.session()?;
-        let gap = self
-            .poll_gap
-            .unwrap_or(Duration::from_millis(100))
-            .clamp(Duration::from_millis(10), Duration::from_secs(10));
+        let gap = gap.clamp(Duration::from_millis(10), Duration::from_secs(10));
         let interval = (gap.as_secs_f64() * 1000.0).max(self.limits.min_sampling);
         if self.subscription.is_none() {
             let notified = self.notified.clone();
@@ -606,6 +614,7 @@ impl OpcuaBackend {
                     ),
                 )
                 .await?;
+            tracing::debug!(section = %self.config.section, "subscription {id} made, publishing and sampling every {interval:.0} ms");
             self.subscription = Some(Subscription {
                 id,
                 monitored: HashSet::new(),
@@ -1024,10 +1033,6 @@ impl PlcBackend for OpcuaBackend {
     }
 
     async fn read(&mut self, reads: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
-        let now = Instant::now();
-        if let Some(last) = self.last_read.replace(now) {
-            self.poll_gap = Some(now - last);
-        }
         self.session()?;
         if let (Some(every), Some(at)) = (self.config.rebrowse, self.built_at) {
             if at.elapsed() >= every {
@@ -1040,6 +1045,17 @@ impl PlcBackend for OpcuaBackend {
             match read.area {
                 Area::R => wanted.extend(self.covered(read.offset, read.len)),
                 _ => state = true,
+            }
+        }
+        // The poll reads the system variables each cycle: its period is
+        // the sampling interval (a GET or a SET's read-back in between is
+        // no cycle).
+        tracing::trace!(section = %self.config.section, blocks = reads.len(), system = state, "read");
+        if state {
+            let now = Instant::now();
+            if let Some(last) = self.last_read.replace(now) {
+                self.poll_gaps.rotate_right(1);
+                self.poll_gaps[0] = Some(now - last);
             }
         }
         // The sources the entries read: an array once for its elements.
