@@ -28,6 +28,13 @@ use crate::{service_error, Limits};
 /// deeper one is a loop through references the visited set cannot see.
 const MAX_DEPTH: usize = 32;
 
+/// References one Browse answer carries per node, and nodes one Browse
+/// asks for: a folder of 10,000 variables comes in pages (BrowseNext), each
+/// answer well inside the message size limits, not as one refused answer
+/// (BadEncodingLimitsExceeded, as asyncua's server answered).
+const REFERENCES_PER_NODE: u32 = 1000;
+const BROWSE_BATCH: usize = 10;
+
 /// Most nodes a browse visits (objects and variables): a server that
 /// shows endless folders is browsed this far, not until memory runs out.
 const MAX_NODES: usize = 4 * plccoms_plc::pubfile::MAX_VARS;
@@ -240,8 +247,9 @@ async fn browse(
     }
     let mut found = Vec::new();
     while !queue.is_empty() {
-        let batch: Vec<(NodeId, Vec<String>)> =
-            queue.drain(..queue.len().min(limits.per_browse)).collect();
+        let batch: Vec<(NodeId, Vec<String>)> = queue
+            .drain(..queue.len().min(limits.per_browse.min(BROWSE_BATCH)))
+            .collect();
         let descriptions: Vec<BrowseDescription> = batch
             .iter()
             .map(|(node, _)| BrowseDescription {
@@ -254,7 +262,7 @@ async fn browse(
             })
             .collect();
         let mut results = session
-            .browse(&descriptions, 0, None)
+            .browse(&descriptions, REFERENCES_PER_NODE, None)
             .await
             .map_err(|e| service_error("Browse", e))?;
         for ((_, path), result) in batch.iter().zip(results.iter_mut()) {

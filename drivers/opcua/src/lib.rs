@@ -849,6 +849,9 @@ impl OpcuaBackend {
     }
 }
 
+/// Largest message accepted from a server.
+const MAX_MESSAGE: usize = 64 * 1024 * 1024;
+
 /// The client (its certificate store loaded once): a key pair is made in
 /// the PKI folder only where security needs one.
 fn new_client(config: &OpcuaConfig) -> Result<opcua::client::Client, PlcError> {
@@ -865,6 +868,15 @@ fn new_client(config: &OpcuaConfig) -> Result<opcua::client::Client, PlcError> {
         .request_timeout(config.timeout)
         .keep_alive_interval(config.timeout.max(Duration::from_millis(500)))
         .max_failed_keep_alive_count(1)
+        // async-opcua accepts 5 chunks (about 320 KB) by default: too
+        // little for a Browse of a folder of thousands of variables from a
+        // server that ignores the references-per-node limit (asyncua's), or
+        // for a Read of MaxNodesPerRead strings. Bounded all the same.
+        .max_chunk_count(MAX_MESSAGE / 65_536)
+        .max_message_size(MAX_MESSAGE)
+        // And 1000 array elements: a Read of 5000 nodes, a Browse of a
+        // folder of 10,000 answer longer arrays.
+        .max_array_length(4 * plccoms_plc::pubfile::MAX_VARS)
         .client()
         .map_err(|e| PlcError::Protocol(format!("OPC UA client settings: {}", e.join("; "))))
 }
