@@ -188,7 +188,11 @@ impl Drop for Connection {
     }
 }
 
-/// Values notified, by client handle (entry index + 1).
+/// The client handle of ServerStatus.State's monitored item (the others
+/// are source index + 1).
+const STATE_HANDLE: u32 = u32::MAX;
+
+/// Values notified, by client handle (source index + 1).
 type Notified = Arc<Mutex<HashMap<u32, DataValue>>>;
 
 struct Subscription {
@@ -619,6 +623,24 @@ impl OpcuaBackend {
                 id,
                 monitored: HashSet::new(),
             });
+            // ServerStatus.State too: `__PLC_RUN` without a round trip.
+            let state = MonitoredItemCreateRequest {
+                item_to_monitor: NodeId::from(opcua::types::VariableId::Server_ServerStatus_State)
+                    .into(),
+                monitoring_mode: MonitoringMode::Reporting,
+                requested_parameters: MonitoringParameters {
+                    client_handle: STATE_HANDLE,
+                    sampling_interval: interval,
+                    queue_size: 1,
+                    discard_oldest: true,
+                    ..Default::default()
+                },
+            };
+            self.call(
+                "CreateMonitoredItems",
+                session.create_monitored_items(id, TimestampsToReturn::Neither, vec![state]),
+            )
+            .await?;
         }
         let Some(subscription) = &self.subscription else {
             return Ok(());
@@ -1048,7 +1070,16 @@ impl PlcBackend for OpcuaBackend {
         self.session()?;
         if let (Some(every), Some(at)) = (self.config.rebrowse, self.built_at) {
             if at.elapsed() >= every {
-                self.rebuild().await?;
+                match self.rebuild().await {
+                    Ok(()) => {}
+                    Err(e) if e.is_link_failure() => return Err(e),
+                    // The server refused a Browse or Read of attributes:
+                    // the list stays as it is, looked for again later.
+                    Err(e) => {
+                        warn!(section = %self.config.section, "looking for the server's variables again failed: {e}; the variables stay as they are");
+                        self.built_at = Some(Instant::now());
+                    }
+                }
             }
         }
         let mut wanted: Vec<usize> = Vec::new();
@@ -1081,6 +1112,10 @@ impl PlcBackend for OpcuaBackend {
             self.monitor(&wanted).await?;
             let mut values: HashMap<usize, DataValue> = {
                 let notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
+                if let Some(run) = notified.get(&STATE_HANDLE) {
+                    self.run = matches!(run.value, Some(Variant::Int32(0)));
+                    state = false;
+                }
                 wanted
                     .iter()
                     .filter_map(|&i| notified.get(&(i as u32 + 1)).map(|v| (i, v.clone())))
