@@ -17,7 +17,7 @@ seconds=${1:-300}
 shift || true
 targets=("$@")
 if [ ${#targets[@]} -eq 0 ]; then
-    targets=(request_line input_decoder ini pubfile epsnet_client epsnet_device epsnet_stream local_path web_query user_value history_time history_block mqtt_spool mqtt_text sparkplug_command modbus_tags modbus_answer opcua_node_id opcua_users opcua_write s7_stream s7_tags)
+    targets=(request_line input_decoder ini pubfile epsnet_client epsnet_device epsnet_stream local_path web_query user_value history_time history_block mqtt_spool mqtt_text sparkplug_command modbus_tags modbus_answer opcua_node_id opcua_users opcua_write opcua_tags opcua_client_node_id s7_stream s7_tags)
 fi
 
 export RUSTC_BOOTSTRAP=1

@@ -33,6 +33,7 @@ pub const OUR_CRATES: &[&str] = &[
     "plccoms_driver_s7",
     "plccoms_driver_plugin",
     "plccoms_driver_ads",
+    "plccoms_driver_opcua",
     "plccoms_telnet",
     "plccoms_historian",
     "plccoms_mqtt",
@@ -41,13 +42,24 @@ pub const OUR_CRATES: &[&str] = &[
     "plcsim",
 ];
 
+/// Libraries that report what our own crates report once, in our terms:
+/// async-opcua's client logs every failed connection attempt (several
+/// lines a second while a server is away) and each refused request; the
+/// OPC UA driver says what matters once per outage. Shown with `-vv`.
+pub const QUIET_CRATES: &[&str] = &["opcua_client", "opcua_core::comms::secure_channel"];
+
 /// The log filter for `level` (`info`, `debug`, `trace`): our crates at
-/// that level, every other at `info`; the frame trace always passes (each
-/// section decides whether it writes one: `TRACE`, `SETCONF:trace`, `-vv`).
+/// that level, every other at `info` ([`QUIET_CRATES`] off but at `trace`);
+/// the frame trace always passes (each section decides whether it writes
+/// one: `TRACE`, `SETCONF:trace`, `-vv`).
 pub fn log_filter(level: &str) -> String {
     let mut filter = String::from("info");
     for name in OUR_CRATES {
         filter.push_str(&format!(",{name}={level}"));
+    }
+    for name in QUIET_CRATES {
+        let quiet = if level == "trace" { "debug" } else { "off" };
+        filter.push_str(&format!(",{name}={quiet}"));
     }
     filter.push_str(&format!(",{}=trace", plccoms_core::trace::TARGET));
     filter
@@ -65,4 +77,6 @@ pub const DRIVERS: Drivers = Drivers(&[
     plccoms_driver_plugin::DRIVER,
     #[cfg(feature = "ads")]
     plccoms_driver_ads::DRIVER,
+    #[cfg(feature = "opcua-client")]
+    plccoms_driver_opcua::DRIVER,
 ]);

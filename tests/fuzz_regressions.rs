@@ -152,6 +152,10 @@ fn every_target_runs_on_ordinary_input() {
     checks::modbus_tags(
         b"name,type,table,address,bit,order,scale,offset\nx,INT,holding,65535,,,0.5,1\n",
     );
+    checks::opcua_tags(
+        b"name,node,type,access,unit\nspeed,\"ns=3;s=\"\"DB\"\".\"\"x\"\"\",REAL,rw,rpm\nb,i=1,BOOL\nu,ns=1;i=2\n",
+    );
+    checks::opcua_client_node_id(b"nsu=http://x/;g=09087e75-8e5e-499b-954f-f2a9603db28a");
     // FC 3 answer of two registers, then an exception, then half an ADU.
     checks::modbus_answer(&[
         0, 2, 0, 1, 0, 0, 0, 7, 1, 3, 4, 0xBE, 0xEF, 0, 1, 0, 2, 0, 0, 0, 3, 1, 0x83, 2, 0, 3, 0,
@@ -222,6 +226,28 @@ proptest::proptest! {
     #[test]
     fn modbus_rtu_framing_holds_for_any_bytes(data in proptest::collection::vec(proptest::num::u8::ANY, 0..600)) {
         checks::modbus_rtu(&data);
+    }
+
+    /// OPC UA tag files and node ids built from the pieces that matter.
+    #[test]
+    fn opcua_tag_files_and_node_ids(
+        rows in proptest::collection::vec(
+            (
+                proptest::sample::select(vec!["a", "A", "b.c", "x y", "%x", "\"q\"", "é", ""]),
+                proptest::sample::select(vec!["i=1", "ns=2;s=a;b", "ns=70000;i=1", "nsu=u;i=5", "g=1", "b=AA==", "s=", "ns=1;x=2"]),
+                proptest::sample::select(vec!["", "BOOL", "STRING[80]", "LREAL", "FLOAT", "STRING[0]"]),
+                proptest::sample::select(vec!["", "ro", "rw", "RW", "w"]),
+            ),
+            0..12,
+        ),
+        header in proptest::sample::select(vec!["name,node,type,access", "NODE,Name", "name,type", "node,name,access,type,unit"]),
+    ) {
+        let mut text = format!("{header}\n");
+        for (name, node, ty, access) in &rows {
+            text.push_str(&format!("{name},\"{}\",{ty},{access}\n", node.replace('"', "\"\"")));
+            checks::opcua_client_node_id(node.as_bytes());
+        }
+        checks::opcua_tags(text.as_bytes());
     }
 
     /// Names built from the characters that matter to the path rules.

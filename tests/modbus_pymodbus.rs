@@ -23,15 +23,7 @@ async fn every_type_order_and_table() {
     let mut c = Client::connect(server.addr).await;
     every_type::check(&mut c).await;
 
-    c.send(b"GETINFO:\r\n").await;
-    let mut info = Vec::new();
-    loop {
-        let line = String::from_utf8(c.line().await).unwrap();
-        if line == "GETINFO:\r\n" {
-            break;
-        }
-        info.push(line.trim_end().to_string());
-    }
+    let info = c.getinfo().await;
     for want in [
         "GETINFO:PROTOCOL,MODBUS_TCP".to_string(),
         "GETINFO:IPADDR,127.0.0.1".into(),

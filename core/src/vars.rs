@@ -80,6 +80,17 @@ impl VarFile {
     }
 }
 
+impl From<&plccoms_plc::opcua::tags::TagFile> for VarFile {
+    fn from(file: &plccoms_plc::opcua::tags::TagFile) -> VarFile {
+        VarFile {
+            vars: file.var_defs(),
+            warnings: file.warnings.iter().map(|w| w.to_string()).collect(),
+            more_warnings: file.more_warnings,
+            too_many: file.too_many,
+        }
+    }
+}
+
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum TableError {
     #[error("fixed public file '{file}' does not define {name}")]

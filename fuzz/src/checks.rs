@@ -963,7 +963,7 @@ pub fn user_value(data: &[u8]) {
 /// decodes any bytes, and a value it decoded encodes to bytes that decode
 /// to the same value.
 pub fn modbus_tags(data: &[u8]) {
-    use plccoms_core::vars::{VarFile, VarTable};
+    use plccoms_core::vars::VarFile;
     use plccoms_plc::modbus::{tags, MAP};
 
     let file = tags::parse(data);
@@ -992,19 +992,24 @@ pub fn modbus_tags(data: &[u8]) {
             }
         }
     }
+    let table = tag_table(&VarFile::from(&file), &MAP);
+    assert_eq!(table.len(), 2 + file.tags.len());
+}
+
+/// The table of the standard fixed file and a tag file's variables.
+fn tag_table(user: &plccoms_core::vars::VarFile, map: &MemoryMap) -> VarTable {
     let fixed = plccoms_plc::pubfile::parse(
         b" __PLC_RUN S B 2 .2 BOOL PUB_INOUT\r\n __PF_CRC S B 70 DWORD PUB_INOUT\r\n",
     );
     let mut warnings = Vec::new();
-    let table = VarTable::build_from(
+    VarTable::build_from(
         "FIXED.pub",
-        &VarFile::from(&fixed),
-        Some(("fuzz.csv", &VarFile::from(&file))),
-        &MAP,
+        &plccoms_core::vars::VarFile::from(&fixed),
+        Some(("fuzz.csv", user)),
+        map,
         &mut warnings,
     )
-    .expect("the standard fixed file defines the system variables");
-    assert_eq!(table.len(), 2 + file.tags.len());
+    .expect("the standard fixed file defines the system variables")
 }
 
 fn value_is_nan(value: &Value) -> bool {
@@ -1013,6 +1018,59 @@ fn value_is_nan(value: &Value) -> bool {
         Value::LReal(x) | Value::Date(x) => x.is_nan(),
         _ => false,
     }
+}
+
+// ---------------------------------------------------------------------------
+// opcua_tags, opcua_node_id
+
+/// An OPC UA tag file (`OPCUA_TAGS`, and the list the backend serves): it
+/// parses without panic within the bounds, writes back to a file that
+/// parses to the same tags, its variables lie inside the OPC UA map one
+/// after another, and the table builds from them.
+pub fn opcua_tags(data: &[u8]) {
+    use plccoms_core::vars::VarFile;
+    use plccoms_plc::opcua::{tags, MAP};
+
+    let file = tags::parse(data);
+    assert!(file.tags.len() <= plccoms_plc::pubfile::MAX_VARS);
+    // The backend writes UTF-8; a cp1250 file's names may not map back.
+    if std::str::from_utf8(data).is_ok() {
+        let again = tags::parse(&tags::write(&file.tags));
+        assert_eq!(again.tags.len(), file.tags.len(), "{:?}", again.warnings);
+        for (a, b) in again.tags.iter().zip(&file.tags) {
+            assert_eq!(
+                (&a.name, &a.node, a.ty, a.writable, a.index),
+                (&b.name, &b.node, b.ty, b.writable, b.index)
+            );
+        }
+    }
+    let vars = tags::vars(&file.tags);
+    let mut end = 0;
+    for var in &vars {
+        assert_eq!(var.offset, end);
+        end += var.ty.size() as u32;
+        assert!(MAP.contains(var.area, var.offset, var.ty.size() as u32));
+    }
+    let table = tag_table(&VarFile::from(&file), &MAP);
+    assert_eq!(table.len(), 2 + vars.len());
+}
+
+/// A node id's text: parsed or refused without panic; what parses prints
+/// to a text that parses to the same node id.
+pub fn opcua_client_node_id(data: &[u8]) {
+    use plccoms_plc::opcua::nodeid;
+
+    let text = String::from_utf8_lossy(data);
+    if let Ok(node) = nodeid::parse(&text) {
+        let printed = node.to_string();
+        assert_eq!(nodeid::parse(&printed).as_ref(), Ok(&node), "{printed}");
+    }
+    // And as a browse name: the name it makes is one the protocol carries.
+    let name = plccoms_plc::opcua::path_name(&[text.as_ref(), "x"]);
+    assert!(!name
+        .bytes()
+        .any(|b| b <= b' ' || matches!(b, b',' | b':' | b'*' | b'"' | b';')));
+    assert!(!name.starts_with(['%', '#']));
 }
 
 // ---------------------------------------------------------------------------

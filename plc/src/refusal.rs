@@ -22,6 +22,8 @@ pub enum Refusal {
     S7(crate::s7::ReturnCode),
     /// An ADS device's error code.
     Ads(AdsError),
+    /// An OPC UA server's StatusCode (Bad or Uncertain) for one node.
+    Opcua(u32),
 }
 
 impl Refusal {
@@ -51,6 +53,10 @@ impl fmt::Display for Refusal {
             Refusal::Modbus(code) => code.fmt(f),
             Refusal::S7(code) => code.fmt(f),
             Refusal::Ads(code) => code.fmt(f),
+            Refusal::Opcua(code) => match crate::opcua::status::name(*code) {
+                Some(name) => write!(f, "OPC UA {name} (0x{code:08X})"),
+                None => write!(f, "OPC UA status 0x{code:08X}"),
+            },
         }
     }
 }
@@ -72,6 +78,10 @@ mod tests {
         assert_eq!(
             Refusal::from(ExceptionCode(2)).to_string(),
             "Modbus exception 2 (illegal data address)"
+        );
+        assert_eq!(
+            Refusal::Opcua(0x803B_0000).to_string(),
+            "OPC UA BadNotWritable (0x803B0000)"
         );
     }
 }

@@ -284,6 +284,19 @@ impl Client {
         self.expect(answer.as_bytes()).await;
     }
 
+    /// `GETINFO:`'s lines, without their line ends and the closing line.
+    pub async fn getinfo(&mut self) -> Vec<String> {
+        self.send(b"GETINFO:\r\n").await;
+        let mut info = Vec::new();
+        loop {
+            let line = String::from_utf8(self.line().await).unwrap();
+            if line == "GETINFO:\r\n" {
+                return info;
+            }
+            info.push(line.trim_end().to_string());
+        }
+    }
+
     /// Asserts nothing arrives within `ms`.
     pub async fn silent(&mut self, ms: u64) {
         assert!(

@@ -146,6 +146,11 @@ impl Maker {
                 model: "TwinCAT PLC (ADS)".into(),
                 hw_version: ident.map(str::to_string).filter(|i| !i.is_empty()),
             },
+            Protocol::Opcua => Maker {
+                manufacturer: "OPC UA server".into(),
+                model: section.opcua_client.url.clone().unwrap_or_default(),
+                hw_version: ident.map(str::to_string).filter(|i| !i.is_empty()),
+            },
         }
     }
 }

@@ -11,7 +11,7 @@ use super::history::{self, Form};
 use super::serial;
 use super::{
     split_masks, Global, MqttFormat, Network, Protocol, Section, Simulator, MQTT_FORMATS,
-    OPCUA_SECURITY_CHOICES,
+    OPCUA_MODES, OPCUA_SECURITY_CHOICES,
 };
 
 pub use super::protocol::PROTOCOLS;
@@ -777,7 +777,7 @@ static KEYS: &[Key] = &[
         Setter::Section(|s, v| s.pubfile_fixed = Some(v.text()))),
     // This server's own keys.
     row("PROTOCOL", Some(Protocol::Epsnet.name()), choice("protocol", PROTOCOLS),
-        "backend: EPSNET (default), MODBUS_TCP, MODBUS_RTU, MODBUS_RTU_TCP, S7 or ADS",
+        "backend: EPSNET (default), MODBUS_TCP, MODBUS_RTU, MODBUS_RTU_TCP, S7, ADS or OPCUA",
         Setter::Section(|s, v| s.protocol = v.protocol())),
     row("SIMULATOR", Some("No"), Kind::Bool,
         "Yes runs a simulated PLC (EPSNET, or Modbus TCP) inside the server on a loopback port",
@@ -911,6 +911,34 @@ static KEYS: &[Key] = &[
         Setter::Section(|s, v| s.ads.tags = Some(v.text()))),
     row("ADS_CYCLE", Some("10"), number(1, 60000, "ms"), "the PLC's check cycle for ADS_NOTIFY",
         Setter::Section(|s, v| s.ads.cycle = v.millis())),
+    // OPC UA client (PROTOCOL = OPCUA). OPCUA_SECURITY in [*] is the OPC
+    // UA server app's; in a PLC section, this client's.
+    row("OPCUA_URL", None, Kind::Text, "endpoint of the PLC's OPC UA server (opc.tcp://host:4840/path)",
+        Setter::Section(|s, v| s.opcua_client.url = Some(v.text()))),
+    row("OPCUA_SECURITY", Some("None"), Kind::Text,
+        "None, or mode:policy (Sign or SignAndEncrypt : Basic256Sha256, Aes128_Sha256_RsaOaep, Aes256_Sha256_RsaPss)",
+        Setter::Section(|s, v| s.opcua_client.security = v.text())),
+    row("OPCUA_USER", None, Kind::Text, "user name at the server (default: anonymous)",
+        Setter::Section(|s, v| s.opcua_client.user = Some(v.text()))),
+    row("OPCUA_PASSWORD", None, Kind::Text, "password of OPCUA_USER",
+        Setter::Section(|s, v| s.opcua_client.password = Some(v.text()))),
+    row("OPCUA_PKI", None, Kind::Path(PathUse::State),
+        "folder of the client certificate and of trusted/rejected server certificates (default: opcua-client-pki in the state directory)",
+        Setter::Section(|s, v| s.opcua_client.pki = Some(v.text()))),
+    row("OPCUA_BROWSE", None, Kind::Text,
+        "nodes browsed for variables, comma-separated node ids (default: the Objects folder, i=85)",
+        Setter::Section(|s, v| s.opcua_client.browse = Some(v.text()))),
+    row("OPCUA_TAGS", None, Kind::Path(PathUse::Input),
+        "OPC UA tag file (CSV: name,node,type,access,unit,description) instead of browsing",
+        Setter::Section(|s, v| s.opcua_client.tags = Some(v.text()))),
+    row("OPCUA_MODE", Some("subscribe"), choice("OPC UA mode", &OPCUA_MODES),
+        "subscribe (monitored items, sampled at COMM_LOOP_DELAY) or read (cyclic Read)",
+        Setter::Section(|s, v| s.opcua_client.subscribe = v.text() == "subscribe")),
+    row("OPCUA_TIMEOUT", Some("1000"), number(1, 60000, "ms"), "how long one OPC UA request may take",
+        Setter::Section(|s, v| s.opcua_client.timeout = v.millis())),
+    row("OPCUA_REBROWSE", Some("10"), number(0, 86400, "s"),
+        "the variables are browsed (or the tag file's types read) again this often; a change reloads the table (0 = never)",
+        Setter::Section(|s, v| s.opcua_client.rebrowse = v.secs())),
     // Accepted in a PLC section for symmetry with [*]: no effect there.
     row("SERIAL_DEVICE_CFG", None, Kind::Text, "no effect in a PLC section (a [*] key)",
         Setter::Section(|_, _| {})),

@@ -333,6 +333,8 @@ pub struct Section {
 
     /// The `ADS_*` keys (`PROTOCOL = ADS`).
     pub ads: Ads,
+    /// The OPC UA client's `OPCUA_*` keys (`PROTOCOL = OPCUA`).
+    pub opcua_client: OpcuaClient,
     /// Every path the section's keys name ([`Kind::Path`]), for
     /// [`Config::own_paths`].
     pub paths: Vec<ConfiguredPath>,
@@ -505,6 +507,33 @@ pub struct Ads {
 /// The name the symbol table of an ADS section is served under (LIST,
 /// GETINFO, PUBFILE_WRITE's copy).
 pub const ADS_SYMBOLS: &str = "ADS_SYMBOLS.pub";
+/// The `OPCUA_*` keys of a PLC section: the OPC UA client's settings
+/// (checked by the OPC UA driver when it opens the section).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct OpcuaClient {
+    /// `OPCUA_URL`: the server's endpoint.
+    pub url: Option<String>,
+    /// `OPCUA_SECURITY`: `None` or `mode:policy`.
+    pub security: String,
+    /// `OPCUA_USER`, `OPCUA_PASSWORD`: anonymous when unset.
+    pub user: Option<String>,
+    pub password: Option<String>,
+    /// `OPCUA_PKI`: the client's certificate store.
+    pub pki: Option<String>,
+    /// `OPCUA_BROWSE`: node ids to browse from.
+    pub browse: Option<String>,
+    /// `OPCUA_TAGS`: the tag file (path rules as PUBFILE).
+    pub tags: Option<String>,
+    /// `OPCUA_MODE = subscribe` (else read).
+    pub subscribe: bool,
+    /// `OPCUA_TIMEOUT`: how long one request may take.
+    pub timeout: Duration,
+    /// `OPCUA_REBROWSE`: how often the variables are looked for again.
+    pub rebrowse: Duration,
+}
+
+/// `OPCUA_MODE` choices.
+pub const OPCUA_MODES: [&str; 2] = ["subscribe", "read"];
 
 /// A loaded file with the warnings and skipped-section errors found on the way.
 #[derive(Debug, Clone)]
@@ -963,6 +992,7 @@ fn section_defaults(name: &str) -> Section {
         s7: S7::default(),
 
         ads: Ads::default(),
+        opcua_client: OpcuaClient::default(),
         paths: Vec::new(),
     })
 }
@@ -1029,6 +1059,13 @@ fn read_section(
             key.starts_with("S7_")
                 .then(|| format!("{key} has no effect without PROTOCOL = S7"))
         };
+        let opcua = section.protocol == Protocol::Opcua;
+        let misplaced = misplaced.or_else(|| match (opcua, key.starts_with("OPCUA_")) {
+            (true, false) => matches!(*key, "PUBFILE" | "PUBFILE_FIXED" | "IPADDR")
+                .then(|| format!("{key} has no effect with PROTOCOL = OPCUA (the server is OPCUA_URL, its variables come from OPCUA_BROWSE or OPCUA_TAGS)")),
+            (false, true) => Some(format!("{key} has no effect without PROTOCOL = OPCUA")),
+            _ => None,
+        });
         if let Some(message) = misplaced {
             diags.push(Severity::Warning, entry.line, message);
         }

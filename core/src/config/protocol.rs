@@ -22,6 +22,9 @@ pub enum Protocol {
     S7,
     /// Beckhoff ADS over TCP, variables from the PLC's symbol table.
     Ads,
+    /// A PLC's own OPC UA server (`OPCUA_URL`), variables browsed
+    /// (`OPCUA_BROWSE`) or from a tag file (`OPCUA_TAGS`).
+    Opcua,
 }
 
 /// The ini names, in [`Protocol::ALL`]'s order: the key table's choices.
@@ -37,13 +40,14 @@ pub const PROTOCOLS: &[&str] = &{
 
 impl Protocol {
     /// Every protocol, in the order the documentation lists them.
-    pub const ALL: [Protocol; 6] = [
+    pub const ALL: [Protocol; 7] = [
         Protocol::Epsnet,
         Protocol::ModbusTcp,
         Protocol::ModbusRtu,
         Protocol::ModbusRtuTcp,
         Protocol::S7,
         Protocol::Ads,
+        Protocol::Opcua,
     ];
 
     /// The name in the ini file and in `GETINFO:PROTOCOL`.
@@ -55,6 +59,7 @@ impl Protocol {
             Protocol::ModbusRtuTcp => "MODBUS_RTU_TCP",
             Protocol::S7 => "S7",
             Protocol::Ads => "ADS",
+            Protocol::Opcua => "OPCUA",
         }
     }
 
@@ -94,7 +99,8 @@ mod tests {
                 "MODBUS_RTU",
                 "MODBUS_RTU_TCP",
                 "S7",
-                "ADS"
+                "ADS",
+                "OPCUA"
             ]
         );
         for protocol in Protocol::ALL {

@@ -936,6 +936,10 @@ fn base(key: &str) -> &'static str {
         "SERIAL_PARITY" | "SERIAL_DATA_BITS" | "SERIAL_STOP_BITS"
     ) {
         "SERVER_PORT = 5010\nPROTOCOL = MODBUS_RTU\nMODBUS_TAGS = t.csv"
+    } else if key == "OPCUA_URL" {
+        "SERVER_PORT = 5010\nPROTOCOL = OPCUA"
+    } else if key.starts_with("OPCUA_") {
+        "SERVER_PORT = 5010\nPROTOCOL = OPCUA\nOPCUA_URL = opc.tcp://plc:4840"
     } else {
         "SERVER_PORT = 5010"
     }
@@ -1016,7 +1020,7 @@ fn protocol() {
     );
     assert_eq!(
         section_error("SERVER_PORT = 1\nPROTOCOL = modbus"),
-        "PLCComS.ini:4: PROTOCOL = modbus is not a protocol (allowed EPSNET, MODBUS_TCP, MODBUS_RTU, MODBUS_RTU_TCP, S7, ADS)"
+        "PLCComS.ini:4: PROTOCOL = modbus is not a protocol (allowed EPSNET, MODBUS_TCP, MODBUS_RTU, MODBUS_RTU_TCP, S7, ADS, OPCUA)"
     );
 }
 
@@ -1043,6 +1047,38 @@ fn ads_sections_serve_the_symbols_and_check_their_net_ids() {
     assert_eq!(
         warnings("SERVER_PORT = 1\nPROTOCOL = ADS\nPUBFILE = x.pub"),
         ["PLCComS.ini:5: PUBFILE has no effect with PROTOCOL = ADS (its variables are the PLC's symbols)"]
+    );
+}
+
+#[test]
+fn opcua_client_sections() {
+    let opcua = section(
+        "SERVER_PORT = 1\nPROTOCOL = opcua\nOPCUA_URL = opc.tcp://plc:4840\nOPCUA_MODE = read",
+    );
+    assert_eq!(opcua.protocol, Protocol::Opcua);
+    assert_eq!(
+        opcua.opcua_client.url.as_deref(),
+        Some("opc.tcp://plc:4840")
+    );
+    assert!(!opcua.opcua_client.subscribe);
+}
+
+#[test]
+fn opcua_keys_where_they_do_nothing_are_warnings() {
+    let warnings = |body: &str| {
+        let loaded = with_section(body).unwrap_or_else(|e| panic!("{body}: {e}"));
+        messages(&loaded)
+    };
+    assert_eq!(
+        warnings("SERVER_PORT = 1\nOPCUA_URL = opc.tcp://plc:4840"),
+        ["PLCComS.ini:4: OPCUA_URL has no effect without PROTOCOL = OPCUA"]
+    );
+    assert_eq!(
+        warnings("SERVER_PORT = 1\nPROTOCOL = OPCUA\nPUBFILE = x.pub"),
+        [
+            "PLCComS.ini:5: PUBFILE has no effect with PROTOCOL = OPCUA (the server is OPCUA_URL, \
+          its variables come from OPCUA_BROWSE or OPCUA_TAGS)"
+        ]
     );
 }
 
@@ -1409,6 +1445,11 @@ fn every_key_naming_a_file_is_a_path_key() {
         "ADS_NET_ID",
         "ADS_SOURCE_NET_ID",
         "ADS_NOTIFY",
+        "OPCUA_URL",
+        "OPCUA_SECURITY",
+        "OPCUA_USER",
+        "OPCUA_PASSWORD",
+        "OPCUA_BROWSE",
     ];
     for key in keys() {
         if key.kind == Kind::Text {

@@ -511,7 +511,9 @@ impl Link {
             if let Err(err) = self.reload(NamedBy::Configuration).await {
                 let serving = match self.user_kind() {
                     UserKind::PubFile | UserKind::DeviceSymbols => "the fixed variables",
-                    UserKind::ModbusTags | UserKind::S7Tags => "__PLC_RUN and __PF_CRC",
+                    UserKind::ModbusTags | UserKind::S7Tags | UserKind::Opcua => {
+                        "__PLC_RUN and __PF_CRC"
+                    }
                 };
                 warn!(section = %self.name, "{err}; serving {serving} only, tried again at the next connection");
             }

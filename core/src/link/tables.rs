@@ -41,6 +41,10 @@ pub enum UserKind {
     /// file service under the name PUBFILE holds; reloaded when its
     /// `__PF_CRC` (the symbol version's file) changes.
     DeviceSymbols,
+    /// The variables an OPC UA backend found (OPCUA_BROWSE, or OPCUA_TAGS
+    /// with the server's types), always fetched from the backend as a tag
+    /// file ([`plccoms_plc::opcua::VARS_FILE`]).
+    Opcua,
 }
 
 impl UserKind {
@@ -50,6 +54,7 @@ impl UserKind {
             protocol if protocol.is_modbus() => UserKind::ModbusTags,
             Protocol::S7 => UserKind::S7Tags,
             Protocol::Ads => UserKind::DeviceSymbols,
+            Protocol::Opcua => UserKind::Opcua,
             _ => UserKind::PubFile,
         }
     }
@@ -60,6 +65,7 @@ impl UserKind {
             UserKind::PubFile | UserKind::DeviceSymbols => section.pubfile.as_ref(),
             UserKind::ModbusTags => section.modbus.tags.as_ref(),
             UserKind::S7Tags => section.s7.tags.as_ref(),
+            UserKind::Opcua => None,
         }
     }
 
@@ -69,6 +75,7 @@ impl UserKind {
             UserKind::PubFile => "public file",
             UserKind::ModbusTags | UserKind::S7Tags => "tag file",
             UserKind::DeviceSymbols => "symbol table",
+            UserKind::Opcua => "OPC UA variable list",
         }
     }
 
@@ -85,6 +92,9 @@ impl UserKind {
             }
             UserKind::DeviceSymbols => format!(
                 "the PLC's symbols changed (__PF_CRC {last:08X} -> {now:08X}): a new program, reloading them"
+            ),
+            UserKind::Opcua => format!(
+                "the OPC UA server's variables changed, reloading (__PF_CRC {last:08X} -> {now:08X})"
             ),
         }
     }
@@ -150,6 +160,9 @@ impl PubSource {
         section: &Section,
         by: NamedBy,
     ) -> Result<Option<UserFile>, LoadError> {
+        if self.kind == UserKind::Opcua {
+            return Err(LoadError::FromPlc);
+        }
         let Some(name) = self.kind.name(section) else {
             return Ok(None);
         };
@@ -209,7 +222,10 @@ impl PubSource {
             Err(LoadError::Failed(message)) => return Err(message),
             Err(LoadError::FromPlc) => {}
         }
-        let name = section.pubfile.as_deref().unwrap_or_default();
+        let name = match self.kind {
+            UserKind::Opcua => plccoms_plc::opcua::VARS_FILE,
+            _ => section.pubfile.as_deref().unwrap_or_default(),
+        };
         let local = self.local_path(section, name);
         let Some(backend) = backend else {
             return Err(format!(
@@ -226,8 +242,8 @@ impl PubSource {
                 )
             })?;
         let display = file_name(name);
-        info!(section = %section.name, "public file {name} fetched from the PLC ({} bytes)", bytes.len());
-        if section.pubfile_write {
+        info!(section = %section.name, "{} {name} fetched from the PLC ({} bytes)", self.kind.what(), bytes.len());
+        if section.pubfile_write && self.kind == UserKind::PubFile {
             if let Some(parent) = local.parent() {
                 let _ = std::fs::create_dir_all(parent);
             }
@@ -262,6 +278,13 @@ impl PubSource {
                     (u.name.as_str(), VarFile::from(&file))
                 }),
                 plccoms_plc::s7::MAP,
+            ),
+            UserKind::Opcua => (
+                user.map(|u| {
+                    let file = plccoms_plc::opcua::tags::parse(&u.bytes);
+                    (u.name.as_str(), VarFile::from(&file))
+                }),
+                plccoms_plc::opcua::MAP,
             ),
         };
         let mut warnings = Vec::new();
@@ -298,6 +321,12 @@ impl PubSource {
         user: Option<&UserFile>,
         from_plc: bool,
     ) -> String {
+        if self.kind == UserKind::Opcua {
+            return match user {
+                Some(user) => format!("OPC UA variables loaded: {}", user.name),
+                None => "OPC UA variables are looked for when the server answers".to_string(),
+            };
+        }
         if self.kind != UserKind::PubFile {
             return match user {
                 Some(user) => format!("tag file loaded: {}", user.name),
@@ -374,7 +403,9 @@ fn read_bounded(path: &Path) -> std::io::Result<Vec<u8>> {
 pub fn expected_crc(kind: UserKind, user: &UserFile) -> Option<u32> {
     match kind {
         UserKind::PubFile | UserKind::DeviceSymbols => pubfile::parse(&user.bytes).crc,
-        UserKind::ModbusTags | UserKind::S7Tags => Some(pubfile::crc_of(&user.bytes)),
+        UserKind::ModbusTags | UserKind::S7Tags | UserKind::Opcua => {
+            Some(pubfile::crc_of(&user.bytes))
+        }
     }
 }
 

@@ -77,6 +77,15 @@ impl WriteRefusal {
                 refusal: driver::Refusal::Ads(_),
                 ..
             } => ErrorCode::MemSet,
+            // An OPC UA server's BadTypeMismatch, BadOutOfRange: the value.
+            WriteRefusal::Refused {
+                refusal: driver::Refusal::Opcua(code),
+                ..
+            } if matches!(code & 0xFFFF_0000, 0x8074_0000 | 0x803C_0000) => ErrorCode::WrongValue,
+            WriteRefusal::Refused {
+                refusal: driver::Refusal::Opcua(_),
+                ..
+            } => ErrorCode::MemSet,
             WriteRefusal::Refused { direct: false, .. } => ErrorCode::SendData,
             WriteRefusal::Refused { direct: true, .. } => ErrorCode::MemSet,
         }
@@ -106,6 +115,11 @@ impl WriteRefusal {
                 refusal: refusal @ driver::Refusal::Ads(_),
                 ..
             } => refusal_context(name, refusal),
+            WriteRefusal::Refused {
+                name,
+                refusal: refusal @ driver::Refusal::Opcua(_),
+                ..
+            } => exception_context(name, refusal),
             WriteRefusal::Refused { direct: false, .. } => Vec::new(),
             WriteRefusal::Refused { name, .. } => name.clone(),
         }
@@ -125,7 +139,8 @@ impl WriteRefusal {
 }
 
 /// `NAME: Modbus exception 2 (illegal data address)` (or an S7 return
-/// code's text), an error's context.
+/// code's text, or an OPC UA server's `NAME: OPC UA BadNotWritable
+/// (0x803B0000)`), an error's context.
 pub fn exception_context(name: &[u8], code: impl std::fmt::Display) -> Vec<u8> {
     let mut context = name.to_vec();
     context.extend_from_slice(format!(": {code}").as_bytes());

@@ -155,7 +155,9 @@ pub fn complete(cx: &mut Cx<'_>, then: ReadThen, reply: ReadReply, out: &mut Vec
                 } else {
                     match answers.next() {
                         Some(Ok(bytes)) => var.format(&var.decode(&bytes), format, out),
-                        Some(Err(refusal @ (Refusal::Modbus(_) | Refusal::S7(_)))) => {
+                        Some(Err(
+                            refusal @ (Refusal::Modbus(_) | Refusal::S7(_) | Refusal::Opcua(_)),
+                        )) => {
                             // The device's exception, named in the context.
                             out.truncate(start);
                             let context =

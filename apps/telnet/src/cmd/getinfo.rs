@@ -29,6 +29,7 @@ const KEYS: &[&str] = &[
     "MODBUS_PORT",
     "MODBUS_UNIT",
     "S7_PORT",
+    "OPCUA_URL",
     "SERIAL_DEVICE",
     "PUBFILE",
     "MODBUS_TAGS",
@@ -96,12 +97,17 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
     let (config, link) = (&state.config, &state.link);
     let modbus = config.protocol.is_modbus();
     let s7 = config.protocol == plccoms_core::config::Protocol::S7;
+    let opcua = config.protocol == plccoms_core::config::Protocol::Opcua;
     // The full list shows what the section's protocol has.
     let shown = match key {
-        "PROTOCOL" => modbus || s7,
+        "PROTOCOL" => modbus || s7 || opcua,
         "MODBUS_PORT" | "MODBUS_UNIT" | "MODBUS_TAGS" => modbus,
         "S7_PORT" | "S7_TAGS" => s7,
-        "VERSION_EPSNET" | "EPSADDR" | "EPSPORT" | "PUBFILE" => !modbus && !s7,
+        "OPCUA_URL" => opcua,
+        "VERSION_EPSNET" | "EPSADDR" | "EPSPORT" => !modbus && !s7 && !opcua,
+        "IPADDR" => !opcua,
+        // An OPC UA section's variable list (OPCUA_VARS.csv) shows here.
+        "PUBFILE" => !modbus && !s7,
         _ => true,
     };
     if listing_all && !shown {
@@ -112,6 +118,7 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
         "MODBUS_PORT" => line(text, key, &config.modbus.port.to_string()),
         "MODBUS_UNIT" => line(text, key, &config.modbus.unit.to_string()),
         "S7_PORT" => line(text, key, &config.s7.port.to_string()),
+        "OPCUA_URL" => line(text, key, config.opcua_client.url.as_deref().unwrap_or("")),
         // The EPSNET code and the ini parser are built with the server.
         "VERSION" | "VERSION_EPSNET" => line(text, key, &version(SERVER_VERSION)),
         "VERSION_INI" => line(text, key, &version(INI_VERSION)),
@@ -150,7 +157,7 @@ fn lines(cx: &Cx<'_>, key: &str, text: &mut String, listing_all: bool) {
         "S7_TAGS" if !s7 => line(text, key, ""),
         "PUBFILE" | "MODBUS_TAGS" | "S7_TAGS" => {
             let table = cx.client.vars.table();
-            let files = match (&table.user_file, modbus || s7) {
+            let files = match (&table.user_file, modbus || s7 || opcua) {
                 (Some(user), false) => format!("{},{}", table.fixed_file, user),
                 (None, false) => table.fixed_file.clone(),
                 // The backend answers the system variables: no fixed file.

@@ -1,0 +1,458 @@
+//! Which nodes a section serves: browsed from `OPCUA_BROWSE` (named by
+//! browse path, see [`plccoms_plc::opcua::path_name`]) or listed in
+//! `OPCUA_TAGS`, then typed and given their access from the server's
+//! DataType, ValueRank and UserAccessLevel attributes. The outcome is a tag
+//! file with every type filled in ([`plccoms_plc::opcua::tags::write`]),
+//! the one list both the backend and the section's variable table use.
+
+use std::collections::{HashMap, HashSet, VecDeque};
+
+use opcua::client::Session;
+use opcua::types::{
+    BrowseDescription, BrowseDirection, BrowseResultMask, ByteString, Guid, NodeClass,
+    NodeClassMask, NodeId, ReadValueId, TimestampsToReturn, Variant,
+};
+use tracing::warn;
+
+use plccoms_core::driver::PlcError;
+use plccoms_plc::opcua::nodeid::{Identifier, Namespace, NodeRef};
+use plccoms_plc::opcua::tags::Tag;
+use plccoms_plc::opcua::{path_name, unique_names};
+use plccoms_plc::VarInfo;
+use plccoms_protocol::cp1250;
+
+use crate::convert::Builtin;
+use crate::{service_error, Limits};
+
+/// Deepest browse path followed: PLC models are a few levels deep; a
+/// deeper one is a loop through references the visited set cannot see.
+const MAX_DEPTH: usize = 32;
+
+/// References one Browse answer carries per node, and nodes one Browse
+/// asks for: a folder of 10,000 variables comes in pages (BrowseNext), each
+/// answer well inside the message size limits, not as one refused answer
+/// (BadEncodingLimitsExceeded, as asyncua's server answered).
+const REFERENCES_PER_NODE: u32 = 1000;
+const BROWSE_BATCH: usize = 10;
+
+/// Most nodes a browse visits (objects and variables): a server that
+/// shows endless folders is browsed this far, not until memory runs out.
+const MAX_NODES: usize = 4 * plccoms_plc::pubfile::MAX_VARS;
+
+/// The Server object (i=2253): its diagnostics are not the PLC's variables.
+const SERVER_OBJECT: u32 = 2253;
+/// HasProperty (i=46): a variable's properties (EURange, EngineeringUnits)
+/// are not variables of their own.
+const HAS_PROPERTY: u32 = 46;
+/// HierarchicalReferences (i=33), followed with their subtypes.
+const HIERARCHICAL: u32 = 33;
+/// UserAccessLevel's CurrentWrite bit.
+const CURRENT_WRITE: u8 = 0x02;
+/// Most elements of an array served as variables (`NAME[0]` ...); a longer
+/// array is skipped.
+pub const MAX_ELEMENTS: u32 = 1024;
+
+/// The list built: tags with their type and access, and each node's
+/// built-in type (by node id text) for writes.
+pub struct Built {
+    pub tags: Vec<Tag>,
+    pub builtins: HashMap<String, Builtin>,
+    /// What was left out, for the log when the list is new.
+    pub skipped: Vec<String>,
+}
+
+/// A node id of the server's for `node`; `nsu=` through its NamespaceArray.
+pub async fn node_id(session: &Session, node: &NodeRef) -> Result<NodeId, String> {
+    let namespace = match &node.namespace {
+        Namespace::Index(i) => *i,
+        Namespace::Uri(uri) => session
+            .get_namespace_index(uri)
+            .await
+            .map_err(|e| format!("namespace {uri} not on the server: {e}"))?,
+    };
+    Ok(match &node.identifier {
+        Identifier::Numeric(n) => NodeId::new(namespace, *n),
+        Identifier::String(s) => NodeId::new(namespace, s.clone()),
+        Identifier::Guid(g) => NodeId::new(
+            namespace,
+            g.parse::<Guid>().map_err(|_| format!("bad GUID {g}"))?,
+        ),
+        Identifier::Opaque(b) => NodeId::new(
+            namespace,
+            ByteString::from_base64(b).ok_or_else(|| format!("bad base64 {b}"))?,
+        ),
+    })
+}
+
+/// The text form of a server's node id, as the tag file writes it.
+pub fn node_ref(id: &NodeId) -> NodeRef {
+    let identifier = match &id.identifier {
+        opcua::types::Identifier::Numeric(n) => Identifier::Numeric(*n),
+        opcua::types::Identifier::String(s) => {
+            Identifier::String(s.value().clone().unwrap_or_default())
+        }
+        opcua::types::Identifier::Guid(g) => Identifier::Guid(g.to_string().to_ascii_uppercase()),
+        opcua::types::Identifier::ByteString(b) => Identifier::Opaque(b.as_base64()),
+    };
+    NodeRef {
+        namespace: Namespace::Index(id.namespace),
+        identifier,
+    }
+}
+
+/// A variable found, before its attributes are read.
+struct Found {
+    name: String,
+    node: NodeId,
+    /// From a tag file: what it says.
+    tag: Option<Tag>,
+}
+
+/// Builds the list: from the tag file's tags, or by browsing `starts`.
+pub async fn build(
+    section: &str,
+    session: &Session,
+    limits: &Limits,
+    tags: Option<Vec<Tag>>,
+    starts: &[NodeRef],
+) -> Result<Built, PlcError> {
+    let found = match tags {
+        Some(tags) => {
+            let mut found = Vec::with_capacity(tags.len());
+            for tag in tags {
+                match node_id(session, &tag.node).await {
+                    Ok(node) => found.push(Found {
+                        name: cp1250::decode(&tag.name).into_owned(),
+                        node,
+                        tag: Some(tag),
+                    }),
+                    Err(e) => warn!(section, "tag file line {}: {e}; skipped", tag.line),
+                }
+            }
+            found
+        }
+        None => browse(section, session, limits, starts).await?,
+    };
+    let attributes = read_attributes(session, limits, &found).await?;
+    let mut tags = Vec::with_capacity(found.len());
+    let mut builtins = HashMap::with_capacity(found.len());
+    let (mut structures, mut arrays, mut unknown) = (0usize, 0usize, 0usize);
+    for (found, attrs) in found.into_iter().zip(attributes) {
+        let builtin = attrs.data_type.as_ref().and_then(Builtin::of_data_type);
+        let node = node_ref(&found.node);
+        let text = node.to_string();
+        if let Some(mut tag) = found.tag {
+            // A tag file's type wins; its node's DataType writes it.
+            let builtin = match (tag.ty, builtin) {
+                (_, Some(b)) => b,
+                (Some(ty), None) => Builtin::of_iec(ty),
+                (None, None) => {
+                    warn!(section, "tag file line {}: node {} has no type plccoms serves (DataType {}); give one in the type column", tag.line, tag.node, attrs.data_type.map_or_else(|| "unreadable".to_string(), |d| d.to_string()));
+                    continue;
+                }
+            };
+            // nsu= resolved: the list names nodes by the server's indexes.
+            tag.node = node;
+            tag.ty = tag.ty.or(Some(builtin.iec()));
+            tag.writable = tag.writable.or(Some(attrs.writable(builtin)));
+            builtins.insert(text, builtin);
+            tags.push(tag);
+            continue;
+        }
+        let elements = match attrs.value_rank {
+            None | Some(-1) => None,
+            // One dimension of a known length: its elements.
+            Some(1) => match attrs.length {
+                Some(n) if n <= MAX_ELEMENTS => Some(n),
+                _ => {
+                    arrays += 1;
+                    continue;
+                }
+            },
+            Some(_) => {
+                arrays += 1;
+                continue;
+            }
+        };
+        let Some(builtin) = builtin else {
+            match &attrs.data_type {
+                Some(d)
+                    if d.namespace != 0
+                        || matches!(d.identifier, opcua::types::Identifier::Numeric(22)) =>
+                {
+                    structures += 1
+                }
+                _ => unknown += 1,
+            }
+            continue;
+        };
+        builtins.insert(text, builtin);
+        let tag = |name: &str, index| Tag {
+            // path_name keeps cp1250's characters only.
+            name: cp1250::encode(name).into_owned().into_boxed_slice(),
+            node: node.clone(),
+            ty: Some(builtin.iec()),
+            writable: Some(attrs.writable(builtin)),
+            index,
+            info: VarInfo::default(),
+            line: 0,
+        };
+        match elements {
+            None => tags.push(tag(&found.name, None)),
+            Some(n) => {
+                for i in 0..n {
+                    tags.push(tag(&format!("{}[{i}]", found.name), Some(i)));
+                }
+            }
+        }
+    }
+    let mut skipped = Vec::new();
+    if structures > 0 {
+        skipped.push(format!("{structures} structured variables skipped (their fields are served where the server shows them as child variables)"));
+    }
+    if arrays > 0 {
+        skipped.push(format!(
+            "{arrays} array variables skipped (more than one dimension, more than {MAX_ELEMENTS} elements, or a length the server does not tell)"
+        ));
+    }
+    if unknown > 0 {
+        skipped.push(format!("{unknown} variables of types plccoms does not serve skipped (ByteString, Guid, NodeId, ...)"));
+    }
+    Ok(Built {
+        tags,
+        builtins,
+        skipped,
+    })
+}
+
+/// Browses from `starts` down hierarchical references (not properties),
+/// breadth first: every Variable with a served type becomes a variable
+/// named by its browse path below its start node.
+async fn browse(
+    section: &str,
+    session: &Session,
+    limits: &Limits,
+    starts: &[NodeRef],
+) -> Result<Vec<Found>, PlcError> {
+    let mut queue: VecDeque<(NodeId, Vec<String>)> = VecDeque::new();
+    let mut visited: HashSet<NodeId> = HashSet::new();
+    for start in starts {
+        match node_id(session, start).await {
+            Ok(node) => {
+                visited.insert(node.clone());
+                queue.push_back((node, Vec::new()));
+            }
+            Err(e) => warn!(section, "OPCUA_BROWSE {start}: {e}"),
+        }
+    }
+    let mut found = Vec::new();
+    while !queue.is_empty() {
+        let batch: Vec<(NodeId, Vec<String>)> = queue
+            .drain(..queue.len().min(limits.per_browse.min(BROWSE_BATCH)))
+            .collect();
+        let descriptions: Vec<BrowseDescription> = batch
+            .iter()
+            .map(|(node, _)| BrowseDescription {
+                node_id: node.clone(),
+                browse_direction: BrowseDirection::Forward,
+                reference_type_id: NodeId::new(0, HIERARCHICAL),
+                include_subtypes: true,
+                node_class_mask: (NodeClassMask::OBJECT | NodeClassMask::VARIABLE).bits(),
+                result_mask: BrowseResultMask::All as u32,
+            })
+            .collect();
+        let mut results = session
+            .browse(&descriptions, REFERENCES_PER_NODE, None)
+            .await
+            .map_err(|e| service_error("Browse", e))?;
+        for ((_, path), result) in batch.iter().zip(results.iter_mut()) {
+            let mut references = result.references.take().unwrap_or_default();
+            let mut point = result.continuation_point.clone();
+            // Continuation points bring the rest of a long list.
+            let mut pages = 0;
+            while !point.is_null() && pages < 10_000 && references.len() < MAX_NODES {
+                pages += 1;
+                let next = session
+                    .browse_next(false, &[point.clone()])
+                    .await
+                    .map_err(|e| service_error("BrowseNext", e))?;
+                let Some(mut next) = next.into_iter().next() else {
+                    break;
+                };
+                references.extend(next.references.take().unwrap_or_default());
+                point = next.continuation_point;
+            }
+            for reference in references {
+                // Properties, and nodes on other servers, are not served.
+                if reference.reference_type_id == NodeId::new(0, HAS_PROPERTY)
+                    || reference.node_id.server_index != 0
+                {
+                    continue;
+                }
+                let node = reference.node_id.node_id.clone();
+                if node == NodeId::new(0, SERVER_OBJECT) || !visited.insert(node.clone()) {
+                    continue;
+                }
+                if visited.len() > MAX_NODES {
+                    warn!(
+                        section,
+                        "more than {MAX_NODES} nodes below OPCUA_BROWSE: the rest is left out"
+                    );
+                    return Ok(named(section, found));
+                }
+                let mut child = path.clone();
+                child.push(
+                    reference
+                        .browse_name
+                        .name
+                        .value()
+                        .clone()
+                        .unwrap_or_default(),
+                );
+                if reference.node_class == NodeClass::Variable {
+                    if found.len() == plccoms_plc::pubfile::MAX_VARS {
+                        warn!(
+                            section,
+                            "more than {} variables found by browsing: the rest is left out",
+                            plccoms_plc::pubfile::MAX_VARS
+                        );
+                        return Ok(named(section, found));
+                    }
+                    found.push(Found {
+                        name: path_name(&child),
+                        node: node.clone(),
+                        tag: None,
+                    });
+                }
+                // Variables have fields (a structure's) as components too.
+                if child.len() < MAX_DEPTH {
+                    queue.push_back((node, child));
+                }
+            }
+        }
+    }
+    Ok(named(section, found))
+}
+
+/// Resolves name collisions (logged).
+fn named(section: &str, mut found: Vec<Found>) -> Vec<Found> {
+    let mut names: Vec<String> = found.iter().map(|f| f.name.clone()).collect();
+    let renamed = unique_names(&mut names);
+    for (old, new) in renamed.iter().take(5) {
+        warn!(
+            section,
+            "two variables are named {old} by their browse paths: the later one is {new}"
+        );
+    }
+    if renamed.len() > 5 {
+        warn!(
+            section,
+            "{} more variables renamed for name collisions",
+            renamed.len() - 5
+        );
+    }
+    for (f, name) in found.iter_mut().zip(names) {
+        f.name = name;
+    }
+    found
+}
+
+/// What a variable's attributes say.
+struct Attributes {
+    data_type: Option<NodeId>,
+    value_rank: Option<i32>,
+    user_access: Option<u8>,
+    /// A one-dimensional array's length (ArrayDimensions, else its value's).
+    length: Option<u32>,
+}
+
+impl Attributes {
+    fn writable(&self, builtin: Builtin) -> bool {
+        builtin != Builtin::LocalizedText && self.user_access.is_none_or(|a| a & CURRENT_WRITE != 0)
+    }
+}
+
+async fn read_attributes(
+    session: &Session,
+    limits: &Limits,
+    found: &[Found],
+) -> Result<Vec<Attributes>, PlcError> {
+    // DataType (14), ValueRank (15), ArrayDimensions (16), UserAccessLevel (18).
+    const ATTRIBUTES: [u32; 4] = [14, 15, 16, 18];
+    let mut out = Vec::with_capacity(found.len());
+    let per_read = (limits.per_read / ATTRIBUTES.len()).max(1);
+    for chunk in found.chunks(per_read) {
+        let ids: Vec<ReadValueId> = chunk
+            .iter()
+            .flat_map(|f| {
+                ATTRIBUTES.iter().map(|&attribute_id| ReadValueId {
+                    node_id: f.node.clone(),
+                    attribute_id,
+                    ..Default::default()
+                })
+            })
+            .collect();
+        let values = session
+            .read(&ids, TimestampsToReturn::Neither, 0.0)
+            .await
+            .map_err(|e| service_error("Read", e))?;
+        if values.len() != ids.len() {
+            return Err(PlcError::Protocol(format!(
+                "Read of {} attributes answered {}",
+                ids.len(),
+                values.len()
+            )));
+        }
+        for four in values.chunks(ATTRIBUTES.len()) {
+            let good = |i: usize| {
+                four[i]
+                    .status
+                    .is_none_or(|s| s.is_good())
+                    .then(|| four[i].value.clone())
+                    .flatten()
+            };
+            out.push(Attributes {
+                data_type: match good(0) {
+                    Some(Variant::NodeId(id)) => Some(*id),
+                    _ => None,
+                },
+                value_rank: match good(1) {
+                    Some(Variant::Int32(rank)) => Some(rank),
+                    _ => None,
+                },
+                length: match good(2) {
+                    Some(Variant::Array(a)) => match a.values.as_slice() {
+                        [Variant::UInt32(n)] if *n > 0 => Some(*n),
+                        _ => None,
+                    },
+                    _ => None,
+                },
+                user_access: match good(3) {
+                    Some(Variant::Byte(a)) => Some(a),
+                    _ => None,
+                },
+            });
+        }
+    }
+    // Arrays whose length the server leaves open (ArrayDimensions 0):
+    // the length of their value now.
+    let open: Vec<usize> = (0..out.len())
+        .filter(|&i| out[i].value_rank == Some(1) && out[i].length.is_none())
+        .collect();
+    for chunk in open.chunks(limits.per_read.max(1)) {
+        let ids: Vec<ReadValueId> = chunk
+            .iter()
+            .map(|&i| found[i].node.clone().into())
+            .collect();
+        let values = session
+            .read(&ids, TimestampsToReturn::Neither, 0.0)
+            .await
+            .map_err(|e| service_error("Read", e))?;
+        for (&i, value) in chunk.iter().zip(values) {
+            if let Some(Variant::Array(a)) = value.value {
+                out[i].length = u32::try_from(a.values.len()).ok().filter(|&n| n > 0);
+            }
+        }
+    }
+    Ok(out)
+}

@@ -1,0 +1,1375 @@
+//! OPC UA client: the backend for PLCs reached through their own OPC UA
+//! servers (Siemens S7-1500, Beckhoff TwinCAT TF6100, B&R, Phoenix
+//! PLCnext, Codesys), behind the same line protocol as a Tecomat PLC.
+//!
+//! Its variables are the nodes it browses from `OPCUA_BROWSE` or lists in
+//! `OPCUA_TAGS` ([`browse`]), typed from their DataType and laid out in R
+//! one after another (`plccoms_plc::opcua::tags::vars`); the link reads and
+//! writes those bytes like any PLC's memory, and this backend turns them
+//! into Read, Write and subscriptions. The list is served to the link as a
+//! tag file through the file services (`plccoms_plc::opcua::VARS_FILE`),
+//! and `__PF_CRC` (S70) is its CRC: when the server's nodes change (looked
+//! at again every `OPCUA_REBROWSE`), the section reloads its table as for a
+//! new public file.
+//!
+//! - `OPCUA_MODE = read`: the enabled variables' nodes are read in as few
+//!   Read calls as the server's MaxNodesPerRead allows.
+//! - `OPCUA_MODE = subscribe` (default): a subscription with a monitored
+//!   item per enabled variable, created when the link first reads it, at
+//!   the sampling interval the link polls at (the time between its reads,
+//!   no faster than the server's MinSupportedSampleRate); the link's reads
+//!   are answered from the last notified values, without a round trip. A
+//!   variable just written is read from the server once, so the value
+//!   confirmed is the server's.
+//! - Quality: Good is a value; Uncertain is served as a value (the core has
+//!   no per-value quality to mark it stale with); Bad is the refusal of
+//!   that variable, with the StatusCode's name.
+//! - Arrays: each element is a variable (`NAME[i]`); the array node is
+//!   read or monitored once for all ([`List::sources`]), and a write of an
+//!   element writes the whole array read just before.
+//! - `__PLC_RUN` (S2.2) is the server's ServerStatus.State = Running.
+//! - Session loss (the server closes, a request times out): the link
+//!   probes (a new session, a GetEndpoints and the session's own requests)
+//!   about every second until the server answers; subscriptions are made
+//!   anew on the new session.
+
+pub mod browse;
+pub mod convert;
+
+use std::collections::{HashMap, HashSet};
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use async_trait::async_trait;
+use opcua::client::{ClientBuilder, DataChangeCallback, IdentityToken, Session};
+use opcua::crypto::SecurityPolicy;
+use opcua::types::{
+    DataValue, EndpointDescription, MessageSecurityMode, MonitoredItemCreateRequest,
+    MonitoringMode, MonitoringParameters, NodeId, ReadValueId, StatusCode, TimestampsToReturn,
+    UserTokenPolicy, Variant, WriteValue,
+};
+use tokio::task::JoinHandle;
+use tracing::{info, warn};
+
+use convert::Builtin;
+use plccoms_core::config::Protocol;
+use plccoms_core::driver::{
+    Answer, Driver, FileInfo, Opened, PlcBackend, PlcError, PlcStatus, ReadRequest, Refusal,
+    WriteData, WriteRequest,
+};
+use plccoms_core::metrics::BackendCounters;
+use plccoms_plc::memory::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
+use plccoms_plc::opcua::nodeid::{self, NodeRef};
+use plccoms_plc::opcua::tags::{self, Tag};
+use plccoms_plc::opcua::VARS_FILE;
+use plccoms_protocol::{Area, IecType};
+
+/// Settings of one OPC UA link (the section's keys).
+#[derive(Debug, Clone)]
+pub struct OpcuaConfig {
+    /// OPCUA_URL.
+    pub url: String,
+    /// OPCUA_SECURITY.
+    pub mode: MessageSecurityMode,
+    pub policy: SecurityPolicy,
+    /// OPCUA_USER, OPCUA_PASSWORD.
+    pub user: Option<(String, String)>,
+    /// OPCUA_PKI: own certificate, trusted/ and rejected/ server certificates.
+    pub pki: PathBuf,
+    /// OPCUA_BROWSE.
+    pub browse: Vec<NodeRef>,
+    /// OPCUA_TAGS.
+    pub tags: Option<PathBuf>,
+    /// OPCUA_MODE = subscribe.
+    pub subscribe: bool,
+    /// OPCUA_TIMEOUT.
+    pub timeout: Duration,
+    /// OPCUA_REBROWSE; `None`: never.
+    pub rebrowse: Option<Duration>,
+    /// The section, for the log.
+    pub section: String,
+}
+
+/// `OPCUA_SECURITY`: `None`, or `mode:policy`.
+pub fn parse_security(text: &str) -> Result<(MessageSecurityMode, SecurityPolicy), String> {
+    let text = text.trim();
+    if text.eq_ignore_ascii_case("none") {
+        return Ok((MessageSecurityMode::None, SecurityPolicy::None));
+    }
+    let (mode, policy) = text.split_once(':').ok_or_else(|| {
+        format!("OPCUA_SECURITY = {text}: expected None or mode:policy (e.g. SignAndEncrypt:Basic256Sha256)")
+    })?;
+    let mode = match mode.trim().to_ascii_lowercase().as_str() {
+        "sign" => MessageSecurityMode::Sign,
+        "signandencrypt" => MessageSecurityMode::SignAndEncrypt,
+        other => {
+            return Err(format!(
+                "OPCUA_SECURITY = {text}: mode '{other}' is not Sign or SignAndEncrypt"
+            ))
+        }
+    };
+    let policy = policy.trim();
+    let known = [
+        SecurityPolicy::Basic256Sha256,
+        SecurityPolicy::Aes128Sha256RsaOaep,
+        SecurityPolicy::Aes256Sha256RsaPss,
+        SecurityPolicy::Basic256,
+        SecurityPolicy::Basic128Rsa15,
+    ];
+    let policy = known
+        .into_iter()
+        .find(|p| p.to_str().eq_ignore_ascii_case(policy) || p.to_uri() == policy)
+        .ok_or_else(|| {
+            format!("OPCUA_SECURITY = {text}: unknown policy '{policy}' (Basic256Sha256, Aes128_Sha256_RsaOaep, Aes256_Sha256_RsaPss)")
+        })?;
+    Ok((mode, policy))
+}
+
+/// The server's limits (its ServerCapabilities), or ours where it gives
+/// none.
+#[derive(Debug, Clone, Copy)]
+pub struct Limits {
+    pub per_read: usize,
+    pub per_write: usize,
+    pub per_browse: usize,
+    pub per_call: usize,
+    /// MinSupportedSampleRate, ms.
+    pub min_sampling: f64,
+}
+
+/// Most nodes one of our requests carries when the server sets no limit,
+/// so that a message stays well inside the default message size.
+const OWN_LIMIT: usize = 5000;
+
+impl Default for Limits {
+    fn default() -> Limits {
+        Limits {
+            per_read: OWN_LIMIT,
+            per_write: OWN_LIMIT,
+            per_browse: 1000,
+            per_call: OWN_LIMIT,
+            min_sampling: 0.0,
+        }
+    }
+}
+
+/// A variable the link reads and writes: its place in R and its node.
+#[derive(Debug, Clone)]
+struct Entry {
+    offset: u32,
+    ty: IecType,
+    builtin: Builtin,
+    node: NodeId,
+    /// The element of an array node.
+    index: Option<u32>,
+    /// Its node in [`List::sources`]: an array's elements share one.
+    source: usize,
+}
+
+/// The variable list the link's table was built from.
+#[derive(Default)]
+struct List {
+    bytes: Vec<u8>,
+    entries: Vec<Entry>,
+    /// The nodes read or monitored, each once: a whole array for all its
+    /// elements (servers differ in honouring index ranges).
+    sources: Vec<NodeId>,
+}
+
+struct Connection {
+    session: Arc<Session>,
+    event_loop: JoinHandle<StatusCode>,
+}
+
+impl Drop for Connection {
+    fn drop(&mut self) {
+        self.event_loop.abort();
+    }
+}
+
+/// The client handle of ServerStatus.State's monitored item (the others
+/// are source index + 1).
+const STATE_HANDLE: u32 = u32::MAX;
+
+/// Values notified, by client handle (source index + 1).
+type Notified = Arc<Mutex<HashMap<u32, DataValue>>>;
+
+struct Subscription {
+    id: u32,
+    monitored: HashSet<usize>,
+}
+
+pub struct OpcuaBackend {
+    config: OpcuaConfig,
+    client: Option<opcua::client::Client>,
+    connection: Option<Connection>,
+    counters: Arc<BackendCounters>,
+    limits: Limits,
+    /// ServerStatus.State = Running.
+    run: bool,
+    /// The list the link's table was built from.
+    served: List,
+    /// The list as last built (served once the link fetches it).
+    newest: Option<(Vec<u8>, HashMap<String, Builtin>)>,
+    /// The list being fetched by the link (file_info .. last read_file).
+    fetching: Option<(Vec<u8>, HashMap<String, Builtin>)>,
+    built_at: Option<Instant>,
+    subscription: Option<Subscription>,
+    notified: Notified,
+    /// Sources written since their last notification: read from the server.
+    written: HashSet<usize>,
+    /// When the link's last read started, and the gap before it.
+    last_read: Option<Instant>,
+    /// The last three periods between poll cycles.
+    poll_gaps: [Option<Duration>; 3],
+}
+
+fn not_connected() -> PlcError {
+    PlcError::Io(std::io::Error::new(
+        std::io::ErrorKind::NotConnected,
+        "no session with the OPC UA server",
+    ))
+}
+
+/// A service call that failed as a whole: the link's failure where the
+/// session or its connection is gone, else the server's answer.
+pub(crate) fn service_error(service: &str, e: opcua::types::Error) -> PlcError {
+    let status = e.status();
+    if is_link_status(status) {
+        PlcError::Timeout(format!("{service}: {status}"))
+    } else {
+        PlcError::Protocol(format!("{service} refused: {status} ({e})"))
+    }
+}
+
+fn is_link_status(status: StatusCode) -> bool {
+    matches!(
+        status,
+        StatusCode::BadTimeout
+            | StatusCode::BadRequestTimeout
+            | StatusCode::BadConnectionClosed
+            | StatusCode::BadNotConnected
+            | StatusCode::BadServerNotConnected
+            | StatusCode::BadCommunicationError
+            | StatusCode::BadSecureChannelClosed
+            | StatusCode::BadSecureChannelIdInvalid
+            | StatusCode::BadSessionIdInvalid
+            | StatusCode::BadSessionClosed
+            | StatusCode::BadSessionNotActivated
+            | StatusCode::BadShutdown
+            | StatusCode::BadServerHalted
+            | StatusCode::BadTcpInternalError
+            | StatusCode::BadNoCommunication
+    )
+}
+
+fn refusal(status: StatusCode) -> Refusal {
+    Refusal::Opcua(status.bits())
+}
+
+impl OpcuaBackend {
+    pub fn new(config: OpcuaConfig) -> OpcuaBackend {
+        OpcuaBackend {
+            config,
+            client: None,
+            connection: None,
+            counters: Arc::default(),
+            limits: Limits::default(),
+            run: false,
+            served: List::default(),
+            newest: None,
+            fetching: None,
+            built_at: None,
+            subscription: None,
+            notified: Arc::default(),
+            written: HashSet::new(),
+            last_read: None,
+            poll_gaps: [None; 3],
+        }
+    }
+
+    fn session(&self) -> Result<Arc<Session>, PlcError> {
+        match &self.connection {
+            Some(c) if !c.event_loop.is_finished() => Ok(c.session.clone()),
+            _ => Err(not_connected()),
+        }
+    }
+
+    /// Runs `f` on the session within the timeout; a link failure gives
+    /// the session up.
+    async fn call<T, F>(&mut self, what: &str, f: F) -> Result<T, PlcError>
+    where
+        F: std::future::Future<Output = Result<T, opcua::types::Error>>,
+    {
+        self.counters.requests.inc();
+        let started = Instant::now();
+        let result = match tokio::time::timeout(self.config.timeout, f).await {
+            Ok(Ok(value)) => Ok(value),
+            Ok(Err(e)) => Err(service_error(what, e)),
+            Err(_) => {
+                self.counters.timeouts.inc();
+                Err(PlcError::Timeout(format!(
+                    "{what}: no answer within {} ms",
+                    self.config.timeout.as_millis()
+                )))
+            }
+        };
+        self.counters.round_trip.observe(started.elapsed());
+        if let Err(e) = &result {
+            self.counters.errors.inc();
+            if e.is_link_failure() {
+                self.lose();
+            }
+        }
+        result
+    }
+
+    /// Gives the session up: the link probes for a new one.
+    fn lose(&mut self) {
+        self.connection = None;
+        self.subscription = None;
+        self.notified
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clear();
+        self.written.clear();
+    }
+
+    /// A new session: endpoint, security and identity as configured, the
+    /// server's limits and state read, and the variable list built.
+    async fn open_session(&mut self) -> Result<String, PlcError> {
+        self.lose();
+        if self.client.is_none() {
+            self.client = Some(new_client(&self.config)?);
+        }
+        let config = &self.config;
+        let client = self.client.as_mut().expect("made above");
+        let token_policy = match &config.user {
+            Some(_) => UserTokenPolicy {
+                token_type: opcua::types::UserTokenType::UserName,
+                ..UserTokenPolicy::anonymous()
+            },
+            None => UserTokenPolicy::anonymous(),
+        };
+        let endpoint: EndpointDescription = (
+            config.url.as_str(),
+            config.policy.to_str(),
+            config.mode,
+            token_policy,
+        )
+            .into();
+        let identity = match &config.user {
+            Some((user, password)) => IdentityToken::new_user_name(user.clone(), password.clone()),
+            None => IdentityToken::Anonymous,
+        };
+        let timeout = config.timeout;
+        let url = config.url.clone();
+        let pki = config.pki.clone();
+        self.counters.requests.inc();
+        let (session, event_loop) = match tokio::time::timeout(
+            timeout,
+            client.connect_to_matching_endpoint(endpoint, identity),
+        )
+        .await
+        {
+            Ok(Ok(pair)) => pair,
+            Ok(Err(e)) => return Err(connect_error(&url, &pki, e.status(), &e.to_string())),
+            Err(_) => {
+                return Err(PlcError::Timeout(format!(
+                    "{url}: no endpoints within {} ms",
+                    timeout.as_millis()
+                )))
+            }
+        };
+        session.disable_reconnects();
+        let mut event_loop = event_loop.spawn();
+        // Secure channel, CreateSession, ActivateSession: a few round trips.
+        let connected = tokio::select! {
+            connected = session.wait_for_connection() => Ok(connected),
+            ended = &mut event_loop => Err(ended.unwrap_or(StatusCode::BadUnexpectedError)),
+            _ = tokio::time::sleep(timeout * 3) => Err(StatusCode::BadTimeout),
+        };
+        match connected {
+            Ok(true) => {}
+            Ok(false) => {
+                event_loop.abort();
+                return Err(PlcError::Timeout(format!("{url}: session not established")));
+            }
+            Err(status) => {
+                event_loop.abort();
+                return Err(connect_error(&url, &pki, status, ""));
+            }
+        }
+        self.connection = Some(Connection {
+            session,
+            event_loop,
+        });
+        let ident = self.read_capabilities().await?;
+        self.rebuild().await?;
+        Ok(ident)
+    }
+
+    /// ServerCapabilities, ServerStatus.State and BuildInfo, in one Read.
+    async fn read_capabilities(&mut self) -> Result<String, PlcError> {
+        use opcua::types::VariableId as V;
+        let ids = [
+            V::Server_ServerCapabilities_OperationLimits_MaxNodesPerRead,
+            V::Server_ServerCapabilities_OperationLimits_MaxNodesPerWrite,
+            V::Server_ServerCapabilities_OperationLimits_MaxNodesPerBrowse,
+            V::Server_ServerCapabilities_OperationLimits_MaxMonitoredItemsPerCall,
+            V::Server_ServerCapabilities_MinSupportedSampleRate,
+            V::Server_ServerStatus_State,
+            V::Server_ServerStatus_BuildInfo_ProductName,
+            V::Server_ServerStatus_BuildInfo_SoftwareVersion,
+        ];
+        let reads: Vec<ReadValueId> = ids.iter().map(|&id| NodeId::from(id).into()).collect();
+        let session = self.session()?;
+        let values = self
+            .call(
+                "Read",
+                session.read(&reads, TimestampsToReturn::Neither, 0.0),
+            )
+            .await?;
+        let number = |i: usize| -> Option<f64> {
+            match values.get(i).and_then(|v| v.value.as_ref())? {
+                Variant::UInt32(n) => Some(f64::from(*n)),
+                Variant::Double(n) => Some(*n),
+                Variant::Int32(n) => Some(f64::from(*n)),
+                _ => None,
+            }
+        };
+        let limit = |i: usize, own: usize| {
+            number(i)
+                .filter(|&n| n >= 1.0)
+                .map_or(own, |n| (n as usize).min(own))
+        };
+        let own = Limits::default();
+        self.limits = Limits {
+            per_read: limit(0, own.per_read),
+            per_write: limit(1, own.per_write),
+            per_browse: limit(2, own.per_browse),
+            per_call: limit(3, own.per_call),
+            min_sampling: number(4).unwrap_or(0.0).max(0.0),
+        };
+        self.run = number(5) == Some(0.0);
+        let text = |i: usize| match values.get(i).and_then(|v| v.value.as_ref()) {
+            Some(Variant::String(s)) => s.value().clone().unwrap_or_default(),
+            _ => String::new(),
+        };
+        let ident = format!("OPC UA {} {}", text(6), text(7));
+        Ok(ident.trim().to_string())
+    }
+
+    /// Builds the variable list again; a list that differs from the one
+    /// served becomes the newest, whose CRC `__PF_CRC` shows.
+    async fn rebuild(&mut self) -> Result<(), PlcError> {
+        let session = self.session()?;
+        let section = self.config.section.clone();
+        let file_tags = self
+            .config
+            .tags
+            .as_ref()
+            .map(|path| read_tag_file(&section, path));
+        let starts = if self.config.browse.is_empty() {
+            vec![NodeRef::standard(85)]
+        } else {
+            self.config.browse.clone()
+        };
+        let limits = self.limits;
+        let built = tokio::time::timeout(
+            self.config.timeout * 60,
+            browse::build(&section, &session, &limits, file_tags, &starts),
+        )
+        .await
+        .map_err(|_| PlcError::Timeout("browsing the server's variables took too long".into()))?;
+        let built = match built {
+            Ok(built) => built,
+            Err(e) => {
+                if e.is_link_failure() {
+                    self.lose();
+                }
+                return Err(e);
+            }
+        };
+        self.built_at = Some(Instant::now());
+        let bytes = tags::write(&built.tags);
+        if bytes == self.served.bytes && !self.served.bytes.is_empty() {
+            // Same list: the link keeps its table; node ids are the same.
+            self.served = list_of(bytes, &built.builtins);
+            self.newest = None;
+        } else {
+            if self.newest.as_ref().is_none_or(|(b, _)| *b != bytes) {
+                if !self.served.bytes.is_empty() {
+                    info!(section = %section, "the server's variables changed: {} now", built.tags.len());
+                }
+                for line in &built.skipped {
+                    info!(section = %section, "{line}");
+                }
+            }
+            self.newest = Some((bytes, built.builtins));
+        }
+        Ok(())
+    }
+
+    /// The list whose CRC `__PF_CRC` shows: the newest built.
+    fn current_bytes(&self) -> &[u8] {
+        self.newest
+            .as_ref()
+            .map_or(&self.served.bytes, |(bytes, _)| bytes)
+    }
+
+    fn system(&self, offset: u32, len: u32) -> Answer<Vec<u8>> {
+        let mut image = [0u8; 4096];
+        if self.run {
+            image[PLC_RUN_BYTE as usize] |= 1 << PLC_RUN_BIT;
+        }
+        let crc = plccoms_plc::pubfile::crc_of(self.current_bytes());
+        let at = PF_CRC_OFFSET as usize;
+        image[at..at + 4].copy_from_slice(&crc.to_le_bytes());
+        let end = offset as usize + len as usize;
+        image
+            .get(offset as usize..end)
+            .map(<[u8]>::to_vec)
+            .ok_or(Refusal::BAD_PARAMETERS)
+    }
+
+    /// The entries a read of R covers, by index.
+    fn covered(&self, offset: u32, len: u32) -> std::ops::Range<usize> {
+        let entries = &self.served.entries;
+        let end = offset.saturating_add(len);
+        let first = entries.partition_point(|e| e.offset + e.ty.size() as u32 <= offset);
+        let last = entries.partition_point(|e| e.offset < end);
+        first..last.max(first)
+    }
+
+    /// Reads the values of `indexes` from the server, in as few Read calls
+    /// as MaxNodesPerRead allows; also ServerStatus.State when `state`.
+    async fn read_values(
+        &mut self,
+        indexes: &[usize],
+        state: bool,
+    ) -> Result<HashMap<usize, DataValue>, PlcError> {
+        let mut reads: Vec<ReadValueId> = indexes
+            .iter()
+            .map(|&s| self.served.sources[s].clone().into())
+            .collect();
+        if state {
+            reads.push(NodeId::from(opcua::types::VariableId::Server_ServerStatus_State).into());
+        }
+        let session = self.session()?;
+        let mut values = Vec::with_capacity(reads.len());
+        for chunk in reads.chunks(self.limits.per_read.max(1)) {
+            let answer = self
+                .call("Read", session.read(chunk, TimestampsToReturn::Source, 0.0))
+                .await?;
+            if answer.len() != chunk.len() {
+                return Err(PlcError::Protocol(format!(
+                    "Read of {} nodes answered {}",
+                    chunk.len(),
+                    answer.len()
+                )));
+            }
+            values.extend(answer);
+        }
+        if state {
+            if let Some(state) = values.pop() {
+                self.run = matches!(state.value, Some(Variant::Int32(0)));
+            }
+        }
+        Ok(indexes.iter().copied().zip(values).collect())
+    }
+
+    /// Subscribe mode: monitored items for `indexes` not yet monitored.
+    async fn monitor(&mut self, indexes: &[usize]) -> Result<(), PlcError> {
+        // Until the poll's period is known (the median of three cycles: a
+        // client's EN polls at once, the first after a connection is
+        // late), values are read directly.
+        let gaps: Option<Vec<Duration>> = self.poll_gaps.iter().copied().collect();
+        let Some(gap) = gaps.map(|mut g| {
+            g.sort_unstable();
+            g[1]
+        }) else {
+            return Ok(());
+        };
+        let session = self.session()?;
+        let gap = gap.clamp(Duration::from_millis(10), Duration::from_secs(10));
+        let interval = (gap.as_secs_f64() * 1000.0).max(self.limits.min_sampling);
+        if self.subscription.is_none() {
+            let notified = self.notified.clone();
+            let id = self
+                .call(
+                    "CreateSubscription",
+                    session.create_subscription(
+                        Duration::from_secs_f64(interval / 1000.0),
+                        // Lifetime and keep-alive counts: the server ends a
+                        // forgotten subscription within a minute or so.
+                        60,
+                        10,
+                        0,
+                        0,
+                        true,
+                        DataChangeCallback::new(move |value, item| {
+                            notified
+                                .lock()
+                                .unwrap_or_else(|e| e.into_inner())
+                                .insert(item.client_handle(), value);
+                        }),
+                    ),
+                )
+                .await?;
+            tracing::debug!(section = %self.config.section, "subscription {id} made, publishing and sampling every {interval:.0} ms");
+            self.subscription = Some(Subscription {
+                id,
+                monitored: HashSet::new(),
+            });
+            // ServerStatus.State too: `__PLC_RUN` without a round trip.
+            let state = MonitoredItemCreateRequest {
+                item_to_monitor: NodeId::from(opcua::types::VariableId::Server_ServerStatus_State)
+                    .into(),
+                monitoring_mode: MonitoringMode::Reporting,
+                requested_parameters: MonitoringParameters {
+                    client_handle: STATE_HANDLE,
+                    sampling_interval: interval,
+                    queue_size: 1,
+                    discard_oldest: true,
+                    ..Default::default()
+                },
+            };
+            self.call(
+                "CreateMonitoredItems",
+                session.create_monitored_items(id, TimestampsToReturn::Neither, vec![state]),
+            )
+            .await?;
+        }
+        let Some(subscription) = &self.subscription else {
+            return Ok(());
+        };
+        let id = subscription.id;
+        let new: Vec<usize> = indexes
+            .iter()
+            .copied()
+            .filter(|i| !subscription.monitored.contains(i))
+            .collect();
+        for chunk in new.chunks(self.limits.per_call.max(1)) {
+            let items: Vec<MonitoredItemCreateRequest> = chunk
+                .iter()
+                .map(|&i| MonitoredItemCreateRequest {
+                    item_to_monitor: self.served.sources[i].clone().into(),
+                    monitoring_mode: MonitoringMode::Reporting,
+                    requested_parameters: MonitoringParameters {
+                        client_handle: i as u32 + 1,
+                        sampling_interval: interval,
+                        queue_size: 1,
+                        discard_oldest: true,
+                        ..Default::default()
+                    },
+                })
+                .collect();
+            let created = self
+                .call(
+                    "CreateMonitoredItems",
+                    session.create_monitored_items(id, TimestampsToReturn::Source, items),
+                )
+                .await?;
+            let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
+            for (&i, result) in chunk.iter().zip(created) {
+                if result.result.status_code.is_bad() {
+                    // Its refusal stands until the next table.
+                    notified.insert(
+                        i as u32 + 1,
+                        DataValue {
+                            status: Some(result.result.status_code),
+                            ..Default::default()
+                        },
+                    );
+                }
+            }
+            drop(notified);
+            if let Some(subscription) = &mut self.subscription {
+                subscription.monitored.extend(chunk.iter().copied());
+            }
+        }
+        Ok(())
+    }
+
+    /// The answer to a read of `read` (R) from `values`.
+    fn answer(&self, read: &ReadRequest, values: &HashMap<usize, DataValue>) -> Answer<Vec<u8>> {
+        let mut bytes = vec![0u8; read.len as usize];
+        for i in self.covered(read.offset, read.len) {
+            let entry = &self.served.entries[i];
+            let Some(value) = values.get(&entry.source) else {
+                return Err(Refusal::Opcua(StatusCode::BadWaitingForInitialData.bits()));
+            };
+            let status = value.status.unwrap_or(StatusCode::Good);
+            if status.is_bad() {
+                return Err(refusal(status));
+            }
+            let element = match (&value.value, entry.index) {
+                (Some(Variant::Array(array)), Some(at)) => array.values.get(at as usize),
+                (value, None) => value.as_ref(),
+                (_, Some(_)) => None,
+            };
+            let Some(own) = element.and_then(|v| convert::bytes_of(v, entry.ty)) else {
+                return Err(Refusal::Opcua(StatusCode::BadTypeMismatch.bits()));
+            };
+            // The overlap of the entry's bytes and the read.
+            let (start, end) = (entry.offset, entry.offset + own.len() as u32);
+            let (from, to) = (start.max(read.offset), end.min(read.offset + read.len));
+            if from < to {
+                bytes[(from - read.offset) as usize..(to - read.offset) as usize]
+                    .copy_from_slice(&own[(from - start) as usize..(to - start) as usize]);
+            }
+        }
+        Ok(bytes)
+    }
+
+    /// Writes in one Write call per MaxNodesPerWrite. An array element is
+    /// written as its whole array, read just before with the element
+    /// changed (servers differ in honouring an index range on Write:
+    /// asyncua's replaces the whole array by the one element): a change
+    /// the PLC makes to the array's other elements in between is lost.
+    async fn write_all(&mut self, writes: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {
+        let mut answers: Vec<Answer<()>> = Vec::with_capacity(writes.len());
+        // (write, entry, value) of scalars and of array elements.
+        let mut scalars = Vec::new();
+        let mut elements = Vec::new();
+        for (n, write) in writes.iter().enumerate() {
+            match self.write_value(write) {
+                Ok((i, value)) => {
+                    answers.push(Ok(()));
+                    if self.served.entries[i].index.is_some() {
+                        elements.push((n, i, value));
+                    } else {
+                        scalars.push((n, i, value));
+                    }
+                }
+                Err(e) => answers.push(Err(e)),
+            }
+        }
+        // Each WriteValue, and the writes it answers.
+        let mut values: Vec<WriteValue> = Vec::new();
+        let mut serves: Vec<Vec<(usize, usize)>> = Vec::new();
+        for (n, i, value) in scalars {
+            values.push(WriteValue {
+                node_id: self.served.entries[i].node.clone(),
+                attribute_id: 13,
+                value: DataValue::new_now(value),
+                ..Default::default()
+            });
+            serves.push(vec![(n, i)]);
+        }
+        if !elements.is_empty() {
+            let mut nodes: Vec<NodeId> = Vec::new();
+            for (_, i, _) in &elements {
+                let node = &self.served.entries[*i].node;
+                if !nodes.contains(node) {
+                    nodes.push(node.clone());
+                }
+            }
+            let session = self.session()?;
+            let reads: Vec<ReadValueId> = nodes.iter().map(|n| n.clone().into()).collect();
+            let mut current = Vec::with_capacity(reads.len());
+            for chunk in reads.chunks(self.limits.per_read.max(1)) {
+                current.extend(
+                    self.call(
+                        "Read",
+                        session.read(chunk, TimestampsToReturn::Neither, 0.0),
+                    )
+                    .await?,
+                );
+            }
+            for (node, now) in nodes.into_iter().zip(current) {
+                let mine: Vec<&(usize, usize, Variant)> = elements
+                    .iter()
+                    .filter(|(_, i, _)| self.served.entries[*i].node == node)
+                    .collect();
+                let status = now.status.unwrap_or(StatusCode::Good);
+                let Some(Variant::Array(mut array)) = now.value.filter(|_| !status.is_bad()) else {
+                    let why = if status.is_bad() {
+                        status
+                    } else {
+                        StatusCode::BadTypeMismatch
+                    };
+                    for (n, _, _) in mine {
+                        answers[*n] = Err(refusal(why));
+                    }
+                    continue;
+                };
+                let mut served = Vec::new();
+                for (n, i, value) in mine {
+                    let at = self.served.entries[*i].index.unwrap_or(0) as usize;
+                    match array.values.get_mut(at) {
+                        Some(slot) => {
+                            *slot = value.clone();
+                            served.push((*n, *i));
+                        }
+                        None => answers[*n] = Err(refusal(StatusCode::BadIndexRangeNoData)),
+                    }
+                }
+                if !served.is_empty() {
+                    values.push(WriteValue {
+                        node_id: node,
+                        attribute_id: 13,
+                        value: DataValue::new_now(Variant::Array(array)),
+                        ..Default::default()
+                    });
+                    serves.push(served);
+                }
+            }
+        }
+        if values.is_empty() {
+            return Ok(answers);
+        }
+        let session = self.session()?;
+        let mut results = Vec::with_capacity(values.len());
+        for chunk in values.chunks(self.limits.per_write.max(1)) {
+            let answer = self.call("Write", session.write(chunk)).await?;
+            if answer.len() != chunk.len() {
+                return Err(PlcError::Protocol(format!(
+                    "Write of {} nodes answered {}",
+                    chunk.len(),
+                    answer.len()
+                )));
+            }
+            results.extend(answer);
+        }
+        for (served, status) in serves.into_iter().zip(results) {
+            for (n, i) in served {
+                if status.is_bad() {
+                    let entry = &self.served.entries[i];
+                    warn!(section = %self.config.section, "write of {} refused: {}", entry.node, refusal(status));
+                    answers[n] = Err(refusal(status));
+                } else {
+                    let source = self.served.entries[i].source;
+                    self.written.insert(source);
+                }
+            }
+        }
+        Ok(answers)
+    }
+
+    /// The entry and value of one write; a write that matches no variable
+    /// (a `%R` address across two) is refused here.
+    fn write_value(&self, write: &WriteRequest) -> Result<(usize, Variant), Refusal> {
+        if write.area != Area::R {
+            return Err(Refusal::BAD_PARAMETERS);
+        }
+        let entries = &self.served.entries;
+        let i = entries
+            .binary_search_by_key(&write.offset, |e| e.offset)
+            .map_err(|_| Refusal::BAD_PARAMETERS)?;
+        let entry = &entries[i];
+        let bytes = match &write.data {
+            WriteData::Bytes(bytes) if bytes.len() == entry.ty.size() => bytes.clone(),
+            WriteData::Bit { bit: 0, value } if entry.ty == IecType::Bool => vec![u8::from(*value)],
+            _ => return Err(Refusal::BAD_PARAMETERS),
+        };
+        let variant = convert::variant_of(&bytes, entry.ty, entry.builtin)
+            .ok_or(Refusal::Opcua(StatusCode::BadNotWritable.bits()))?;
+        Ok((i, variant))
+    }
+}
+
+/// Largest message accepted from a server.
+const MAX_MESSAGE: usize = 64 * 1024 * 1024;
+
+/// The client (its certificate store loaded once): a key pair is made in
+/// the PKI folder only where security needs one.
+fn new_client(config: &OpcuaConfig) -> Result<opcua::client::Client, PlcError> {
+    ClientBuilder::new()
+        .application_name("plccoms")
+        .application_uri("urn:plccoms:client")
+        .product_uri("urn:plccoms")
+        .pki_dir(&config.pki)
+        .create_sample_keypair(config.mode != MessageSecurityMode::None)
+        // First contact: an unknown server certificate is refused and
+        // stored in pki/rejected; moving it to pki/trusted trusts it.
+        .trust_server_certs(false)
+        .session_retry_limit(0)
+        .request_timeout(config.timeout)
+        .keep_alive_interval(config.timeout.max(Duration::from_millis(500)))
+        .max_failed_keep_alive_count(1)
+        // async-opcua accepts 5 chunks (about 320 KB) by default: too
+        // little for a Browse of a folder of thousands of variables from a
+        // server that ignores the references-per-node limit (asyncua's), or
+        // for a Read of MaxNodesPerRead strings. Bounded all the same.
+        .max_chunk_count(MAX_MESSAGE / 65_536)
+        .max_message_size(MAX_MESSAGE)
+        // And 1000 array elements: a Read of 5000 nodes, a Browse of a
+        // folder of 10,000 answer longer arrays.
+        .max_array_length(4 * plccoms_plc::pubfile::MAX_VARS)
+        .client()
+        .map_err(|e| PlcError::Protocol(format!("OPC UA client settings: {}", e.join("; "))))
+}
+
+/// The certificate last stored in `dir` and its SHA-1 thumbprint, as the
+/// server's configuration tools show it.
+fn newest_certificate(dir: &std::path::Path) -> Option<(PathBuf, String)> {
+    let newest = std::fs::read_dir(dir)
+        .ok()?
+        .flatten()
+        .filter_map(|e| Some((e.metadata().ok()?.modified().ok()?, e.path())))
+        .max()?
+        .1;
+    let der = std::fs::read(&newest).ok()?;
+    let cert = opcua::crypto::X509::from_der(&der).ok()?;
+    Some((newest, cert.thumbprint().as_hex_string()))
+}
+
+fn connect_error(url: &str, pki: &std::path::Path, status: StatusCode, detail: &str) -> PlcError {
+    if matches!(
+        status,
+        StatusCode::BadCertificateUntrusted
+            | StatusCode::BadSecurityChecksFailed
+            | StatusCode::BadCertificateInvalid
+    ) {
+        let rejected = pki.join("rejected");
+        let stored = newest_certificate(&rejected).map_or_else(
+            || format!("in {}", rejected.display()),
+            |(path, thumbprint)| format!("as {}, thumbprint {thumbprint}", path.display()),
+        );
+        return PlcError::Protocol(format!(
+            "{url}: {status}: the server's certificate is not trusted; it was stored {stored}: check the thumbprint against the server's own (its configuration shows it) and move the file to {}/trusted to trust it",
+            pki.display()
+        ));
+    }
+    let detail = if detail.is_empty() {
+        String::new()
+    } else {
+        format!(" ({detail})")
+    };
+    if matches!(
+        status,
+        StatusCode::BadIdentityTokenInvalid
+            | StatusCode::BadIdentityTokenRejected
+            | StatusCode::BadUserAccessDenied
+            | StatusCode::BadSecurityPolicyRejected
+            | StatusCode::BadSecurityModeRejected
+            | StatusCode::BadTcpEndpointUrlInvalid
+    ) {
+        return PlcError::Protocol(format!("{url}: {status}{detail}"));
+    }
+    PlcError::Timeout(format!("{url}: {status}{detail}"))
+}
+
+/// The tag file's tags, its problems logged (a few lines at most).
+fn read_tag_file(section: &str, path: &std::path::Path) -> Vec<Tag> {
+    match std::fs::read(path) {
+        Ok(bytes) => {
+            let file = tags::parse(&bytes);
+            for warning in file.warnings.iter().take(5) {
+                warn!(section, "tag file {}: {warning}", path.display());
+            }
+            let more = file.warnings.len().saturating_sub(5) + file.more_warnings;
+            if more > 0 {
+                warn!(
+                    section,
+                    "tag file {}: {more} more problems not shown",
+                    path.display()
+                );
+            }
+            file.tags
+        }
+        Err(e) => {
+            warn!(section, "tag file {}: {e}", path.display());
+            Vec::new()
+        }
+    }
+}
+
+/// The entries of a list's bytes, placed as the link's table places them.
+fn list_of(bytes: Vec<u8>, builtins: &HashMap<String, Builtin>) -> List {
+    let file = tags::parse(&bytes);
+    let placed = tags::vars(&file.tags);
+    let mut sources: Vec<NodeId> = Vec::new();
+    let mut source_of: HashMap<NodeId, usize> = HashMap::new();
+    let entries = file
+        .tags
+        .iter()
+        .filter(|t| t.ty.is_some())
+        .zip(placed)
+        .map(|(tag, var)| {
+            let text = tag.node.to_string();
+            let node = node_of(&tag.node);
+            let source = *source_of.entry(node.clone()).or_insert_with(|| {
+                sources.push(node.clone());
+                sources.len() - 1
+            });
+            Entry {
+                offset: var.offset,
+                ty: var.ty,
+                builtin: builtins
+                    .get(&text)
+                    .copied()
+                    .unwrap_or_else(|| Builtin::of_iec(var.ty)),
+                node,
+                index: tag.index,
+                source,
+            }
+        })
+        .collect();
+    List {
+        bytes,
+        entries,
+        sources,
+    }
+}
+
+/// The node id of a list's node (namespace indexes only: the list is
+/// written with the server's indexes).
+fn node_of(node: &NodeRef) -> NodeId {
+    use plccoms_plc::opcua::nodeid::{Identifier, Namespace};
+    let ns = match node.namespace {
+        Namespace::Index(i) => i,
+        Namespace::Uri(_) => 0,
+    };
+    match &node.identifier {
+        Identifier::Numeric(n) => NodeId::new(ns, *n),
+        Identifier::String(s) => NodeId::new(ns, s.clone()),
+        Identifier::Guid(g) => g
+            .parse::<opcua::types::Guid>()
+            .map_or_else(|_| NodeId::null(), |g| NodeId::new(ns, g)),
+        Identifier::Opaque(b) => opcua::types::ByteString::from_base64(b)
+            .map_or_else(NodeId::null, |b| NodeId::new(ns, b)),
+    }
+}
+
+#[async_trait]
+impl PlcBackend for OpcuaBackend {
+    fn describe(&self) -> String {
+        format!("OPC UA {}", self.config.url)
+    }
+
+    fn max_read_block(&self, _area: Area) -> u32 {
+        1024 * 1024
+    }
+
+    /// Only adjacent variables are read together: a gap is other nodes.
+    fn read_gap(&self, _area: Area) -> Option<u32> {
+        Some(0)
+    }
+
+    fn max_file_block(&self) -> u32 {
+        1024 * 1024
+    }
+
+    fn answer_timeout(&self) -> Duration {
+        self.config.timeout
+    }
+
+    fn set_counters(&mut self, counters: Arc<BackendCounters>) {
+        self.counters = counters;
+    }
+
+    async fn connect(&mut self) -> Result<String, PlcError> {
+        self.open_session().await
+    }
+
+    async fn read(&mut self, reads: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
+        self.session()?;
+        if let (Some(every), Some(at)) = (self.config.rebrowse, self.built_at) {
+            if at.elapsed() >= every {
+                match self.rebuild().await {
+                    Ok(()) => {}
+                    Err(e) if e.is_link_failure() => return Err(e),
+                    // The server refused a Browse or Read of attributes:
+                    // the list stays as it is, looked for again later.
+                    Err(e) => {
+                        warn!(section = %self.config.section, "looking for the server's variables again failed: {e}; the variables stay as they are");
+                        self.built_at = Some(Instant::now());
+                    }
+                }
+            }
+        }
+        let mut wanted: Vec<usize> = Vec::new();
+        let mut state = false;
+        for read in reads {
+            match read.area {
+                Area::R => wanted.extend(self.covered(read.offset, read.len)),
+                _ => state = true,
+            }
+        }
+        // The poll reads the system variables each cycle: its period is
+        // the sampling interval (a GET or a SET's read-back in between is
+        // no cycle).
+        tracing::trace!(section = %self.config.section, blocks = reads.len(), system = state, "read");
+        if state {
+            let now = Instant::now();
+            if let Some(last) = self.last_read.replace(now) {
+                self.poll_gaps.rotate_right(1);
+                self.poll_gaps[0] = Some(now - last);
+            }
+        }
+        // The sources the entries read: an array once for its elements.
+        let mut wanted: Vec<usize> = wanted
+            .into_iter()
+            .map(|i| self.served.entries[i].source)
+            .collect();
+        wanted.sort_unstable();
+        wanted.dedup();
+        let values = if self.config.subscribe {
+            self.monitor(&wanted).await?;
+            let mut values: HashMap<usize, DataValue> = {
+                let notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
+                if let Some(run) = notified.get(&STATE_HANDLE) {
+                    self.run = matches!(run.value, Some(Variant::Int32(0)));
+                    state = false;
+                }
+                wanted
+                    .iter()
+                    .filter_map(|&i| notified.get(&(i as u32 + 1)).map(|v| (i, v.clone())))
+                    .collect()
+            };
+            // Not notified yet, or just written: from the server, once.
+            let direct: Vec<usize> = wanted
+                .iter()
+                .copied()
+                .filter(|i| !values.contains_key(i) || self.written.contains(i))
+                .collect();
+            if !direct.is_empty() || state {
+                let read = self.read_values(&direct, state).await?;
+                let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
+                for (i, value) in read {
+                    notified.insert(i as u32 + 1, value.clone());
+                    values.insert(i, value);
+                }
+                drop(notified);
+                for i in &direct {
+                    self.written.remove(i);
+                }
+            }
+            values
+        } else {
+            self.read_values(&wanted, state).await?
+        };
+        Ok(reads
+            .iter()
+            .map(|read| match read.area {
+                Area::R => self.answer(read, &values),
+                Area::S => self.system(read.offset, read.len),
+                _ => Err(Refusal::BAD_PARAMETERS),
+            })
+            .collect())
+    }
+
+    async fn write(&mut self, writes: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {
+        self.session()?;
+        self.write_all(writes).await
+    }
+
+    async fn status(&mut self) -> Result<PlcStatus, PlcError> {
+        self.session()?;
+        Ok(PlcStatus { run: self.run })
+    }
+
+    /// The variable list ([`VARS_FILE`]), the newest built.
+    async fn file_info(&mut self, path: &[u8]) -> Result<Answer<FileInfo>, PlcError> {
+        if path != VARS_FILE.as_bytes() {
+            return Ok(Err(Refusal::BAD_PARAMETERS));
+        }
+        let fetching = match &self.newest {
+            Some(newest) => newest.clone(),
+            None => {
+                let builtins = self
+                    .served
+                    .entries
+                    .iter()
+                    .map(|e| (browse::node_ref(&e.node).to_string(), e.builtin))
+                    .collect();
+                (self.served.bytes.clone(), builtins)
+            }
+        };
+        let size = fetching.0.len() as u64;
+        self.fetching = Some(fetching);
+        Ok(Ok(FileInfo {
+            size,
+            attributes: plccoms_core::driver::FILE_ATTRIBUTE_READONLY,
+            created: 0,
+            modified: 0,
+        }))
+    }
+
+    /// A part of the list being fetched; its last part makes it the list
+    /// the link's reads and writes are laid out by.
+    async fn read_file(
+        &mut self,
+        path: &[u8],
+        offset: u64,
+        len: u32,
+    ) -> Result<Answer<Vec<u8>>, PlcError> {
+        let Some((bytes, _)) = &self.fetching else {
+            return Ok(Err(Refusal::BAD_PARAMETERS));
+        };
+        if path != VARS_FILE.as_bytes() || offset > bytes.len() as u64 {
+            return Ok(Err(Refusal::BAD_PARAMETERS));
+        }
+        let end = (offset + u64::from(len)).min(bytes.len() as u64);
+        let part = bytes[offset as usize..end as usize].to_vec();
+        if end == bytes.len() as u64 {
+            if let Some((bytes, builtins)) = self.fetching.take() {
+                if self.newest.as_ref().is_some_and(|(b, _)| *b == bytes) {
+                    self.newest = None;
+                }
+                self.served = list_of(bytes, &builtins);
+                // The handles of the old list mean other variables now.
+                if let (Some(subscription), Ok(session)) =
+                    (self.subscription.take(), self.session())
+                {
+                    let _ = self
+                        .call(
+                            "DeleteSubscriptions",
+                            session.delete_subscriptions(&[subscription.id]),
+                        )
+                        .await;
+                }
+                self.notified
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .clear();
+                self.written.clear();
+            }
+        }
+        Ok(Ok(part))
+    }
+}
+
+/// This driver, for the binary's list: sections with `PROTOCOL = OPCUA`.
+pub const DRIVER: Driver = Driver {
+    name: "opcua",
+    open,
+};
+
+fn open(section: &plccoms_core::config::Section, dir: &std::path::Path) -> Option<Opened> {
+    if section.protocol != Protocol::Opcua {
+        return None;
+    }
+    Some(config_of(section, dir).map(|config| {
+        config.map(|config| Box::new(OpcuaBackend::new(config)) as Box<dyn PlcBackend>)
+    }))
+}
+
+/// OPC UA settings from a section's keys; `None` when it names no server
+/// yet (no OPCUA_URL).
+pub fn config_of(
+    section: &plccoms_core::config::Section,
+    dir: &std::path::Path,
+) -> Result<Option<OpcuaConfig>, String> {
+    let keys = &section.opcua_client;
+    let Some(url) = keys.url.clone().filter(|u| !u.trim().is_empty()) else {
+        return Ok(None);
+    };
+    if !url.starts_with("opc.tcp://") {
+        return Err(format!(
+            "OPCUA_URL = {url}: expected opc.tcp://host:port/path"
+        ));
+    }
+    let (mode, policy) = parse_security(&keys.security)?;
+    let user = match (&keys.user, &keys.password) {
+        (Some(user), password) => Some((user.clone(), password.clone().unwrap_or_default())),
+        (None, Some(_)) => return Err("OPCUA_PASSWORD without OPCUA_USER".to_string()),
+        (None, None) => None,
+    };
+    let browse = match &keys.browse {
+        Some(list) => list
+            .split(',')
+            .filter(|n| !n.trim().is_empty())
+            .map(|n| nodeid::parse(n).map_err(|e| format!("OPCUA_BROWSE: {e}")))
+            .collect::<Result<Vec<_>, _>>()?,
+        None => Vec::new(),
+    };
+    let state = plccoms_core::config::systemd_state_dir().unwrap_or_else(|| dir.to_path_buf());
+    let pki = match &keys.pki {
+        Some(path) => state.join(path),
+        None => state.join("opcua-client-pki"),
+    };
+    Ok(Some(OpcuaConfig {
+        url,
+        mode,
+        policy,
+        user,
+        pki,
+        browse,
+        tags: keys.tags.as_deref().map(|name| section.path_of(dir, name)),
+        subscribe: keys.subscribe,
+        timeout: keys.timeout,
+        rebrowse: (!keys.rebrowse.is_zero()).then_some(keys.rebrowse),
+        section: section.name.clone(),
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn security_settings() {
+        assert_eq!(
+            parse_security("None").unwrap(),
+            (MessageSecurityMode::None, SecurityPolicy::None)
+        );
+        assert_eq!(
+            parse_security("SignAndEncrypt:Basic256Sha256").unwrap(),
+            (
+                MessageSecurityMode::SignAndEncrypt,
+                SecurityPolicy::Basic256Sha256
+            )
+        );
+        assert!(parse_security("Encrypt:Basic256Sha256")
+            .unwrap_err()
+            .contains("mode 'encrypt'"));
+        assert!(parse_security("Sign:Foo")
+            .unwrap_err()
+            .contains("unknown policy"));
+        assert!(parse_security("Sign").unwrap_err().contains("mode:policy"));
+    }
+
+    #[test]
+    fn reads_cover_the_variables_they_touch() {
+        let list = list_of(
+            b"name,node,type\nA,i=1,BOOL\nB,i=2,INT\nC,i=3,LREAL\n".to_vec(),
+            &HashMap::new(),
+        );
+        let backend = OpcuaBackend {
+            served: list,
+            ..OpcuaBackend::new(OpcuaConfig {
+                url: String::new(),
+                mode: MessageSecurityMode::None,
+                policy: SecurityPolicy::None,
+                user: None,
+                pki: PathBuf::new(),
+                browse: Vec::new(),
+                tags: None,
+                subscribe: false,
+                timeout: Duration::from_secs(1),
+                rebrowse: None,
+                section: String::new(),
+            })
+        };
+        assert_eq!(backend.covered(0, 1), 0..1);
+        assert_eq!(backend.covered(1, 2), 1..2);
+        assert_eq!(backend.covered(0, 11), 0..3);
+        assert_eq!(backend.covered(2, 1), 1..2);
+        assert_eq!(backend.covered(11, 4), 3..3);
+        let mut values = HashMap::new();
+        values.insert(0, DataValue::new_now(Variant::Boolean(true)));
+        values.insert(1, DataValue::new_now(Variant::Int16(-2)));
+        let read = ReadRequest {
+            area: Area::R,
+            offset: 0,
+            len: 3,
+        };
+        assert_eq!(backend.answer(&read, &values), Ok(vec![1, 0xFE, 0xFF]));
+        values.insert(
+            1,
+            DataValue {
+                status: Some(StatusCode::BadNotReadable),
+                ..Default::default()
+            },
+        );
+        assert_eq!(
+            backend.answer(&read, &values),
+            Err(Refusal::Opcua(StatusCode::BadNotReadable.bits()))
+        );
+    }
+}

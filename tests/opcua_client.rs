@@ -1,0 +1,542 @@
+//! The OPC UA client backend (PROTOCOL = OPCUA) against a third-party
+//! server: asyncua's (PyPI), started by the test with a small S7-like model
+//! (tests/opcua_client/server.py). Browse naming and types, LIST, GET of
+//! every scalar type, SET with the confirmed value, EN with DIFFs, the
+//! server's refusals by StatusCode name, a tag file, a user, the server
+//! restarted mid-subscription, nodes added while running; in both modes
+//! (subscribe, read). All through the line protocol of the real binary.
+
+mod common;
+
+use std::io::{BufRead, BufReader, Write};
+use std::process::{ChildStdin, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::modbus::until;
+use common::process::{free_port, which, ChildGuard, ServerProcess};
+use common::Client;
+
+const SCRIPT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/opcua_client/server.py");
+
+/// asyncua's server on 127.0.0.1:`port`; killed when dropped.
+struct OpcServer {
+    port: u16,
+    child: ChildGuard,
+    stdin: ChildStdin,
+    lines: std::sync::mpsc::Receiver<String>,
+}
+
+impl OpcServer {
+    /// Starts it (with a user `user:password` when given); returns once it
+    /// listens.
+    fn start(port: u16, user: Option<&str>) -> OpcServer {
+        OpcServer::start_with(port, user, None)
+    }
+
+    /// With `secure`: SignAndEncrypt only, certificates made in that folder
+    /// (see server.py).
+    fn start_with(port: u16, user: Option<&str>, secure: Option<&std::path::Path>) -> OpcServer {
+        let python = which("python3")
+            .unwrap_or_else(|| panic!("python3 is not installed: this test runs asyncua's server"));
+        let probe = Command::new(&python)
+            .args(["-c", "import asyncua"])
+            .stderr(Stdio::null())
+            .status()
+            .expect("run python3");
+        assert!(
+            probe.success(),
+            "asyncua is not installed: this test runs its OPC UA server. \
+             Install it with `python3 -m pip install asyncua==2.1.0` (.ci/run installs it)."
+        );
+        let mut command = Command::new(python);
+        command.arg(SCRIPT).arg(port.to_string());
+        if let Some(user) = user {
+            command.args(["--user", user]);
+        }
+        if let Some(dir) = secure {
+            command.arg("--secure").arg(dir);
+        }
+        let mut child = ChildGuard::spawn(
+            "asyncua",
+            command
+                .stdin(Stdio::piped())
+                .stdout(Stdio::piped())
+                .stderr(Stdio::null()),
+        );
+        let stdin = child.child().stdin.take().expect("stdin");
+        let stdout = child.child().stdout.take().expect("stdout");
+        let (tx, lines) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        let mut server = OpcServer {
+            port,
+            child,
+            stdin,
+            lines,
+        };
+        server.wait_for("ready", Duration::from_secs(60));
+        server
+    }
+
+    fn wait_for(&mut self, want: &str, within: Duration) {
+        let deadline = Instant::now() + within;
+        loop {
+            if let Ok(line) = self.lines.recv_timeout(Duration::from_millis(100)) {
+                if line == want {
+                    return;
+                }
+            }
+            if let Some(status) = self.child.exited() {
+                panic!(
+                    "asyncua exited ({status}) before '{want}' on port {}",
+                    self.port
+                );
+            }
+            assert!(
+                Instant::now() < deadline,
+                "asyncua: no '{want}' within {within:?}"
+            );
+        }
+    }
+
+    /// A command of server.py (`add NAME`, `set NAME V`), done when it returns.
+    fn command(&mut self, line: &str) {
+        writeln!(self.stdin, "{line}").expect("command to asyncua");
+        self.wait_for("done", Duration::from_secs(10));
+    }
+
+    fn url(&self) -> String {
+        format!("opc.tcp://127.0.0.1:{}/plc", self.port)
+    }
+}
+
+/// plccoms with one OPC UA section `[P]` on `url`, and `extra` keys.
+fn plccoms(url: &str, extra: &str) -> ServerProcess {
+    let port = free_port();
+    let ini =
+        format!("[*]\n[P]\nPROTOCOL = OPCUA\nOPCUA_URL = {url}\nSERVER_PORT = {port}\n{extra}\n");
+    ServerProcess::with_config(&ini, port)
+}
+
+/// The variables browsed from the Objects folder, in browse order.
+const LIST: &str = "\
+LIST:__PLC_RUN,BOOL
+LIST:__PF_CRC,DWORD
+LIST:ARRAY_V[0],INT*
+LIST:ARRAY_V[1],INT*
+LIST:ARRAY_V[2],INT*
+LIST:TYPES.BOOL_V,BOOL*
+LIST:TYPES.SBYTE_V,SINT*
+LIST:TYPES.BYTE_V,USINT*
+LIST:TYPES.INT16_V,INT*
+LIST:TYPES.UINT16_V,UINT*
+LIST:TYPES.INT32_V,DINT*
+LIST:TYPES.UINT32_V,UDINT*
+LIST:TYPES.INT64_V,LINT*
+LIST:TYPES.UINT64_V,ULINT*
+LIST:TYPES.FLOAT_V,REAL*
+LIST:TYPES.DOUBLE_V,LREAL*
+LIST:TYPES.STRING_V,STRING[255]*
+LIST:TYPES.DATETIME_V,DT*
+LIST:TYPES.DURATION_V,TIME*
+LIST:RECIPE.TEMP,LREAL*
+LIST:RECIPE.TIME,UDINT*
+LIST:DB_LINE1.MOTOR.SPEED,LREAL*
+LIST:DB_LINE1.MOTOR.RUNNING,BOOL*
+LIST:DB_LINE1.MOTOR.COUNT,UDINT*
+LIST:
+";
+
+/// Waits until the section has its variables (the list is built once the
+/// server answers).
+async fn listed(c: &mut Client, name: &str) {
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        c.send(format!("GET:{name}\r\n").as_bytes()).await;
+        let line = String::from_utf8(c.line().await).unwrap();
+        if line.starts_with("GET:") {
+            return;
+        }
+        assert!(Instant::now() < deadline, "{name} never served: {line:?}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+/// Asks `request` until it is answered with a link error, within `secs`.
+async fn until_lost(c: &mut Client, request: &str, secs: u64) {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        c.send(format!("{request}\r\n").as_bytes()).await;
+        let line = String::from_utf8(c.line().await).unwrap();
+        if common::health::is_link_error(&line) {
+            return;
+        }
+        assert!(Instant::now() < deadline, "still served: {line:?}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+async fn browse_get_set(mode: &str) {
+    let server = OpcServer::start(free_port(), None);
+    let plc = plccoms(&server.url(), &format!("OPCUA_MODE = {mode}"));
+    let mut c = Client::connect(plc.addr).await;
+    listed(&mut c, "DB_LINE1.MOTOR.SPEED").await;
+    c.send(b"LIST:\r\n").await;
+    let mut list = String::new();
+    loop {
+        let line = String::from_utf8(c.line().await).unwrap();
+        list.push_str(line.trim_end());
+        list.push('\n');
+        if line == "LIST:\r\n" {
+            break;
+        }
+    }
+    assert_eq!(list, LIST);
+    let stamp = 1_710_510_330.5f64.to_bits();
+    for (request, answer) in [
+        ("GET:__PLC_RUN", "GET:__PLC_RUN,1".to_string()),
+        ("GET:types.bool_v", "GET:TYPES.BOOL_V,0".into()),
+        ("GET:types.sbyte_v", "GET:TYPES.SBYTE_V,-5".into()),
+        ("GET:types.byte_v", "GET:TYPES.BYTE_V,200".into()),
+        ("GET:types.int16_v", "GET:TYPES.INT16_V,-1234".into()),
+        ("GET:types.uint16_v", "GET:TYPES.UINT16_V,54321".into()),
+        ("GET:types.int32_v", "GET:TYPES.INT32_V,-100000".into()),
+        ("GET:types.uint32_v", "GET:TYPES.UINT32_V,4000000000".into()),
+        ("GET:types.int64_v", "GET:TYPES.INT64_V,-5000000000".into()),
+        (
+            "GET:types.uint64_v",
+            "GET:TYPES.UINT64_V,12345678901234567890".into(),
+        ),
+        ("GET:types.float_v", "GET:TYPES.FLOAT_V,1.500000".into()),
+        (
+            "GET:types.double_v",
+            "GET:TYPES.DOUBLE_V,-2.2500000000".into(),
+        ),
+        ("GET:types.string_v", "GET:TYPES.STRING_V,\"Hello\"".into()),
+        (
+            "GET:types.datetime_v",
+            format!("GET:TYPES.DATETIME_V,{stamp}"),
+        ),
+        ("GET:types.duration_v", "GET:TYPES.DURATION_V,1500".into()),
+        (
+            "GET:db_line1.motor.count",
+            "GET:DB_LINE1.MOTOR.COUNT,7".into(),
+        ),
+        ("GET:array_v[1]", "GET:ARRAY_V[1],2".into()),
+        // A structure's fields, shown by the server as child variables.
+        ("GET:recipe.time", "GET:RECIPE.TIME,30".into()),
+    ] {
+        c.ask(&format!("{request}\r\n"), &format!("{answer}\r\n"))
+            .await;
+    }
+    // Writes: the DIFF is the server's value, read back.
+    for (request, answer) in [
+        ("SET:types.bool_v,1", "DIFF:TYPES.BOOL_V,1"),
+        ("SET:types.sbyte_v,-100", "DIFF:TYPES.SBYTE_V,-100"),
+        ("SET:types.byte_v,7", "DIFF:TYPES.BYTE_V,7"),
+        ("SET:types.int16_v,-2", "DIFF:TYPES.INT16_V,-2"),
+        ("SET:types.uint16_v,65535", "DIFF:TYPES.UINT16_V,65535"),
+        ("SET:types.int32_v,123456", "DIFF:TYPES.INT32_V,123456"),
+        ("SET:types.uint32_v,1", "DIFF:TYPES.UINT32_V,1"),
+        ("SET:types.int64_v,-1", "DIFF:TYPES.INT64_V,-1"),
+        ("SET:types.uint64_v,42", "DIFF:TYPES.UINT64_V,42"),
+        ("SET:types.float_v,0.25", "DIFF:TYPES.FLOAT_V,0.250000"),
+        (
+            "SET:types.double_v,1e3",
+            "DIFF:TYPES.DOUBLE_V,1000.0000000000",
+        ),
+        (
+            "SET:types.string_v,\"Žluťoučký\"",
+            "DIFF:TYPES.STRING_V,\"Žluťoučký\"",
+        ),
+        ("SET:types.duration_v,2500", "DIFF:TYPES.DURATION_V,2500"),
+        ("SET:array_v[2],-9", "DIFF:ARRAY_V[2],-9"),
+        ("GET:array_v[0]", "GET:ARRAY_V[0],1"),
+        (
+            "SET:db_line1.motor.count,3",
+            "ERROR:30 Bad client request: 'SET:db_line1.motor.count,3'",
+        ),
+    ] {
+        c.ask(&format!("{request}\r\n"), &format!("{answer}\r\n"))
+            .await;
+    }
+    c.ask(
+        "GET:types.string_v\r\n",
+        "GET:TYPES.STRING_V,\"Žluťoučký\"\r\n",
+    )
+    .await;
+    let info = c.getinfo().await;
+    for want in [
+        "GETINFO:PROTOCOL,OPCUA".to_string(),
+        format!("GETINFO:OPCUA_URL,{}", server.url()),
+        "GETINFO:PUBFILE,2/24 [OPCUA_VARS.csv]".into(),
+        "GETINFO:VERSION_PLC,OPC UA FreeOpcUa Python Server 1.0pre".into(),
+    ] {
+        assert!(info.contains(&want), "{want} not in {info:?}");
+    }
+    for epsnet in [
+        "VERSION_EPSNET",
+        "EPSADDR",
+        "EPSPORT",
+        "IPADDR",
+        "MODBUS_TAGS",
+    ] {
+        let key = format!("GETINFO:{epsnet},");
+        assert!(!info.iter().any(|l| l.starts_with(&key)), "{info:?}");
+    }
+    // EN: the server's own changes come as DIFFs.
+    c.ask(
+        "EN:db_line1.motor.speed\r\n",
+        "WARNING:252 Changed active variables in public file: '[3/24]'\r\n",
+    )
+    .await;
+    c.expect(b"DIFF:DB_LINE1.MOTOR.SPEED,1450.5000000000\r\n")
+        .await;
+    let mut server = server;
+    server.command("set SPEED 99.5");
+    c.wait_for_line(
+        b"DIFF:DB_LINE1.MOTOR.SPEED,99.5000000000\r\n",
+        Duration::from_secs(5),
+    )
+    .await;
+    // The structure itself is skipped, said once.
+    let log = plc.log();
+    assert_eq!(
+        log.matches("1 structured variables skipped").count(),
+        1,
+        "{log}"
+    );
+}
+
+#[tokio::test]
+async fn browse_get_set_en_subscribed() {
+    browse_get_set("subscribe").await;
+}
+
+#[tokio::test]
+async fn browse_get_set_en_read() {
+    browse_get_set("read").await;
+}
+
+#[tokio::test]
+async fn tag_file_user_and_refusals() {
+    let server = OpcServer::start(free_port(), Some("op:secret"));
+    // A node that does not exist, a read-only node declared rw (the
+    // server refuses the write), a type the tag file gives.
+    let tags = "name,node,type,access,unit,description\n\
+                speed,nsu=http://plccoms.test/s7like;s=DB_LINE1.MOTOR.SPEED,,,rpm,Main drive\n\
+                count,ns=2;s=DB_LINE1.MOTOR.COUNT,,rw\n\
+                ghost,ns=2;s=NOPE,INT\n\
+                level,ns=2;s=TYPES.INT16_V,DINT\n";
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("tags.csv");
+    std::fs::write(&path, tags).unwrap();
+    let plc = plccoms(
+        &server.url(),
+        &format!(
+            "OPCUA_TAGS = {}\nOPCUA_USER = op\nOPCUA_PASSWORD = secret",
+            path.display()
+        ),
+    );
+    let mut c = Client::connect(plc.addr).await;
+    listed(&mut c, "speed").await;
+    for (request, answer) in [
+        ("GET:speed", "GET:SPEED,1450.5000000000"),
+        ("GET:count", "GET:COUNT,7"),
+        ("GET:level", "GET:LEVEL,-1234"),
+        (
+            "GET:ghost",
+            "ERROR:80 Unable to get data from address: 'GHOST: OPC UA BadNodeIdUnknown (0x80340000)'",
+        ),
+        (
+            "SET:count,3",
+            "ERROR:81 Unable to set data in to address: 'COUNT: OPC UA BadUserAccessDenied (0x801F0000)'",
+        ),
+        ("SET:level,-7", "DIFF:LEVEL,-7"),
+        ("GET:level", "GET:LEVEL,-7"),
+    ] {
+        c.ask(&format!("{request}\r\n"), &format!("{answer}\r\n"))
+            .await;
+    }
+
+    // A wrong password: the server is never reached, and the log says why.
+    let wrong = plccoms(
+        &server.url(),
+        &format!(
+            "OPCUA_TAGS = {}\nOPCUA_USER = op\nOPCUA_PASSWORD = wrong",
+            path.display()
+        ),
+    );
+    let mut c = Client::connect(wrong.addr).await;
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    c.ask(
+        "GET:__PLC_RUN\r\n",
+        "ERROR:10 Unable to connect to PLC.\r\n",
+    )
+    .await;
+    let log = wrong.log();
+    assert!(
+        log.contains("BadUserAccessDenied") || log.contains("BadIdentityTokenRejected"),
+        "{log}"
+    );
+}
+
+#[tokio::test]
+async fn server_restart_mid_subscription_and_nodes_added() {
+    let port = free_port();
+    let mut server = OpcServer::start(port, None);
+    let plc = plccoms(&server.url(), "OPCUA_REBROWSE = 1");
+    let mut c = Client::connect(plc.addr).await;
+    listed(&mut c, "DB_LINE1.MOTOR.SPEED").await;
+    c.ask(
+        "EN:db_line1.motor.running\r\n",
+        "WARNING:252 Changed active variables in public file: '[3/24]'\r\n",
+    )
+    .await;
+    c.expect(b"DIFF:DB_LINE1.MOTOR.RUNNING,1\r\n").await;
+
+    // Nodes added while running: the table is reloaded.
+    server.command("add TORQUE");
+    c.wait_for_line(
+        b"WARNING:250 Changed public file: 'OPCUA_VARS.csv'\r\n",
+        Duration::from_secs(10),
+    )
+    .await;
+    c.ask(
+        "GET:db_line1.motor.torque\r\n",
+        "GET:DB_LINE1.MOTOR.TORQUE,1.5000000000\r\n",
+    )
+    .await;
+
+    // The server goes away: no value is served as live.
+    drop(server);
+    until_lost(&mut c, "GET:db_line1.motor.speed", 5).await;
+    // It returns (a new process, no TORQUE): values again within 2 s of
+    // its listening, the subscription made anew.
+    let server = OpcServer::start(port, None);
+    let back = Instant::now();
+    until(
+        &mut c,
+        "GET:db_line1.motor.speed",
+        "GET:DB_LINE1.MOTOR.SPEED,1450.5000000000",
+        10,
+    )
+    .await;
+    let took = back.elapsed();
+    assert!(
+        took <= Duration::from_secs(2),
+        "values again after {took:?}"
+    );
+    let mut server = server;
+    server.command("set RUNNING 0");
+    c.wait_for_line(
+        b"DIFF:DB_LINE1.MOTOR.RUNNING,0\r\n",
+        Duration::from_secs(10),
+    )
+    .await;
+    let log = plc.log();
+    assert_eq!(log.matches("PLC lost").count(), 1, "{log}");
+}
+
+#[tokio::test]
+async fn a_slow_server() {
+    let mut server = OpcServer::start(free_port(), None);
+    let plc = plccoms(&server.url(), "OPCUA_MODE = read\nOPCUA_TIMEOUT = 1000");
+    let mut c = Client::connect(plc.addr).await;
+    listed(&mut c, "DB_LINE1.MOTOR.SPEED").await;
+    // Slow, within the timeout: values as ever.
+    server.command("slow 300");
+    for _ in 0..3 {
+        c.ask(
+            "GET:db_line1.motor.count\r\n",
+            "GET:DB_LINE1.MOTOR.COUNT,7\r\n",
+        )
+        .await;
+    }
+    // Slower than OPCUA_TIMEOUT: the link is lost, errors answer.
+    server.command("slow 2500");
+    until_lost(&mut c, "GET:db_line1.motor.count", 10).await;
+    // Fast again: values again.
+    server.command("slow 0");
+    until(
+        &mut c,
+        "GET:db_line1.motor.count",
+        "GET:DB_LINE1.MOTOR.COUNT,7",
+        10,
+    )
+    .await;
+    let log = plc.log();
+    assert_eq!(log.matches("PLC lost").count(), 1, "{log}");
+}
+
+#[tokio::test]
+async fn security_first_contact_and_a_user() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = OpcServer::start_with(free_port(), Some("op:secret"), Some(dir.path()));
+    let pki = dir.path().join("client-pki");
+    let plc = plccoms(
+        &server.url(),
+        &format!(
+            "OPCUA_SECURITY = SignAndEncrypt:Basic256Sha256\nOPCUA_PKI = {}\n\
+             OPCUA_USER = op\nOPCUA_PASSWORD = secret",
+            pki.display()
+        ),
+    );
+    // First contact: the server's certificate is refused and stored in
+    // rejected/, and the log says where to move it.
+    let rejected = pki.join("rejected");
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let stored = loop {
+        let found: Vec<_> = std::fs::read_dir(&rejected)
+            .map(|d| d.flatten().map(|e| e.path()).collect())
+            .unwrap_or_default();
+        if let Some(file) = found.into_iter().next() {
+            break file;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "nothing in {}: {}",
+            rejected.display(),
+            plc.log()
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    let mut c = Client::connect(plc.addr).await;
+    c.ask(
+        "GET:__PLC_RUN\r\n",
+        "ERROR:10 Unable to connect to PLC.\r\n",
+    )
+    .await;
+    let log = plc.log();
+    // The file and its thumbprint, and where it goes.
+    let said = format!("as {}, thumbprint ", stored.display());
+    assert!(
+        log.contains("not trusted") && log.contains(&said) && log.contains("/trusted to trust it"),
+        "{log}"
+    );
+    // Trusted by hand: values within the next probes.
+    let trusted = pki.join("trusted");
+    std::fs::create_dir_all(&trusted).unwrap();
+    std::fs::rename(&stored, trusted.join(stored.file_name().unwrap())).unwrap();
+    until(
+        &mut c,
+        "GET:db_line1.motor.count",
+        "GET:DB_LINE1.MOTOR.COUNT,7",
+        30,
+    )
+    .await;
+    // A new session: the one above may have answers still on the way.
+    let mut c = Client::connect(plc.addr).await;
+    c.ask(
+        "SET:db_line1.motor.speed,3.5\r\n",
+        "DIFF:DB_LINE1.MOTOR.SPEED,3.5000000000\r\n",
+    )
+    .await;
+    drop(server);
+}
