@@ -337,10 +337,22 @@ impl Server {
         for running in &stopping {
             self.metrics.remove_section(running.section.name());
         }
-        // The apps let go of them first (MQTT says `offline` while the link
-        // still answers), then they stop.
+        // The apps let go of removed sections first (MQTT says `offline`
+        // while the link still answers), then they stop. A restarted one
+        // stays in the list until its replacement takes its place in one
+        // step, so that the apps see a swap (OPC UA keeps its nodes,
+        // Sparkplug rebirths once), not a removal and an addition.
         self.sections = kept;
-        self.publish();
+        let interim = self
+            .sections
+            .iter()
+            .chain(stopping.iter().filter(|r| {
+                let name = r.section.name();
+                report.restarted.iter().any(|(n, _)| n == name)
+            }))
+            .map(|r| r.section.clone())
+            .collect();
+        self.running.set(interim);
         stop_sections(&mut stopping).await;
         drop(stopping);
         for section in &wanted {
