@@ -5,7 +5,6 @@
 //! same NodeIds with its monitored items carried over; the others are left
 //! alone.
 
-use std::collections::HashMap;
 use std::sync::Arc;
 
 use opcua::server::node_manager::memory::InMemoryNodeManager;
@@ -117,12 +116,13 @@ impl Follow {
             for old in &gone {
                 let view = old.lock();
                 let ids = space::remove_section(&mut space, ns, &old.name, &view);
-                if let Some(new) = fresh.iter().find(|f| f.name == old.name) {
-                    // Variables the new table lacks yet (a public file
-                    // still to come from the PLC): Bad until it comes.
-                    let new = new.lock();
+                if replaced(&old.name) {
+                    // Values of the old section no more, none of the new
+                    // one yet (its feed gives them; a variable its table
+                    // lacks until the public file comes stays so).
                     waiting.extend(
-                        old_names_missing(&view.by_name, &new.by_name)
+                        view.by_name
+                            .keys()
                             .map(|name| self.shared.node(crate::ids::variable(&old.name, name))),
                     );
                 } else {
@@ -201,12 +201,4 @@ impl Follow {
             running.push(self.spawn(nodes));
         }
     }
-}
-
-/// Names of `old` that `new` lacks.
-fn old_names_missing<'a, V>(
-    old: &'a HashMap<String, V>,
-    new: &'a HashMap<String, V>,
-) -> impl Iterator<Item = &'a String> {
-    old.keys().filter(|name| !new.contains_key(*name))
 }
