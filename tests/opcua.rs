@@ -889,3 +889,185 @@ async fn history_read_continues_across_a_day_file_boundary() {
     assert!(pages.len() >= 5, "{pages:?}");
     ua.server.shutdown().await;
 }
+
+/// Lines of `sub` until `done` holds for one; all of them.
+async fn lines_until(sub: &mut Subscription, mut done: impl FnMut(&Value) -> bool) -> Vec<Value> {
+    let mut lines = Vec::new();
+    while let Some(line) = sub.next().await {
+        let end = done(&line);
+        lines.push(line);
+        if end {
+            return lines;
+        }
+    }
+    panic!("the client ended first: {lines:?}");
+}
+
+/// SIGHUP to the real binary under subscribed clients: [B] removed, [C]
+/// restarted (a key changed), [D] added, [A] unchanged and changing
+/// throughout.
+#[tokio::test(flavor = "multi_thread")]
+async fn sighup_adds_removes_and_restarts_sections_under_subscribed_clients() {
+    use common::process::{free_port, ServerProcess};
+    let files = tempfile::tempdir().unwrap();
+    let tags = files.path().join("tags.csv");
+    std::fs::write(&tags, TAGS).unwrap();
+    let opc = free_port();
+    let (pa, pb, pc, pd) = (free_port(), free_port(), free_port(), free_port());
+    let section = |name: &str, port: u16, keys: &str| {
+        format!(
+            "[{name}]\nPROTOCOL = MODBUS_TCP\nSIMULATOR = Yes\nMODBUS_TAGS = {}\n\
+             SERVER_PORT = {port}\nIPADDR_LOCAL = 127.0.0.1\n{keys}\n",
+            tags.display()
+        )
+    };
+    let users = users_file(files.path());
+    let global = format!(
+        "[*]\nCOMM_LOOP_DELAY = 20\nOPCUA_PORT = {opc}\nOPCUA_USERS = {}\n",
+        users.display()
+    );
+    let before = global.clone() + &section("A", pa, "") + &section("B", pb, "");
+    let before = before + &section("C", pc, "");
+    let after = global + &section("A", pa, "") + &section("C", pc, "OPCUA_WRITE = COUNT");
+    let after = after + &section("D", pd, "");
+    let mut server = ServerProcess::with_config(&before, pa);
+    let url = format!("opc.tcp://127.0.0.1:{opc}/");
+    let has = |tree: &[Value], section: &str| {
+        tree.iter()
+            .any(|v| v["section"] == section && v["name"] == "COUNT")
+    };
+    until_tree(&url, "A, B and C", |t| {
+        has(t, "A") && has(t, "B") && has(t, "C")
+    })
+    .await;
+    let mut a = Client::connect(([127, 0, 0, 1], pa).into()).await;
+    set(&mut a, "COUNT", "0").await;
+    let mut b = Client::connect(([127, 0, 0, 1], pb).into()).await;
+    set(&mut b, "COUNT", "5").await;
+    let (mut watch_a, _) = Subscription::start(&url, &[], "watch", &["A.COUNT"]).await;
+    let (mut watch_bc, _) = Subscription::start(&url, &[], "watch", &["B.COUNT,C.COUNT"]).await;
+    let (mut events, _) = Subscription::start(&url, &[], "events", &["60"]).await;
+    // Both items of B and C have a value before the reload.
+    let mut seen = std::collections::HashSet::new();
+    lines_until(&mut watch_bc, |v| {
+        if v["status"] == "Good" {
+            seen.insert(v["node"].as_str().unwrap_or("").to_string());
+        }
+        seen.len() == 2
+    })
+    .await;
+
+    // A changes every 100 ms, through the reload.
+    for n in 1..=40 {
+        if n == 10 {
+            std::fs::write(server.dir.path().join("plccoms.ini"), &after).unwrap();
+            common::mqtt::signal(server.child.child().id(), libc::SIGHUP);
+        }
+        set(&mut a, "COUNT", &n.to_string()).await;
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while !server.log().contains("configuration reloaded") {
+        assert!(Instant::now() < deadline, "no reload: {}", server.log());
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let log = server.log();
+    assert!(log.contains("restarted [C]"), "{log}");
+
+    // A: every change once, in order, never Bad.
+    let a_lines = lines_until(&mut watch_a, |v| v["status"] == "Good" && v["value"] == 40).await;
+    let first_good = a_lines.iter().position(|v| v["status"] == "Good").unwrap();
+    let after_first = &a_lines[first_good..];
+    assert!(
+        after_first
+            .iter()
+            .all(|v| !v["status"].as_str().unwrap().starts_with("Bad")),
+        "{a_lines:?}"
+    );
+    let good: Vec<i64> = after_first
+        .iter()
+        .filter(|v| v["status"] == "Good")
+        .map(|v| v["value"].as_i64().unwrap())
+        .collect();
+    assert_eq!(good, (0..=40).collect::<Vec<_>>(), "{a_lines:?}");
+
+    // B: its item told its node went; reads of it refused.
+    let mut bc_lines = lines_until(&mut watch_bc, |v| {
+        v["node"] == "B.COUNT" && v["status"] == "BadNodeIdUnknown"
+    })
+    .await;
+    let read = run(args(&[], "read", &url, &["B.COUNT"])).await;
+    assert_eq!(read[0]["status"], "BadNodeIdUnknown", "{read:?}");
+    // C: the same item, Bad while the new section connects, then values
+    // of the new section.
+    let mut c = Client::connect(([127, 0, 0, 1], pc).into()).await;
+    set(&mut c, "COUNT", "7").await;
+    bc_lines.extend(
+        lines_until(&mut watch_bc, |v| {
+            v["node"] == "C.COUNT" && v["status"] == "Good" && v["value"] == 7
+        })
+        .await,
+    );
+    let c_lines = bc_lines;
+    // (The binary publishes the sections without C, then with the new C:
+    // between, C's nodes are unknown; a follower may see either list.)
+    let c_lines: Vec<&Value> = c_lines.iter().filter(|v| v["node"] == "C.COUNT").collect();
+    let restart = c_lines
+        .iter()
+        .position(|v| v["status"].as_str().unwrap().starts_with("Bad"))
+        .unwrap_or_else(|| panic!("C never told of its restart: {c_lines:?}"));
+    // Never a Good without a value (a variable not read yet).
+    assert!(
+        c_lines
+            .iter()
+            .all(|v| v["status"] != "Good" || !v["value"].is_null()),
+        "{c_lines:?}"
+    );
+    assert!(c_lines[restart..].iter().any(|v| v["value"] == 7));
+    // The restart took OPCUA_WRITE: C.COUNT is writable now.
+    assert_eq!(write(&url, HMI, "C.COUNT", "Int16", "8").await, "Good");
+    // D: browsed, subscribed, fed.
+    let tree = until_tree(&url, "D added, B removed", |t| {
+        has(t, "D") && !has(t, "B") && has(t, "A") && has(t, "C")
+    })
+    .await;
+    let count = tree
+        .iter()
+        .find(|v| v["section"] == "D" && v["name"] == "COUNT")
+        .unwrap();
+    assert_eq!(count["id"], "D.COUNT");
+    let (mut watch_d, _) = Subscription::start(&url, &[], "watch", &["D.COUNT"]).await;
+    let mut d = Client::connect(([127, 0, 0, 1], pd).into()).await;
+    set(&mut d, "COUNT", "3").await;
+    lines_until(&mut watch_d, |v| v["status"] == "Good" && v["value"] == 3).await;
+    // A model change event of each section that changed, none of A.
+    let mut sources = std::collections::BTreeSet::new();
+    let changes = lines_until(&mut events, |v| {
+        assert!(v["event_type"].as_str().unwrap().contains("2133"), "{v}");
+        sources.insert(v["source"].as_str().unwrap().to_string());
+        sources.len() == 3
+    })
+    .await;
+    assert_eq!(
+        sources.into_iter().collect::<Vec<_>>(),
+        ["B", "C", "D"],
+        "{changes:?}"
+    );
+
+    // B added back: the item its client kept gets values again.
+    let again = after + &section("B", pb, "");
+    std::fs::write(server.dir.path().join("plccoms.ini"), &again).unwrap();
+    common::mqtt::signal(server.child.child().id(), libc::SIGHUP);
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while server.log().matches("configuration reloaded").count() < 2 {
+        assert!(Instant::now() < deadline, "no reload: {}", server.log());
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let mut b = Client::connect(([127, 0, 0, 1], pb).into()).await;
+    set(&mut b, "COUNT", "9").await;
+    lines_until(&mut watch_bc, |v| {
+        v["node"] == "B.COUNT" && v["status"] == "Good" && v["value"] == 9
+    })
+    .await;
+    drop(server);
+}

@@ -249,7 +249,8 @@ async def events(client, args):
     server = client.get_node(ua.ObjectIds.Server)
     # Every event of the Server object (BaseEventType), as most clients
     # subscribe; the test checks the type.
-    await sub.subscribe_events(server)
+    # A queue for every event of a burst (a reload raises several at once).
+    await sub.subscribe_events(server, queuesize=1000)
     out({"ready": True})
     await drain(handler.events, float(args.seconds))
 
@@ -296,6 +297,42 @@ async def hold(client, args):
         out(item)
 
 
+async def read(client, args):
+    ns = await client.get_namespace_index("urn:plccoms")
+    dv = await client.get_node(ua.NodeId(args.node, ns)).read_data_value(
+        raise_on_bad_status=False)
+    out({"status": status_name(dv.StatusCode),
+         "value": plain(dv.Value.Value) if dv.Value is not None else None})
+
+
+class NodeHandler:
+    def __init__(self):
+        self.values = asyncio.Queue()
+
+    def datachange_notification(self, node, val, data):
+        dv = data.monitored_item.Value
+        self.values.put_nowait({"node": node.nodeid.Identifier, "value": plain(val),
+                                "status": status_name(dv.StatusCode)})
+
+
+async def watch(client, args):
+    """Every change of value or status of the comma-separated nodes, one
+    line each, until killed."""
+    ns = await client.get_namespace_index("urn:plccoms")
+    handler = NodeHandler()
+    sub = await client.create_subscription(20, handler)
+    flt = ua.DataChangeFilter()
+    flt.Trigger = ua.DataChangeTrigger.StatusValue
+    nodes = [client.get_node(ua.NodeId(n, ns)) for n in args.nodes.split(",")]
+    # Deadband none with trigger StatusValue: status-only changes too
+    # (subscribe_data_change takes no filter).
+    results = await sub._subscribe(nodes, mfilter=flt, queuesize=1000)
+    out({"ready": True, "created": [isinstance(r, int) for r in results]})
+    while True:
+        item = await handler.values.get()
+        out(item)
+
+
 async def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--user")
@@ -311,7 +348,7 @@ async def main():
         "browse": [], "write": ["node", "type", "value"],
         "subscribe": ["node", "kind", "deadband", "seconds"],
         "history": ["node", "from_ms", "to_ms", "per_page"], "hold": ["node"],
-        "makecert": [], "events": ["seconds"], "paths": ["section", "variable", "page"],
+        "makecert": [], "events": ["seconds"], "watch": ["nodes"], "read": ["node"], "paths": ["section", "variable", "page"],
     }[args.command]
     for name, value in zip(names, args.rest):
         setattr(args, name, value)

@@ -16,11 +16,11 @@ use plccoms_core::changes::Snapshot;
 
 use crate::ids;
 use crate::manager::Manager;
-use crate::space::{self, Shared, View};
+use crate::space::{self, SectionNodes, Shared, View};
 
 pub struct Feed {
     pub shared: Arc<Shared>,
-    pub index: usize,
+    pub nodes: Arc<SectionNodes>,
     pub manager: Arc<InMemoryNodeManager<Manager>>,
     pub subscriptions: Arc<SubscriptionCache>,
     pub loop_delay_ms: f64,
@@ -29,7 +29,7 @@ pub struct Feed {
 
 impl Feed {
     pub async fn run(self) {
-        let nodes = &self.shared.sections[self.index];
+        let nodes = &self.nodes;
         let mut rx = nodes.section.snapshots();
         loop {
             let snapshot = rx.borrow_and_update().clone();
@@ -49,7 +49,7 @@ impl Feed {
     /// enabled in it.
     fn rebuild(&self, snapshot: &Snapshot) {
         let shared = &self.shared;
-        let nodes = &shared.sections[self.index];
+        let nodes = &self.nodes;
         let mut view = View::new(&nodes.section, snapshot, shared.history.is_some());
         let old = {
             let mut current = nodes.lock();
@@ -69,7 +69,7 @@ impl Feed {
         space::build_section(
             &mut space,
             shared,
-            self.index,
+            nodes,
             Some(&old),
             &view,
             self.loop_delay_ms,
@@ -81,50 +81,18 @@ impl Feed {
         );
         drop(view);
         drop(space);
-        self.model_changed();
-    }
-
-    /// A GeneralModelChangeEvent from the Server object: the section's
-    /// nodes were added and removed, for clients that cache the tree.
-    fn model_changed(&self) {
-        use opcua::core_namespace::events::{
-            BaseModelChangeEventType, GeneralModelChangeEventType,
-        };
-        use opcua::nodes::{BaseEventType, Event};
-        use opcua::types::{ByteString, ModelChangeStructureDataType, ObjectId, ObjectTypeId};
-        let nodes = &self.shared.sections[self.index];
-        let section = self.shared.node(nodes.name.clone());
-        let id = format!(
-            "plccoms:{}:{}",
-            nodes.name,
-            chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0)
+        model_changed(
+            &self.shared,
+            &self.subscriptions,
+            &nodes.name,
+            Verb::Changed,
         );
-        let mut base = BaseEventType::new_now(
-            ObjectTypeId::GeneralModelChangeEventType,
-            ByteString::from(id.into_bytes()),
-            format!("[{}]: variables added and removed", nodes.name),
-        );
-        base.source_node = section.clone();
-        base.source_name = nodes.name.as_str().into();
-        base.severity = 100;
-        let event = GeneralModelChangeEventType {
-            base: BaseModelChangeEventType { base },
-            changes: ModelChangeStructureDataType {
-                affected: section,
-                affected_type: ObjectTypeId::BaseObjectType.into(),
-                // NodeAdded | NodeDeleted | ReferenceAdded | ReferenceDeleted
-                verb: 0b1111,
-            },
-        };
-        let server: NodeId = ObjectId::Server.into();
-        self.subscriptions
-            .notify_events([(&event as &dyn Event, &server)].into_iter());
     }
 
     /// Gives the stack what changed for the monitored variables, and the
     /// section object's link state and last poll.
     fn push(&self, snapshot: &Snapshot) {
-        let nodes = &self.shared.sections[self.index];
+        let nodes = &self.nodes;
         let opts = nodes.section.format();
         let mut updates: Vec<(NodeId, DataValue)> = Vec::new();
         {
@@ -175,9 +143,62 @@ impl Feed {
         let (ids, values): (Vec<NodeId>, Vec<DataValue>) = updates.into_iter().unzip();
         let _ = self.manager.set_values(
             &self.subscriptions,
-            ids.iter()
-                .zip(values)
-                .map(|(node, value)| (node, None, value)),
+            ids.iter().zip(values).map(|(node, mut value)| {
+                // The stack hands monitored items the node's value as read
+                // back, which drops the status of a value-less one (a
+                // variable not read yet would reach them as Good): an
+                // empty Variant keeps it.
+                value.value.get_or_insert(Variant::Empty);
+                (node, None, value)
+            }),
         );
     }
+}
+
+/// What a model change did to a section's nodes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Verb {
+    /// A section added by a reload.
+    Added,
+    /// A section removed by a reload.
+    Removed,
+    /// A new variable table, or the section restarted by a reload.
+    Changed,
+}
+
+/// A GeneralModelChangeEvent from the Server object: section `name`'s
+/// nodes were added or removed, for clients that cache the tree.
+pub fn model_changed(shared: &Shared, subscriptions: &SubscriptionCache, name: &str, verb: Verb) {
+    use opcua::core_namespace::events::{BaseModelChangeEventType, GeneralModelChangeEventType};
+    use opcua::nodes::{BaseEventType, Event};
+    use opcua::types::{ByteString, ModelChangeStructureDataType, ObjectId, ObjectTypeId};
+    let section = shared.node(name.to_string());
+    let id = format!(
+        "plccoms:{name}:{}",
+        chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0)
+    );
+    // NodeAdded 1, NodeDeleted 2, ReferenceAdded 4, ReferenceDeleted 8.
+    let (message, verb) = match verb {
+        Verb::Added => ("section added", 0b0101),
+        Verb::Removed => ("section removed", 0b1010),
+        Verb::Changed => ("variables added and removed", 0b1111),
+    };
+    let mut base = BaseEventType::new_now(
+        ObjectTypeId::GeneralModelChangeEventType,
+        ByteString::from(id.into_bytes()),
+        format!("[{name}]: {message}"),
+    );
+    base.source_node = section.clone();
+    base.source_name = name.into();
+    base.severity = 100;
+    let event = GeneralModelChangeEventType {
+        base: BaseModelChangeEventType { base },
+        changes: ModelChangeStructureDataType {
+            affected: section,
+            affected_type: ObjectTypeId::BaseObjectType.into(),
+            verb,
+        },
+    };
+    let server: NodeId = ObjectId::Server.into();
+    subscriptions.notify_events([(&event as &dyn Event, &server)].into_iter());
 }

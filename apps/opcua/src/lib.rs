@@ -14,11 +14,13 @@
 //! - `space.rs`: the address space of each section's table;
 //! - `manager.rs`: the services that reach the PLC or the historian;
 //! - `feed.rs`: one task per section, change stream -> monitored items;
+//! - `follow.rs`: sections added, removed and restarted by a reload;
 //! - `auth.rs`, `users.rs`: who may connect and who may write.
 
 pub mod auth;
 pub mod convert;
 mod feed;
+mod follow;
 pub mod ids;
 pub mod manager;
 pub mod space;
@@ -178,20 +180,21 @@ pub struct Opcua {
     pub local_addr: SocketAddr,
     handle: ServerHandle,
     server: JoinHandle<()>,
-    feeds: Vec<JoinHandle<()>>,
+    follow: JoinHandle<()>,
     stop: CancellationToken,
 }
 
 impl Opcua {
     /// Closes every session and stops listening, waiting at most `grace`.
-    pub async fn shutdown(self, grace: Duration) {
+    pub async fn shutdown(mut self, grace: Duration) {
         self.stop.cancel();
         self.handle.cancel();
         if tokio::time::timeout(grace, self.server).await.is_err() {
             warn!("OPC UA: the server did not stop within {grace:?}");
         }
-        for feed in self.feeds {
-            feed.abort();
+        // Cancelled, it stops every feed; it waits on nothing long.
+        if tokio::time::timeout(grace, &mut self.follow).await.is_err() {
+            self.follow.abort();
         }
     }
 }
@@ -203,7 +206,9 @@ pub fn start(
     sections: &plccoms_core::sections::Sections,
     history: Option<Arc<dyn HistorySource>>,
 ) -> Result<Opcua, String> {
-    let sections = sections.current();
+    // Watched from before the list is read: no reload is missed.
+    let mut watched = sections.watch();
+    let sections = watched.borrow_and_update().clone();
     let addr = (settings.host.as_str(), settings.port)
         .to_socket_addrs()
         .map_err(|e| format!("OPCUA_HOST {}: {e}", settings.host))?
@@ -299,21 +304,16 @@ pub fn start(
         return Err("OPC UA: our node manager is missing".into());
     };
     let stop = CancellationToken::new();
-    let feeds = (0..shared.sections.len())
-        .map(|index| {
-            tokio::spawn(
-                feed::Feed {
-                    shared: shared.clone(),
-                    index,
-                    manager: manager.clone(),
-                    subscriptions: handle.subscriptions().clone(),
-                    loop_delay_ms,
-                    stop: stop.clone(),
-                }
-                .run(),
-            )
-        })
-        .collect();
+    let follow = tokio::spawn(
+        follow::Follow {
+            shared: shared.clone(),
+            manager,
+            subscriptions: handle.subscriptions().clone(),
+            loop_delay_ms,
+            stop: stop.clone(),
+        }
+        .run(sections, watched),
+    );
     let server = tokio::spawn(async move {
         if let Err(e) = server.run_with(listener).await {
             warn!("OPC UA server stopped: {e}");
@@ -338,7 +338,7 @@ pub fn start(
         local_addr,
         handle,
         server,
-        feeds,
+        follow,
         stop,
     })
 }

@@ -30,7 +30,7 @@ use plccoms_core::vars::VarId;
 
 use crate::auth;
 use crate::convert;
-use crate::space::{self, Shared, View};
+use crate::space::{self, SectionNodes, Shared, View};
 
 /// Our namespace's URI.
 pub const NAMESPACE: &str = "urn:plccoms";
@@ -56,9 +56,9 @@ impl InMemoryNodeManagerImplBuilder for Builder {
         space.add_namespace(NAMESPACE, ns);
         let _ = self.shared.ns.set(ns);
         space::build_root(space, ns);
-        for (index, nodes) in self.shared.sections.iter().enumerate() {
+        for nodes in self.shared.list().iter() {
             let view = nodes.lock();
-            space::build_section(space, &self.shared, index, None, &view, self.loop_delay_ms);
+            space::build_section(space, &self.shared, nodes, None, &view, self.loop_delay_ms);
         }
         Manager {
             shared: self.shared,
@@ -92,12 +92,11 @@ impl Manager {
         self.disabled.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    fn read_ours(&self, node: &ParsedReadValueId) -> Option<(usize, VarId, Ours)> {
+    fn read_ours(&self, node: &ParsedReadValueId) -> Option<(Arc<SectionNodes>, VarId, Ours)> {
         if node.attribute_id != AttributeId::Value {
             return None;
         }
-        let (index, name) = self.shared.variable(&node.node_id)?;
-        let nodes = &self.shared.sections[index];
+        let (nodes, name) = self.shared.variable(&node.node_id)?;
         let snapshot = nodes.section.latest();
         let view = nodes.lock();
         let &id = view.by_name.get(&name)?;
@@ -110,11 +109,16 @@ impl Manager {
         if snapshot.fresh(id, now).is_some() || !snapshot.online || view.table.is_fixed(id) {
             let stamp = view.stamp_of.get(&id).copied();
             let value = space::data_value(&snapshot, id, stamp, nodes.section.format());
-            return Some((index, id, Ours::Value(value)));
+            drop(view);
+            return Some((nodes, id, Ours::Value(value)));
         }
-        Some((index, id, Ours::Read))
+        drop(view);
+        Some((nodes, id, Ours::Read))
     }
 }
+
+/// A write checked: its section, the variable's name and the SET text.
+type Checked = (Arc<SectionNodes>, Vec<u8>, Vec<u8>);
 
 enum Ours {
     Value(DataValue),
@@ -134,7 +138,8 @@ fn stamp(mut value: DataValue, which: TimestampsToReturn) -> DataValue {
     value
 }
 
-fn bad(status: StatusCode) -> DataValue {
+/// A value-less DataValue of `status`, stamped now.
+pub(crate) fn bad(status: StatusCode) -> DataValue {
     DataValue {
         value: None,
         status: Some(status),
@@ -171,12 +176,17 @@ impl InMemoryNodeManagerImpl for Manager {
     ) -> Vec<DataValue> {
         let mut results: Vec<Option<DataValue>> = vec![None; nodes.len()];
         // Per section: (result index, variable) to read from the PLC.
-        let mut reads: Vec<Vec<(usize, VarId)>> = vec![Vec::new(); self.shared.sections.len()];
+        let mut reads: Vec<(Arc<SectionNodes>, Vec<(usize, VarId)>)> = Vec::new();
         let mut from_space = Vec::new();
         for (i, node) in nodes.iter().enumerate() {
             match self.read_ours(node) {
                 Some((_, _, Ours::Value(value))) => results[i] = Some(value),
-                Some((section, id, Ours::Read)) => reads[section].push((i, id)),
+                Some((section, id, Ours::Read)) => {
+                    match reads.iter_mut().find(|(s, _)| Arc::ptr_eq(s, &section)) {
+                        Some((_, wanted)) => wanted.push((i, id)),
+                        None => reads.push((section, vec![(i, id)])),
+                    }
+                }
                 None => from_space.push(i),
             }
         }
@@ -186,11 +196,7 @@ impl InMemoryNodeManagerImpl for Manager {
                 results[i] = Some(space.read(context, nodes[i], max_age, timestamps_to_return));
             }
         }
-        for (section, wanted) in reads.into_iter().enumerate() {
-            if wanted.is_empty() {
-                continue;
-            }
-            let nodes = &self.shared.sections[section];
+        for (nodes, wanted) in reads {
             let table = nodes.section.latest().table.clone();
             let requests = wanted
                 .iter()
@@ -245,7 +251,7 @@ impl InMemoryNodeManagerImpl for Manager {
         let mut rest = Vec::new();
         for (i, item) in items.iter_mut().enumerate() {
             let node = item.item_to_monitor();
-            let Some((index, name)) = (node.attribute_id == AttributeId::Value)
+            let Some((nodes, name)) = (node.attribute_id == AttributeId::Value)
                 .then(|| self.shared.variable(&node.node_id))
                 .flatten()
             else {
@@ -257,7 +263,6 @@ impl InMemoryNodeManagerImpl for Manager {
                 item.set_status(StatusCode::Good);
                 continue;
             }
-            let nodes = &self.shared.sections[index];
             let snapshot = nodes.section.latest();
             let mut view = nodes.lock();
             let node_id = node.node_id.clone();
@@ -303,8 +308,8 @@ impl InMemoryNodeManagerImpl for Manager {
             {
                 continue;
             }
-            if let Some((index, name)) = self.shared.variable(item.node_id()) {
-                unwatch(&mut self.shared.sections[index].lock(), &name);
+            if let Some((nodes, name)) = self.shared.variable(item.node_id()) {
+                unwatch(&mut nodes.lock(), &name);
             }
         }
     }
@@ -321,11 +326,11 @@ impl InMemoryNodeManagerImpl for Manager {
             if item.attribute() != AttributeId::Value {
                 continue;
             }
-            let Some((index, name)) = self.shared.variable(item.node_id()) else {
+            let Some((nodes, name)) = self.shared.variable(item.node_id()) else {
                 continue;
             };
             let was_disabled = self.disabled_set().contains(&item.handle());
-            let view = &mut self.shared.sections[index].lock();
+            let view = &mut nodes.lock();
             match (mode == MonitoringMode::Disabled, was_disabled) {
                 (true, false) => {
                     self.disabled_set().insert(item.handle());
@@ -362,8 +367,8 @@ impl InMemoryNodeManagerImpl for Manager {
         // Each write waits for the PLC's read-back (or its refusal) before
         // answering: a refused write is never applied later.
         let outcomes =
-            futures::future::join_all(pending.into_iter().map(|(i, section, name, text)| {
-                let section = self.shared.sections[section].section.clone();
+            futures::future::join_all(pending.into_iter().map(|(i, nodes, name, text)| {
+                let section = nodes.section.clone();
                 async move { (i, section.write(&name, &text).await) }
             }))
             .await;
@@ -424,12 +429,12 @@ impl Manager {
         space: &AddressSpace,
         write: &WriteNode,
         writer: bool,
-    ) -> Result<(usize, Vec<u8>, Vec<u8>), StatusCode> {
+    ) -> Result<Checked, StatusCode> {
         let value = write.value();
         let Some(node) = space.find(&value.node_id) else {
             return Err(StatusCode::BadNodeIdUnknown);
         };
-        let Some((index, name)) = self.shared.variable(&value.node_id) else {
+        let Some((nodes, name)) = self.shared.variable(&value.node_id) else {
             return Err(StatusCode::BadNotWritable);
         };
         let opcua::server::address_space::NodeType::Variable(variable) = node else {
@@ -447,7 +452,6 @@ impl Manager {
         let Some(variant) = value.value.value.as_ref() else {
             return Err(StatusCode::BadTypeMismatch);
         };
-        let nodes = &self.shared.sections[index];
         let view = nodes.lock();
         let &id = view
             .by_name
@@ -465,7 +469,9 @@ impl Manager {
                 return Err(StatusCode::BadOutOfRange);
             }
         }
-        Ok((index, var.name.to_vec(), text))
+        let name = var.name.to_vec();
+        drop(view);
+        Ok((nodes, name, text))
     }
 
     async fn history_node(
@@ -476,10 +482,9 @@ impl Manager {
         page: usize,
         bounds: bool,
     ) -> StatusCode {
-        let Some((index, name)) = self.shared.variable(node.node_id()) else {
+        let Some((nodes, name)) = self.shared.variable(node.node_id()) else {
             return StatusCode::BadNodeIdUnknown;
         };
-        let nodes = &self.shared.sections[index];
         let (ty, recorded) = {
             let view = nodes.lock();
             match view.by_name.get(&name) {

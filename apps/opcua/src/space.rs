@@ -68,13 +68,45 @@ impl SectionNodes {
     }
 }
 
+/// The sections served now, in configuration order.
+pub type NodesList = Arc<[Arc<SectionNodes>]>;
+
 /// What the node manager, the feed tasks and the authenticator share.
 pub struct Shared {
     pub ns: std::sync::OnceLock<u16>,
-    pub sections: Vec<SectionNodes>,
-    pub names: Vec<String>,
+    /// Replaced whole by a reload (under the address space's write lock,
+    /// taken first), so a service sees one list throughout.
+    sections: std::sync::RwLock<NodesList>,
+    /// Monitored item counts of removed sections, by section name: items
+    /// outlive their nodes, and a section of that name added back later
+    /// enables their variables again.
+    orphans: Mutex<HashMap<String, HashMap<String, u32>>>,
     pub history: Option<Arc<dyn plccoms_core::history_source::HistorySource>>,
     pub users: Arc<crate::users::Users>,
+}
+
+impl SectionNodes {
+    pub fn new(section: &Arc<Section>, recorded: bool) -> SectionNodes {
+        let snapshot = section.latest();
+        SectionNodes {
+            section: section.clone(),
+            name: section.name().to_string(),
+            view: Mutex::new(View::new(section, &snapshot, recorded)),
+        }
+    }
+
+    /// Takes over monitored item counts by variable name (from the section
+    /// this one replaces, or one removed earlier), enabling what its
+    /// table has.
+    pub fn adopt(&self, shared: &Shared, monitored: HashMap<String, u32>) {
+        let mut view = self.lock();
+        for (name, count) in monitored {
+            if let Some(&id) = view.by_name.get(&name) {
+                view.enable(id, shared.node(ids::variable(&self.name, &name)));
+            }
+            *view.monitored.entry(name).or_default() += count;
+        }
+    }
 }
 
 impl Shared {
@@ -83,25 +115,50 @@ impl Shared {
         history: Option<Arc<dyn plccoms_core::history_source::HistorySource>>,
         users: Arc<crate::users::Users>,
     ) -> Shared {
-        let sections: Vec<SectionNodes> = sections
+        let sections: Vec<Arc<SectionNodes>> = sections
             .iter()
-            .map(|section| {
-                let snapshot = section.latest();
-                SectionNodes {
-                    section: section.clone(),
-                    name: section.name().to_string(),
-                    view: Mutex::new(View::new(section, &snapshot, history.is_some())),
-                }
-            })
+            .map(|section| Arc::new(SectionNodes::new(section, history.is_some())))
             .collect();
-        let names = sections.iter().map(|s| s.name.clone()).collect();
         Shared {
             ns: Default::default(),
-            sections,
-            names,
+            sections: std::sync::RwLock::new(sections.into()),
+            orphans: Default::default(),
             history,
             users,
         }
+    }
+
+    /// The sections served now.
+    pub fn list(&self) -> NodesList {
+        self.sections
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
+    /// Serves `list` from now on.
+    pub fn set_list(&self, list: Vec<Arc<SectionNodes>>) {
+        *self.sections.write().unwrap_or_else(|p| p.into_inner()) = list.into();
+    }
+
+    /// Keeps the monitored item counts of a removed section.
+    pub fn orphan(&self, name: &str, monitored: HashMap<String, u32>) {
+        if monitored.is_empty() {
+            return;
+        }
+        self.orphans
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .insert(name.to_string(), monitored);
+    }
+
+    /// The counts kept for a section named `name`, taken.
+    pub fn adopt_orphans(&self, name: &str) -> HashMap<String, u32> {
+        self.orphans
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .remove(name)
+            .unwrap_or_default()
     }
 
     pub fn ns(&self) -> u16 {
@@ -113,16 +170,20 @@ impl Shared {
     }
 
     /// The section and variable a NodeId of ours names, if it is one of
-    /// the shown variables.
-    pub fn variable(&self, node: &NodeId) -> Option<(usize, String)> {
+    /// the shown variables of a section served now.
+    pub fn variable(&self, node: &NodeId) -> Option<(Arc<SectionNodes>, String)> {
         if node.namespace != self.ns() {
             return None;
         }
         let opcua::types::Identifier::String(text) = &node.identifier else {
             return None;
         };
-        match ids::parse(text.as_ref(), &self.names).ok()? {
-            ids::Ours::Variable { section, variable } => Some((section, variable.to_string())),
+        let list = self.list();
+        let names: Vec<&str> = list.iter().map(|s| s.name.as_str()).collect();
+        match ids::parse(text.as_ref(), &names).ok()? {
+            ids::Ours::Variable { section, variable } => {
+                Some((list[section].clone(), variable.to_string()))
+            }
             _ => None,
         }
     }
@@ -253,13 +314,12 @@ pub fn build_root(space: &mut AddressSpace, ns: u16) {
 pub fn build_section(
     space: &mut AddressSpace,
     shared: &Shared,
-    index: usize,
+    nodes: &SectionNodes,
     old: Option<&View>,
     view: &View,
     loop_delay_ms: f64,
 ) {
     let ns = shared.ns();
-    let nodes = &shared.sections[index];
     let name = &nodes.name;
     let section_id = NodeId::new(ns, name.as_str());
     if let Some(old) = old {
@@ -400,6 +460,26 @@ fn add_property(
     .has_type_definition(VariableTypeId::PropertyType)
     .insert(space);
 }
+
+/// Removes a section's object, its properties and the variables of
+/// `view`; the NodeIds removed, for their monitored items.
+pub fn remove_section(space: &mut AddressSpace, ns: u16, name: &str, view: &View) -> Vec<NodeId> {
+    let mut gone = Vec::new();
+    for shown in view.by_name.keys() {
+        remove_variable(space, ns, name, shown);
+        gone.push(NodeId::new(ns, ids::variable(name, shown)));
+    }
+    for property in SECTION_PROPERTIES {
+        let id = NodeId::new(ns, ids::property(name, property));
+        space.delete(&id, true);
+        gone.push(id);
+    }
+    space.delete(&NodeId::new(ns, name), true);
+    gone
+}
+
+/// The properties of a section object.
+const SECTION_PROPERTIES: [&str; 3] = ["LinkState", "LastPoll", "Backend"];
 
 fn remove_variable(space: &mut AddressSpace, ns: u16, section: &str, shown: &str) {
     let text = ids::variable(section, shown);
