@@ -519,10 +519,24 @@ impl Owner {
 }
 
 /// Waits until `deadline` (at once when it has passed: the timer would
-/// round even that up to its next millisecond step).
+/// round even that up to its next millisecond step). Tokio's timer steps
+/// in whole milliseconds, which on a fast line is most of the silence
+/// itself (1.75 ms over 19,200 baud): it sleeps to within a millisecond of
+/// the deadline, and the thread's own clock sleeps the rest. That blocks
+/// the line's owner task, and the link thread it runs on, for under a
+/// millisecond, while the line must be quiet anyway.
 async fn wait_until(deadline: Instant) {
-    if deadline > Instant::now() {
-        tokio::time::sleep_until(deadline).await;
+    const TIMER_STEP: Duration = Duration::from_millis(1);
+    let now = Instant::now();
+    if deadline <= now {
+        return;
+    }
+    if deadline - now > TIMER_STEP {
+        tokio::time::sleep_until(deadline - TIMER_STEP).await;
+    }
+    let rest = deadline.saturating_duration_since(Instant::now());
+    if !rest.is_zero() {
+        std::thread::sleep(rest);
     }
 }
 
