@@ -9,7 +9,7 @@ use std::hash::Hash;
 
 use plccoms_protocol::cp1250;
 
-use crate::modbus::tags::TagWarning;
+use crate::modbus::tags::{text, LineCounter, TagWarning};
 
 /// A file's columns: (header name, column), and those a file must have.
 pub struct Columns<C: 'static> {
@@ -269,51 +269,6 @@ fn header<C: Copy + Eq + Hash, S>(
         },
     );
     None
-}
-
-/// 1-based line numbers of records. The csv crate's own line count and
-/// record offsets are off after blank and comment lines (csv 1.4: the
-/// offset is where the skipped lines begin), so the record's line is found
-/// from that offset by skipping them here, counting as it goes.
-#[derive(Default)]
-struct LineCounter {
-    at: usize,
-    line: usize,
-}
-
-impl LineCounter {
-    fn line_of(&mut self, bytes: &[u8], offset: usize) -> usize {
-        let mut start = offset.min(bytes.len());
-        loop {
-            match bytes.get(start) {
-                Some(b'\n') => start += 1,
-                Some(b'\r') if bytes.get(start + 1) == Some(&b'\n') => start += 2,
-                Some(b'#') => match bytes[start..].iter().position(|&b| b == b'\n') {
-                    Some(end) => start += end + 1,
-                    None => start = bytes.len(),
-                },
-                _ => break,
-            }
-        }
-        if start < self.at {
-            self.at = 0;
-            self.line = 0;
-        }
-        self.line += bytes[self.at..start]
-            .iter()
-            .filter(|&&b| b == b'\n')
-            .count();
-        self.at = start;
-        self.line + 1
-    }
-}
-
-fn text(field: &[u8], utf8: bool) -> String {
-    if utf8 {
-        String::from_utf8_lossy(field).into_owned()
-    } else {
-        cp1250::decode(field).into_owned()
-    }
 }
 
 /// Longest name accepted, as in a public file.

@@ -360,13 +360,13 @@ impl Iterator for Rows<'_> {
 /// offset is where the skipped lines begin), so the record's line is found
 /// from that offset by skipping them here, counting as it goes.
 #[derive(Default)]
-struct LineCounter {
+pub(crate) struct LineCounter {
     at: usize,
     line: usize,
 }
 
 impl LineCounter {
-    fn line_of(&mut self, bytes: &[u8], offset: usize) -> usize {
+    pub(crate) fn line_of(&mut self, bytes: &[u8], offset: usize) -> usize {
         let mut start = offset.min(bytes.len());
         loop {
             match bytes.get(start) {
@@ -392,7 +392,8 @@ impl LineCounter {
     }
 }
 
-fn text(field: &[u8], utf8: bool) -> String {
+/// A field's text: as it is in a UTF-8 file, else decoded from cp1250.
+pub(crate) fn text(field: &[u8], utf8: bool) -> String {
     if utf8 {
         String::from_utf8_lossy(field).into_owned()
     } else {
