@@ -53,6 +53,7 @@ use plccoms_protocol::value::REAL_MAX_DECIMALS;
 use plccoms_protocol::{cp1250, Area, IecType};
 
 use super::{Reference, Table};
+use crate::tag_csv::name_bytes;
 use crate::value_codec::{Codec, Raw, Registers, Scale, WordOrder};
 
 /// One tag.
@@ -191,9 +192,6 @@ const COLUMNS: [(&str, Column); 14] = [
 ];
 
 const REQUIRED: [Column; 4] = [Column::Name, Column::Type, Column::Table, Column::Address];
-
-/// Longest name accepted, as in a public file.
-const MAX_NAME: usize = crate::pubfile::MAX_NAME;
 
 /// Parses a tag file. Never fails: bad lines become warnings.
 pub fn parse(bytes: &[u8]) -> TagFile {
@@ -691,37 +689,6 @@ fn tag(
         ));
     }
     Ok(tag)
-}
-
-/// The name in cp1250, checked as a public file's names are.
-pub(crate) fn name_bytes(text: &str, utf8: bool, raw: &[u8]) -> Result<Box<[u8]>, String> {
-    if text.is_empty() {
-        return Err("empty name".to_string());
-    }
-    let bytes: Vec<u8> = if utf8 {
-        cp1250::try_encode(text)
-            .ok_or_else(|| format!("name '{text}' has characters cp1250 lacks"))?
-    } else {
-        raw.to_vec()
-    };
-    if bytes.len() > MAX_NAME {
-        return Err(format!("name longer than {MAX_NAME} characters"));
-    }
-    if let Some(&bad) = bytes
-        .iter()
-        .find(|&&b| b <= 0x20 || b == 0x7f || matches!(b, b',' | b':' | b'*' | b'"' | b';'))
-    {
-        return Err(format!(
-            "invalid character '{}' in name '{text}'",
-            cp1250::decode(&[bad])
-        ));
-    }
-    if bytes[0] == b'%' {
-        return Err(format!(
-            "name '{text}' starts with %, which marks direct addresses"
-        ));
-    }
-    Ok(bytes.into_boxed_slice())
 }
 
 #[cfg(test)]

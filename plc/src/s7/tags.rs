@@ -40,7 +40,8 @@ use plccoms_protocol::{cp1250, IecType};
 
 use super::value::Layout;
 use super::{Region, BLOCK};
-use crate::modbus::tags::{name_bytes, Row, Rows, TagWarning};
+use crate::modbus::tags::{Row, Rows, TagWarning};
+use crate::tag_csv::name_bytes;
 use crate::value_codec::Codec;
 
 /// Most elements one ARRAY line may make.
