@@ -34,15 +34,22 @@ impl Traced {
         })
     }
 
+    /// A request to the PLC; `what` is only made while the trace is on.
+    fn request(&self, what: impl FnOnce() -> String) {
+        if self.trace.on() {
+            self.trace.plc("->", format_args!("{}", what()));
+        }
+    }
+
+    /// The answer to a request whose trace started at `started` (`None`:
+    /// the trace was off, nothing to write).
     fn answer<T>(
         &self,
-        started: Instant,
+        started: Option<Instant>,
         result: &Result<T, PlcError>,
         show: impl FnOnce(&T) -> String,
     ) {
-        if !self.trace.on() {
-            return;
-        }
+        let Some(started) = started else { return };
         let ms = started.elapsed().as_secs_f64() * 1000.0;
         match result {
             Ok(value) => self
@@ -115,18 +122,16 @@ impl PlcBackend for Traced {
     }
 
     async fn connect(&mut self) -> Result<String, PlcError> {
-        self.trace
-            .plc("->", format_args!("connect {}", self.inner.describe()));
-        let started = Instant::now();
+        self.request(|| format!("connect {}", self.inner.describe()));
+        let started = self.trace.on().then(Instant::now);
         let result = self.inner.connect().await;
         self.answer(started, &result, |ident| format!("identified: {ident}"));
         result
     }
 
     async fn probe(&mut self) -> Result<String, PlcError> {
-        self.trace
-            .plc("->", format_args!("probe {}", self.inner.describe()));
-        let started = Instant::now();
+        self.request(|| format!("probe {}", self.inner.describe()));
+        let started = self.trace.on().then(Instant::now);
         let result = self.inner.probe().await;
         self.answer(started, &result, |ident| format!("identified: {ident}"));
         result
@@ -141,7 +146,7 @@ impl PlcBackend for Traced {
             self.trace
                 .plc("->", format_args!("read {}", list.join(", ")));
         }
-        let started = Instant::now();
+        let started = self.trace.on().then(Instant::now);
         let result = self.inner.read(requests).await;
         self.answer(started, &result, |list| answers(list, |data| hex(data)));
         result
@@ -163,7 +168,7 @@ impl PlcBackend for Traced {
             self.trace
                 .plc("->", format_args!("write {}", list.join(", ")));
         }
-        let started = Instant::now();
+        let started = self.trace.on().then(Instant::now);
         let result = self.inner.write(requests).await;
         self.answer(started, &result, |list| {
             answers(list, |()| "ok".to_string())
@@ -172,8 +177,8 @@ impl PlcBackend for Traced {
     }
 
     async fn status(&mut self) -> Result<PlcStatus, PlcError> {
-        self.trace.plc("->", format_args!("status"));
-        let started = Instant::now();
+        self.request(|| "status".to_string());
+        let started = self.trace.on().then(Instant::now);
         let result = self.inner.status().await;
         self.answer(started, &result, |s| {
             if s.run { "RUN" } else { "STOP" }.to_string()
@@ -204,9 +209,8 @@ impl PlcBackend for Traced {
     }
 
     async fn file_info(&mut self, path: &[u8]) -> Result<Answer<FileInfo>, PlcError> {
-        let name = String::from_utf8_lossy(path).into_owned();
-        self.trace.plc("->", format_args!("file info {name}"));
-        let started = Instant::now();
+        self.request(|| format!("file info {}", String::from_utf8_lossy(path)));
+        let started = self.trace.on().then(Instant::now);
         let result = self.inner.file_info(path).await;
         self.answer(started, &result, |a| match a {
             Ok(info) => format!("{} bytes", info.size),
@@ -221,10 +225,11 @@ impl PlcBackend for Traced {
         offset: u64,
         len: u32,
     ) -> Result<Answer<Vec<u8>>, PlcError> {
-        let name = String::from_utf8_lossy(path).into_owned();
-        self.trace
-            .plc("->", format_args!("read file {name} {offset}+{len}"));
-        let started = Instant::now();
+        self.request(|| {
+            let name = String::from_utf8_lossy(path);
+            format!("read file {name} {offset}+{len}")
+        });
+        let started = self.trace.on().then(Instant::now);
         let result = self.inner.read_file(path, offset, len).await;
         self.answer(started, &result, |a| match a {
             Ok(data) => format!("{} bytes: {}", data.len(), hex(data)),
@@ -240,16 +245,12 @@ impl PlcBackend for Traced {
         data: &[u8],
         last: bool,
     ) -> Result<Answer<()>, PlcError> {
-        let name = String::from_utf8_lossy(path).into_owned();
-        self.trace.plc(
-            "->",
-            format_args!(
-                "write file {name} {offset}+{}{}",
-                data.len(),
-                if last { " (last)" } else { "" }
-            ),
-        );
-        let started = Instant::now();
+        self.request(|| {
+            let name = String::from_utf8_lossy(path);
+            let last = if last { " (last)" } else { "" };
+            format!("write file {name} {offset}+{}{last}", data.len())
+        });
+        let started = self.trace.on().then(Instant::now);
         let result = self.inner.write_file(path, offset, data, last).await;
         self.answer(started, &result, |a| match a {
             Ok(()) => "ok".to_string(),
@@ -263,9 +264,8 @@ impl PlcBackend for Traced {
         path: &[u8],
         info: &FileInfo,
     ) -> Result<Answer<()>, PlcError> {
-        let name = String::from_utf8_lossy(path).into_owned();
-        self.trace.plc("->", format_args!("write file info {name}"));
-        let started = Instant::now();
+        self.request(|| format!("write file info {}", String::from_utf8_lossy(path)));
+        let started = self.trace.on().then(Instant::now);
         let result = self.inner.write_file_info(path, info).await;
         self.answer(started, &result, |a| match a {
             Ok(()) => "ok".to_string(),
@@ -275,9 +275,8 @@ impl PlcBackend for Traced {
     }
 
     async fn list_dir(&mut self, path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError> {
-        let name = String::from_utf8_lossy(path).into_owned();
-        self.trace.plc("->", format_args!("list {name}"));
-        let started = Instant::now();
+        self.request(|| format!("list {}", String::from_utf8_lossy(path)));
+        let started = self.trace.on().then(Instant::now);
         let result = self.inner.list_dir(path).await;
         self.answer(started, &result, |a| match a {
             Ok(entries) => format!("{} entries", entries.len()),
