@@ -17,29 +17,15 @@ mod common;
 mod fixture;
 
 use std::net::SocketAddr;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
-use common::health::answer;
+use common::health::{answer, fresh, time_of_day_ms};
 use common::process::{free_port, ServerProcess};
 use common::Client;
 use fixture::Fixture;
 
 const OUTAGES: [f64; 8] = [1.0, 1.5, 2.2, 3.3, 4.8, 6.8, 1.2, 9.6];
 const RETURN: Duration = Duration::from_secs(2);
-const DAY: i64 = 86_400_000;
-
-fn time_of_day_ms() -> i64 {
-    let ms = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .unwrap()
-        .as_millis();
-    (ms % DAY as u128) as i64
-}
-
-/// Whether `tim` was written no earlier than `since`, allowing one cycle.
-fn fresh(tim: i64, since: i64) -> bool {
-    (tim - since + 20).rem_euclid(DAY) < DAY / 2
-}
 
 async fn get_tim(c: &mut Client) -> Option<i64> {
     let (line, _) = answer(c, "GET:MAIN.tim\n").await;

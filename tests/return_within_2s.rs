@@ -30,9 +30,9 @@
 mod common;
 
 use std::net::SocketAddr;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
-use common::health::answer;
+use common::health::{answer, fresh, time_of_day_ms};
 use common::line::PtyLine;
 use common::Client;
 use plcsim::serial::SerialLine;
@@ -45,23 +45,6 @@ const OUTAGES: [f64; 20] = [
 ];
 /// The promise.
 const RETURN: Duration = Duration::from_secs(2);
-/// A day of `tim`.
-const DAY: i64 = 86_400_000;
-
-/// Milliseconds since midnight UTC, as the simulated PLC's clock.
-fn time_of_day_ms() -> i64 {
-    let ms = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .unwrap()
-        .as_millis();
-    (ms % DAY as u128) as i64
-}
-
-/// Whether `tim` was written no earlier than `since` (ms of day), allowing
-/// one PLC cycle (10 ms) and midnight.
-fn fresh(tim: i64, since: i64) -> bool {
-    (tim - since + 20).rem_euclid(DAY) < DAY / 2
-}
 
 /// The value of `GET:tim`, `None` for an error.
 async fn get_tim(c: &mut Client) -> Option<i64> {

@@ -109,3 +109,21 @@ pub async fn outage(
     );
     (first_error, longest)
 }
+
+/// A day of a demo program's `tim` (ms since midnight).
+const DAY: i64 = 86_400_000;
+
+/// Milliseconds since midnight UTC, as a simulated PLC's clock (`tim`).
+pub fn time_of_day_ms() -> i64 {
+    let ms = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_millis();
+    (ms % DAY as u128) as i64
+}
+
+/// Whether `tim` was written no earlier than `since` (ms of day), allowing
+/// one PLC cycle (10 ms) and midnight.
+pub fn fresh(tim: i64, since: i64) -> bool {
+    (tim - since + 20).rem_euclid(DAY) < DAY / 2
+}
