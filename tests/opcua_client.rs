@@ -8,7 +8,7 @@
 
 mod common;
 
-use std::io::{BufRead, BufReader, Write};
+use std::io::Write;
 use std::process::{ChildStdin, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -63,17 +63,7 @@ impl OpcServer {
                 .stdout(Stdio::piped())
                 .stderr(Stdio::null()),
         );
-        let stdin = child.child().stdin.take().expect("stdin");
-        let stdout = child.child().stdout.take().expect("stdout");
-        let (tx, lines) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines() {
-                let Ok(line) = line else { break };
-                if tx.send(line).is_err() {
-                    break;
-                }
-            }
-        });
+        let (stdin, lines) = child.command_lines();
         let mut server = OpcServer {
             port,
             child,

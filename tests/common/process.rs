@@ -80,6 +80,27 @@ impl ChildGuard {
         &mut self.child
     }
 
+    /// The child's stdin, and its stdout as lines on a channel (a thread
+    /// reads them): for a helper process driven by commands (spawned with
+    /// both piped).
+    pub fn command_lines(
+        &mut self,
+    ) -> (std::process::ChildStdin, std::sync::mpsc::Receiver<String>) {
+        use std::io::{BufRead, BufReader};
+        let stdin = self.child.stdin.take().expect("stdin piped");
+        let stdout = self.child.stdout.take().expect("stdout piped");
+        let (tx, lines) = std::sync::mpsc::channel();
+        thread::spawn(move || {
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        (stdin, lines)
+    }
+
     /// The exit status, if it has exited.
     pub fn exited(&mut self) -> Option<ExitStatus> {
         self.child

@@ -4,7 +4,7 @@
 //! (`tests/data/s7/venvs.sh` makes them when missing), and the server under
 //! test configured for an S7 section.
 
-use std::io::{BufRead, BufReader, Write};
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{ChildStdin, Command, Stdio};
 use std::sync::mpsc::{Receiver, RecvTimeoutError};
@@ -83,17 +83,7 @@ impl Snap7 {
                 .stdout(Stdio::piped())
                 .stderr(Stdio::null()),
         );
-        let stdin = child.child().stdin.take().expect("stdin");
-        let stdout = child.child().stdout.take().expect("stdout");
-        let (tx, lines) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines() {
-                let Ok(line) = line else { break };
-                if tx.send(line).is_err() {
-                    break;
-                }
-            }
-        });
+        let (stdin, lines) = child.command_lines();
         let mut server = Snap7 {
             port,
             kind,
