@@ -1,6 +1,6 @@
 //! The benchmarks' backend decorator (bench-modbus, bench-s7): each `read`
 //! of the link timed and its requests counted, and the poll cycles found in
-//! them.
+//! them; and the run both measure with it ([`measure`]).
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -120,5 +120,121 @@ impl PlcBackend for Timed {
     }
     async fn status(&mut self) -> Result<PlcStatus, PlcError> {
         self.inner.status().await
+    }
+}
+
+/// What [`measure`] found.
+pub struct Measured {
+    /// Requests of each poll cycle, and its duration in ms.
+    pub requests: Vec<u64>,
+    pub cycle_ms: Vec<f64>,
+    /// SET -> its answer (the confirmed DIFF), and SET -> the watcher's DIFF.
+    pub confirm_ms: Vec<f64>,
+    pub diff_ms: Vec<f64>,
+}
+
+pub fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1000.0
+}
+
+/// Runs the section of `ini` (its tag file in `dir`) on the backend
+/// `open` makes, timed: a watcher enables every tag, the polls of `cycles`
+/// cycles of `delay` ms are counted, then `sets` SETs of `t0`..`t<set_tags>`
+/// are sent one by one, each timed to its answer and to the watcher's DIFF.
+pub async fn measure(
+    dir: &std::path::Path,
+    ini: &str,
+    open: impl FnOnce(&plccoms_core::config::Section) -> Box<dyn PlcBackend>,
+    delay: u64,
+    cycles_wanted: usize,
+    sets: usize,
+    set_tags: usize,
+) -> Measured {
+    use plccoms::startup::start_section;
+    use plccoms_core::link::tables::PubSource;
+    use plccoms_core::link::Tables;
+    use std::collections::HashMap;
+    use std::net::SocketAddr;
+    use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+    use tokio::net::TcpStream;
+
+    let loaded = plccoms_core::config::parse(&dir.join("bench.ini"), ini).expect("ini");
+    let section = loaded.config.sections.into_iter().next().expect("section");
+    let source = PubSource::new(&section, dir).expect("source");
+    let user = source
+        .load_local(&section, plccoms_core::link::tables::NamedBy::Configuration)
+        .expect("tags");
+    let table = source.build(&section.name, user.as_ref()).expect("table");
+    let reads = Arc::new(Mutex::new(Vec::new()));
+    let backend = Timed::new(open(&section), reads.clone());
+    let running = start_section(
+        Arc::new(loaded.config.global),
+        section,
+        table,
+        Some(Box::new(backend)),
+        SocketAddr::from(([127, 0, 0, 1], 0)),
+        dir.to_path_buf(),
+        Some(Tables::new(source, user, false)),
+    )
+    .await
+    .expect("section");
+
+    // The watcher: every tag enabled; DIFF arrival times by line.
+    let watcher = TcpStream::connect(running.local_addr)
+        .await
+        .expect("watcher");
+    let (read, mut write) = watcher.into_split();
+    write.write_all(b"EN:*\r\n").await.unwrap();
+    let arrivals: Arc<Mutex<HashMap<String, Instant>>> = Arc::default();
+    let seen = arrivals.clone();
+    tokio::spawn(async move {
+        let mut lines = BufReader::new(read).lines();
+        while let Ok(Some(line)) = lines.next_line().await {
+            if line.starts_with("DIFF:T") && line.len() < 24 {
+                seen.lock().unwrap().insert(line, Instant::now());
+            }
+        }
+    });
+    tokio::time::sleep(Duration::from_millis(10 * delay + 500)).await;
+
+    reads.lock().unwrap().clear();
+    tokio::time::sleep(Duration::from_millis(cycles_wanted as u64 * delay)).await;
+    let polls = cycles(&std::mem::take(&mut *reads.lock().unwrap()));
+
+    // SET -> confirmed -> DIFF, with the polls going on.
+    let writer = TcpStream::connect(running.local_addr)
+        .await
+        .expect("writer");
+    let (read, mut write) = writer.into_split();
+    let mut answers = BufReader::new(read).lines();
+    let mut sent = Vec::new();
+    let mut confirm_ms = Vec::new();
+    for i in 0..sets {
+        let tag = i % set_tags;
+        let value = 1000 + i;
+        let started = Instant::now();
+        write
+            .write_all(format!("SET:t{tag},{value}\r\n").as_bytes())
+            .await
+            .unwrap();
+        let answer = answers.next_line().await.unwrap().unwrap_or_default();
+        confirm_ms.push(ms(started.elapsed()));
+        assert_eq!(answer, format!("DIFF:T{tag},{value}"), "SET answer");
+        sent.push((answer, started));
+        // Spread over the poll cycle.
+        tokio::time::sleep(Duration::from_millis(7)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(3 * delay)).await;
+    let arrivals = arrivals.lock().unwrap();
+    let diff_ms: Vec<f64> = sent
+        .iter()
+        .filter_map(|(line, started)| arrivals.get(line).map(|at| ms(at.duration_since(*started))))
+        .collect();
+    drop(running);
+    Measured {
+        requests: polls.iter().map(|(_, n)| *n).collect(),
+        cycle_ms: polls.iter().map(|(d, _)| ms(*d)).collect(),
+        confirm_ms,
+        diff_ms,
     }
 }

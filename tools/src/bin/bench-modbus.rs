@@ -18,24 +18,17 @@
 #[path = "../timed.rs"]
 mod timed;
 
-use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::net::SocketAddr;
 use std::path::Path;
-use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use clap::Parser;
-use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
-use tokio::net::TcpStream;
 
-use plccoms::startup::start_section;
-use plccoms_core::link::tables::PubSource;
-use plccoms_core::link::Tables;
 use plccoms_driver_modbus::ModbusBackend;
 use plcsim::program::ProgramKind;
 use plcsim::{PubSource as SimPub, SimConfig};
-use timed::{cycles, Timed};
+use timed::measure;
 
 #[derive(Debug, Parser)]
 #[command(name = "bench-modbus")]
@@ -184,10 +177,6 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
 }
 
-fn ms(d: Duration) -> f64 {
-    d.as_secs_f64() * 1000.0
-}
-
 /// What one run measured.
 struct Run {
     label: String,
@@ -215,92 +204,28 @@ async fn run(args: &Args, project: &Project, inflight: u8, latency: u64) -> Run 
         args.delay,
         device.local_addr().port()
     );
-    let loaded = plccoms_core::config::parse(&dir.path().join("bench.ini"), &ini).expect("ini");
-    let section = loaded.config.sections.into_iter().next().expect("section");
-    let source = PubSource::new(&section, dir.path()).expect("source");
-    let user = source
-        .load_local(&section, plccoms_core::link::tables::NamedBy::Configuration)
-        .expect("tags");
-    let table = source.build(&section.name, user.as_ref()).expect("table");
-    let reads = Arc::new(Mutex::new(Vec::new()));
-    let backend = Timed::new(
-        Box::new(ModbusBackend::new(plccoms_driver_modbus::config_of(
-            &section,
-            device.local_addr(),
-            dir.path(),
-        ))),
-        reads.clone(),
-    );
-    let running = start_section(
-        Arc::new(loaded.config.global),
-        section,
-        table,
-        Some(Box::new(backend)),
-        SocketAddr::from(([127, 0, 0, 1], 0)),
-        dir.path().to_path_buf(),
-        Some(Tables::new(source, user, false)),
+    let measured = measure(
+        dir.path(),
+        &ini,
+        |section| {
+            Box::new(ModbusBackend::new(plccoms_driver_modbus::config_of(
+                section,
+                device.local_addr(),
+                dir.path(),
+            )))
+        },
+        args.delay,
+        args.cycles,
+        args.sets,
+        SET_TAGS,
     )
-    .await
-    .expect("section");
-
-    // The watcher: every tag enabled; DIFF arrival times by line.
-    let watcher = TcpStream::connect(running.local_addr)
-        .await
-        .expect("watcher");
-    let (read, mut write) = watcher.into_split();
-    write.write_all(b"EN:*\r\n").await.unwrap();
-    let arrivals: Arc<Mutex<HashMap<String, Instant>>> = Arc::default();
-    let seen = arrivals.clone();
-    tokio::spawn(async move {
-        let mut lines = BufReader::new(read).lines();
-        while let Ok(Some(line)) = lines.next_line().await {
-            if line.starts_with("DIFF:T") && line.len() < 24 {
-                seen.lock().unwrap().insert(line, Instant::now());
-            }
-        }
-    });
-    tokio::time::sleep(Duration::from_millis(10 * args.delay + 500)).await;
-
-    reads.lock().unwrap().clear();
-    tokio::time::sleep(Duration::from_millis(args.cycles as u64 * args.delay)).await;
-    let polls = cycles(&std::mem::take(&mut *reads.lock().unwrap()));
-
-    // SET -> confirmed -> DIFF, with the polls going on.
-    let writer = TcpStream::connect(running.local_addr)
-        .await
-        .expect("writer");
-    let (read, mut write) = writer.into_split();
-    let mut answers = BufReader::new(read).lines();
-    let mut sent = Vec::new();
-    let mut confirm_ms = Vec::new();
-    for i in 0..args.sets {
-        let tag = i % SET_TAGS;
-        let value = 1000 + i;
-        let started = Instant::now();
-        write
-            .write_all(format!("SET:t{tag},{value}\r\n").as_bytes())
-            .await
-            .unwrap();
-        let answer = answers.next_line().await.unwrap().unwrap_or_default();
-        confirm_ms.push(ms(started.elapsed()));
-        assert_eq!(answer, format!("DIFF:T{tag},{value}"), "SET answer");
-        sent.push((answer, started));
-        // Spread over the poll cycle.
-        tokio::time::sleep(Duration::from_millis(7)).await;
-    }
-    tokio::time::sleep(Duration::from_millis(3 * args.delay)).await;
-    let arrivals = arrivals.lock().unwrap();
-    let diff_ms: Vec<f64> = sent
-        .iter()
-        .filter_map(|(line, started)| arrivals.get(line).map(|at| ms(at.duration_since(*started))))
-        .collect();
-    drop(running);
+    .await;
     Run {
         label: format!("inflight{inflight}_lat{latency}"),
-        requests: polls.iter().map(|(_, n)| *n).collect(),
-        cycle_ms: polls.iter().map(|(d, _)| ms(*d)).collect(),
-        confirm_ms,
-        diff_ms,
+        requests: measured.requests,
+        cycle_ms: measured.cycle_ms,
+        confirm_ms: measured.confirm_ms,
+        diff_ms: measured.diff_ms,
     }
 }
 

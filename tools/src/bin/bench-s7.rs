@@ -19,24 +19,16 @@
 #[path = "../timed.rs"]
 mod timed;
 
-use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
 
 use clap::Parser;
-use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
-use tokio::net::TcpStream;
 
-use plccoms::startup::start_section;
-use plccoms_core::link::tables::PubSource;
-use plccoms_core::link::Tables;
 use plccoms_driver_s7::S7Backend;
 use plcsim::program::ProgramKind;
 use plcsim::{PubSource as SimPub, SimConfig};
-use timed::{cycles, Timed};
+use timed::{measure, Measured};
 
 #[derive(Debug, Parser)]
 #[command(name = "bench-s7")]
@@ -216,17 +208,8 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
 }
 
-fn ms(d: Duration) -> f64 {
-    d.as_secs_f64() * 1000.0
-}
-
 /// What one run measured.
-struct Run {
-    requests: Vec<u64>,
-    cycle_ms: Vec<f64>,
-    confirm_ms: Vec<f64>,
-    diff_ms: Vec<f64>,
-}
+type Run = Measured;
 
 /// The Snap7 C server with DB1 and the merkers of 65,535 bytes each (its
 /// area sizes are 16-bit: 65,536 would be 0).
@@ -260,92 +243,22 @@ async fn run(args: &Args, project: &Project, pdu: u16, device: SocketAddr) -> Ru
         args.delay,
         device.port()
     );
-    let loaded = plccoms_core::config::parse(&dir.path().join("bench.ini"), &ini).expect("ini");
-    let section = loaded.config.sections.into_iter().next().expect("section");
-    let source = PubSource::new(&section, dir.path()).expect("source");
-    let user = source
-        .load_local(&section, plccoms_core::link::tables::NamedBy::Configuration)
-        .expect("tags");
-    let table = source.build(&section.name, user.as_ref()).expect("table");
-    let reads = Arc::new(Mutex::new(Vec::new()));
-    let backend = Timed::new(
-        Box::new(S7Backend::new(plccoms_driver_s7::config_of(
-            &section,
-            device,
-            dir.path(),
-        ))),
-        reads.clone(),
-    );
-    let running = start_section(
-        Arc::new(loaded.config.global),
-        section,
-        table,
-        Some(Box::new(backend)),
-        SocketAddr::from(([127, 0, 0, 1], 0)),
-        dir.path().to_path_buf(),
-        Some(Tables::new(source, user, false)),
+    measure(
+        dir.path(),
+        &ini,
+        |section| {
+            Box::new(S7Backend::new(plccoms_driver_s7::config_of(
+                section,
+                device,
+                dir.path(),
+            )))
+        },
+        args.delay,
+        args.cycles,
+        args.sets,
+        SET_TAGS,
     )
     .await
-    .expect("section");
-
-    // The watcher: every tag enabled; DIFF arrival times by line.
-    let watcher = TcpStream::connect(running.local_addr)
-        .await
-        .expect("watcher");
-    let (read, mut write) = watcher.into_split();
-    write.write_all(b"EN:*\r\n").await.unwrap();
-    let arrivals: Arc<Mutex<HashMap<String, Instant>>> = Arc::default();
-    let seen = arrivals.clone();
-    tokio::spawn(async move {
-        let mut lines = BufReader::new(read).lines();
-        while let Ok(Some(line)) = lines.next_line().await {
-            if line.starts_with("DIFF:T") && line.len() < 24 {
-                seen.lock().unwrap().insert(line, Instant::now());
-            }
-        }
-    });
-    tokio::time::sleep(Duration::from_millis(10 * args.delay + 500)).await;
-
-    reads.lock().unwrap().clear();
-    tokio::time::sleep(Duration::from_millis(args.cycles as u64 * args.delay)).await;
-    let polls = cycles(&std::mem::take(&mut *reads.lock().unwrap()));
-
-    // SET -> confirmed -> DIFF, with the polls going on.
-    let writer = TcpStream::connect(running.local_addr)
-        .await
-        .expect("writer");
-    let (read, mut write) = writer.into_split();
-    let mut answers = BufReader::new(read).lines();
-    let mut sent = Vec::new();
-    let mut confirm_ms = Vec::new();
-    for i in 0..args.sets {
-        let tag = i % SET_TAGS;
-        let value = 1000 + i;
-        let started = Instant::now();
-        write
-            .write_all(format!("SET:t{tag},{value}\r\n").as_bytes())
-            .await
-            .unwrap();
-        let answer = answers.next_line().await.unwrap().unwrap_or_default();
-        confirm_ms.push(ms(started.elapsed()));
-        assert_eq!(answer, format!("DIFF:T{tag},{value}"), "SET answer");
-        sent.push((answer, started));
-        // Spread over the poll cycle.
-        tokio::time::sleep(Duration::from_millis(7)).await;
-    }
-    tokio::time::sleep(Duration::from_millis(3 * args.delay)).await;
-    let arrivals = arrivals.lock().unwrap();
-    let diff_ms: Vec<f64> = sent
-        .iter()
-        .filter_map(|(line, started)| arrivals.get(line).map(|at| ms(at.duration_since(*started))))
-        .collect();
-    drop(running);
-    Run {
-        requests: polls.iter().map(|(_, n)| *n).collect(),
-        cycle_ms: polls.iter().map(|(d, _)| ms(*d)).collect(),
-        confirm_ms,
-        diff_ms,
-    }
 }
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
