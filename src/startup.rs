@@ -363,8 +363,9 @@ impl Server {
             {
                 continue;
             }
-            let restarted = report.restarted.iter().any(|(n, _)| *n == section.name);
-            if !restarted && !report.removed.contains(&section.name) {
+            // Not running and not restarted: new (or one that failed to
+            // start before). A removed section is not in `wanted`.
+            if !report.restarted.iter().any(|(n, _)| *n == section.name) {
                 report.added.push(section.name.clone());
             }
             match start_one(&self.global, section, &self.dir).await {
