@@ -308,8 +308,17 @@ impl Plcsim {
     fn start(program: &'static str) -> Plcsim {
         let files = tempfile::tempdir().unwrap();
         std::fs::write(files.path().join("demo.pub"), DEMO_PUB).unwrap();
-        let (udp, control) = (free_udp_port(), free_port());
-        let proc = Plcsim::spawn(files.path(), udp, control, program);
+        // Ports are picked at random below the ephemeral range, so another
+        // test may take one between the pick and the bind: pick again.
+        let mut attempts = 0;
+        let (proc, udp, control) = loop {
+            let (udp, control) = (free_udp_port(), free_port());
+            match Plcsim::try_spawn(files.path(), udp, control, program) {
+                Ok(proc) => break (proc, udp, control),
+                Err(log) if attempts < 5 && log.contains("Address already in use") => attempts += 1,
+                Err(log) => panic!("plcsim exited: {log}"),
+            }
+        };
         Plcsim {
             proc,
             udp,
@@ -320,6 +329,12 @@ impl Plcsim {
     }
 
     fn spawn(files: &Path, udp: u16, control: u16, program: &str) -> Proc {
+        Plcsim::try_spawn(files, udp, control, program)
+            .unwrap_or_else(|log| panic!("plcsim exited: {log}"))
+    }
+
+    /// Starts plcsim and waits for its control port; its log if it exits first.
+    fn try_spawn(files: &Path, udp: u16, control: u16, program: &str) -> Result<Proc, String> {
         let log = std::fs::File::create(files.join("plcsim.log")).unwrap();
         let mut proc = Proc::spawn(
             Command::new(common::process::plcsim_bin())
@@ -335,15 +350,15 @@ impl Plcsim {
                 .stdout(Stdio::null())
                 .stderr(log),
         );
+        let mut exited = false;
         wait_for("plcsim's control port", || {
-            assert!(
-                proc.running(),
-                "plcsim exited: {}",
-                read(&files.join("plcsim.log"))
-            );
-            TcpStream::connect(("127.0.0.1", control)).is_ok()
+            exited = !proc.running();
+            exited || TcpStream::connect(("127.0.0.1", control)).is_ok()
         });
-        proc
+        if exited {
+            return Err(read(&files.join("plcsim.log")));
+        }
+        Ok(proc)
     }
 
     /// Sends one control command; returns its answer line.
