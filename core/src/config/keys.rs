@@ -571,7 +571,7 @@ static KEYS: &[Key] = &[
     row("COMM_LOOP_DELAY", Some("100"), number(1, 1000, "ms"), "poll period",
         Setter::Global(|g, v| g.comm_loop_delay = v.millis())),
     row("COMM_SCHED_PRI", Some("0"), number(0, 99, ""),
-        "real-time priority of the poll loop (0 = off)",
+        "real-time priority of the poll loop (0 = off; each section's loop then gets a thread of its own)",
         Setter::Global(|g, v| g.comm_sched_pri = v.number() as u8)),
     row("NET_CONNECT_MAX", Some("128"), number(1, 1024, ""), "client connections per section",
         Setter::Global(|g, v| g.net_connect_max = v.number() as usize)),

@@ -287,6 +287,9 @@ pub struct Link {
     /// Jobs that came in during a poll behind one that is not a SET: served
     /// when the poll ends, before newer ones.
     held: std::collections::VecDeque<Job>,
+    /// The link has a thread of its own, so it may sleep the last stretch
+    /// before a cycle precisely; on the shared pool it must not block.
+    own_thread: bool,
 }
 
 impl Link {
@@ -332,6 +335,7 @@ impl Link {
             trace: setup.trace,
             deadline: Instant::now(),
             held: std::collections::VecDeque::new(),
+            own_thread: false,
         };
         link.update_freshness();
         link.count_backend();
@@ -397,11 +401,16 @@ impl Link {
                 // A due cycle goes before queued requests, so a flood of
                 // them cannot delay polling.
                 _ = tokio::time::sleep_until(deadline.checked_sub(TIMER_SLACK).unwrap_or(deadline)) => {
-                    // tokio's timer has millisecond granularity; the last
-                    // stretch is slept precisely on this dedicated thread.
+                    // tokio's timer has millisecond granularity; on a
+                    // dedicated thread the last stretch is slept precisely,
+                    // on the shared pool it is waited out by the timer.
                     let now = Instant::now();
                     if deadline > now {
-                        std::thread::sleep(deadline - now);
+                        if self.own_thread {
+                            std::thread::sleep(deadline - now);
+                        } else {
+                            tokio::time::sleep_until(deadline).await;
+                        }
                     }
                     self.tick().await;
                     if !self.held.is_empty() {
@@ -1074,10 +1083,94 @@ fn describe(backend: Option<&dyn PlcBackend>) -> String {
     backend.map_or_else(|| "no PLC configured".to_string(), |b| b.describe())
 }
 
+/// Where a section's link runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Placement {
+    /// A thread of its own, at real-time priority `priority` (COMM_SCHED_PRI,
+    /// 0 = normal) when the process may have it: for a real-time priority
+    /// and for serial lines, whose silences are timed below the timer's
+    /// millisecond step.
+    OwnThread { priority: u8 },
+    /// A task on the links' shared pool of threads (see [`pool`]).
+    Pool,
+}
+
+impl Placement {
+    /// The placement a section's configuration asks for. A section moved
+    /// onto a serial line later by SETCONF keeps its place; a Modbus RTU
+    /// line's waits below a millisecond then block a pool thread that long.
+    pub fn of(config: &config::Section, priority: u8) -> Placement {
+        if priority > 0 || config.serial_device.is_some() {
+            Placement::OwnThread { priority }
+        } else {
+            Placement::Pool
+        }
+    }
+}
+
+/// A running link: its thread or its task on the pool.
+pub enum Running {
+    Thread(std::thread::JoinHandle<()>),
+    Task(tokio::task::JoinHandle<()>),
+}
+
+impl Running {
+    /// The link's loop has ended.
+    pub fn is_finished(&self) -> bool {
+        match self {
+            Running::Thread(thread) => thread.is_finished(),
+            Running::Task(task) => task.is_finished(),
+        }
+    }
+}
+
+/// Starts the link where `placement` says.
+pub fn spawn(mut link: Link, placement: Placement) -> std::io::Result<Running> {
+    match placement {
+        Placement::OwnThread { priority } => {
+            link.own_thread = true;
+            spawn_thread(link, priority).map(Running::Thread)
+        }
+        Placement::Pool => {
+            use tracing::instrument::WithSubscriber;
+            // The task logs where its creator logs (a scoped subscriber
+            // included), as a link thread does.
+            let dispatch = tracing::dispatcher::get_default(|d| d.clone());
+            Ok(Running::Task(
+                pool()?.spawn(link.run().with_subscriber(dispatch)),
+            ))
+        }
+    }
+}
+
+/// The runtime every pooled link runs on: a few threads for all sections
+/// (one per core, at most 8) instead of a thread and a runtime per
+/// section, which at a thousand sections cost 50 KB of stack each and a
+/// context switch per wake-up. It is apart from the clients' runtime, so
+/// that client load never queues a poll cycle behind client work.
+pub fn pool() -> std::io::Result<&'static tokio::runtime::Runtime> {
+    static POOL: std::sync::OnceLock<tokio::runtime::Runtime> = std::sync::OnceLock::new();
+    static START: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    if let Some(pool) = POOL.get() {
+        return Ok(pool);
+    }
+    let _once = START.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(pool) = POOL.get() {
+        return Ok(pool);
+    }
+    let threads = std::thread::available_parallelism().map_or(2, |n| n.get().clamp(1, 8));
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(threads)
+        .thread_name("links")
+        .enable_all()
+        .build()?;
+    Ok(POOL.get_or_init(|| runtime))
+}
+
 /// Runs the link on a thread of its own, so that client load never delays a
 /// poll cycle, with real-time priority `priority` (COMM_SCHED_PRI, 0 = off)
 /// when the process may have it.
-pub fn spawn_thread(link: Link, priority: u8) -> std::io::Result<std::thread::JoinHandle<()>> {
+fn spawn_thread(link: Link, priority: u8) -> std::io::Result<std::thread::JoinHandle<()>> {
     let section = link.name.clone();
     // The thread logs where its creator logs (a scoped subscriber included).
     let dispatch = tracing::dispatcher::get_default(|d| d.clone());

@@ -1,6 +1,6 @@
-//! Starting a section: its change stream, its link on its own thread, and
-//! the [`Section`] every app serves. Which apps serve it (a telnet port,
-//! MQTT, the web page) is the binary's choice.
+//! Starting a section: its change stream, its link (on the links' pool or
+//! a thread of its own), and the [`Section`] every app serves. Which apps
+//! serve it (a telnet port, MQTT, the web page) is the binary's choice.
 
 use std::io;
 use std::path::PathBuf;
@@ -39,7 +39,7 @@ pub struct Setup {
 pub struct Running {
     pub section: Arc<Section>,
     stop: CancellationToken,
-    thread: std::thread::JoinHandle<()>,
+    link: link::Running,
 }
 
 /// Starts the section's link at once, whatever the PLC does.
@@ -60,6 +60,7 @@ pub fn start(setup: Setup) -> io::Result<Running> {
     let eol: &'static [u8] = if global.end_line_crlf { b"\r\n" } else { b"\n" };
     let publisher = publisher.with_diff_block(eol);
     let trace = crate::trace::FrameTrace::new(&config.name, config.trace);
+    let placement = link::Placement::of(&config, global.comm_sched_pri);
     let (link, handle, state) = Link::new(LinkSetup {
         name: config.name.clone(),
         trace,
@@ -77,7 +78,7 @@ pub fn start(setup: Setup) -> io::Result<Running> {
         metrics: metrics.clone(),
     });
     let stop = link.stop_token();
-    let thread = link::spawn_thread(link, global.comm_sched_pri)?;
+    let link = link::spawn(link, placement)?;
     let section = Arc::new(Section::new(
         global,
         handle,
@@ -89,7 +90,7 @@ pub fn start(setup: Setup) -> io::Result<Running> {
     Ok(Running {
         section,
         stop,
-        thread,
+        link,
     })
 }
 
@@ -105,7 +106,7 @@ impl Running {
     /// comes after the server says it stopped.
     pub async fn wait(&self, grace: Duration) {
         let start = tokio::time::Instant::now();
-        while !self.thread.is_finished() {
+        while !self.link.is_finished() {
             if start.elapsed() >= grace {
                 warn!(section = %self.section.name, "the link's thread is still waiting for the PLC at shutdown");
                 return;
