@@ -1719,6 +1719,19 @@ fn many_sections_and_a_table_of_20000_variables_are_read_a_page_at_a_time() {
     let list = get_json(http, "/api/sections/Big/vars?mask=t1999*");
     assert_eq!(names(&list, "vars").len(), 10);
 
+    // What a page costs beside everything (printed for the notes).
+    for path in [
+        "/api/sections",
+        "/api/sections?limit=20",
+        "/api/sections/Big/values?vars=T*&limit=100",
+        "/api/sections/Big/values?vars=T*&limit=5000",
+    ] {
+        let started = Instant::now();
+        let (status, body) = request(http, "GET", path, &[], None);
+        assert_eq!(status, 200);
+        eprintln!("{path}: {} bytes in {:?}", body.len(), started.elapsed());
+    }
+
     // /metrics: every section's families, or those asked for.
     let (status, text) = request(http, "GET", "/metrics", &[], None);
     assert_eq!(status, 200);
@@ -1763,7 +1776,15 @@ fn many_sections_and_a_table_of_20000_variables_are_read_a_page_at_a_time() {
 #[test]
 fn page_in_chromium_pages_and_filters_300_sections_and_20000_variables() {
     let (web, _dir) = start_many();
-    let seen = run_page_script("scale.mjs", &[format!("http://{}", web.http)]);
+    let screenshot = artifacts().join("web-many-sections.png");
+    let _ = std::fs::remove_file(&screenshot);
+    let seen = run_page_script(
+        "scale.mjs",
+        &[
+            format!("http://{}", web.http),
+            screenshot.display().to_string(),
+        ],
+    );
     assert_eq!(seen["failure"], Value::Null, "{seen:#}");
     assert_eq!(seen["page_errors"], serde_json::json!([]), "{seen:#}");
     assert_eq!(seen["console_errors"], serde_json::json!([]), "{seen:#}");
@@ -1809,4 +1830,7 @@ fn page_in_chromium_pages_and_filters_300_sections_and_20000_variables() {
     // Never a request for more than a page.
     assert_eq!(seen["unpaged_requests"], serde_json::json!([]), "{seen:#}");
     assert!(seen["requests"].as_u64().unwrap() > 5, "{seen:#}");
+    let png = std::fs::read(&screenshot).expect("the screenshot");
+    assert!(png.starts_with(b"\x89PNG"));
+    eprintln!("screenshot: {}", screenshot.display());
 }

@@ -2,7 +2,7 @@
 // 20,000 variables, and prints what it saw as one JSON line; tests/web.rs
 // checks it.
 //
-//   node scale.mjs <base url>
+//   node scale.mjs <base url> <screenshot.png>
 //
 // Steps: the first section and the first page of its variables; the next
 // page of sections; a section filter and a pick from it; the variables'
@@ -10,7 +10,7 @@
 // every API request the page made asks for a page, never for everything.
 import { chromium } from "playwright-core";
 
-const [base] = process.argv.slice(2);
+const [base, screenshot] = process.argv.slice(2);
 const result = { console_errors: [], page_errors: [], unpaged_requests: [], requests: 0 };
 const browser = await chromium.launch({
   executablePath: process.env.CHROMIUM || "/usr/bin/chromium",
@@ -67,6 +67,9 @@ try {
   await page.waitForFunction(() => document.querySelector("#vars tr").dataset.name === "T00000");
   await page.locator("#vars-next").click();
   await page.waitForFunction(() => document.querySelector("#vars tr").dataset.name === "T00100");
+  await page.locator("#section-filter").fill("");
+  await page.waitForFunction(() => document.querySelectorAll("#tabs button").length === 20);
+  await page.screenshot({ path: screenshot });
   result.next_first = await page.evaluate(() => document.querySelector("#vars tr").dataset.name);
   result.next_var_count = await page.locator("#var-count").textContent();
 
