@@ -439,14 +439,18 @@ mod tests {
             );
             all.push(metrics);
         }
-        let started = std::time::Instant::now();
         let text = registry.render();
-        let first = started.elapsed();
-        let started = std::time::Instant::now();
-        let again = registry.render();
-        let second = started.elapsed();
+        // The fastest of ten: the machine's other work only slows one.
+        let fastest = (0..10)
+            .map(|_| {
+                let started = std::time::Instant::now();
+                let text = registry.render();
+                (started.elapsed(), text)
+            })
+            .min_by_key(|(took, _)| *took);
+        let (took, again) = fastest.unwrap();
         eprintln!(
-            "/metrics of 1,000 sections: {} bytes, {} lines; rendered in {first:?}, then {second:?} (room from the last)",
+            "/metrics of 1,000 sections: {} bytes, {} lines; rendered in {took:?} (fastest of 10)",
             text.len(),
             text.lines().count()
         );
