@@ -1813,6 +1813,7 @@ fn page_in_chromium_pages_and_filters_300_sections_and_20000_variables() {
         ["connecting", "lost"].contains(&seen["picked_link"].as_str().unwrap_or_default()),
         "{seen:#}"
     );
+    assert_eq!(seen["online_tabs"], serde_json::json!(["Big"]));
     // The next page of variables, then a mask; live values for what is on
     // screen only.
     assert_eq!(seen["next_first"], "T00100");

@@ -59,6 +59,13 @@ try {
   result.picked = await page.evaluate(() => decodeURIComponent(location.hash.slice(1)));
   result.picked_link = await page.evaluate(() => window.plccoms.section.link.state);
 
+  // The sections online: Big alone.
+  await page.locator("#section-filter").fill("");
+  await page.locator("#section-state").selectOption("online");
+  await page.waitForFunction(() => document.getElementById("section-count").textContent === "1–1 of 1 matching");
+  result.online_tabs = await page.locator("#tabs button").allTextContents();
+  await page.locator("#section-state").selectOption("");
+
   // Back to Big, its tags a page at a time.
   await page.locator("#section-filter").fill("big");
   await page.locator('#tabs button[data-section="Big"]').click();

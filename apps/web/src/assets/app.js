@@ -25,7 +25,7 @@
   const st = {
     session: null,
     sections: [],    // the page of sections the tabs show
-    sectionPage: { filter: "", offset: 0, total: 0, all: 0 },
+    sectionPage: { filter: "", state: "", offset: 0, total: 0, all: 0 },
     section: null,
     varOffset: 0,
     shown: [],       // the names of the variable rows on screen
@@ -185,6 +185,7 @@
     const p = st.sectionPage;
     const q = new URLSearchParams({ offset: String(p.offset), limit: String(SECTION_PAGE) });
     if (p.filter) q.set("filter", p.filter);
+    if (p.state) q.set("state", p.state);
     let page;
     try {
       page = await apiResponse(`/api/sections?${q}`);
@@ -192,10 +193,11 @@
       notice(`The server does not answer: ${e.message}`);
       return;
     }
-    if (p.filter !== (q.get("filter") || "") || p.offset !== Number(q.get("offset"))) return; // asked again meanwhile
+    const narrowed = Boolean(p.filter || p.state);
+    if (p.filter !== (q.get("filter") || "") || p.state !== (q.get("state") || "") || p.offset !== Number(q.get("offset"))) return; // asked again meanwhile
     notice("");
     p.total = Number(page.response.headers.get("x-total-count") || page.body.length);
-    if (!p.filter) p.all = p.total;
+    if (!narrowed) p.all = p.total;
     if (p.offset > 0 && p.offset >= p.total) {
       // A reload removed sections: back to the last page there is.
       p.offset = Math.max(0, Math.floor((p.total - 1) / SECTION_PAGE) * SECTION_PAGE);
@@ -217,10 +219,10 @@
       );
     }
     for (const b of tabs.children) b.classList.toggle("active", st.section && b.dataset.section === st.section.name);
-    $("section-pick").hidden = p.all <= SECTION_PAGE && !p.filter;
+    $("section-pick").hidden = p.all <= SECTION_PAGE && !narrowed;
     $("section-count").textContent = p.total === 0
       ? "none match"
-      : `${p.offset + 1}–${p.offset + st.sections.length} of ${p.total}${p.filter ? " matching" : " sections"}`;
+      : `${p.offset + 1}–${p.offset + st.sections.length} of ${p.total}${narrowed ? " matching" : " sections"}`;
     $("sections-prev").disabled = p.offset === 0;
     $("sections-next").disabled = p.offset + st.sections.length >= p.total;
   }
@@ -233,6 +235,11 @@
       st.sectionPage.offset = 0;
       refreshSections();
     }, 250);
+  });
+  $("section-state").addEventListener("change", () => {
+    st.sectionPage.state = $("section-state").value;
+    st.sectionPage.offset = 0;
+    refreshSections();
   });
   $("sections-prev").addEventListener("click", () => {
     st.sectionPage.offset = Math.max(0, st.sectionPage.offset - SECTION_PAGE);
