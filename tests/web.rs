@@ -572,7 +572,7 @@ fn the_api_lists_sections_clients_variables_and_values_and_streams_live_values()
     let vars = get_json(http, "/api/sections/Demo/vars?mask=s*,counter");
     assert_eq!(
         vars,
-        serde_json::json!({"total": 4, "vars": [
+        serde_json::json!({"total": 4, "offset": 0, "next_offset": null, "vars": [
             {"name": "SINUS", "type": "LREAL", "writable": true},
             {"name": "SETPOINT", "type": "REAL", "writable": true},
             {"name": "SWITCH", "type": "BOOL", "writable": true},
@@ -1522,4 +1522,316 @@ fn page_in_chromium_shows_values_units_and_set_boxes_in_the_users_terms() {
     assert_eq!(m["plc_run_set_box"], 0);
     assert_eq!(m["when_write"], "✓ 2026-11-25T10:15:00.123Z");
     assert_eq!(m["when_value"], "2026-11-25T10:15:00.123Z");
+}
+
+/// Tag names of the big section: `T00000` to `T19999`, one INT each.
+const BIG_TAGS: usize = 20_000;
+/// Sections that no PLC answers for, besides the big one.
+const DEAD_SECTIONS: usize = 300;
+
+/// Section `Big` (a simulated Modbus device with [`BIG_TAGS`] tags) first,
+/// then `dev001` to `dev300`, Modbus devices on a port nobody listens on.
+fn start_many() -> (Web, tempfile::TempDir) {
+    use std::fmt::Write as _;
+    let dir = tempfile::tempdir().unwrap();
+    let big = dir.path().join("big.csv");
+    let mut csv = String::from("name,type,table,address\n");
+    for i in 0..BIG_TAGS {
+        let _ = writeln!(csv, "T{i:05},INT,holding,{i}");
+    }
+    std::fs::write(&big, csv).unwrap();
+    let small = dir.path().join("small.csv");
+    std::fs::write(&small, "name,type,table,address\na,INT,holding,0\n").unwrap();
+    // Ports picked apart: 300 random picks may repeat one.
+    let mut taken = std::collections::HashSet::new();
+    let mut port = || loop {
+        let port = free_port();
+        if taken.insert(port) {
+            return port;
+        }
+    };
+    let (http_port, big_port, closed) = (port(), port(), port());
+    let mut ini = format!(
+        "[*]\nCOMM_LOOP_DELAY = 100\nHTTP_PORT = {http_port}\n\n\
+         [Big]\nPROTOCOL = MODBUS_TCP\nSIMULATOR = Yes\nSERVER_PORT = {big_port}\n\
+         MODBUS_TAGS = {}\n",
+        big.display()
+    );
+    for i in 1..=DEAD_SECTIONS {
+        let _ = write!(
+            ini,
+            "\n[dev{i:03}]\nPROTOCOL = MODBUS_TCP\nIPADDR = 127.0.0.1\nMODBUS_PORT = {closed}\n\
+             SERVER_PORT = {}\nMODBUS_TAGS = {}\n",
+            port(),
+            small.display()
+        );
+    }
+    let server = ServerProcess::with_config(&ini, big_port);
+    let web = Web {
+        server,
+        http: SocketAddr::from(([127, 0, 0, 1], http_port)),
+    };
+    wait_until("the big table is loaded", || {
+        let (status, body) = request(
+            web.http,
+            "GET",
+            "/api/sections/Big/vars?mask=T*&limit=1",
+            &[],
+            None,
+        );
+        status == 200 && json(&body)["total"] == BIG_TAGS
+    });
+    wait_until("every section runs", || {
+        get_paged(web.http, "/api/sections?limit=1").1 == Some(DEAD_SECTIONS + 1)
+    });
+    (web, dir)
+}
+
+/// GET `path`: status, `X-Total-Count` if any, JSON body.
+fn get_paged(http: SocketAddr, path: &str) -> (u16, Option<usize>, Value) {
+    let (status, head, body) = exchange(http, "GET", path, &[], None);
+    let total = head.lines().find_map(|line| {
+        let (name, value) = line.split_once(':')?;
+        name.eq_ignore_ascii_case("x-total-count")
+            .then(|| value.trim().parse().ok())?
+    });
+    (status, total, json(&body))
+}
+
+/// A 400 whose `error` says `what`.
+fn refused_with(http: SocketAddr, path: &str, what: &str) {
+    let (status, _, body) = get_paged(http, path);
+    assert_eq!(status, 400, "{path}: {body}");
+    let error = body["error"].as_str().unwrap_or_default();
+    assert!(
+        error.contains(what),
+        "{path}: {error:?} does not say {what:?}"
+    );
+}
+
+fn names(list: &Value, key: &str) -> Vec<String> {
+    list[key]
+        .as_array()
+        .unwrap_or_else(|| panic!("no {key} in {list}"))
+        .iter()
+        .map(|v| v["name"].as_str().unwrap().to_string())
+        .collect()
+}
+
+#[test]
+fn many_sections_and_a_table_of_20000_variables_are_read_a_page_at_a_time() {
+    let (web, _dir) = start_many();
+    let http = web.http;
+    let all = DEAD_SECTIONS + 1;
+
+    // Sections: all without a limit (as before), else a page; the header
+    // counts those matching.
+    let (status, total, list) = get_paged(http, "/api/sections");
+    assert_eq!(status, 200);
+    assert_eq!(total, Some(all));
+    assert_eq!(list.as_array().unwrap().len(), all);
+    let (_, total, list) = get_paged(http, "/api/sections?offset=20&limit=20");
+    assert_eq!(total, Some(all));
+    let page: Vec<&str> = list
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(page.len(), 20);
+    assert_eq!((page[0], page[19]), ("dev020", "dev039"));
+    // The filter: part of the name, any case; or of the PLC's address.
+    let (_, total, list) = get_paged(http, "/api/sections?filter=DEV29&limit=5");
+    assert_eq!(total, Some(10));
+    assert_eq!(list[0]["name"], "dev290");
+    assert_eq!(list.as_array().unwrap().len(), 5);
+    // Every device here is on 127.0.0.1, Big's simulator too.
+    let (_, total, _) = get_paged(http, "/api/sections?filter=127.0.0.1");
+    assert_eq!(total, Some(all));
+    let (_, total, list) = get_paged(http, "/api/sections?offset=400&limit=20");
+    assert_eq!((total, list), (Some(all), serde_json::json!([])));
+    wait_until("Big is online", || {
+        let (_, _, list) = get_paged(http, "/api/sections?state=online");
+        list.as_array()
+            .is_some_and(|l| l.len() == 1 && l[0]["name"] == "Big")
+    });
+    for (path, what) in [
+        ("/api/sections?limit=0", "limit must be 1 to 1000"),
+        ("/api/sections?limit=1001", "over 1000"),
+        ("/api/sections?limit=ten", "limit"),
+        ("/api/sections?offset=-1", "offset"),
+        (
+            "/api/sections?state=up",
+            "none of no_plc, connecting, online, lost",
+        ),
+        ("/api/sections?page=2", "unknown field `page`"),
+        ("/api/sections/Big/vars?limit=5001", "over 5000"),
+        (
+            "/api/sections/Big/values?limit=0",
+            "limit must be 1 to 5000",
+        ),
+        ("/api/sections/Big/values?offset=x", "offset"),
+        (
+            "/api/sections/Big/values?vars=T*&sort=name",
+            "unknown field `sort`",
+        ),
+        (
+            "/api/sections/Big/live?vars=T*",
+            "at most 2000 are shown live",
+        ),
+    ] {
+        refused_with(http, path, what);
+    }
+
+    // Variables: a page from `offset`, `next_offset` to go on, the last
+    // page short, past the end empty.
+    let list = get_json(http, "/api/sections/Big/vars?mask=T*&limit=5000");
+    assert_eq!(list["total"], BIG_TAGS);
+    assert_eq!(
+        (list["offset"].as_u64(), list["next_offset"].as_u64()),
+        (Some(0), Some(5000))
+    );
+    assert_eq!(names(&list, "vars").len(), 5000);
+    let list = get_json(
+        http,
+        "/api/sections/Big/values?vars=T*&offset=19950&limit=100",
+    );
+    let shown = names(&list, "values");
+    assert_eq!(shown.len(), 50);
+    assert_eq!(
+        (shown[0].as_str(), shown[49].as_str()),
+        ("T19950", "T19999")
+    );
+    assert_eq!(list["next_offset"], Value::Null);
+    let list = get_json(http, "/api/sections/Big/values?vars=T*&offset=20000");
+    assert_eq!(
+        (list["total"].as_u64(), names(&list, "values").len()),
+        (Some(20_000), 0)
+    );
+    // Without a limit a page of 1,000, never the whole table.
+    let list = get_json(http, "/api/sections/Big/values");
+    assert_eq!(names(&list, "values").len(), 1000);
+    assert!(
+        list["total"].as_u64().unwrap() > BIG_TAGS as u64,
+        "{}",
+        list["total"]
+    );
+    let list = get_json(http, "/api/sections/Big/vars?mask=t1999*");
+    assert_eq!(names(&list, "vars").len(), 10);
+
+    // What a page costs beside everything (printed for the notes).
+    for path in [
+        "/api/sections",
+        "/api/sections?limit=20",
+        "/api/sections/Big/values?vars=T*&limit=100",
+        "/api/sections/Big/values?vars=T*&limit=5000",
+    ] {
+        let started = Instant::now();
+        let (status, body) = request(http, "GET", path, &[], None);
+        assert_eq!(status, 200);
+        eprintln!("{path}: {} bytes in {:?}", body.len(), started.elapsed());
+    }
+
+    // /metrics: every section's families, or those asked for.
+    let (status, text) = request(http, "GET", "/metrics", &[], None);
+    assert_eq!(status, 200);
+    let text = String::from_utf8(text).unwrap();
+    let link_up = text
+        .lines()
+        .filter(|l| l.starts_with("plccoms_link_up{"))
+        .count();
+    assert_eq!(link_up, all);
+    eprintln!(
+        "/metrics of {all} sections: {} bytes, {} lines",
+        text.len(),
+        text.lines().count()
+    );
+    let (status, one) = request(http, "GET", "/metrics?section=dev007,Big", &[], None);
+    assert_eq!(status, 200);
+    let one = String::from_utf8(one).unwrap();
+    let samples: Vec<&str> = one
+        .lines()
+        .filter(|l| l.starts_with("plccoms_link_up{"))
+        .collect();
+    assert_eq!(
+        samples,
+        [
+            "plccoms_link_up{section=\"Big\"} 1",
+            "plccoms_link_up{section=\"dev007\"} 0"
+        ]
+    );
+    assert!(
+        !one.contains("plccoms_web_"),
+        "sources are not in a section's scrape"
+    );
+    let (status, body) = request(http, "GET", "/metrics?section=dev999", &[], None);
+    assert_eq!(
+        (status, json(&body)["error"].as_str()),
+        (404, Some("no section named 'dev999'"))
+    );
+    let (status, _) = request(http, "GET", "/metrics?sections=dev007", &[], None);
+    assert_eq!(status, 400);
+}
+
+#[test]
+fn page_in_chromium_pages_and_filters_300_sections_and_20000_variables() {
+    let (web, _dir) = start_many();
+    let screenshot = artifacts().join("web-many-sections.png");
+    let _ = std::fs::remove_file(&screenshot);
+    let seen = run_page_script(
+        "scale.mjs",
+        &[
+            format!("http://{}", web.http),
+            screenshot.display().to_string(),
+        ],
+    );
+    assert_eq!(seen["failure"], Value::Null, "{seen:#}");
+    assert_eq!(seen["page_errors"], serde_json::json!([]), "{seen:#}");
+    assert_eq!(seen["console_errors"], serde_json::json!([]), "{seen:#}");
+    // The first section and the first page of its variables.
+    assert_eq!(seen["section"], "Big");
+    assert_eq!(seen["tabs"], 20);
+    assert_eq!(seen["section_count"], "1–20 of 301 sections");
+    assert_eq!(seen["rows"], 100);
+    assert!(
+        seen["var_count"]
+            .as_str()
+            .unwrap()
+            .starts_with("1–100 of 200"),
+        "{seen:#}"
+    );
+    // The next page of sections, then a filter.
+    assert_eq!(
+        seen["next_sections"],
+        serde_json::json!(["dev020", "dev039"])
+    );
+    assert_eq!(seen["next_count"], "21–40 of 301 sections");
+    assert_eq!(seen["filtered_tabs"], 10);
+    assert_eq!(seen["filtered_count"], "1–10 of 10 matching");
+    assert_eq!(seen["picked"], "dev295");
+    assert!(
+        ["connecting", "lost"].contains(&seen["picked_link"].as_str().unwrap_or_default()),
+        "{seen:#}"
+    );
+    assert_eq!(seen["online_tabs"], serde_json::json!(["Big"]));
+    // The next page of variables, then a mask; live values for what is on
+    // screen only.
+    assert_eq!(seen["next_first"], "T00100");
+    assert!(
+        seen["next_var_count"]
+            .as_str()
+            .unwrap()
+            .starts_with("101–200 of "),
+        "{seen:#}"
+    );
+    assert_eq!(seen["masked_rows"], 10);
+    assert_eq!(seen["masked_pager_hidden"], true);
+    assert_eq!(seen["masked_qualities"], serde_json::json!({"good": 10}));
+    assert_eq!(seen["live_names"], 10);
+    // Never a request for more than a page.
+    assert_eq!(seen["unpaged_requests"], serde_json::json!([]), "{seen:#}");
+    assert!(seen["requests"].as_u64().unwrap() > 5, "{seen:#}");
+    let png = std::fs::read(&screenshot).expect("the screenshot");
+    assert!(png.starts_with(b"\x89PNG"));
+    eprintln!("screenshot: {}", screenshot.display());
 }

@@ -6,13 +6,15 @@
 
 use std::sync::Arc;
 
-use axum::extract::{Path, Query};
-use axum::http::{HeaderMap, StatusCode};
+use axum::extract::{FromRequestParts, Path, Query};
+use axum::http::request::Parts;
+use axum::http::{HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 use plccoms_protocol::address::parse_direct;
 use plccoms_protocol::answer::ErrorCode;
 use plccoms_protocol::{cp1250, IecType};
+use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
 use super::State;
@@ -24,8 +26,12 @@ use plccoms_core::vars::VarId;
 
 /// Variables one request lists at most unless it asks for fewer.
 const DEFAULT_LIMIT: usize = 1000;
-/// The most any request lists.
-const MAX_LIMIT: usize = 100_000;
+/// The most one request lists: a page, never a whole table of 100,000
+/// variables (`offset` goes on from there).
+pub const MAX_LIMIT: usize = 5000;
+/// The most sections one request of `/api/sections` lists when it asks
+/// for a page (`limit`); without one it lists them all.
+pub const MAX_SECTIONS_LIMIT: usize = 1000;
 
 /// `{"error": message}` with `status`.
 pub fn error(status: StatusCode, message: impl Into<String>) -> Response {
@@ -68,9 +74,9 @@ pub const ENDPOINTS: &[Endpoint] = &[
         description: "ends the page's session",
     },
     Endpoint {
-        path: "/api/sections",
+        path: "/api/sections?filter=T&state=S&offset=N&limit=N",
         methods: &["GET"],
-        description: "every section: link state, identification, poll cycle, clients, variables",
+        description: "the sections (all, or the page asked for; X-Total-Count: how many match): link state, identification, poll cycle, clients, variables",
     },
     Endpoint {
         path: "/api/sections/{section}",
@@ -83,12 +89,12 @@ pub const ENDPOINTS: &[Endpoint] = &[
         description: "the line protocol's clients: address, since, variables enabled, output queued",
     },
     Endpoint {
-        path: "/api/sections/{section}/vars?mask=A*,B&limit=N",
+        path: "/api/sections/{section}/vars?mask=A*,B&offset=N&limit=N",
         methods: &["GET"],
         description: "variables: name, type, unit and description where known, writable",
     },
     Endpoint {
-        path: "/api/sections/{section}/values?vars=A*,B&limit=N",
+        path: "/api/sections/{section}/values?vars=A*,B&offset=N&limit=N",
         methods: &["GET"],
         description: "last known values in the user's terms, with text, unit, quality (good, not_polled, stale, link_lost) and changed_ms",
     },
@@ -149,6 +155,40 @@ impl ApiError {
             status,
             message: message.into(),
         }
+    }
+}
+
+/// A query string deserialized as `T`, or a 400 saying which parameter
+/// was wrong and why (axum's own rejection is plain text).
+pub struct Params<T>(pub T);
+
+impl<T: DeserializeOwned, S: Send + Sync> FromRequestParts<S> for Params<T> {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, ApiError> {
+        match Query::<T>::from_request_parts(parts, state).await {
+            Ok(Query(query)) => Ok(Params(query)),
+            Err(rejection) => Err(ApiError::new(
+                StatusCode::BAD_REQUEST,
+                rejection.body_text(),
+            )),
+        }
+    }
+}
+
+/// `limit` checked against `1..=max`: a clear 400 rather than a silent cap,
+/// so a script learns it reads a page and goes on with `offset`.
+pub fn checked_limit(limit: Option<usize>, default: usize, max: usize) -> Result<usize, ApiError> {
+    match limit.unwrap_or(default) {
+        0 => Err(ApiError::new(
+            StatusCode::BAD_REQUEST,
+            format!("limit must be 1 to {max}"),
+        )),
+        n if n > max => Err(ApiError::new(
+            StatusCode::BAD_REQUEST,
+            format!("limit {n} is over {max}, the most one page lists: read on with offset"),
+        )),
+        n => Ok(n),
     }
 }
 
@@ -235,17 +275,70 @@ fn section_view(section: &Section) -> SectionView {
     }
 }
 
-/// `GET /api/sections`
-pub async fn sections(state: State) -> Json<Vec<SectionView>> {
-    Json(
-        state
-            .0
-            .sections
-            .current()
-            .iter()
-            .map(|s| section_view(s))
-            .collect(),
-    )
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SectionsQuery {
+    /// Part of the name or of the PLC's address, in any case.
+    filter: Option<String>,
+    /// Link state: `no_plc`, `connecting`, `online` or `lost`.
+    state: Option<String>,
+    offset: Option<usize>,
+    limit: Option<usize>,
+}
+
+const LINK_STATES: [&str; 4] = ["no_plc", "connecting", "online", "lost"];
+
+/// `GET /api/sections?filter=T&state=S&offset=N&limit=N`: the sections in
+/// configuration order, those matching `filter` and `state`, from `offset`,
+/// `limit` of them (all without one); `X-Total-Count` says how many match.
+/// Only the page's sections are described, so a page of 1,000 sections
+/// costs what its rows do.
+pub async fn sections(
+    state: State,
+    Params(query): Params<SectionsQuery>,
+) -> Result<Response, ApiError> {
+    if let Some(wanted) = query.state.as_deref() {
+        if !LINK_STATES.contains(&wanted) {
+            return Err(ApiError::new(
+                StatusCode::BAD_REQUEST,
+                format!("state '{wanted}' is none of {}", LINK_STATES.join(", ")),
+            ));
+        }
+    }
+    let limit = match query.limit {
+        Some(_) => checked_limit(query.limit, 0, MAX_SECTIONS_LIMIT)?,
+        None => usize::MAX,
+    };
+    let filter = query.filter.as_deref().map(str::to_lowercase);
+    let list = state.0.sections.current();
+    let matching: Vec<&Arc<Section>> = list
+        .iter()
+        .filter(|s| {
+            if filter.is_none() && query.state.is_none() {
+                return true;
+            }
+            let st = s.state();
+            query
+                .state
+                .as_deref()
+                .is_none_or(|wanted| st.link.state.as_str() == wanted)
+                && filter.as_deref().is_none_or(|f| {
+                    s.name().to_lowercase().contains(f)
+                        || st.link.describe.to_lowercase().contains(f)
+                })
+        })
+        .collect();
+    let page: Vec<SectionView> = matching
+        .iter()
+        .skip(query.offset.unwrap_or(0))
+        .take(limit)
+        .map(|s| section_view(s))
+        .collect();
+    let mut response = Json(page).into_response();
+    response
+        .headers_mut()
+        .insert("x-total-count", HeaderValue::from(matching.len()));
+    Ok(response)
 }
 
 /// `GET /api/sections/{section}`
@@ -307,10 +400,13 @@ pub fn parse_masks(text: Option<&str>) -> Vec<Vec<u8>> {
 }
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct VarsQuery {
     /// Comma-separated masks (`vars` is the same).
     mask: Option<String>,
     vars: Option<String>,
+    /// The first matching variable listed (0: from the start).
+    offset: Option<usize>,
     limit: Option<usize>,
 }
 
@@ -319,17 +415,31 @@ impl VarsQuery {
         parse_masks(self.mask.as_deref().or(self.vars.as_deref()))
     }
 
-    fn limit(&self) -> usize {
-        self.limit.unwrap_or(DEFAULT_LIMIT).min(MAX_LIMIT)
-    }
-
-    /// The named section's latest snapshot and its variables the masks
-    /// match.
-    fn select(&self, state: &State, name: &str) -> Result<(Arc<Snapshot>, Vec<VarId>), ApiError> {
+    /// The named section's latest snapshot, its variables the masks match,
+    /// and the page of them asked for.
+    fn select(&self, state: &State, name: &str) -> Result<Selection, ApiError> {
+        let limit = checked_limit(self.limit, DEFAULT_LIMIT, MAX_LIMIT)?;
         let snapshot = find(state, name)?.latest();
         let ids = snapshot.table.matching(&self.masks());
-        Ok((snapshot, ids))
+        let offset = self.offset.unwrap_or(0);
+        let end = offset.saturating_add(limit).min(ids.len());
+        Ok(Selection {
+            snapshot,
+            total: ids.len(),
+            offset,
+            next_offset: (end < ids.len()).then_some(end),
+            page: ids.get(offset..end).unwrap_or_default().to_vec(),
+        })
     }
+}
+
+/// A page of the variables a request's masks match.
+struct Selection {
+    snapshot: Arc<Snapshot>,
+    total: usize,
+    offset: usize,
+    next_offset: Option<usize>,
+    page: Vec<VarId>,
 }
 
 /// What the API tells of a variable besides its value: its type, unit and
@@ -378,30 +488,37 @@ pub struct VarView {
 
 #[derive(Serialize)]
 pub struct VarList {
-    /// Variables matching, of which `vars` lists the first `limit`.
+    /// Variables matching, of which `vars` lists `limit` from `offset`.
     pub total: usize,
+    pub offset: usize,
+    /// Where the next page starts; `null` on the last.
+    pub next_offset: Option<usize>,
     pub vars: Vec<VarView>,
 }
 
-/// `GET /api/sections/{section}/vars?mask=A*,B&limit=N`: names, types,
-/// units, descriptions and whether they may be written.
+/// `GET /api/sections/{section}/vars?mask=A*,B&offset=N&limit=N`: names,
+/// types, units, descriptions and whether they may be written, a page at a
+/// time.
 pub async fn vars(
     state: State,
     Path(name): Path<String>,
-    Query(query): Query<VarsQuery>,
+    Params(query): Params<VarsQuery>,
 ) -> Result<Json<VarList>, ApiError> {
     let section = find(&state, &name)?;
-    let (snapshot, ids) = query.select(&state, &name)?;
-    let vars = ids
+    let selected = query.select(&state, &name)?;
+    let snapshot = &selected.snapshot;
+    let vars = selected
+        .page
         .iter()
-        .take(query.limit())
         .map(|&id| VarView {
             name: cp1250::decode(&snapshot.table.var(id).name).into_owned(),
-            facts: var_facts(&section, &snapshot, id),
+            facts: var_facts(&section, snapshot, id),
         })
         .collect();
     Ok(Json(VarList {
-        total: ids.len(),
+        total: selected.total,
+        offset: selected.offset,
+        next_offset: selected.next_offset,
         vars,
     }))
 }
@@ -449,6 +566,8 @@ pub struct ValueView {
 #[derive(Serialize)]
 pub struct ValueList {
     pub total: usize,
+    pub offset: usize,
+    pub next_offset: Option<usize>,
     /// The link answered the last poll.
     pub online: bool,
     pub polled_ms: Option<i64>,
@@ -474,25 +593,28 @@ pub fn value_view(
     }
 }
 
-/// `GET /api/sections/{section}/values?vars=A*,B&limit=N`: the last known
-/// values with their quality. This request does not poll anything:
-/// variables nobody polls are `not_polled`; the live stream polls what it
-/// shows.
+/// `GET /api/sections/{section}/values?vars=A*,B&offset=N&limit=N`: the
+/// last known values with their quality, a page at a time. This request
+/// does not poll anything: variables nobody polls are `not_polled`; the
+/// live stream polls what it shows.
 pub async fn values(
     state: State,
     Path(name): Path<String>,
-    Query(query): Query<VarsQuery>,
+    Params(query): Params<VarsQuery>,
 ) -> Result<Json<ValueList>, ApiError> {
     let section = find(&state, &name)?;
-    let (snapshot, ids) = query.select(&state, &name)?;
+    let selected = query.select(&state, &name)?;
+    let snapshot = &selected.snapshot;
     let now = tokio::time::Instant::now();
-    let values = ids
+    let values = selected
+        .page
         .iter()
-        .take(query.limit())
-        .map(|&id| value_view(&section, &snapshot, id, now))
+        .map(|&id| value_view(&section, snapshot, id, now))
         .collect();
     Ok(Json(ValueList {
-        total: ids.len(),
+        total: selected.total,
+        offset: selected.offset,
+        next_offset: selected.next_offset,
         online: snapshot.online,
         polled_ms: snapshot.polled.map(|p| p.unix_ms),
         values,

@@ -26,7 +26,7 @@ use std::time::Duration;
 
 use std::net::SocketAddr;
 
-use axum::extract::{ConnectInfo, Path, Query};
+use axum::extract::{ConnectInfo, Path};
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
@@ -34,7 +34,7 @@ use plccoms_protocol::cp1250;
 use serde::{Deserialize, Serialize};
 use tokio_util::sync::CancellationToken;
 
-use super::api::{error, find, parse_masks, presented, quality_of};
+use super::api::{error, find, parse_masks, presented, quality_of, Params};
 use super::limits::{Permit, MAX_LIVE_STREAMS};
 use super::metrics::{StreamGuard, WebMetrics};
 use super::State;
@@ -48,6 +48,7 @@ use plccoms_core::vars::{VarId, VarTable};
 pub const MAX_LIVE: usize = 2000;
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct LiveQuery {
     vars: Option<String>,
 }
@@ -56,7 +57,7 @@ pub async fn live(
     state: State,
     ConnectInfo(peer): ConnectInfo<SocketAddr>,
     Path(name): Path<String>,
-    Query(query): Query<LiveQuery>,
+    Params(query): Params<LiveQuery>,
 ) -> Response {
     let section = match find(&state, &name) {
         Ok(section) => section,

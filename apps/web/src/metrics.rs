@@ -3,21 +3,48 @@
 
 use std::sync::Arc;
 
-use axum::http::header;
+use axum::extract::Query;
+use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 
+use super::api::error;
 use super::State;
 use plccoms_core::metrics::{header as family, Counter, Gauge, Source};
 
 /// The text format's content type (version 0.0.4).
 const CONTENT_TYPE: &str = "text/plain; version=0.0.4; charset=utf-8";
 
-pub async fn metrics(state: State) -> Response {
-    (
-        [(header::CONTENT_TYPE, CONTENT_TYPE)],
-        state.0.metrics.render(),
-    )
-        .into_response()
+/// `GET /metrics`: everything; `?section=A&section=B` (or `section=A,B`):
+/// only those sections' families, for scraping 1,000 devices in parts. A
+/// name no section has answers 404 (a removed section's scrape fails
+/// rather than silently reporting nothing); another parameter answers 400.
+pub async fn metrics(state: State, Query(params): Query<Vec<(String, String)>>) -> Response {
+    let registry = &state.0.metrics;
+    let mut wanted: Vec<&str> = Vec::new();
+    for (key, value) in &params {
+        if key != "section" {
+            return error(
+                StatusCode::BAD_REQUEST,
+                format!("unknown parameter '{key}': /metrics takes section=NAME"),
+            );
+        }
+        wanted.extend(value.split(',').map(str::trim).filter(|n| !n.is_empty()));
+    }
+    let text = if params.is_empty() {
+        registry.render()
+    } else {
+        if let Some(unknown) = wanted.iter().find(|n| !registry.has_section(n)) {
+            return error(
+                StatusCode::NOT_FOUND,
+                format!("no section named '{unknown}'"),
+            );
+        }
+        if wanted.is_empty() {
+            return error(StatusCode::BAD_REQUEST, "section= names no section");
+        }
+        registry.render_sections(&|name| wanted.contains(&name))
+    };
+    ([(header::CONTENT_TYPE, CONTENT_TYPE)], text).into_response()
 }
 
 /// The web server's figures.

@@ -15,12 +15,20 @@
     stale: "polled, but the last poll did not read it",
     link_lost: "the link to the PLC is lost: the last value known",
   };
+  // Sections per page of tabs, rows per page of variables: with 1,000
+  // sections and 100,000 variables the page asks for and draws one page,
+  // and the live stream polls only the rows on screen.
+  const SECTION_PAGE = 20;
+  const VAR_PAGE = 100;
   const COLORS = ["#2b6cb0", "#c53030", "#1f8a4c", "#b7791f", "#6b46c1", "#0987a0", "#d53f8c", "#4a5568"];
 
   const st = {
     session: null,
-    sections: [],
+    sections: [],    // the page of sections the tabs show
+    sectionPage: { filter: "", state: "", offset: 0, total: 0, all: 0 },
     section: null,
+    varOffset: 0,
+    shown: [],       // the names of the variable rows on screen
     vars: new Map(), // name -> {type, value, text, unit, description, writable, quality, changed, row}
     charted: [],     // names, in the order chosen
     source: null,
@@ -35,6 +43,11 @@
   window.plccoms = st;
 
   async function api(path, options) {
+    return (await apiResponse(path, options)).body;
+  }
+
+  // The body and the response (for X-Total-Count).
+  async function apiResponse(path, options) {
     const response = await fetch(path, Object.assign({ credentials: "same-origin" }, options));
     let body = null;
     const type = response.headers.get("content-type") || "";
@@ -44,7 +57,7 @@
       error.status = response.status;
       throw error;
     }
-    return body;
+    return { body, response };
   }
 
   function notice(text) {
@@ -138,9 +151,10 @@
     $("main").hidden = false;
     await refreshSections();
     const wanted = decodeURIComponent(location.hash.slice(1));
-    const first = st.sections.find((s) => s.name === wanted) || st.sections[0];
-    if (first) selectSection(first.name);
-    setInterval(refreshSections, 1000);
+    const first = (wanted && (await sectionNamed(wanted))) || st.sections[0];
+    if (first) selectSection(first.name, first);
+    setInterval(refreshSection, 1000);
+    setInterval(refreshSections, 5000);
     setInterval(refreshClients, 2000);
     setInterval(refreshLog, 5000);
     refreshLog();
@@ -165,16 +179,34 @@
   });
 
   // ---------------------------------------------------------------- sections
+  // The page of sections the tabs show (all of them in a small
+  // configuration; a search box and paging from SECTION_PAGE on).
   async function refreshSections() {
+    const p = st.sectionPage;
+    const q = new URLSearchParams({ offset: String(p.offset), limit: String(SECTION_PAGE) });
+    if (p.filter) q.set("filter", p.filter);
+    if (p.state) q.set("state", p.state);
+    let page;
     try {
-      st.sections = await api("/api/sections");
+      page = await apiResponse(`/api/sections?${q}`);
     } catch (e) {
       notice(`The server does not answer: ${e.message}`);
       return;
     }
+    const narrowed = Boolean(p.filter || p.state);
+    if (p.filter !== (q.get("filter") || "") || p.state !== (q.get("state") || "") || p.offset !== Number(q.get("offset"))) return; // asked again meanwhile
     notice("");
+    p.total = Number(page.response.headers.get("x-total-count") || page.body.length);
+    if (!narrowed) p.all = p.total;
+    if (p.offset > 0 && p.offset >= p.total) {
+      // A reload removed sections: back to the last page there is.
+      p.offset = Math.max(0, Math.floor((p.total - 1) / SECTION_PAGE) * SECTION_PAGE);
+      return refreshSections();
+    }
+    st.sections = page.body;
     const tabs = $("tabs");
-    if (tabs.childElementCount !== st.sections.length) {
+    const names = st.sections.map((s) => s.name);
+    if ([...tabs.children].map((b) => b.dataset.section).join("\n") !== names.join("\n")) {
       tabs.replaceChildren(
         ...st.sections.map((s) => {
           const b = document.createElement("button");
@@ -187,12 +219,63 @@
       );
     }
     for (const b of tabs.children) b.classList.toggle("active", st.section && b.dataset.section === st.section.name);
-    if (st.section) {
-      const now = st.sections.find((s) => s.name === st.section.name);
-      if (now) {
-        st.section = now;
-        renderOverview(now);
-      }
+    $("section-pick").hidden = p.all <= SECTION_PAGE && !narrowed;
+    $("section-count").textContent = p.total === 0
+      ? "none match"
+      : `${p.offset + 1}–${p.offset + st.sections.length} of ${p.total}${narrowed ? " matching" : " sections"}`;
+    $("sections-prev").disabled = p.offset === 0;
+    $("sections-next").disabled = p.offset + st.sections.length >= p.total;
+  }
+
+  let sectionFilterTimer = null;
+  $("section-filter").addEventListener("input", () => {
+    clearTimeout(sectionFilterTimer);
+    sectionFilterTimer = setTimeout(() => {
+      st.sectionPage.filter = $("section-filter").value.trim();
+      st.sectionPage.offset = 0;
+      refreshSections();
+    }, 250);
+  });
+  $("section-state").addEventListener("change", () => {
+    st.sectionPage.state = $("section-state").value;
+    st.sectionPage.offset = 0;
+    refreshSections();
+  });
+  $("sections-prev").addEventListener("click", () => {
+    st.sectionPage.offset = Math.max(0, st.sectionPage.offset - SECTION_PAGE);
+    refreshSections();
+  });
+  $("sections-next").addEventListener("click", () => {
+    st.sectionPage.offset += SECTION_PAGE;
+    refreshSections();
+  });
+
+  // One section, whether or not the tabs show it; null when there is none.
+  async function sectionNamed(name) {
+    const listed = st.sections.find((s) => s.name === name);
+    if (listed) return listed;
+    try {
+      return await api(`/api/sections/${encodeURIComponent(name)}`);
+    } catch (e) {
+      return null;
+    }
+  }
+
+  // The selected section's state, every second.
+  async function refreshSection() {
+    const s = st.section;
+    if (!s) return;
+    let now;
+    try {
+      now = await api(`/api/sections/${encodeURIComponent(s.name)}`);
+    } catch (e) {
+      if (e.status !== 404) notice(`The server does not answer: ${e.message}`);
+      return;
+    }
+    notice("");
+    if (st.section && st.section.name === now.name) {
+      st.section = now;
+      renderOverview(now);
     }
   }
 
@@ -222,8 +305,8 @@
     $("read-only").hidden = !s.read_only;
   }
 
-  async function selectSection(name) {
-    const s = st.sections.find((x) => x.name === name);
+  async function selectSection(name, known) {
+    const s = known || (await sectionNamed(name));
     if (!s) return;
     st.section = s;
     st.prevCycle = null;
@@ -231,6 +314,7 @@
     for (const b of $("tabs").children) b.classList.toggle("active", b.dataset.section === name);
     renderOverview(s);
     st.charted = [];
+    st.varOffset = 0;
     resetLive();
     await loadVars();
     await restoreTrend(savedTrend(name));
@@ -293,20 +377,41 @@
   let maskTimer = null;
   $("mask").addEventListener("input", () => {
     clearTimeout(maskTimer);
-    maskTimer = setTimeout(loadVars, 300);
+    maskTimer = setTimeout(() => {
+      st.varOffset = 0;
+      loadVars();
+    }, 300);
   });
+  $("vars-prev").addEventListener("click", () => {
+    st.varOffset = Math.max(0, st.varOffset - VAR_PAGE);
+    loadVars();
+  });
+  $("vars-next").addEventListener("click", () => {
+    st.varOffset += VAR_PAGE;
+    loadVars();
+  });
+
+  // The mask, offset and limit of the page of variables on screen.
+  function varQuery() {
+    const mask = $("mask").value.trim() || "*";
+    return `vars=${encodeURIComponent(mask)}&offset=${st.varOffset}&limit=${VAR_PAGE}`;
+  }
 
   async function loadVars() {
     const s = st.section;
-    const mask = $("mask").value.trim() || "*";
     let list;
     try {
-      list = await api(`/api/sections/${encodeURIComponent(s.name)}/values?vars=${encodeURIComponent(mask)}&limit=2000`);
+      list = await api(`/api/sections/${encodeURIComponent(s.name)}/values?${varQuery()}`);
     } catch (e) {
       $("var-count").textContent = e.message;
       return;
     }
     if (st.section !== s && st.section.name !== s.name) return;
+    if (st.varOffset > 0 && list.values.length === 0 && list.total > 0) {
+      // The table shrank under the page: its last page instead.
+      st.varOffset = Math.floor((list.total - 1) / VAR_PAGE) * VAR_PAGE;
+      return loadVars();
+    }
     st.vars = new Map();
     const rows = list.values.map((v) => {
       const entry = {
@@ -317,9 +422,16 @@
       return makeRow(v.name, entry);
     });
     $("vars").replaceChildren(...rows);
-    $("var-count").textContent = list.total > list.values.length ? `${list.values.length} of ${list.total} shown: narrow the mask` : `${list.total} variables`;
+    const paged = list.total > VAR_PAGE || list.offset > 0;
+    $("var-count").textContent = paged && list.values.length
+      ? `${list.offset + 1}–${list.offset + list.values.length} of ${list.total} variables`
+      : `${list.total} variables`;
+    $("var-pager").hidden = !paged;
+    $("vars-prev").disabled = list.offset === 0;
+    $("vars-next").disabled = list.next_offset == null;
     for (const th of document.querySelectorAll(".write-col")) th.hidden = !canWrite();
-    openLive(mask, list.total <= 2000);
+    st.shown = list.values.map((v) => v.name);
+    openLive();
   }
 
   function makeRow(name, entry) {
@@ -412,14 +524,17 @@
   }
 
   // ---------------------------------------------------------------- live
-  function openLive(mask, allowed) {
+  // Live values of the rows on screen and the charted variables only, by
+  // name: the link polls these for the page, and nothing else.
+  function openLive() {
     if (st.source) st.source.close();
     st.source = null;
-    const masks = [mask, ...st.charted].join(",");
-    if (!allowed) {
-      $("live-status").textContent = "too many variables for live values";
+    const names = [...new Set([...st.shown, ...st.charted])];
+    if (names.length === 0) {
+      $("live-status").textContent = "";
       return;
     }
+    const masks = names.join(",");
     const url = `/api/sections/${encodeURIComponent(st.section.name)}/live?vars=${encodeURIComponent(masks)}`;
     const source = new EventSource(url);
     st.source = source;
@@ -457,9 +572,8 @@
   }
 
   async function resync() {
-    const mask = $("mask").value.trim() || "*";
     try {
-      const list = await api(`/api/sections/${encodeURIComponent(st.section.name)}/values?vars=${encodeURIComponent(mask)}&limit=2000`);
+      const list = await api(`/api/sections/${encodeURIComponent(st.section.name)}/values?${varQuery()}`);
       for (const v of list.values) {
         const entry = st.vars.get(v.name);
         if (!entry) return loadVars();
@@ -491,7 +605,7 @@
     }
     saveTrend();
     buildPlot();
-    openLive($("mask").value.trim() || "*", true);
+    openLive();
     if (st.mode === "range") loadRange();
     else if (on) seedTrend([name]);
   }
@@ -518,7 +632,7 @@
     }
     saveTrend();
     buildPlot();
-    openLive($("mask").value.trim() || "*", true);
+    openLive();
     seedTrend(st.charted.slice());
   }
 
