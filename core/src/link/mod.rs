@@ -403,6 +403,7 @@ impl Link {
                     if deadline > now {
                         std::thread::sleep(deadline - now);
                     }
+                    self.metrics.poll_start_late.observe(Instant::now().saturating_duration_since(deadline));
                     self.tick().await;
                     if !self.held.is_empty() {
                         let held: Vec<Job> = self.held.drain(..).collect();
