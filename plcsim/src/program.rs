@@ -91,7 +91,9 @@ pub struct Program {
     owed: f64,
     /// The next animated variable to change at a rate.
     cursor: usize,
-    /// How often each animated variable was changed at a rate: its next value.
+    /// How often each variable was changed at a rate (by its index in
+    /// `vars`): its next value. Kept across new masks, so a variable
+    /// animated again goes on from where it stopped.
     counts: Vec<u64>,
     /// Variable changes made by the animation so far.
     changes: u64,
@@ -138,7 +140,7 @@ impl Program {
     /// ([`Program::changes`]); `None`: every animated variable every cycle.
     pub fn with_rate(mut self, fraction: Option<f64>) -> Self {
         self.rate = fraction.map(|f| if f.is_nan() { 0.0 } else { f.clamp(0.0, 1.0) });
-        self.counts = vec![0; self.animated.len()];
+        self.counts = vec![0; self.vars.len()];
         self
     }
 
@@ -146,6 +148,9 @@ impl Program {
     pub fn replacing(self, old: &Program) -> Self {
         let mut program = self.with_rate(old.rate);
         program.changes = old.changes;
+        if program.vars == old.vars && old.counts.len() == program.counts.len() {
+            program.counts.clone_from(&old.counts);
+        }
         program
     }
 
@@ -212,9 +217,9 @@ impl Program {
         for _ in 0..due {
             let k = self.cursor;
             self.cursor = (k + 1) % n;
-            self.counts[k] += 1;
             let i = self.animated[k];
-            animate(&self.vars[i], image, self.counts[k], self.cycle_ms, now, k);
+            self.counts[i] += 1;
+            animate(&self.vars[i], image, self.counts[i], self.cycle_ms, now, k);
         }
         self.changes += due as u64;
     }
@@ -544,5 +549,18 @@ mod tests {
         assert_eq!(program.changes(), 110);
         assert_eq!(image.area(Area::R)[0..2], [2, 0]);
         assert_eq!(image.area(Area::R)[20..22], [1, 0]);
+        // Stopped and animated again: on from where each variable stood.
+        let stopped =
+            Program::new(ProgramKind::Idle, program.vars().to_vec(), &[], 100).replacing(&program);
+        let mut again = Program::new(
+            ProgramKind::Idle,
+            stopped.vars().to_vec(),
+            &["v*".into()],
+            100,
+        )
+        .replacing(&stopped);
+        again.step(&mut image, 0.0);
+        assert_eq!(image.area(Area::R)[0..2], [3, 0]);
+        assert_eq!(again.changes(), 111);
     }
 }
