@@ -145,13 +145,16 @@ async fn epsnet_plcs_have_their_own_memory_on_their_own_udp_port() {
     }
 }
 
-/// `n` consecutive TCP ports on 127.0.0.1 that were free a moment ago.
+/// `n` consecutive TCP ports on 127.0.0.1 that were free a moment ago, in
+/// the tests' range (23000..32000; see `common::process::free_port`).
 fn free_ports(n: u16) -> u16 {
-    for _ in 0..100 {
-        let base = free_port();
-        let free = (base..base.saturating_add(n))
-            .all(|p| std::net::TcpListener::bind((Ipv4Addr::LOCALHOST, p)).is_ok());
-        if free && base.checked_add(n).is_some() {
+    let mut seed = u64::from(free_port()) << 16 | u64::from(std::process::id() as u16);
+    for _ in 0..5000 {
+        seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        let base = 23_000 + ((seed >> 33) % u64::from(9_000 - n)) as u16;
+        if (base..base + n).all(|p| std::net::TcpListener::bind((Ipv4Addr::LOCALHOST, p)).is_ok()) {
             return base;
         }
     }
@@ -180,7 +183,7 @@ fn changes(status: &str) -> u64 {
 
 #[tokio::test]
 async fn plcsim_binary_serves_n_modbus_devices_and_one_can_be_made_dead() {
-    const N: u16 = 40;
+    const N: u16 = 16;
     let base = free_ports(N);
     let control_port = free_port();
     let dir = tempfile::tempdir().unwrap();
@@ -256,4 +259,47 @@ async fn plcsim_binary_serves_n_modbus_devices_and_one_can_be_made_dead() {
     assert!(later > first, "no changes counted: {first}, then {later}");
     child.start_kill().unwrap();
     let _ = child.wait().await;
+}
+
+#[tokio::test]
+async fn control_commands_for_one_device_or_all_and_bad_ones_refused() {
+    let sim = plcsim::spawn(SimConfig {
+        bind: local(),
+        control: Some(local()),
+        program: ProgramKind::Idle,
+        devices: 3,
+        ..SimConfig::default()
+    })
+    .await
+    .unwrap();
+    let stream = TcpStream::connect(sim.control_addr().unwrap())
+        .await
+        .unwrap();
+    let mut c = BufReader::new(stream);
+    let run = |i: usize| sim.device_at(i).unwrap().lock().unwrap().run();
+    assert_eq!(control(&mut c, "device 1 halt").await, "OK");
+    assert!(run(0) && !run(1) && run(2));
+    assert_eq!(control(&mut c, "halt").await, "OK");
+    assert!(!run(0) && !run(1) && !run(2));
+    assert_eq!(control(&mut c, "DEVICE 2 run").await, "OK");
+    assert!(!run(0) && !run(1) && run(2));
+    for bad in [
+        "device",
+        "device x run",
+        "device -1 run",
+        "device 3 run",
+        "device 99999999999999999999999 run",
+        "device 0",
+        "device 0 device 1 run",
+        "device 0 loss 7",
+    ] {
+        let answer = control(&mut c, bad).await;
+        assert!(answer.starts_with("ERR "), "{bad}: {answer}");
+    }
+    assert!(control(&mut c, "status")
+        .await
+        .contains(" devices=3 changes=0"));
+    assert!(control(&mut c, "device 2 status")
+        .await
+        .contains(" devices=1 "));
 }

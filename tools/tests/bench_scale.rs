@@ -33,7 +33,7 @@ fn free_block(n: u16) -> u16 {
         ^ std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_nanos() as u64);
-    for attempt in 0..200u64 {
+    for attempt in 0..5000u64 {
         let base =
             23_000 + ((seed.wrapping_mul(6364136223846793005) + attempt * 7919) % 8_800) as u16;
         if (base..base + n).all(|p| TcpListener::bind((Ipv4Addr::LOCALHOST, p)).is_ok()) {

@@ -106,7 +106,7 @@ struct Args {
 
 /// Children stopped (by their pid) when the bench ends, however it ends.
 #[derive(Default)]
-struct Children(Vec<(String, Child)>);
+struct Children(Vec<(String, Child, PathBuf)>);
 
 impl Children {
     fn spawn(
@@ -115,7 +115,7 @@ impl Children {
         pin: Option<&str>,
         bin: &Path,
         args: &[String],
-        log: &Path,
+        log_path: &Path,
     ) -> u32 {
         let mut command = match pin {
             Some(cpus) => {
@@ -125,7 +125,7 @@ impl Children {
             }
             None => Command::new(bin),
         };
-        let log = std::fs::File::create(log).expect("log file");
+        let log = std::fs::File::create(log_path).expect("log file");
         let child = command
             .args(args)
             .stdin(Stdio::null())
@@ -134,15 +134,20 @@ impl Children {
             .spawn()
             .unwrap_or_else(|e| panic!("start {}: {e}", bin.display()));
         let pid = child.id();
-        self.0.push((name.to_string(), child));
+        self.0
+            .push((name.to_string(), child, log_path.to_path_buf()));
         pid
     }
 
     /// Fails when a child has exited.
     fn check(&mut self) {
-        for (name, child) in &mut self.0 {
+        for (name, child, log) in &mut self.0 {
             if let Ok(Some(status)) = child.try_wait() {
-                panic!("{name} exited ({status}); see its log");
+                // The log's end: a temporary folder goes with the bench.
+                let text = std::fs::read_to_string(&*log).unwrap_or_default();
+                let tail: Vec<&str> = text.lines().rev().take(5).collect();
+                let tail: Vec<&str> = tail.into_iter().rev().collect();
+                panic!("{name} exited ({status}):\n{}", tail.join("\n"));
             }
         }
     }
@@ -150,7 +155,7 @@ impl Children {
 
 impl Drop for Children {
     fn drop(&mut self) {
-        for (_, child) in &mut self.0 {
+        for (_, child, _) in &mut self.0 {
             let _ = child.kill();
             let _ = child.wait();
         }
