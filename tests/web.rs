@@ -199,6 +199,7 @@ fn metrics_parse_with_prometheus_client_and_name_every_family() {
     let expected = [
         ("plccoms_poll_cycle_seconds", "histogram"),
         ("plccoms_poll_overruns", "counter"),
+        ("plccoms_poll_start_late_seconds", "histogram"),
         ("plccoms_backend_requests", "counter"),
         ("plccoms_backend_retries", "counter"),
         ("plccoms_backend_timeouts", "counter"),
@@ -242,6 +243,12 @@ fn metrics_parse_with_prometheus_client_and_name_every_family() {
         sample(
             "plccoms_poll_cycle_seconds",
             "plccoms_poll_cycle_seconds_count"
+        ) > 0.0
+    );
+    assert!(
+        sample(
+            "plccoms_poll_start_late_seconds",
+            "plccoms_poll_start_late_seconds_count"
         ) > 0.0
     );
     assert!(sample("plccoms_backend_requests", "plccoms_backend_requests_total") > 0.0);

@@ -62,22 +62,47 @@ pub const DURATION_BUCKETS: [f64; 14] = [
     0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
 ];
 
-/// Durations in fixed buckets.
-#[derive(Debug, Default)]
+/// Upper bounds (seconds) of the lateness buckets: from 0.1 ms (a timer's
+/// jitter) to a second (a section starved of its thread).
+pub const LATENESS_BUCKETS: [f64; 13] = [
+    0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0,
+];
+
+/// Durations in fixed buckets ([`DURATION_BUCKETS`] unless made with
+/// [`Histogram::with_buckets`]).
+#[derive(Debug)]
 pub struct Histogram {
-    /// Per bucket of [`DURATION_BUCKETS`] plus one for +Inf (not cumulative).
-    buckets: [AtomicU64; DURATION_BUCKETS.len() + 1],
+    bounds: &'static [f64],
+    /// Per bucket of `bounds` plus one for +Inf (not cumulative).
+    buckets: Box<[AtomicU64]>,
     sum_ns: AtomicU64,
     count: AtomicU64,
 }
 
+impl Default for Histogram {
+    fn default() -> Self {
+        Histogram::with_buckets(&DURATION_BUCKETS)
+    }
+}
+
 impl Histogram {
+    /// A histogram of these upper bounds (seconds, ascending).
+    pub fn with_buckets(bounds: &'static [f64]) -> Self {
+        Histogram {
+            bounds,
+            buckets: (0..=bounds.len()).map(|_| AtomicU64::new(0)).collect(),
+            sum_ns: AtomicU64::new(0),
+            count: AtomicU64::new(0),
+        }
+    }
+
     pub fn observe(&self, duration: Duration) {
         let seconds = duration.as_secs_f64();
-        let index = DURATION_BUCKETS
+        let index = self
+            .bounds
             .iter()
             .position(|&bound| seconds <= bound)
-            .unwrap_or(DURATION_BUCKETS.len());
+            .unwrap_or(self.bounds.len());
         self.buckets[index].fetch_add(1, Ordering::Relaxed);
         let ns = u64::try_from(duration.as_nanos()).unwrap_or(u64::MAX);
         self.sum_ns.fetch_add(ns, Ordering::Relaxed);
@@ -101,11 +126,11 @@ impl Histogram {
 
     fn render(&self, out: &mut String, name: &str, labels: &str) {
         let mut cumulative = 0;
-        for (i, bound) in DURATION_BUCKETS.iter().enumerate() {
+        for (i, bound) in self.bounds.iter().enumerate() {
             cumulative += self.buckets[i].load(Ordering::Relaxed);
             let _ = writeln!(out, "{name}_bucket{{{labels},le=\"{bound}\"}} {cumulative}");
         }
-        cumulative += self.buckets[DURATION_BUCKETS.len()].load(Ordering::Relaxed);
+        cumulative += self.buckets[self.bounds.len()].load(Ordering::Relaxed);
         let _ = writeln!(out, "{name}_bucket{{{labels},le=\"+Inf\"}} {cumulative}");
         let sum = self.sum_ns.load(Ordering::Relaxed) as f64 / 1e9;
         let _ = writeln!(out, "{name}_sum{{{labels}}} {sum}");
@@ -130,12 +155,14 @@ pub struct BackendCounters {
 }
 
 /// One section's metrics.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct SectionMetrics {
     /// Wall time of each poll cycle (its reads).
     pub poll_cycle: Histogram,
     /// Poll deadlines missed because a cycle (or other work) ran too long.
     pub overruns: Counter,
+    /// How late each poll cycle starts against its deadline (jitter).
+    pub poll_start_late: Histogram,
     pub backend: Arc<BackendCounters>,
     /// 1 while the link is up.
     pub link_up: Gauge,
@@ -143,6 +170,22 @@ pub struct SectionMetrics {
     pub diff_lines: Counter,
     pub diff_bytes: Counter,
     pub pubfile_reloads: Counter,
+}
+
+impl Default for SectionMetrics {
+    fn default() -> Self {
+        SectionMetrics {
+            poll_cycle: Histogram::default(),
+            overruns: Counter::default(),
+            poll_start_late: Histogram::with_buckets(&LATENESS_BUCKETS),
+            backend: Arc::default(),
+            link_up: Gauge::default(),
+            clients: Gauge::default(),
+            diff_lines: Counter::default(),
+            diff_bytes: Counter::default(),
+            pubfile_reloads: Counter::default(),
+        }
+    }
 }
 
 /// One metric family: name, help and type, for its header lines.
@@ -156,7 +199,7 @@ const fn family(name: &'static str, kind: &'static str, help: &'static str) -> F
     Family { name, help, kind }
 }
 
-const SECTION_FAMILIES: [Family; 13] = [
+const SECTION_FAMILIES: [Family; 14] = [
     family(
         "plccoms_poll_cycle_seconds",
         "histogram",
@@ -166,6 +209,11 @@ const SECTION_FAMILIES: [Family; 13] = [
         "plccoms_poll_overruns_total",
         "counter",
         "Poll deadlines missed because a cycle ran too long.",
+    ),
+    family(
+        "plccoms_poll_start_late_seconds",
+        "histogram",
+        "How late each poll cycle started against its deadline.",
     ),
     family(
         "plccoms_backend_requests_total",
@@ -246,16 +294,17 @@ impl SectionMetrics {
         let value = match index {
             0 => return self.poll_cycle.render(out, name, labels),
             1 => self.overruns.get(),
-            2 => backend.requests.get(),
-            3 => backend.retries.get(),
-            4 => backend.timeouts.get(),
-            5 => backend.errors.get(),
-            6 => return backend.round_trip.render(out, name, labels),
-            7 => self.link_up.get(),
-            8 => self.clients.get(),
-            9 => self.diff_lines.get(),
-            10 => self.diff_bytes.get(),
-            11 => probe.upgrade().map_or(0, |p| p.max_output_queue()),
+            2 => return self.poll_start_late.render(out, name, labels),
+            3 => backend.requests.get(),
+            4 => backend.retries.get(),
+            5 => backend.timeouts.get(),
+            6 => backend.errors.get(),
+            7 => return backend.round_trip.render(out, name, labels),
+            8 => self.link_up.get(),
+            9 => self.clients.get(),
+            10 => self.diff_lines.get(),
+            11 => self.diff_bytes.get(),
+            12 => probe.upgrade().map_or(0, |p| p.max_output_queue()),
             _ => self.pubfile_reloads.get(),
         };
         let _ = writeln!(out, "{name}{{{labels}}} {value}");
@@ -454,14 +503,17 @@ mod tests {
             text.len(),
             text.lines().count()
         );
-        // 2 histograms (14 buckets, +Inf, sum, count) and 11 single samples
-        // per section, and a HELP and TYPE per family.
-        let per_section = 2 * (DURATION_BUCKETS.len() + 3) + 11;
+        // 3 histograms (their buckets, +Inf, sum, count) and 11 single
+        // samples per section, and a HELP and TYPE per family.
+        let per_section = 2 * (DURATION_BUCKETS.len() + 3) + LATENESS_BUCKETS.len() + 3 + 11;
         assert_eq!(
             text.lines().filter(|l| !l.starts_with('#')).count(),
             1000 * per_section
         );
-        assert_eq!(text.lines().filter(|l| l.starts_with('#')).count(), 2 * 13);
+        assert_eq!(
+            text.lines().filter(|l| l.starts_with('#')).count(),
+            2 * SECTION_FAMILIES.len()
+        );
         assert_eq!(again.len(), text.len());
         assert!(again.capacity() >= again.len());
         assert!(text.contains("plccoms_diff_lines_total{section=\"device0999\"} 999\n"));
@@ -477,6 +529,47 @@ mod tests {
 
     struct NoQueue;
     impl SectionProbe for NoQueue {
+        fn max_output_queue(&self) -> u64 {
+            0
+        }
+    }
+
+    #[test]
+    fn poll_start_lateness_in_its_own_buckets() {
+        let registry = Registry::default();
+        let metrics = Arc::new(SectionMetrics::default());
+        let none: Weak<dyn SectionProbe> = Weak::<Never>::new();
+        registry.add_section("a", metrics.clone(), none);
+        metrics.poll_start_late.observe(Duration::from_micros(50));
+        metrics.poll_start_late.observe(Duration::from_micros(3000));
+        metrics.poll_start_late.observe(Duration::from_secs(2));
+        let text = registry.render();
+        assert!(text.contains("# TYPE plccoms_poll_start_late_seconds histogram\n"));
+        for (le, count) in [
+            ("0.0001", 1),
+            ("0.0025", 1),
+            ("0.005", 2),
+            ("1", 2),
+            ("+Inf", 3),
+        ] {
+            let line = format!(
+                "plccoms_poll_start_late_seconds_bucket{{section=\"a\",le=\"{le}\"}} {count}\n"
+            );
+            assert!(text.contains(&line), "{line} in {text}");
+        }
+        assert!(text.contains("plccoms_poll_start_late_seconds_count{section=\"a\"} 3\n"));
+        // Next to the missed cycles, each family once.
+        let late = text.find("# TYPE plccoms_poll_start_late_seconds").unwrap();
+        assert!(text.find("# TYPE plccoms_poll_overruns_total").unwrap() < late);
+        assert_eq!(
+            text.matches("# TYPE plccoms_poll_start_late_seconds")
+                .count(),
+            1
+        );
+    }
+
+    struct Never;
+    impl SectionProbe for Never {
         fn max_output_queue(&self) -> u64 {
             0
         }

@@ -4,6 +4,8 @@ complete -c plcsim -l fixed -d 'Fixed public file; checked to place __PLC_RUN at
 complete -c plcsim -l files -d 'Directory served as the PLC\'s file system (paths confined to it). Without it, file services answer "service not activated"' -r -F
 complete -c plcsim -l program -d 'PLC program: `demo` (manual chapter 6.1: dat, tim, c, sinus, cosinus, positive, text) or `idle` (none)' -r
 complete -c plcsim -l animate -d 'Make every variable matching MASK change every cycle (`*` wildcard, case-insensitive; repeatable): integers ramp, reals follow a sine, BOOLs toggle, STRINGs count, times advance' -r
+complete -c plcsim -l change-rate -d 'Change only this fraction of the animated variables per second, in turn (0.1 with 100,000 animated: 10,000 changes a second), each to a value it did not hold before; `status` on the control port counts them. Without it every animated variable changes every cycle' -r
+complete -c plcsim -l devices -d 'Serve this many devices from one process, each with its own memory and program, on consecutive ports from the --bind, --modbus, --s7 or --ads port (Modbus: the first port also serves device k as unit id k). The control port\'s commands apply to all, or with `device <i>` to one' -r
 complete -c plcsim -l loss -d 'Fraction of incoming packets to drop (0.0 - 1.0)' -r
 complete -c plcsim -l latency -d 'Delay every answer by this many milliseconds' -r
 complete -c plcsim -l control -d 'Loopback TCP address for run-time control (see below)' -r

@@ -54,6 +54,21 @@ pub struct Args {
     #[arg(long, value_name = "MASK")]
     pub animate: Vec<String>,
 
+    /// Change only this fraction of the animated variables per second, in
+    /// turn (0.1 with 100,000 animated: 10,000 changes a second), each to a
+    /// value it did not hold before; `status` on the control port counts
+    /// them. Without it every animated variable changes every cycle.
+    #[arg(long, value_name = "FRACTION", value_parser = parse_fraction, requires = "animate")]
+    pub change_rate: Option<f64>,
+
+    /// Serve this many devices from one process, each with its own memory
+    /// and program, on consecutive ports from the --bind, --modbus, --s7 or
+    /// --ads port (Modbus: the first port also serves device k as unit id
+    /// k). The control port's commands apply to all, or with `device <i>`
+    /// to one.
+    #[arg(long, default_value_t = 1, value_name = "N", value_parser = clap::value_parser!(u16).range(1..), conflicts_with = "serial")]
+    pub devices: u16,
+
     /// Fraction of incoming packets to drop (0.0 - 1.0).
     #[arg(long, default_value_t = 0.0, value_name = "FRACTION", value_parser = parse_fraction)]
     pub loss: f64,
@@ -134,7 +149,9 @@ Control port commands (one a line, answered OK or ERR <why>):
                       served under its own name (with --modbus, --s7: a tag file)
   program demo|idle   switch the PLC program
   animate <mask>...   animate these variables (none: stop)
-  status              show state";
+  status              show state (and, over all devices, the changes made)
+  device <i> <cmd>    a command for device i (from 0) alone; without it a
+                      command applies to every device of --devices";
 
 fn parse_fraction(text: &str) -> Result<f64, String> {
     let value: f64 = text

@@ -13,7 +13,13 @@
 //! animate <mask>... animate these variables (none: stop animating)
 //! status            OK run|halt crc=XXXXXXXX loss=.. latency=.. program=..
 //!                   rx_bytes=.. tx_bytes=.. rx_frames=.. tx_frames=.. rx_skipped=..
+//!                   devices=.. changes=..
+//! device <i> <cmd>  any command for device i (from 0) alone
 //! ```
+//!
+//! A simulator of several devices (`--devices`) applies a command without
+//! `device` to all of them; `status` then shows the first device, and
+//! `changes` (variable changes the animation made) counts all.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -29,7 +35,7 @@ const MAX_LINE: usize = 4096;
 /// Control connections served at once.
 const MAX_CLIENTS: usize = 8;
 
-pub(crate) async fn serve(listener: TcpListener, shared: Arc<Shared>) {
+pub(crate) async fn serve(listener: TcpListener, devices: Arc<[Arc<Shared>]>) {
     let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CLIENTS));
     loop {
         let Ok((stream, _)) = listener.accept().await else {
@@ -39,15 +45,15 @@ pub(crate) async fn serve(listener: TcpListener, shared: Arc<Shared>) {
         let Ok(permit) = slots.clone().try_acquire_owned() else {
             continue;
         };
-        let shared = shared.clone();
+        let devices = devices.clone();
         tokio::spawn(async move {
-            let _ = client(stream, &shared).await;
+            let _ = client(stream, &devices).await;
             drop(permit);
         });
     }
 }
 
-async fn client(stream: TcpStream, shared: &Shared) -> std::io::Result<()> {
+async fn client(stream: TcpStream, devices: &[Arc<Shared>]) -> std::io::Result<()> {
     let (read, mut write) = stream.into_split();
     let mut reader = BufReader::new(read);
     let mut line = Vec::new();
@@ -76,7 +82,7 @@ async fn client(stream: TcpStream, shared: &Shared) -> std::io::Result<()> {
             }
             "ERR line too long".to_string()
         } else {
-            match command(String::from_utf8_lossy(&line).trim(), shared) {
+            match command_all(String::from_utf8_lossy(&line).trim(), devices) {
                 Ok(text) => text,
                 Err(why) => format!("ERR {why}"),
             }
@@ -86,8 +92,38 @@ async fn client(stream: TcpStream, shared: &Shared) -> std::io::Result<()> {
     }
 }
 
-/// Runs one command line.
-pub(crate) fn command(line: &str, shared: &Shared) -> Result<String, String> {
+/// Runs one command line on every device, or on the one `device <i>` names.
+pub(crate) fn command_all(line: &str, devices: &[Arc<Shared>]) -> Result<String, String> {
+    let (word, rest) = line.split_once(char::is_whitespace).unwrap_or((line, ""));
+    if word.eq_ignore_ascii_case("device") {
+        let (index, rest) = rest
+            .trim()
+            .split_once(char::is_whitespace)
+            .unwrap_or((rest.trim(), ""));
+        let index: usize = index
+            .parse()
+            .map_err(|_| format!("bad device number '{index}'"))?;
+        let device = devices
+            .get(index)
+            .ok_or_else(|| format!("no device {index} (0..{})", devices.len()))?;
+        return command(rest.trim(), device, std::slice::from_ref(device));
+    }
+    let mut answer = Err("no device".to_string());
+    for (i, device) in devices.iter().enumerate() {
+        let this = command(line, device, devices);
+        if i == 0 {
+            answer = this;
+        }
+        // A command one device refuses, all refuse (same arguments).
+        if answer.is_err() || word.eq_ignore_ascii_case("status") {
+            break;
+        }
+    }
+    answer
+}
+
+/// Runs one command line on `shared`; `status` counts `all`.
+fn command(line: &str, shared: &Shared, all: &[Arc<Shared>]) -> Result<String, String> {
     let (word, rest) = line.split_once(char::is_whitespace).unwrap_or((line, ""));
     let rest = rest.trim();
     match word.to_ascii_lowercase().as_str() {
@@ -123,7 +159,7 @@ pub(crate) fn command(line: &str, shared: &Shared) -> Result<String, String> {
         "status" => {
             let state = lock(&shared.state);
             let device = lock(&shared.device);
-            return Ok(format!(
+            let first = format!(
                 "OK {} crc={:08X} loss={} latency={} program={:?} {}",
                 if device.run() { "run" } else { "halt" },
                 device.pf_crc(),
@@ -131,7 +167,10 @@ pub(crate) fn command(line: &str, shared: &Shared) -> Result<String, String> {
                 state.latency.as_millis(),
                 state.program.kind(),
                 shared.line.text(),
-            ));
+            );
+            drop((state, device));
+            let changes: u64 = all.iter().map(|d| d.changes()).sum();
+            return Ok(format!("{first} devices={} changes={changes}", all.len()));
         }
         "" => return Err("empty command".into()),
         other => return Err(format!("unknown command '{other}'")),

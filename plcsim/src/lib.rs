@@ -105,6 +105,12 @@ pub struct SimConfig {
     /// instead of EPSNET, when not empty (the memory and `pubfile` as with
     /// `modbus`).
     pub modbus_rtu: Vec<u8>,
+    /// Devices served, each with its own memory and program, on
+    /// consecutive ports from the address's port (port 0: each its own).
+    pub devices: usize,
+    /// Fraction of the animated variables changed per second, in turn
+    /// (see [`Program::with_rate`]); `None`: all of them every cycle.
+    pub change_rate: Option<f64>,
 }
 
 impl Default for SimConfig {
@@ -128,6 +134,8 @@ impl Default for SimConfig {
             s7: None,
             ads: None,
             modbus_rtu: Vec::new(),
+            devices: 1,
+            change_rate: None,
         }
     }
 }
@@ -249,7 +257,8 @@ impl Shared {
             vars,
             &state.program.masks(),
             state.cycle_ms,
-        );
+        )
+        .replacing(&state.program);
         state.program = program;
         lock(&self.device).set_pf_crc(crc);
         crc
@@ -262,7 +271,12 @@ impl Shared {
             state.program.vars().to_vec(),
             masks,
             state.cycle_ms,
-        );
+        )
+        .replacing(&state.program);
+    }
+
+    fn changes(&self) -> u64 {
+        lock(&self.state).program.changes()
     }
 
     /// One PLC cycle: the program runs only in RUN.
@@ -339,12 +353,10 @@ impl Shared {
 
 /// Serves each connection `listener` accepts with `connection`, in a task
 /// of its own (the TCP devices: Modbus, S7).
-pub(crate) async fn accept<F, Fut>(
-    listener: tokio::net::TcpListener,
-    shared: Arc<Shared>,
-    connection: F,
-) where
-    F: Fn(tokio::net::TcpStream, Arc<Shared>) -> Fut,
+pub(crate) async fn accept<S, F, Fut>(listener: tokio::net::TcpListener, shared: S, connection: F)
+where
+    S: Clone,
+    F: Fn(tokio::net::TcpStream, S) -> Fut,
     Fut: std::future::Future<Output = ()> + Send + 'static,
 {
     loop {
@@ -360,15 +372,24 @@ pub(crate) async fn accept<F, Fut>(
     }
 }
 
-/// A running simulator. Dropping it stops every task of it.
-pub struct SimHandle {
+/// One simulated device of a running simulator.
+struct Unit {
     local_addr: SocketAddr,
-    control_addr: Option<SocketAddr>,
     shared: Arc<Shared>,
+}
+
+/// A running simulator: one device, or [`SimConfig::devices`] of them on
+/// consecutive ports. The single-device methods act on the first.
+/// Dropping it stops every task of it.
+pub struct SimHandle {
+    units: Vec<Unit>,
+    control_addr: Option<SocketAddr>,
     tasks: Vec<JoinHandle<()>>,
 }
 
-/// Starts a simulated PLC in the current tokio runtime.
+/// Starts a simulated PLC (or [`SimConfig::devices`] of them, all in this
+/// runtime, one task a device and one program task for all) in the
+/// current tokio runtime.
 pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     let pub_bytes = match &config.pubfile {
         PubSource::Bytes(bytes) => bytes.clone(),
@@ -376,6 +397,13 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     };
     if let Some(path) = &config.fixed {
         check_fixed(&std::fs::read(path).map_err(|e| with_path(e, path))?);
+    }
+    let count = config.devices.max(1);
+    if count > 1 && config.serial.is_some() {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            "several devices need a network address, not a serial line",
+        ));
     }
     let modbus = config.modbus.is_some() || !config.modbus_rtu.is_empty();
     let map = if modbus {
@@ -385,26 +413,6 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     } else {
         config.map
     };
-    let mut device = Device::new(map);
-    device.ident = config.ident.clone();
-    if let Some(dir) = &config.files {
-        let mut files = FileStore::open(dir).map_err(|e| with_path(e, dir))?;
-        if let PubSource::Path(path) = &config.pubfile {
-            let name = path
-                .file_name()
-                .and_then(|n| n.to_str())
-                .unwrap_or_default();
-            files
-                .set_program_file(name, pub_bytes.clone())
-                .map_err(|e| {
-                    io::Error::new(
-                        io::ErrorKind::InvalidInput,
-                        format!("{}: {e}", path.display()),
-                    )
-                })?;
-        }
-        device.files = Some(files);
-    }
     let cycle_ms = config.cycle.as_millis().clamp(1, 60_000) as u64;
     let (vars, crc) = if modbus {
         load_tags_bytes(&pub_bytes)
@@ -413,88 +421,159 @@ pub async fn spawn(config: SimConfig) -> io::Result<SimHandle> {
     } else {
         load_pub_bytes(&pub_bytes)
     };
-    device.set_pf_crc(crc);
-    let shared = Arc::new(Shared {
-        device: Arc::new(Mutex::new(device)),
-        state: Mutex::new(SimState {
-            loss: 0.0,
-            latency: Duration::ZERO,
-            clock_offset: 0.0,
-            program: Program::new(config.program, vars, &config.animate, cycle_ms),
-            rng: config.seed.map(Rng::new).unwrap_or_else(Rng::from_time),
-            cycle_ms,
-        }),
-        line: serial::LineStats::default(),
-        modbus,
-        s7: config.s7.is_some(),
-    });
-    shared.set_loss(config.loss);
-    shared.set_latency(config.latency);
-    // A PLC has run its program before anyone can read it: without this the
-    // first datagram may be answered before the first timer tick.
-    shared.cycle();
+    let mut devices = Vec::with_capacity(count);
+    for index in 0..count {
+        let mut device = Device::new(map);
+        device.ident = config.ident.clone();
+        if let Some(dir) = &config.files {
+            let mut files = FileStore::open(dir).map_err(|e| with_path(e, dir))?;
+            if let PubSource::Path(path) = &config.pubfile {
+                let name = path
+                    .file_name()
+                    .and_then(|n| n.to_str())
+                    .unwrap_or_default();
+                files
+                    .set_program_file(name, pub_bytes.clone())
+                    .map_err(|e| {
+                        io::Error::new(
+                            io::ErrorKind::InvalidInput,
+                            format!("{}: {e}", path.display()),
+                        )
+                    })?;
+            }
+            device.files = Some(files);
+        }
+        device.set_pf_crc(crc);
+        let shared = Arc::new(Shared {
+            device: Arc::new(Mutex::new(device)),
+            state: Mutex::new(SimState {
+                loss: 0.0,
+                latency: Duration::ZERO,
+                clock_offset: 0.0,
+                program: Program::new(config.program, vars.clone(), &config.animate, cycle_ms)
+                    .with_rate(config.change_rate),
+                rng: match config.seed {
+                    Some(seed) => Rng::new(seed.wrapping_add(index as u64)),
+                    None => Rng::from_time(),
+                },
+                cycle_ms,
+            }),
+            line: serial::LineStats::default(),
+            modbus,
+            s7: config.s7.is_some(),
+        });
+        shared.set_loss(config.loss);
+        shared.set_latency(config.latency);
+        // A PLC has run its program before anyone can read it: without this
+        // the first datagram may be answered before the first timer tick.
+        shared.cycle();
+        devices.push(shared);
+    }
+    let all: Arc<[Arc<Shared>]> = devices.clone().into();
 
+    // One timer for all devices: a thousand 10 ms timers would cost more
+    // than the devices' work.
     let mut tasks = vec![tokio::spawn(run_program(
-        shared.clone(),
+        all.clone(),
         Duration::from_millis(cycle_ms),
     ))];
-    let local_addr = match (&config.serial, config.modbus) {
-        (None, None) if config.ads.is_some() => {
-            let listener = tokio::net::TcpListener::bind(config.ads.expect("checked")).await?;
-            let local = listener.local_addr()?;
-            tasks.push(tokio::spawn(ads::serve(listener, shared.clone())));
-            local
-        }
-        (Some(line), _) if !config.modbus_rtu.is_empty() => {
-            let port = serial::open(line)?;
-            tasks.push(tokio::spawn(modbus::serve_rtu(
-                port,
-                line.clone(),
-                config.modbus_rtu.clone(),
-                shared.clone(),
-            )));
-            SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0))
-        }
-        (Some(line), _) => {
-            let port = serial::open(line)?;
-            tasks.push(tokio::spawn(serial::serve(
-                port,
-                line.clone(),
-                shared.clone(),
-            )));
-            SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0))
-        }
-        (None, Some(addr)) => {
-            let listener = tokio::net::TcpListener::bind(addr).await?;
-            let local = listener.local_addr()?;
-            tasks.push(tokio::spawn(modbus::serve(listener, shared.clone())));
-            local
-        }
-        (None, None) if config.s7.is_some() => {
-            let listener = tokio::net::TcpListener::bind(config.s7.unwrap_or(config.bind)).await?;
-            let local = listener.local_addr()?;
-            tasks.push(tokio::spawn(s7::serve(listener, shared.clone())));
-            local
-        }
-        (None, None) => {
-            let socket = Arc::new(UdpSocket::bind(config.bind).await?);
-            let local = socket.local_addr()?;
-            tasks.push(tokio::spawn(serve(socket, shared.clone())));
-            local
-        }
-    };
+    let mut units = Vec::with_capacity(count);
+    for (index, shared) in devices.into_iter().enumerate() {
+        let at = |addr: SocketAddr| -> io::Result<SocketAddr> {
+            let port = match addr.port() {
+                0 => Some(0),
+                port => u16::try_from(usize::from(port) + index).ok(),
+            };
+            port.map(|port| SocketAddr::new(addr.ip(), port))
+                .ok_or_else(|| {
+                    io::Error::new(
+                        io::ErrorKind::InvalidInput,
+                        format!("{count} devices from port {} pass port 65535", addr.port()),
+                    )
+                })
+        };
+        let local_addr = match (&config.serial, config.modbus) {
+            (None, None) if config.ads.is_some() => {
+                let listener = bind_tcp(at(config.ads.expect("checked"))?).await?;
+                let local = listener.local_addr()?;
+                tasks.push(tokio::spawn(ads::serve(listener, shared.clone())));
+                local
+            }
+            (Some(line), _) if !config.modbus_rtu.is_empty() => {
+                let port = serial::open(line)?;
+                tasks.push(tokio::spawn(modbus::serve_rtu(
+                    port,
+                    line.clone(),
+                    config.modbus_rtu.clone(),
+                    shared.clone(),
+                )));
+                SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0))
+            }
+            (Some(line), _) => {
+                let port = serial::open(line)?;
+                tasks.push(tokio::spawn(serial::serve(
+                    port,
+                    line.clone(),
+                    shared.clone(),
+                )));
+                SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0))
+            }
+            (None, Some(addr)) => {
+                let listener = bind_tcp(at(addr)?).await?;
+                let local = listener.local_addr()?;
+                // The first port also serves every device by unit id.
+                let by_unit: Arc<[Arc<Shared>]> = if index == 0 {
+                    all.clone()
+                } else {
+                    Arc::new([shared.clone()])
+                };
+                tasks.push(tokio::spawn(modbus::serve(listener, by_unit)));
+                local
+            }
+            (None, None) if config.s7.is_some() => {
+                let listener = bind_tcp(at(config.s7.unwrap_or(config.bind))?).await?;
+                let local = listener.local_addr()?;
+                tasks.push(tokio::spawn(s7::serve(listener, shared.clone())));
+                local
+            }
+            (None, None) => {
+                let socket = Arc::new(
+                    UdpSocket::bind(at(config.bind)?)
+                        .await
+                        .map_err(|e| with_addr(e, at(config.bind)))?,
+                );
+                let local = socket.local_addr()?;
+                tasks.push(tokio::spawn(serve(socket, shared.clone())));
+                local
+            }
+        };
+        units.push(Unit { local_addr, shared });
+    }
     let mut control_addr = None;
     if let Some(addr) = config.control {
         let listener = tokio::net::TcpListener::bind(addr).await?;
         control_addr = Some(listener.local_addr()?);
-        tasks.push(tokio::spawn(control::serve(listener, shared.clone())));
+        tasks.push(tokio::spawn(control::serve(listener, all)));
     }
     Ok(SimHandle {
-        local_addr,
+        units,
         control_addr,
-        shared,
         tasks,
     })
+}
+
+/// A TCP listener on `addr`; an error names the address (one of many).
+async fn bind_tcp(addr: SocketAddr) -> io::Result<tokio::net::TcpListener> {
+    tokio::net::TcpListener::bind(addr)
+        .await
+        .map_err(|e| with_addr(e, Ok(addr)))
+}
+
+fn with_addr(e: io::Error, addr: io::Result<SocketAddr>) -> io::Error {
+    match addr {
+        Ok(addr) => io::Error::new(e.kind(), format!("{addr}: {e}")),
+        Err(_) => e,
+    }
 }
 
 fn with_path(e: io::Error, path: &Path) -> io::Error {
@@ -554,12 +633,14 @@ async fn serve(socket: Arc<UdpSocket>, shared: Arc<Shared>) {
     }
 }
 
-async fn run_program(shared: Arc<Shared>, cycle: Duration) {
+async fn run_program(devices: Arc<[Arc<Shared>]>, cycle: Duration) {
     let mut ticks = tokio::time::interval(cycle);
     ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     loop {
         ticks.tick().await;
-        shared.cycle();
+        for shared in devices.iter() {
+            shared.cycle();
+        }
     }
 }
 
@@ -567,12 +648,43 @@ impl SimHandle {
     /// The bound UDP address (the PLC's address for a backend), or the
     /// Modbus TCP address; 0.0.0.0:0 on a serial line.
     pub fn local_addr(&self) -> SocketAddr {
-        self.local_addr
+        self.units[0].local_addr
+    }
+
+    fn first(&self) -> &Shared {
+        &self.units[0].shared
+    }
+
+    /// How many devices it serves.
+    pub fn devices(&self) -> usize {
+        self.units.len()
+    }
+
+    /// Each device's address, in order.
+    pub fn local_addrs(&self) -> Vec<SocketAddr> {
+        self.units.iter().map(|u| u.local_addr).collect()
+    }
+
+    /// Device `index` (memory image, run state, files).
+    pub fn device_at(&self, index: usize) -> Option<Arc<Mutex<Device>>> {
+        self.units.get(index).map(|u| u.shared.device.clone())
+    }
+
+    /// Drops this fraction of device `index`'s requests (1.0: a dead device).
+    pub fn set_loss_at(&self, index: usize, fraction: f64) {
+        if let Some(unit) = self.units.get(index) {
+            unit.shared.set_loss(fraction);
+        }
+    }
+
+    /// Variable changes the animation made so far, all devices together.
+    pub fn changes(&self) -> u64 {
+        self.units.iter().map(|u| u.shared.changes()).sum()
     }
 
     /// Bytes and frames on the serial line (zero over UDP).
     pub fn line_stats(&self) -> &serial::LineStats {
-        &self.shared.line
+        &self.first().line
     }
 
     /// The bound control port, when one was asked for.
@@ -582,43 +694,43 @@ impl SimHandle {
 
     /// The simulated device (memory image, run state, files).
     pub fn device(&self) -> Arc<Mutex<Device>> {
-        self.shared.device.clone()
+        self.first().device.clone()
     }
 
     /// Drops this fraction (0.0..=1.0) of incoming datagrams.
     pub fn set_loss(&self, fraction: f64) {
-        self.shared.set_loss(fraction);
+        self.first().set_loss(fraction);
     }
 
     /// Delays every answer by this much (capped at 60 s).
     pub fn set_latency(&self, latency: Duration) {
-        self.shared.set_latency(latency);
+        self.first().set_latency(latency);
     }
 
     pub fn halt(&self) {
-        self.shared.set_run(false);
+        self.first().set_run(false);
     }
 
     pub fn run(&self) {
-        self.shared.set_run(true);
+        self.first().set_run(true);
     }
 
     pub fn is_running(&self) -> bool {
-        lock(&self.shared.device).run()
+        lock(&self.first().device).run()
     }
 
     pub fn set_program(&self, kind: ProgramKind) {
-        self.shared.set_program(kind);
+        self.first().set_program(kind);
     }
 
     pub fn set_animate(&self, masks: &[String]) {
-        self.shared.set_animate(masks);
+        self.first().set_animate(masks);
     }
 
     /// Loads another public file (another PLC program); returns the new
     /// `__PF_CRC`. The file system serves it in place of the previous one.
     pub fn load_pub(&self, bytes: &[u8]) -> u32 {
-        self.shared.load_pub(bytes, None)
+        self.first().load_pub(bytes, None)
     }
 
     /// As [`SimHandle::load_pub`], the file system serving it under the
@@ -626,11 +738,11 @@ impl SimHandle {
     pub fn load_pub_file(&self, path: &Path) -> io::Result<u32> {
         let bytes = std::fs::read(path).map_err(|e| with_path(e, path))?;
         let name = path.file_name().and_then(|n| n.to_str());
-        Ok(self.shared.load_pub(&bytes, name))
+        Ok(self.first().load_pub(&bytes, name))
     }
 
     pub fn pf_crc(&self) -> u32 {
-        lock(&self.shared.device).pf_crc()
+        lock(&self.first().device).pf_crc()
     }
 
     /// Stops the simulator and waits until its sockets are closed, so the

@@ -35,6 +35,8 @@ async fn main() -> std::process::ExitCode {
         latency: Duration::from_millis(args.latency),
         cycle: Duration::from_millis(args.cycle),
         control: args.control,
+        devices: usize::from(args.devices),
+        change_rate: args.change_rate,
         serial: args.serial.map(|device| plcsim::serial::SerialLine {
             device,
             speed: args.speed,
@@ -74,8 +76,14 @@ async fn main() -> std::process::ExitCode {
             return std::process::ExitCode::FAILURE;
         }
     };
+    let addrs = handle.local_addrs();
+    let more = match addrs.as_slice() {
+        [_] => String::new(),
+        [.., last] => format!(" and {} more to port {}", addrs.len() - 1, last.port()),
+        [] => String::new(),
+    };
     tracing::info!(
-        "plcsim: {} (__PF_CRC {:08X}){}",
+        "plcsim: {}{more} (__PF_CRC {:08X}){}",
         match line {
             Some(line) => line,
             None if args.modbus.is_some() => format!("Modbus TCP on tcp://{}", handle.local_addr()),

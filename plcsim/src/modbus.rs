@@ -38,11 +38,22 @@ use crate::Shared;
 /// Answers of one connection waiting for their latency.
 const MAX_QUEUED: usize = 256;
 
-pub(crate) async fn serve(listener: TcpListener, shared: Arc<Shared>) {
-    crate::accept(listener, shared, connection).await
+/// Serves `units`: one device answers every unit id; of several, unit id
+/// `k` (1..=N) is device `k - 1`, any other the first.
+pub(crate) async fn serve(listener: TcpListener, units: Arc<[Arc<Shared>]>) {
+    crate::accept(listener, units, connection).await
 }
 
-async fn connection(stream: TcpStream, shared: Arc<Shared>) {
+fn by_unit(units: &[Arc<Shared>], unit: u8) -> &Shared {
+    match units {
+        [one] => one,
+        _ => units
+            .get(usize::from(unit).wrapping_sub(1))
+            .unwrap_or(&units[0]),
+    }
+}
+
+async fn connection(stream: TcpStream, units: Arc<[Arc<Shared>]>) {
     let _ = stream.set_nodelay(true);
     let (read, mut write) = stream.into_split();
     let mut frames = FramedRead::new(read, AduDecoder);
@@ -61,6 +72,7 @@ async fn connection(stream: TcpStream, shared: Arc<Shared>) {
     });
     // A stream that cannot be framed ends the connection, as on a device.
     while let Some(Ok(adu)) = frames.next().await {
+        let shared = by_unit(&units, adu.header.unit);
         let Some((answer, latency)) = shared.handle_modbus(&adu) else {
             continue;
         };

@@ -84,6 +84,19 @@ pub struct Program {
     masks: Vec<Vec<u8>>,
     cycle: u64,
     cycle_ms: u64,
+    /// Fraction of the animated variables changed per second, in turn;
+    /// `None`: all of them every cycle.
+    rate: Option<f64>,
+    /// Changes owed to the rate, carried between cycles (less than one).
+    owed: f64,
+    /// The next animated variable to change at a rate.
+    cursor: usize,
+    /// How often each variable was changed at a rate (by its index in
+    /// `vars`): its next value. Kept across new masks, so a variable
+    /// animated again goes on from where it stopped.
+    counts: Vec<u64>,
+    /// Variable changes made by the animation so far.
+    changes: u64,
 }
 
 impl Program {
@@ -113,7 +126,41 @@ impl Program {
             masks,
             cycle: 0,
             cycle_ms: cycle_ms.max(1),
+            rate: None,
+            owed: 0.0,
+            cursor: 0,
+            counts: Vec::new(),
+            changes: 0,
         }
+    }
+
+    /// Changes only `fraction` (0.0..=1.0) of the animated variables per
+    /// second, in turn, each to a value it did not hold before (integers
+    /// count up, BOOLs toggle), so a reader can count the changes made
+    /// ([`Program::changes`]); `None`: every animated variable every cycle.
+    pub fn with_rate(mut self, fraction: Option<f64>) -> Self {
+        self.rate = fraction.map(|f| if f.is_nan() { 0.0 } else { f.clamp(0.0, 1.0) });
+        self.counts = vec![0; self.vars.len()];
+        self
+    }
+
+    /// This program in place of `old`: the same rate, the changes counted on.
+    pub fn replacing(self, old: &Program) -> Self {
+        let mut program = self.with_rate(old.rate);
+        program.changes = old.changes;
+        if program.vars == old.vars && old.counts.len() == program.counts.len() {
+            program.counts.clone_from(&old.counts);
+        }
+        program
+    }
+
+    pub fn rate(&self) -> Option<f64> {
+        self.rate
+    }
+
+    /// Variable changes the animation made so far.
+    pub fn changes(&self) -> u64 {
+        self.changes
     }
 
     pub fn kind(&self) -> ProgramKind {
@@ -150,10 +197,31 @@ impl Program {
         if self.kind == ProgramKind::Demo {
             self.demo_step(image, now);
         }
-        for k in 0..self.animated.len() {
-            let i = self.animated[k];
-            animate(&self.vars[i], image, self.cycle, self.cycle_ms, now, k);
+        let Some(rate) = self.rate else {
+            for k in 0..self.animated.len() {
+                let i = self.animated[k];
+                animate(&self.vars[i], image, self.cycle, self.cycle_ms, now, k);
+            }
+            self.changes += self.animated.len() as u64;
+            return;
+        };
+        let n = self.animated.len();
+        if n == 0 {
+            return;
         }
+        self.owed += rate * n as f64 * self.cycle_ms as f64 / 1000.0;
+        // At most each variable once a cycle: a second change in the same
+        // cycle could never be seen by a reader.
+        let due = (self.owed.floor() as usize).min(n);
+        self.owed = (self.owed - due as f64).min(n as f64);
+        for _ in 0..due {
+            let k = self.cursor;
+            self.cursor = (k + 1) % n;
+            let i = self.animated[k];
+            self.counts[i] += 1;
+            animate(&self.vars[i], image, self.counts[i], self.cycle_ms, now, k);
+        }
+        self.changes += due as u64;
     }
 
     fn demo_step(&self, image: &mut MemoryImage, now: f64) {
@@ -452,5 +520,47 @@ mod tests {
         assert_ne!(first[4..8], second[4..8]);
         assert_eq!(second[8..13], *b"coun\0");
         assert_eq!(second[20..22], [0, 0]);
+    }
+
+    #[test]
+    fn a_change_rate_changes_that_share_in_turn() {
+        let vars: Vec<Var> = (0..100)
+            .map(|i| var(&format!("v{i}"), 2 * i, None, IecType::Int))
+            .collect();
+        let mut image = MemoryImage::new(MemoryMap::FOXTROT);
+        // 10 % of 100 a second at 100 ms cycles: one variable a cycle.
+        let mut program =
+            Program::new(ProgramKind::Idle, vars, &["v*".into()], 100).with_rate(Some(0.1));
+        let before = image.area(Area::R)[..200].to_vec();
+        for _ in 0..10 {
+            program.step(&mut image, 0.0);
+        }
+        let after = image.area(Area::R)[..200].to_vec();
+        let changed = (0..100)
+            .filter(|i| before[2 * i..2 * i + 2] != after[2 * i..2 * i + 2])
+            .count();
+        assert_eq!(changed, 10);
+        assert_eq!(program.changes(), 10);
+        assert_eq!(after[0..2], [1, 0]);
+        // Around again: each variable counts on to a value it did not hold.
+        for _ in 0..100 {
+            program.step(&mut image, 0.0);
+        }
+        assert_eq!(program.changes(), 110);
+        assert_eq!(image.area(Area::R)[0..2], [2, 0]);
+        assert_eq!(image.area(Area::R)[20..22], [1, 0]);
+        // Stopped and animated again: on from where each variable stood.
+        let stopped =
+            Program::new(ProgramKind::Idle, program.vars().to_vec(), &[], 100).replacing(&program);
+        let mut again = Program::new(
+            ProgramKind::Idle,
+            stopped.vars().to_vec(),
+            &["v*".into()],
+            100,
+        )
+        .replacing(&stopped);
+        again.step(&mut image, 0.0);
+        assert_eq!(image.area(Area::R)[0..2], [3, 0]);
+        assert_eq!(again.changes(), 111);
     }
 }

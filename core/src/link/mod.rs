@@ -395,12 +395,17 @@ impl Link {
         self.deadline = Instant::now();
         loop {
             let deadline = self.deadline;
+            // A dedicated thread wakes early and sleeps the rest precisely.
+            let wake = match self.own_thread {
+                true => deadline.checked_sub(TIMER_SLACK).unwrap_or(deadline),
+                false => deadline,
+            };
             tokio::select! {
                 biased;
                 _ = self.stop.cancelled() => break,
                 // A due cycle goes before queued requests, so a flood of
                 // them cannot delay polling.
-                _ = tokio::time::sleep_until(deadline.checked_sub(TIMER_SLACK).unwrap_or(deadline)) => {
+                _ = tokio::time::sleep_until(wake) => {
                     // tokio's timer has millisecond granularity; on a
                     // dedicated thread the last stretch is slept precisely,
                     // on the shared pool it is waited out by the timer.
@@ -412,6 +417,7 @@ impl Link {
                             tokio::time::sleep_until(deadline).await;
                         }
                     }
+                    self.metrics.poll_start_late.observe(Instant::now().saturating_duration_since(deadline));
                     self.tick().await;
                     if !self.held.is_empty() {
                         let held: Vec<Job> = self.held.drain(..).collect();
