@@ -805,6 +805,42 @@ async fn tag_file_units_ranges_percent_deadband_and_a_live_edit() {
     server.shutdown().await;
 }
 
+/// Part 4: an item without a DataChangeFilter reports changes of value or
+/// status. A lost link (status only, the value unchanged at the PLC)
+/// reaches it as BadNoCommunication (the value null, as Part 4 has a Bad
+/// DataValue's), and the value comes back with the link.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_lost_link_reaches_a_subscriber_without_a_filter() {
+    let ua = Ua::start("", "").await;
+    let mut c = ua.telnet().await;
+    set(&mut c, "V_DINT", "7").await;
+    let (mut sub, ready) = Subscription::start(
+        &ua.url,
+        &[],
+        "subscribe",
+        &["PLC.V_DINT", "none", "0", "12"],
+    )
+    .await;
+    assert_eq!(ready["status"], "Good");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    ua.sim.set_loss(1.0);
+    until_link(&ua, "lost").await;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    ua.sim.set_loss(0.0);
+    until_link(&ua, "online").await;
+    let values = sub.values().await;
+    // 7 (stale until a poll reads it, then Good), Bad, 7 Good again.
+    let bad = values
+        .iter()
+        .position(|v| v["status"] == "BadNoCommunication")
+        .unwrap_or_else(|| panic!("no BadNoCommunication: {values:?}"));
+    assert!(bad > 0 && values[bad - 1]["value"] == 7, "{values:?}");
+    assert_eq!(values[bad]["value"], Value::Null, "{values:?}");
+    let good = |v: &Value| v["status"] == "Good" && v["value"] == 7;
+    assert!(values[bad..].iter().any(good), "not back: {values:?}");
+    ua.server.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn a_history_stamp_pair_gives_the_plcs_time_as_source_timestamp() {
     let ua = Ua::start("", "HISTORY_STAMP = V_DINT:V_LINT").await;
