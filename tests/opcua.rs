@@ -805,6 +805,51 @@ async fn tag_file_units_ranges_percent_deadband_and_a_live_edit() {
     server.shutdown().await;
 }
 
+/// An overloaded subscription says so, and holds no other back: one that
+/// publishes every 2 s with a queue of 3 sees the Overflow bit and the last
+/// value; another on the same variable, publishing every 20 ms, gets every
+/// value, once.
+#[tokio::test(flavor = "multi_thread")]
+async fn an_overflowing_queue_says_so_and_holds_no_other_subscription_back() {
+    let ua = Ua::start("", "").await;
+    let mut c = ua.telnet().await;
+    set(&mut c, "COUNTER", "0").await;
+    let (mut slow, ready) = Subscription::start(
+        &ua.url,
+        &[],
+        "subscribe",
+        &["PLC.COUNTER", "absolute", "0", "8", "2000", "3"],
+    )
+    .await;
+    assert_eq!(ready["revised_queue"], 3, "{ready}");
+    let (mut fast, _) = Subscription::start(
+        &ua.url,
+        &[],
+        "subscribe",
+        &["PLC.COUNTER", "absolute", "0", "8"],
+    )
+    .await;
+    for n in 1..=30 {
+        set(&mut c, "COUNTER", &n.to_string()).await;
+        tokio::time::sleep(Duration::from_millis(60)).await;
+    }
+    let fast = fast.values().await;
+    let slow = slow.values().await;
+    let good = |values: &[Value]| -> Vec<i64> {
+        values
+            .iter()
+            .filter(|v| v["status"] == "Good")
+            .map(|v| v["value"].as_i64().unwrap())
+            .collect()
+    };
+    assert_eq!(good(&fast), (0..=30).collect::<Vec<_>>(), "{fast:?}");
+    assert!(fast.iter().all(|v| v["overflow"] == false), "{fast:?}");
+    assert!(slow.iter().any(|v| v["overflow"] == true), "{slow:?}");
+    assert_eq!(good(&slow).last(), Some(&30), "{slow:?}");
+    assert!(slow.len() < fast.len(), "{slow:?}");
+    ua.server.shutdown().await;
+}
+
 /// Part 4: an item without a DataChangeFilter reports changes of value or
 /// status. A lost link (status only, the value unchanged at the PLC)
 /// reaches it as BadNoCommunication (the value null, as Part 4 has a Bad
