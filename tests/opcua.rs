@@ -901,8 +901,7 @@ async fn a_history_stamp_pair_gives_the_plcs_time_as_source_timestamp() {
     )
     .await;
     let values = sub.values().await;
-    // The first value (async-opcua moves a later value's SourceTimestamp
-    // forward by the sampling interval when two come closer than it).
+    // The first value.
     assert_eq!(values[0]["value"], 5, "{values:?}");
     assert_eq!(
         values[0]["source_ts"], "2023-11-14T22:13:20.123000+00:00",

@@ -1,4 +1,4 @@
-//! bench-opcua: one OPC UA client (async-opcua's) that drives any OPC UA
+//! bench-opcua-server: one OPC UA client (async-opcua's) that drives any OPC UA
 //! server the same way, for `bench/run`'s plccoms vs node-opcua rows.
 //!
 //! Against the folder `--folder` (a STRING NodeId in namespace `--ns`):
@@ -34,7 +34,7 @@ use opcua::types::{
 };
 
 #[derive(Debug, Parser)]
-#[command(name = "bench-opcua")]
+#[command(name = "bench-opcua-server")]
 struct Args {
     /// Endpoint (security None, anonymous).
     #[arg(long)]
@@ -218,8 +218,8 @@ async fn connect(args: &Args, pki: &std::path::Path) -> Result<Arc<Session>, Fai
     // 10,000 notifications; bounded all the same.
     const MAX_MESSAGE: usize = 256 * 1024 * 1024;
     let mut client = ClientBuilder::new()
-        .application_name("bench-opcua")
-        .application_uri("urn:plccoms:bench-opcua")
+        .application_name("bench-opcua-server")
+        .application_uri("urn:plccoms:bench-opcua-server")
         .product_uri("urn:plccoms")
         .pki_dir(pki)
         .create_sample_keypair(false)
@@ -245,7 +245,7 @@ async fn connect(args: &Args, pki: &std::path::Path) -> Result<Arc<Session>, Fai
     session.disable_reconnects();
     tokio::spawn(async move {
         let ended = event_loop.run().await;
-        eprintln!("bench-opcua: session ended: {ended}");
+        eprintln!("bench-opcua-server: session ended: {ended}");
     });
     if !tokio::time::timeout(Duration::from_secs(30), session.wait_for_connection())
         .await
@@ -334,13 +334,21 @@ async fn run(args: Args) -> Result<(), Fail> {
         lines: Vec::new(),
     };
     let session = connect(&args, pki.path()).await?;
-    let ns = namespace_index(&session, &args.ns).await?;
+    // A server just started may not have its namespace and variables yet
+    // (plccoms: the PLC's table): ask again until they are all there.
+    let deadline = Instant::now() + Duration::from_secs(args.wait);
+    let ns = loop {
+        match namespace_index(&session, &args.ns).await {
+            Err(e) if Instant::now() < deadline => {
+                eprintln!("bench-opcua-server: {e}; asking again");
+                tokio::time::sleep(Duration::from_millis(500)).await;
+            }
+            other => break other?,
+        }
+    };
     let folder = NodeId::new(ns, args.folder.clone());
 
-    // A server just started may not have its variables yet (plccoms: the
-    // PLC's table): browse again until they are all there.
     let items = args.subscriptions * args.per_subscription;
-    let deadline = Instant::now() + Duration::from_secs(args.wait);
     let (mut nodes, browse_time, browse_all) = loop {
         let found = browse(&session, folder.clone(), args.browse).await?;
         if found.0.len() >= items.max(args.read) || Instant::now() > deadline {
@@ -544,7 +552,8 @@ async fn run(args: Args) -> Result<(), Fail> {
             writeln!(f, "{line}")?;
         }
     }
-    let _ = session.disconnect().await;
+    // A server that does not answer CloseSession must not hold the run.
+    let _ = tokio::time::timeout(Duration::from_secs(5), session.disconnect()).await;
     Ok(())
 }
 
@@ -552,7 +561,7 @@ async fn run(args: Args) -> Result<(), Fail> {
 async fn main() {
     let args = Args::parse();
     if let Err(e) = run(args).await {
-        eprintln!("bench-opcua: {e}");
+        eprintln!("bench-opcua-server: {e}");
         std::process::exit(1);
     }
 }
