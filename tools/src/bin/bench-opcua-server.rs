@@ -500,8 +500,25 @@ async fn run(args: Args) -> Result<(), Fail> {
     if let Some(s) = sampler {
         s.abort();
     }
-    // Values first seen at the window's end may still be on their way.
-    tokio::time::sleep(Duration::from_millis(3 * args.publish_ms + 1000)).await;
+    // Values first seen in the window may still be on their way: wait until
+    // every changing item has passed the last of them (each item's values
+    // arrive in order), or 60 s.
+    let drain = Instant::now();
+    while drain.elapsed() < Duration::from_secs(60) {
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let st = stats.lock().unwrap_or_else(|e| e.into_inner());
+        let Some(&top) = st.seen.keys().max() else {
+            break;
+        };
+        let passed = st
+            .changing
+            .iter()
+            .zip(&st.last)
+            .all(|(&c, &last)| !c || last.is_some_and(|v| v > top));
+        if passed {
+            break;
+        }
+    }
 
     {
         let mut guard = stats.lock().unwrap_or_else(|e| e.into_inner());
@@ -515,6 +532,7 @@ async fn run(args: Args) -> Result<(), Fail> {
             .map(|w| w[1].saturating_sub(w[0]).saturating_sub(1))
             .sum();
         report.metric("notifications_per_s", st.notifications as f64 / measured);
+        report.metric("drain_s", drain.elapsed().as_secs_f64());
         report.metric("counter_values", values.len() as f64);
         report.metric("lost", expected.saturating_sub(received) as f64);
         report.metric("source_skipped", skipped as f64);
