@@ -5,9 +5,12 @@ prints JSON lines on stdout; a failure to connect prints
 
   client.py browse URL                       the tree under plccoms, every variable read
   client.py write URL NODE TYPE VALUE        one Write; prints its StatusCode's name
-  client.py subscribe URL NODE KIND DEADBAND SECONDS
+  client.py subscribe URL NODE KIND DEADBAND SECONDS [PUBLISH_MS QUEUE]
                                              one monitored item (KIND none, absolute,
-                                             percent); prints "ready", then each value
+                                             percent; publishing every 20 ms and a
+                                             queue of 1000 unless given); prints
+                                             "ready", then each value (with "overflow":
+                                             the StatusCode's Overflow bit, 0x80)
   client.py history URL NODE FROM_MS TO_MS PER_PAGE
                                              HistoryRead raw, page by page (--bounds:
                                              with ReturnBounds)
@@ -156,7 +159,11 @@ class Handler:
 
     def datachange_notification(self, node, val, data):
         dv = data.monitored_item.Value
-        self.values.put_nowait({"value": plain(val), "status": status_name(dv.StatusCode),
+        code = dv.StatusCode.value
+        # The name of the code (its upper 16 bits), and the Overflow bit
+        # (0x80; async-opcua 0.19 sets it without InfoType DataValue, 0x400).
+        self.values.put_nowait({"value": plain(val), "status": status_name(code & 0xFFFF0000),
+                                "overflow": bool(code & 0x80),
                                 "source_ts": plain(dv.SourceTimestamp)})
 
 
@@ -164,12 +171,12 @@ async def subscribe(client, args):
     ns = await client.get_namespace_index("urn:plccoms")
     node = client.get_node(ua.NodeId(args.node, ns))
     handler = Handler()
-    sub = await client.create_subscription(20, handler)
+    sub = await client.create_subscription(int(getattr(args, "publish_ms", 20)), handler)
     kind = {"none": 0, "absolute": 1, "percent": 2}[args.kind]
     params = ua.MonitoringParameters()
     params.ClientHandle = 1
     params.SamplingInterval = 0
-    params.QueueSize = 1000
+    params.QueueSize = int(getattr(args, "queue", 1000))
     params.DiscardOldest = True
     if kind:
         flt = ua.DataChangeFilter()
@@ -346,7 +353,7 @@ async def main():
     args = parser.parse_args()
     names = {
         "browse": [], "write": ["node", "type", "value"],
-        "subscribe": ["node", "kind", "deadband", "seconds"],
+        "subscribe": ["node", "kind", "deadband", "seconds", "publish_ms", "queue"],
         "history": ["node", "from_ms", "to_ms", "per_page"], "hold": ["node"],
         "makecert": [], "events": ["seconds"], "watch": ["nodes"], "read": ["node"], "paths": ["section", "variable", "page"],
     }[args.command]

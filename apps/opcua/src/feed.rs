@@ -143,14 +143,9 @@ impl Feed {
         let (ids, values): (Vec<NodeId>, Vec<DataValue>) = updates.into_iter().unzip();
         let _ = self.manager.set_values(
             &self.subscriptions,
-            ids.iter().zip(values).map(|(node, mut value)| {
-                // The stack hands monitored items the node's value as read
-                // back, which drops the status of a value-less one (a
-                // variable not read yet would reach them as Good): an
-                // empty Variant keeps it.
-                value.value.get_or_insert(Variant::Empty);
-                (node, None, value)
-            }),
+            ids.iter()
+                .zip(values)
+                .map(|(node, value)| (node, None, space::notified(value))),
         );
     }
 }

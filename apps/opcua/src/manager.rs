@@ -274,7 +274,7 @@ impl InMemoryNodeManagerImpl for Manager {
                         w.seq = snapshot.slot(id).changed_seq;
                         w.quality = Some(snapshot.quality(id));
                     }
-                    item.set_initial_value(value);
+                    item.set_initial_value(space::notified(value));
                     item.set_status(StatusCode::Good);
                 }
                 Some(_) => item.set_status(StatusCode::Good),

@@ -539,6 +539,23 @@ pub fn data_value(
     }
 }
 
+/// `value` as monitored items get it: a Bad one without its value (Part 4,
+/// DataValue: a Server sets the value of a Bad DataValue to null), which
+/// is also what makes async-opcua 0.19 report a lost link to an item
+/// without a DataChangeFilter: it compares only the values of those, not
+/// the statuses (Part 4's default trigger is StatusValue). Read keeps the
+/// last value with its Bad status. A value-less one gets an empty Variant:
+/// the stack hands items the node's value as read back, which drops the
+/// status of a value-less one (a variable not read yet would reach them as
+/// Good).
+pub fn notified(mut value: DataValue) -> DataValue {
+    if value.status.is_some_and(|s| s.is_bad()) {
+        value.value = Some(Variant::Empty);
+    }
+    value.value.get_or_insert(Variant::Empty);
+    value
+}
+
 /// A good value read now.
 pub fn good_now(value: Variant) -> DataValue {
     let now = DateTime::now();
