@@ -42,8 +42,12 @@ use std::time::{Duration, Instant};
 use common::mqtt::signal;
 use common::process::{free_port, which, ChildGuard, ServerProcess};
 
-/// Longest wait for the cluster, a gateway or the last values.
-const DEADLINE: Duration = Duration::from_secs(90);
+/// Longest wait for the cluster, a gateway or the last values:
+/// `FLEET_WAIT_S`, 90 s by default (1,000 sections on a loaded machine
+/// take longer to start).
+fn deadline() -> Duration {
+    Duration::from_secs(env_size("FLEET_WAIT_S", 90) as u64)
+}
 /// Sanity bound of a failover (the goal is 5 s; this only catches a hang).
 const FAILOVER_BOUND: Duration = Duration::from_secs(30);
 
@@ -53,6 +57,20 @@ fn env_size(name: &str, default: usize) -> usize {
         .and_then(|v| v.parse().ok())
         .filter(|&n| n > 0)
         .unwrap_or(default)
+}
+
+/// A free loopback port this test has not handed out yet: `free_port`
+/// alone may give one twice in a thousand calls (it holds none).
+fn port() -> u16 {
+    static GIVEN: Mutex<Vec<u16>> = Mutex::new(Vec::new());
+    let mut given = GIVEN.lock().unwrap();
+    loop {
+        let port = free_port();
+        if !given.contains(&port) {
+            given.push(port);
+            return port;
+        }
+    }
 }
 
 fn nats_bin() -> PathBuf {
@@ -115,7 +133,7 @@ impl Node {
         let start = Instant::now();
         while !self.takes_qos1() {
             assert!(
-                start.elapsed() < DEADLINE,
+                start.elapsed() < deadline(),
                 "{} does not take QoS 1 messages; its log:\n{}",
                 self.name,
                 std::fs::read_to_string(&self.log).unwrap_or_default()
@@ -127,7 +145,7 @@ impl Node {
 
 /// Three NATS nodes in one cluster, MQTT on each, JetStream R3.
 fn cluster(dir: &Path) -> Vec<Node> {
-    let routes: Vec<u16> = (0..3).map(|_| free_port()).collect();
+    let routes: Vec<u16> = (0..3).map(|_| port()).collect();
     let route_list = routes
         .iter()
         .map(|p| format!("nats-route://127.0.0.1:{p}"))
@@ -136,7 +154,7 @@ fn cluster(dir: &Path) -> Vec<Node> {
     let mut nodes: Vec<Node> = (0..3)
         .map(|i| {
             let name = format!("n{}", i + 1);
-            let mqtt = free_port();
+            let mqtt = port();
             let conf = dir.join(format!("{name}.conf"));
             let store = dir.join(format!("{name}-js"));
             std::fs::write(
@@ -146,7 +164,7 @@ fn cluster(dir: &Path) -> Vec<Node> {
                      jetstream {{ store_dir: \"{store}\", max_memory_store: 64MB, max_file_store: 2GB }}\n\
                      cluster {{ name: fleet, listen: 127.0.0.1:{route}, routes: [{route_list}] }}\n\
                      mqtt {{ listen: 127.0.0.1:{mqtt}, stream_replicas: 3 }}\n",
-                    client = free_port(),
+                    client = port(),
                     store = store.display(),
                     route = routes[i],
                 ),
@@ -260,7 +278,7 @@ fn gateway(g: usize, sections: usize, nodes: &[Node], dir: &Path) -> Gateway {
     let mut ports = Vec::new();
     let mut topics = Vec::new();
     for s in 0..sections {
-        let port = free_port();
+        let port = port();
         ports.push(port);
         topics.push(format!("fleet/g{g}/s{s}/N"));
         ini.push_str(&format!(
@@ -295,7 +313,7 @@ impl Gateway {
                 .iter()
                 .map(|&port| {
                     let stream = TcpStream::connect(("127.0.0.1", port)).expect("line client");
-                    stream.set_read_timeout(Some(DEADLINE)).unwrap();
+                    stream.set_read_timeout(Some(deadline())).unwrap();
                     BufReader::new(stream)
                 })
                 .collect();
@@ -310,7 +328,7 @@ impl Gateway {
                     if answer.starts_with("GET:N,") {
                         break;
                     }
-                    assert!(start.elapsed() < DEADLINE, "GET:N answered {answer}");
+                    assert!(start.elapsed() < deadline(), "GET:N answered {answer}");
                     thread::sleep(Duration::from_millis(100));
                 }
             }
@@ -338,6 +356,25 @@ impl Gateway {
 
 static STOP: AtomicBool = AtomicBool::new(false);
 
+/// On a failure the gateways' and the nodes' logs are copied to
+/// `target/tmp/fleet-logs` (the run's folders go with the test).
+struct KeepLogs(Vec<(String, PathBuf)>);
+
+impl Drop for KeepLogs {
+    fn drop(&mut self) {
+        if !thread::panicking() {
+            return;
+        }
+        let out = Path::new(env!("CARGO_TARGET_TMPDIR")).join("fleet-logs");
+        let _ = std::fs::remove_dir_all(&out);
+        let _ = std::fs::create_dir_all(&out);
+        for (name, path) in &self.0 {
+            let _ = std::fs::copy(path, out.join(name));
+        }
+        eprintln!("the gateways' and nodes' logs are in {}", out.display());
+    }
+}
+
 /// From now until every section has a value written after now at the
 /// subscriber, per gateway: the failover of the gateways whose node was
 /// just killed (the others show what the cluster's own recovery costs).
@@ -364,10 +401,31 @@ fn time_to_flow(gateways: &[Gateway], sub: &Subscriber, bound: Duration) -> Vec<
         if took.iter().all(Option::is_some) {
             return took.into_iter().flatten().collect();
         }
-        assert!(
-            start.elapsed() < bound,
-            "no new values from every section within {bound:?}: {took:?}"
-        );
+        if start.elapsed() > bound {
+            let (late, log) = took
+                .iter()
+                .zip(gateways)
+                .enumerate()
+                .find(|(_, (t, _))| t.is_none())
+                .map(|(i, (_, g))| (i, g.server.log()))
+                .unwrap_or_default();
+            let tail: Vec<&str> = log.lines().rev().take(20).collect();
+            // Per section of that gateway: values seen and the highest.
+            let counts: Vec<(usize, u64)> = {
+                let seen = sub.seen.lock().unwrap();
+                gateways[late]
+                    .topics
+                    .iter()
+                    .map(|t| seen.get(t).map_or((0, 0), |s| (s.values.len(), s.max)))
+                    .collect()
+            };
+            panic!(
+                "no new values from every section within {bound:?}: {took:?}; gateway {late} wrote up to {} (from {}), its sections' (values seen, highest): {counts:?}; its log, newest first:\n{}",
+                gateways[late].written.load(Ordering::SeqCst),
+                after[late],
+                tail.join("\n")
+            );
+        }
         thread::sleep(Duration::from_millis(10));
     }
 }
@@ -387,7 +445,24 @@ fn gateways_lose_nothing_while_broker_nodes_die() {
             gateway(g, sections, &nodes, &gdir)
         })
         .collect();
-    let started = time_to_flow(&gateways, &sub, DEADLINE);
+    let _keep = KeepLogs(
+        gateways
+            .iter()
+            .enumerate()
+            .map(|(g, gw)| {
+                (
+                    format!("g{g}.log"),
+                    gw.server.dir.path().join("plccoms.log"),
+                )
+            })
+            .chain(
+                nodes
+                    .iter()
+                    .map(|n| (format!("{}.log", n.name), n.log.clone())),
+            )
+            .collect(),
+    );
+    let started = time_to_flow(&gateways, &sub, deadline());
     println!("{gateways_n} gateways x {sections} sections flowing after {started:?}");
 
     // n1 dies: the gateways on it (every third, from the first) move to n2.
@@ -438,7 +513,7 @@ fn gateways_lose_nothing_while_broker_nodes_die() {
         if missing.is_empty() {
             break;
         }
-        if start.elapsed() > DEADLINE {
+        if start.elapsed() > deadline() {
             let logs: String = gateways
                 .iter()
                 .map(|g| g.server.log())
