@@ -18,6 +18,12 @@
 //!
 //! State messages (`status`, `plc`, discovery configs) are not queued: they
 //! are sent again on every connection.
+//!
+//! Each attempt goes to the current broker of MQTT_URL (`client.rs`); a
+//! lost or failed one moves to the next, so a new node of a cluster gets the
+//! queue from its oldest unacknowledged message, the state messages and
+//! discovery, and the will. With MQTT_VERSION = 3.1.1 the link speaks
+//! 3.1.1 and hands its events over in the MQTT 5 types used here.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::path::PathBuf;
