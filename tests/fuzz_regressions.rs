@@ -117,6 +117,9 @@ fn every_target_runs_on_ordinary_input() {
     for text in [
         "mqtt://broker.lan:1883",
         "mqtts://[::1]",
+        "mqtt://a:1883, mqtt://b:1883 mqtts://[::1]:8884",
+        "mqtt://a, mqtt://a:1883",
+        " , ",
         "A%2FB",
         "TEPLOTA_KUCHYNĚ",
         "%zz",
@@ -267,6 +270,28 @@ proptest::proptest! {
         }
         checks::local_path(name.as_bytes());
         checks::local_path(name.trim_end_matches(['/', '\\']).as_bytes());
+    }
+}
+
+proptest::proptest! {
+    /// MQTT_URL lists of URLs, near-URLs and separators.
+    #[test]
+    fn broker_url_lists_hold(
+        parts in proptest::collection::vec(
+            proptest::sample::select(vec![
+                "mqtt://a", "mqtt://a:1883", "mqtts://b:8883", "mqtt://[::1]:1", "tcp://c",
+                "mqtt://", "mqtt://d:0", "http://e", "f", "mqtt://u@g", ",", " ", "\t", "",
+            ]),
+            0..20,
+        ),
+        seps in proptest::collection::vec(proptest::sample::select(vec![",", " ", ", ", ",,", ""]), 20),
+    ) {
+        let mut text = String::new();
+        for (part, sep) in parts.iter().zip(&seps) {
+            text.push_str(part);
+            text.push_str(sep);
+        }
+        checks::mqtt_text(text.as_bytes());
     }
 }
 

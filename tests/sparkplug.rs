@@ -652,3 +652,54 @@ fn a_reload_that_adds_a_device_is_a_new_session() {
     assert_eq!(births("Two")["metrics"][0]["name"], "SINUS");
     assert_eq!(births("Demo")["metrics"][0]["name"], "COUNTER");
 }
+
+/// MQTT_URL with a primary and a standby (issue 36): the primary gone, the
+/// edge node moves to the standby with the next bdSeq (NBIRTH, DBIRTH), a
+/// plain section's `status` and Home Assistant discovery are announced
+/// there again, and the wills are the standby's: a kill -9 of the server
+/// delivers NDEATH and `status` = `offline` there.
+#[test]
+fn moves_to_the_next_broker_with_births_discovery_and_wills() {
+    let mut primary = Broker::anonymous();
+    let standby = Broker::anonymous();
+    let on_primary = Host::listen(&primary);
+    let on_standby = Host::listen(&standby);
+    let sub = standby.subscribe(&["plccoms/#", "homeassistant/#"]);
+    let (spb, plain) = (free_port(), free_port());
+    let ini = format!(
+        "[*]\nCOMM_LOOP_DELAY = 50\nMQTT_URL = {}, {}\nSPARKPLUG_GROUP = Plant\nSPARKPLUG_NODE = gw1\n{}\
+         [Plain]\nSIMULATOR = Yes\nSIMULATOR_PROGRAM = idle\nSERVER_PORT = {plain}\nPUBFILE = //demo.pub\n\
+         MQTT_PUBLISH = counter\nMQTT_HA_DISCOVERY = Yes\n",
+        primary.url(),
+        standby.url(),
+        sim_section("Demo", spb, "MQTT_PUBLISH = counter"),
+    );
+    let mut server = ServerProcess::with_config(&ini, plain);
+    let first = metric(&on_primary.wait("NBIRTH", is("NBIRTH")), "bdSeq")["value"]
+        .as_u64()
+        .unwrap();
+    on_primary.wait("DBIRTH", is("DBIRTH"));
+    assert_eq!(on_standby.count(), 1, "only the listener's ready line");
+
+    primary.stop();
+    let birth = on_standby.wait("NBIRTH on the standby", is("NBIRTH"));
+    assert_eq!(metric(&birth, "bdSeq")["value"], (first + 1) % 256);
+    on_standby.wait("DBIRTH on the standby", is("DBIRTH"));
+    sub.wait_payload("plccoms/Plain/status", "online");
+    sub.wait_for("a discovery config on the standby", || {
+        sub.messages()
+            .into_iter()
+            .find(|m| m.topic.starts_with("homeassistant/") && m.topic.ends_with("/config"))
+    });
+    let log = server.log();
+    assert!(
+        log.contains("moving to 127.0.0.1:") && log.contains("(broker 2 of 2)"),
+        "{log}"
+    );
+
+    server.child.child().kill().expect("SIGKILL");
+    let _ = server.child.child().wait();
+    let death = on_standby.wait("NDEATH, the will, on the standby", is("NDEATH"));
+    assert_eq!(metric(&death, "bdSeq")["value"], (first + 1) % 256);
+    sub.wait_payload("plccoms/Plain/status", "offline");
+}

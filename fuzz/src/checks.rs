@@ -889,6 +889,29 @@ pub fn mqtt_text(data: &[u8]) {
     if let Ok(url) = BrokerUrl::parse(text) {
         assert!(!url.host.is_empty() && url.port > 0, "{text}: {url:?}");
     }
+    // MQTT_URL's list: never empty, bounded, no URL twice, and each one
+    // what it parses to alone.
+    if let Ok(list) = BrokerUrl::parse_list(text) {
+        assert!(
+            !list.is_empty() && list.len() <= BrokerUrl::MAX_LIST,
+            "{text}"
+        );
+        for (n, url) in list.iter().enumerate() {
+            assert!(!list[..n].contains(url), "{text}: {url:?} twice");
+        }
+        let again: Vec<String> = list
+            .iter()
+            .map(|u| {
+                let host = match u.host.contains(':') {
+                    true => format!("[{}]", u.host),
+                    false => u.host.clone(),
+                };
+                let scheme = if u.tls { "mqtts" } else { "mqtt" };
+                format!("{scheme}://{host}:{}", u.port)
+            })
+            .collect();
+        assert_eq!(BrokerUrl::parse_list(&again.join(", ")), Ok(list), "{text}");
+    }
     if let Ok(name) = unlevel(text) {
         let again = level(&name);
         assert!(!again.contains(['/', '+', '#']), "{again}");

@@ -18,6 +18,12 @@
 //!
 //! State messages (`status`, `plc`, discovery configs) are not queued: they
 //! are sent again on every connection.
+//!
+//! Each attempt goes to the current broker of MQTT_URL (`client.rs`); a
+//! lost or failed one moves to the next, so a new node of a cluster gets the
+//! queue from its oldest unacknowledged message, the state messages and
+//! discovery, and the will. With MQTT_VERSION = 3.1.1 the link speaks
+//! 3.1.1 and hands its events over in the MQTT 5 types used here.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::path::PathBuf;
@@ -26,18 +32,16 @@ use std::time::Duration;
 
 use plccoms_protocol::cp1250;
 use plccoms_protocol::value::Value;
-use rumqttc::v5::mqttbytes::v5::{
-    ConnectReturnCode, Filter, LastWill, Packet, SubscribeReasonCode,
-};
+use rumqttc::v5::mqttbytes::v5::{ConnectReturnCode, Filter, Packet, SubscribeReasonCode};
 use rumqttc::v5::mqttbytes::{self, QoS};
-use rumqttc::v5::{AsyncClient, ConnectionError, Event, MqttOptions, StateError};
-use rumqttc::{Outgoing, TlsConfiguration, Transport};
+use rumqttc::v5::{ConnectionError, Event, StateError};
+use rumqttc::Outgoing;
 use tokio::sync::mpsc;
-use tokio::task::JoinHandle;
 use tokio::time::{Instant, MissedTickBehavior};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
 
+use super::client::{Brokers, Connect, Link, NEXT_BROKER};
 use super::discovery::{self, Device, Maker};
 use super::settings::{SectionRules, Settings};
 use super::spool::{Message, Spool};
@@ -62,7 +66,6 @@ const WINDOW: usize = 256;
 /// refused), and still a bound on what one message can make this process
 /// hold.
 pub(super) const MAX_INCOMING: usize = 16 << 20;
-pub(super) const KEEP_ALIVE: Duration = Duration::from_secs(15);
 pub(super) const RETRY_FIRST: Duration = Duration::from_millis(250);
 pub(super) const RETRY_MAX: Duration = Duration::from_secs(5);
 /// A connection up this long is a healthy one: the retry delay starts
@@ -81,42 +84,6 @@ struct Announcement {
     gone: Vec<String>,
 }
 
-/// A connection attempt: the client, and the event loop's events.
-pub(super) struct Link {
-    pub client: AsyncClient,
-    events: mpsc::Receiver<Result<Event, ConnectionError>>,
-    task: JoinHandle<()>,
-}
-
-impl Link {
-    /// A fresh client whose event loop runs in a task of its own,
-    /// forwarding its events until one fails.
-    pub(super) fn spawn(options: MqttOptions, requests: usize, events: usize) -> Link {
-        let (client, mut eventloop) = AsyncClient::new(options, requests);
-        let (tx, events) = mpsc::channel(events);
-        let task = tokio::spawn(async move {
-            loop {
-                let event = eventloop.poll().await;
-                let failed = event.is_err();
-                if tx.send(event).await.is_err() || failed {
-                    break;
-                }
-            }
-        });
-        Link {
-            client,
-            events,
-            task,
-        }
-    }
-}
-
-impl Drop for Link {
-    fn drop(&mut self) {
-        self.task.abort();
-    }
-}
-
 pub(super) struct Task {
     pub section: Arc<Section>,
     pub settings: Arc<Settings>,
@@ -133,6 +100,8 @@ pub(super) struct Task {
     /// most once a second per error code (each one counted and published
     /// on its `error` topic). The codes are SET's few, so the map is small.
     pub refusal_logs: BTreeMap<u16, RateLimited>,
+    /// MQTT_URL's brokers, the one in use.
+    pub brokers: Brokers,
     pub state: State,
 }
 
@@ -148,6 +117,8 @@ pub(super) struct State {
     logged: Option<String>,
     /// "Connected again" was logged in this outage.
     reconnect_logged: bool,
+    /// The place in MQTT_URL of the broker last connected to.
+    last_broker: Option<usize>,
     /// When the current connection was made.
     connected_at: Option<Instant>,
     /// State messages for this connection, sent before the queue.
@@ -225,30 +196,21 @@ impl Task {
 
     // ------------------------------------------------------------ connection
 
-    fn options(&self) -> MqttOptions {
-        let broker = &self.settings.broker;
-        let mut options = MqttOptions::new(&self.client_id, &broker.host, broker.port);
-        options
-            .set_keep_alive(KEEP_ALIVE)
-            .set_clean_start(true)
-            .set_outgoing_inflight_upper_limit((WINDOW + 8) as u16)
-            // The broker sends nothing larger (MQTT 5's maximum packet
-            // size): a huge retained message cannot break the connection.
-            .set_max_packet_size(Some(MAX_INCOMING as u32))
-            .set_last_will(LastWill::new(
-                self.topics.status(),
-                "offline",
-                QoS::AtLeastOnce,
-                true,
-                None,
-            ));
-        credentials_and_tls(&self.settings, &mut options);
-        options
-    }
-
-    /// Starts a connection attempt: a fresh client and event loop.
+    /// Starts a connection attempt to the current broker: a fresh client
+    /// and event loop.
     fn connect(&mut self) {
-        self.state.link = Some(Link::spawn(self.options(), WINDOW + 16, WINDOW * 2));
+        self.metrics.broker_index.set(self.brokers.index() as u64);
+        let connect = Connect {
+            settings: &self.settings,
+            broker: self.brokers.current(),
+            client_id: &self.client_id,
+            inflight: Some((WINDOW + 8) as u16),
+            will_topic: self.topics.status(),
+            will_payload: b"offline".to_vec(),
+            will_retain: true,
+            max_incoming: MAX_INCOMING,
+        };
+        self.state.link = Some(Link::spawn(connect, WINDOW + 16, WINDOW * 2));
     }
 
     fn on_event(&mut self, event: Result<Event, ConnectionError>) {
@@ -295,14 +257,19 @@ impl Task {
     }
 
     fn on_connected(&mut self) {
-        let broker = &self.settings.broker;
+        let broker = &self.brokers;
         let queued = self.spool.len();
+        // A move to another broker of MQTT_URL is always told.
+        let moved = self.state.last_broker.replace(broker.index()) != Some(broker.index());
+        if moved {
+            self.state.reconnect_logged = false;
+        }
         match (&self.state.logged, self.state.reconnect_logged) {
             (None, _) => {
-                info!(section = %self.section.name(), "MQTT: connected to {}:{} as {} ({queued} queued messages)", broker.host, broker.port, self.client_id)
+                info!(section = %self.section.name(), "MQTT: connected to {broker} as {} ({queued} queued messages)", self.client_id)
             }
             (Some(_), false) => {
-                info!(section = %self.section.name(), "MQTT: connected to {}:{} again as {}; sending {queued} queued messages", broker.host, broker.port, self.client_id);
+                info!(section = %self.section.name(), "MQTT: connected to {broker} again as {}; sending {queued} queued messages", self.client_id);
                 self.state.reconnect_logged = true;
             }
             // Connections that fail at once, again and again: quiet.
@@ -310,6 +277,7 @@ impl Task {
                 debug!(section = %self.section.name(), "MQTT: connected again ({queued} queued messages)")
             }
         }
+        self.brokers.connected();
         let state = &mut self.state;
         state.connected = true;
         state.connected_at = Some(Instant::now());
@@ -326,12 +294,12 @@ impl Task {
                 // subscription).
                 let mut filter = Filter::new(self.topics.set_filter(), QoS::AtLeastOnce);
                 filter.preserve_retain = true;
-                let _ = link.client.try_subscribe_many([filter]);
+                let _ = link.client.try_subscribe_filter(filter);
             }
             if self.rules.ha_discovery {
                 let _ = link
                     .client
-                    .try_subscribe(discovery::HA_STATUS, QoS::AtLeastOnce);
+                    .try_subscribe(discovery::HA_STATUS.into(), QoS::AtLeastOnce);
             }
         }
         self.state.direct.clear();
@@ -368,26 +336,40 @@ impl Task {
         state.outstanding = 0;
         self.spool.rewind();
         self.metrics.connected.set(0);
-        let broker = &self.settings.broker;
+        let broker = self.brokers.to_string();
         let problem = describe(&e);
         let section = self.section.name();
-        if self.state.logged.as_deref() != Some(problem.as_str()) {
+        let round = self.brokers.advance();
+        let several = self.brokers.len() > 1;
+        let next = if several {
+            format!(", moving to {}", self.brokers)
+        } else {
+            String::new()
+        };
+        // Each move off a lost broker is logged; failed attempts once per
+        // outage and problem.
+        if (several && was_connected) || self.state.logged.as_deref() != Some(problem.as_str()) {
             if was_connected {
-                warn!(section = %section, "MQTT: connection to {}:{} lost: {problem}; changes are queued on disk, reconnecting", broker.host, broker.port);
+                warn!(section = %section, "MQTT: connection to {broker} lost: {problem}; changes are queued on disk{next}");
             } else if matches!(e, ConnectionError::ConnectionRefused(_)) {
-                error!(section = %section, "MQTT: {}:{} refused the connection as {}: {problem}; retrying", broker.host, broker.port, self.client_id);
+                error!(section = %section, "MQTT: {broker} refused the connection as {}: {problem}; retrying{next}", self.client_id);
             } else {
-                warn!(section = %section, "MQTT: cannot connect to {}:{}: {problem}; changes are queued on disk, retrying", broker.host, broker.port);
+                warn!(section = %section, "MQTT: cannot connect to {broker}: {problem}; changes are queued on disk{next}");
             }
             self.state.logged = Some(problem);
         }
-        let backoff = if self.state.backoff.is_zero() {
+        self.metrics.broker_index.set(self.brokers.index() as u64);
+        let delay = if !round {
+            NEXT_BROKER
+        } else if self.state.backoff.is_zero() {
             RETRY_FIRST
         } else {
             (self.state.backoff * 2).min(RETRY_MAX)
         };
-        self.state.backoff = backoff;
-        self.state.retry_at = Some(Instant::now() + backoff);
+        if round {
+            self.state.backoff = delay;
+        }
+        self.state.retry_at = Some(Instant::now() + delay);
     }
 
     /// Hands messages to rumqttc while the window has room: state messages
@@ -863,18 +845,6 @@ fn plc_message(topics: &Topics, online: bool) -> Message {
     state_message(topics.plc(), if online { "online" } else { "offline" })
 }
 
-/// The broker's user and password, and TLS, as the settings give them.
-pub(super) fn credentials_and_tls(settings: &Settings, options: &mut MqttOptions) {
-    if let Some((user, password)) = &settings.credentials {
-        options.set_credentials(user, password);
-    }
-    if let Some(tls) = &settings.tls {
-        options.set_transport(Transport::tls_with_config(TlsConfiguration::Rustls(
-            tls.clone(),
-        )));
-    }
-}
-
 /// A connection problem in words, with what to check for a refusal.
 pub(super) fn describe(e: &ConnectionError) -> String {
     match e {
@@ -890,7 +860,7 @@ pub(super) fn describe(e: &ConnectionError) -> String {
             }
             ConnectReturnCode::RefusedProtocolVersion
             | ConnectReturnCode::UnsupportedProtocolVersion => {
-                "the broker does not speak MQTT 5, which plccoms needs (Mosquitto 1.6 or later, EMQX, HiveMQ, ...)".into()
+                "the broker does not speak MQTT 5 (Mosquitto 1.6 or later, EMQX, HiveMQ, ... do); for one that speaks only 3.1.1 (NATS) set MQTT_VERSION = 3.1.1".into()
             }
             other => format!("{other:?}"),
         },
@@ -907,11 +877,7 @@ pub(super) fn describe(e: &ConnectionError) -> String {
 
 pub(super) async fn next_event(link: &mut Option<Link>) -> Result<Event, ConnectionError> {
     match link {
-        Some(link) => link
-            .events
-            .recv()
-            .await
-            .unwrap_or(Err(ConnectionError::RequestsDone)),
+        Some(link) => link.next_event().await,
         None => std::future::pending().await,
     }
 }

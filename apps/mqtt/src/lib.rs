@@ -16,6 +16,7 @@
 //!
 //! Counters are `plccoms_mqtt_*` in `/metrics` ([`Source`]).
 
+mod client;
 mod connection;
 pub mod discovery;
 pub mod payload;
@@ -62,9 +63,12 @@ pub struct Metrics {
     pub missed: Counter,
     pub writes: Counter,
     pub write_refusals: Counter,
+    /// The place in MQTT_URL (from 0) of the broker connected to, or
+    /// being tried.
+    pub broker_index: Gauge,
 }
 
-const FAMILIES: [(&str, &str, &str); 10] = [
+const FAMILIES: [(&str, &str, &str); 11] = [
     (
         "plccoms_mqtt_connected",
         "gauge",
@@ -115,6 +119,11 @@ const FAMILIES: [(&str, &str, &str); 10] = [
         "counter",
         "Writes from /set topics refused.",
     ),
+    (
+        "plccoms_mqtt_broker_index",
+        "gauge",
+        "Place in MQTT_URL (from 0) of the broker connected to or being tried.",
+    ),
 ];
 
 impl Metrics {
@@ -129,7 +138,8 @@ impl Metrics {
             6 => self.not_sent.get(),
             7 => self.missed.get(),
             8 => self.writes.get(),
-            _ => self.write_refusals.get(),
+            9 => self.write_refusals.get(),
+            _ => self.broker_index.get(),
         }
     }
 }
@@ -298,6 +308,7 @@ fn run(
         writes: write_tx,
         outcomes: outcome_rx,
         refusal_logs: Default::default(),
+        brokers: client::Brokers::new(settings.brokers.clone()),
         state: Default::default(),
     };
     Running {

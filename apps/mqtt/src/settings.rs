@@ -20,7 +20,10 @@ use plccoms_core::config::{self, BrokerUrl, MqttFormat};
 /// The `[*]` MQTT settings, resolved.
 #[derive(Clone)]
 pub struct Settings {
-    pub broker: BrokerUrl,
+    /// MQTT_URL's brokers, tried round robin; never empty.
+    pub brokers: Vec<BrokerUrl>,
+    /// MQTT_VERSION = 3.1.1.
+    pub v311: bool,
     pub credentials: Option<(String, String)>,
     /// Base of the client ids (`<base>-<section>`).
     pub client_id: String,
@@ -36,7 +39,8 @@ impl std::fmt::Debug for Settings {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         // Never the password.
         f.debug_struct("Settings")
-            .field("broker", &self.broker)
+            .field("brokers", &self.brokers)
+            .field("v311", &self.v311)
             .field("user", &self.credentials.as_ref().map(|c| &c.0))
             .field("client_id", &self.client_id)
             .field("prefix", &self.prefix)
@@ -58,7 +62,7 @@ impl Settings {
         config_path: &Path,
     ) -> Result<Option<Settings>, String> {
         // Parsed, and a bad one refused, when the configuration was loaded.
-        let Some(broker) = mqtt.url.clone() else {
+        let Some(brokers) = mqtt.url.clone() else {
             return Ok(None);
         };
         config::check_prefix(&mqtt.prefix)
@@ -78,7 +82,7 @@ impl Settings {
             (None, Some(_)) => return Err("MQTT_PASSWORD is given without MQTT_USER".into()),
             (None, None) => None,
         };
-        let tls = if broker.tls {
+        let tls = if brokers.iter().any(|b| b.tls) {
             Some(Arc::new(tls_config(mqtt, dir)?))
         } else {
             None
@@ -91,7 +95,8 @@ impl Settings {
         let spool = config::state_dir(config_path).join(&mqtt.spool);
         Ok(Some(Settings {
             sparkplug: crate::sparkplug::node_settings(mqtt, &spool)?,
-            broker,
+            brokers,
+            v311: mqtt.v311,
             credentials,
             client_id,
             prefix: mqtt.prefix.clone(),

@@ -1,5 +1,6 @@
-//! `MQTT_URL`: the broker's address and transport, parsed once when the
-//! configuration is loaded.
+//! `MQTT_URL`: the brokers' addresses and transport, parsed once when the
+//! configuration is loaded. Several URLs are the nodes of a cluster (or a
+//! primary and a standby), tried round robin.
 
 /// A broker address from MQTT_URL.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -72,6 +73,41 @@ impl BrokerUrl {
             tls,
         })
     }
+
+    /// The most URLs MQTT_URL may list (a cluster's nodes, a standby).
+    pub const MAX_LIST: usize = 16;
+
+    /// MQTT_URL: one URL or several, separated by commas and/or blanks,
+    /// each one as [`BrokerUrl::parse`] takes it; never empty, no URL
+    /// twice. `Err` names the URL at fault by its place in the list.
+    pub fn parse_list(text: &str) -> Result<Vec<BrokerUrl>, String> {
+        let parts: Vec<&str> = text
+            .split(|c: char| c == ',' || c.is_whitespace())
+            .filter(|p| !p.is_empty())
+            .collect();
+        if parts.is_empty() {
+            return Err("is empty (mqtt://host:port, several separated by commas)".into());
+        }
+        if parts.len() > Self::MAX_LIST {
+            return Err(format!(
+                "lists {} URLs (at most {})",
+                parts.len(),
+                Self::MAX_LIST
+            ));
+        }
+        let mut list: Vec<BrokerUrl> = Vec::with_capacity(parts.len());
+        for (n, part) in parts.iter().enumerate() {
+            let url = BrokerUrl::parse(part).map_err(|problem| match parts.len() {
+                1 => problem,
+                _ => format!("(URL {} of {}, {part}) {problem}", n + 1, parts.len()),
+            })?;
+            if list.contains(&url) {
+                return Err(format!("lists {part} twice"));
+            }
+            list.push(url);
+        }
+        Ok(list)
+    }
 }
 
 #[cfg(test)]
@@ -107,5 +143,48 @@ mod tests {
             let problem = BrokerUrl::parse(bad).unwrap_err();
             assert!(problem.contains(says), "{bad}: {problem}");
         }
+    }
+
+    #[test]
+    fn broker_lists() {
+        let url = |host: &str, port| BrokerUrl {
+            host: host.into(),
+            port,
+            tls: false,
+        };
+        assert_eq!(BrokerUrl::parse_list("mqtt://a"), Ok(vec![url("a", 1883)]));
+        for text in [
+            "mqtt://a:1,mqtt://b:2 mqtt://c:3",
+            " mqtt://a:1 , mqtt://b:2,\tmqtt://c:3, ",
+        ] {
+            assert_eq!(
+                BrokerUrl::parse_list(text),
+                Ok(vec![url("a", 1), url("b", 2), url("c", 3)]),
+                "{text}"
+            );
+        }
+        for (bad, says) in [
+            ("", "is empty"),
+            (" , ", "is empty"),
+            ("http://b", "scheme 'http'"),
+            (
+                "mqtt://a, mqtt://b:0",
+                "(URL 2 of 2, mqtt://b:0) has port '0'",
+            ),
+            ("mqtt://a,b", "(URL 2 of 2, b) is not a URL"),
+            ("mqtt://a mqtt://a:1883", "lists mqtt://a:1883 twice"),
+        ] {
+            let problem = BrokerUrl::parse_list(bad).unwrap_err();
+            assert!(problem.contains(says), "{bad}: {problem}");
+        }
+        let many = vec!["mqtt://h"; BrokerUrl::MAX_LIST + 1]
+            .iter()
+            .enumerate()
+            .map(|(n, u)| format!("{u}:{}", n + 1))
+            .collect::<Vec<_>>()
+            .join(",");
+        assert!(BrokerUrl::parse_list(&many)
+            .unwrap_err()
+            .contains("at most"));
     }
 }

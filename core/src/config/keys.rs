@@ -664,8 +664,11 @@ static KEYS: &[Key] = &[
         Setter::Global(|g, v| g.history_query_timeout = v.secs())),
     // MQTT (apps/mqtt/src/): the broker, the client, the spool.
     row("MQTT_URL", None, Kind::Text,
-        "broker: mqtt://host[:port] (1883) or mqtts://host[:port] (8883, TLS); unset = MQTT off",
-        Setter::Global(|g, v| g.mqtt.url = BrokerUrl::parse(&v.text()).ok())),
+        "broker: mqtt://host[:port] (1883) or mqtts://host[:port] (8883, TLS); several (a cluster's nodes, a standby) separated by commas or blanks are tried round robin, moving on when one is lost; unset = MQTT off",
+        Setter::Global(|g, v| g.mqtt.url = BrokerUrl::parse_list(&v.text()).ok())),
+    row("MQTT_VERSION", Some("5"), choice("MQTT version", &["5", "3.1.1"]),
+        "MQTT protocol version: 5, or 3.1.1 for brokers without 5 (NATS, RabbitMQ before 3.13); with 3.1.1 a retained /set is refused only when it comes at subscription",
+        Setter::Global(|g, v| g.mqtt.v311 = v.text() == "3.1.1")),
     row("MQTT_USER", None, Kind::Text, "user name at the broker",
         Setter::Global(|g, v| g.mqtt.user = Some(v.text()))),
     row("MQTT_PASSWORD", None, Kind::Text, "password at the broker",

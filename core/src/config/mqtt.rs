@@ -15,8 +15,11 @@ use super::ini::Entry;
 /// The MQTT keys of `[*]`. MQTT is off while `url` is `None`.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct MqttGlobal {
-    /// MQTT_URL: `mqtt://host[:port]` or `mqtts://host[:port]`.
-    pub url: Option<BrokerUrl>,
+    /// MQTT_URL: `mqtt://host[:port]` or `mqtts://host[:port]`, one or
+    /// more (a cluster's nodes, tried round robin); never empty.
+    pub url: Option<Vec<BrokerUrl>>,
+    /// MQTT_VERSION 3.1.1: MQTT 3.1.1 instead of 5 (brokers without 5).
+    pub v311: bool,
     pub user: Option<String>,
     pub password: Option<String>,
     /// MQTT_PASSWORD_FILE: read at start-up, a trailing line end dropped.
@@ -135,7 +138,7 @@ pub(super) fn check_global(
     // The key's setter keeps only a good URL; a bad one is reported here,
     // with the parser's words.
     if mqtt.url.is_none() {
-        if let Some(Err(problem)) = map.get("MQTT_URL").map(|e| BrokerUrl::parse(&e.value)) {
+        if let Some(Err(problem)) = map.get("MQTT_URL").map(|e| BrokerUrl::parse_list(&e.value)) {
             bad("MQTT_URL", problem);
         }
     }

@@ -1502,11 +1502,22 @@ fn own_paths_resolve_as_their_consumers_do() {
 fn mqtt_url_is_parsed_once_at_load() {
     assert_eq!(
         global("MQTT_URL = mqtts://b.lan:8884").mqtt.url,
-        Some(BrokerUrl {
+        Some(vec![BrokerUrl {
             host: "b.lan".into(),
             port: 8884,
             tls: true
-        })
+        }])
+    );
+    assert_eq!(
+        global("MQTT_URL = mqtt://a, mqtt://b:1884")
+            .mqtt
+            .url
+            .map(|list| list.len()),
+        Some(2)
+    );
+    assert_eq!(
+        global_error("MQTT_URL = mqtt://a, tcp//b"),
+        "PLCComS.ini:2: MQTT_URL = mqtt://a, tcp//b (URL 2 of 2, tcp//b) is not a URL (mqtt://host:port or mqtts://host:port)"
     );
     assert_eq!(
         global_error("MQTT_URL = http://b"),

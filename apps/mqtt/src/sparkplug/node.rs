@@ -36,9 +36,9 @@ use plccoms_core::vars::{VarId, VarTable};
 use plccoms_protocol::value::Value;
 use plccoms_protocol::{cp1250, IecType, Mask};
 use prost::Message as _;
-use rumqttc::v5::mqttbytes::v5::{LastWill, Packet};
+use rumqttc::v5::mqttbytes::v5::Packet;
 use rumqttc::v5::mqttbytes::QoS;
-use rumqttc::v5::{ConnectionError, Event, MqttOptions};
+use rumqttc::v5::{ConnectionError, Event};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
@@ -48,9 +48,10 @@ use super::command::{self, Target, REBIRTH};
 use super::metric::{self, datatype};
 use super::proto::{Metric, MetricValue, Payload};
 use super::topic::{Incoming, Topics};
+use crate::client::{Brokers, Connect, Link, NEXT_BROKER};
 use crate::connection::{
-    credentials_and_tls, describe, next_event, sleep_until, Link, KEEP_ALIVE, MAX_INCOMING,
-    REFUSAL_LOG_INTERVAL, RETRY_FIRST, RETRY_MAX, STOP_WAIT,
+    describe, next_event, sleep_until, MAX_INCOMING, REFUSAL_LOG_INTERVAL, RETRY_FIRST, RETRY_MAX,
+    STOP_WAIT,
 };
 use crate::settings::{SectionRules, Settings};
 use crate::spool::{Message, Spool};
@@ -249,6 +250,8 @@ pub struct Node {
     pub batches: mpsc::Receiver<DeviceBatch>,
     pub outcomes: mpsc::Receiver<(usize, writes::Outcome)>,
     link: Option<Link>,
+    /// MQTT_URL's brokers, the one in use.
+    brokers: Brokers,
     connected: bool,
     retry_at: Option<Instant>,
     backoff: Duration,
@@ -288,6 +291,7 @@ impl Node {
     ) -> Node {
         Node {
             topics: Topics::new(&node.group, &node.node),
+            brokers: Brokers::new(settings.brokers.clone()),
             settings,
             node,
             client_id,
@@ -361,22 +365,19 @@ impl Node {
 
     fn connect(&mut self) {
         self.bdseq = self.next_bdseq();
-        let broker = &self.settings.broker;
-        let mut options = MqttOptions::new(&self.client_id, &broker.host, broker.port);
-        // [tck-id-payloads-ndeath-will-message] QoS 1, not retained.
-        options
-            .set_keep_alive(KEEP_ALIVE)
-            .set_clean_start(true)
-            .set_max_packet_size(Some(MAX_INCOMING as u32))
-            .set_last_will(LastWill::new(
-                self.topics.node("NDEATH"),
-                self.death(),
-                QoS::AtLeastOnce,
-                false,
-                None,
-            ));
-        credentials_and_tls(&self.settings, &mut options);
-        self.link = Some(Link::spawn(options, REQUESTS, REQUESTS));
+        // [tck-id-payloads-ndeath-will-message] QoS 1, not retained; set
+        // on whichever broker of MQTT_URL this connection is made to.
+        let connect = Connect {
+            settings: &self.settings,
+            broker: self.brokers.current(),
+            client_id: &self.client_id,
+            inflight: None,
+            will_topic: self.topics.node("NDEATH"),
+            will_payload: self.death(),
+            will_retain: false,
+            max_incoming: MAX_INCOMING,
+        };
+        self.link = Some(Link::spawn(connect, REQUESTS, REQUESTS));
     }
 
     fn on_event(&mut self, event: Result<Event, ConnectionError>) {
@@ -392,11 +393,11 @@ impl Node {
     }
 
     fn on_connected(&mut self) {
-        let broker = &self.settings.broker;
         info!(
-            "Sparkplug: edge node {}/{} connected to {}:{} (bdSeq {})",
-            self.node.group, self.node.node, broker.host, broker.port, self.bdseq
+            "Sparkplug: edge node {}/{} connected to {} (bdSeq {})",
+            self.node.group, self.node.node, self.brokers, self.bdseq
         );
+        self.brokers.connected();
         self.connected = true;
         self.logged = None;
         self.backoff = Duration::ZERO;
@@ -427,11 +428,13 @@ impl Node {
 
     fn on_disconnected(&mut self, e: ConnectionError) {
         let problem = describe(&e);
-        if self.logged.as_deref() != Some(problem.as_str()) {
-            let broker = &self.settings.broker;
+        let broker = self.brokers.to_string();
+        let round = self.brokers.advance();
+        let moved = self.connected && self.brokers.len() > 1;
+        if moved || self.logged.as_deref() != Some(problem.as_str()) {
             warn!(
-                "Sparkplug: edge node {}/{}: connection to {}:{}: {problem}; reconnecting",
-                self.node.group, self.node.node, broker.host, broker.port
+                "Sparkplug: edge node {}/{}: connection to {broker}: {problem}; reconnecting to {}",
+                self.node.group, self.node.node, self.brokers
             );
             self.logged = Some(problem);
         }
@@ -441,6 +444,10 @@ impl Node {
         for device in &mut self.devices {
             device.born = false;
             device.metrics.connected.set(0);
+        }
+        if !round {
+            self.retry_at = Some(Instant::now() + NEXT_BROKER);
+            return;
         }
         self.backoff = if self.backoff.is_zero() {
             RETRY_FIRST
