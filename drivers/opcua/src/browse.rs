@@ -100,6 +100,9 @@ pub fn node_ref(id: &NodeId) -> NodeRef {
     }
 }
 
+/// The standard fixed file's variables: served by the backend itself.
+const FIXED_NAMES: [&str; 2] = ["__PLC_RUN", "__PF_CRC"];
+
 /// A variable found, before its attributes are read.
 struct Found {
     name: String,
@@ -318,8 +321,14 @@ async fn browse(
                         );
                         return Ok(named(section, found));
                     }
+                    let name = path_name(&child);
+                    // Another plccoms's section (loopback) shows the fixed
+                    // file's variables, which every table has already.
+                    if FIXED_NAMES.iter().any(|f| f.eq_ignore_ascii_case(&name)) {
+                        continue;
+                    }
                     found.push(Found {
-                        name: path_name(&child),
+                        name,
                         node: node.clone(),
                         tag: None,
                     });
