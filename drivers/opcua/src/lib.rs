@@ -17,10 +17,12 @@
 //! - `OPCUA_MODE = subscribe` (default): a subscription with a monitored
 //!   item per enabled variable, created when the link first reads it, at
 //!   the sampling interval the link polls at (the time between its reads,
-//!   no faster than the server's MinSupportedSampleRate); the link's reads
-//!   are answered from the last notified values, without a round trip. A
-//!   variable just written is read from the server once, so the value
-//!   confirmed is the server's.
+//!   no faster than the server's MinSupportedSampleRate). Notifications
+//!   reach the link as pushed values ([`PlcBackend::take_pushed`]) stamped
+//!   with their SourceTimestamp (else ServerTimestamp), so DIFFs and the
+//!   history carry the PLC's time; the link's reads are answered from the
+//!   last values taken, without a round trip. A variable just written is
+//!   read from the server once, so the value confirmed is the server's.
 //! - Quality: Good is a value; Uncertain is served as a value (the core has
 //!   no per-value quality to mark it stale with); Bad is the refusal of
 //!   that variable, with the StatusCode's name.
@@ -55,8 +57,8 @@ use tracing::{info, warn};
 use convert::Builtin;
 use plccoms_core::config::Protocol;
 use plccoms_core::driver::{
-    Answer, Driver, FileInfo, Opened, PlcBackend, PlcError, PlcStatus, ReadRequest, Refusal,
-    WriteData, WriteRequest,
+    Answer, Driver, FileInfo, Opened, PlcBackend, PlcError, PlcStatus, Pushed, ReadRequest,
+    Refusal, WriteData, WriteRequest,
 };
 use plccoms_core::metrics::BackendCounters;
 use plccoms_plc::memory::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
@@ -157,6 +159,8 @@ impl Default for Limits {
 /// A variable the link reads and writes: its place in R and its node.
 #[derive(Debug, Clone)]
 struct Entry {
+    /// As the list names it (the link's table looks pushed values up by it).
+    name: Box<[u8]>,
     offset: u32,
     ty: IecType,
     builtin: Builtin,
@@ -175,6 +179,8 @@ struct List {
     /// The nodes read or monitored, each once: a whole array for all its
     /// elements (servers differ in honouring index ranges).
     sources: Vec<NodeId>,
+    /// The entries of each source, by index.
+    by_source: Vec<Vec<usize>>,
 }
 
 struct Connection {
@@ -192,8 +198,13 @@ impl Drop for Connection {
 /// are source index + 1).
 const STATE_HANDLE: u32 = u32::MAX;
 
-/// Values notified, by client handle (source index + 1).
+/// Values notified and taken by the link, by client handle (source index
+/// + 1): what reads answer.
 type Notified = Arc<Mutex<HashMap<u32, DataValue>>>;
+
+/// Notifications not yet taken by the link, oldest first: (subscription
+/// generation, client handle, value).
+type Inbox = Arc<Mutex<Vec<(u64, u32, DataValue)>>>;
 
 struct Subscription {
     id: u32,
@@ -217,6 +228,12 @@ pub struct OpcuaBackend {
     built_at: Option<Instant>,
     subscription: Option<Subscription>,
     notified: Notified,
+    inbox: Inbox,
+    /// Rung by each notification (the link's `wait_pushed`).
+    wake: Arc<tokio::sync::Notify>,
+    /// Of the current subscription: notifications of an older one (its
+    /// handles meant another list) are dropped.
+    generation: u64,
     /// Sources written since their last notification: read from the server.
     written: HashSet<usize>,
     /// When the link's last read started, and the gap before it.
@@ -283,6 +300,9 @@ impl OpcuaBackend {
             built_at: None,
             subscription: None,
             notified: Arc::default(),
+            inbox: Arc::default(),
+            wake: Arc::default(),
+            generation: 0,
             written: HashSet::new(),
             last_read: None,
             poll_gaps: [None; 3],
@@ -329,6 +349,7 @@ impl OpcuaBackend {
     fn lose(&mut self) {
         self.connection = None;
         self.subscription = None;
+        self.inbox.lock().unwrap_or_else(|e| e.into_inner()).clear();
         self.notified
             .lock()
             .unwrap_or_else(|e| e.into_inner())
@@ -596,7 +617,13 @@ impl OpcuaBackend {
         let gap = gap.clamp(Duration::from_millis(10), Duration::from_secs(10));
         let interval = (gap.as_secs_f64() * 1000.0).max(self.limits.min_sampling);
         if self.subscription.is_none() {
-            let notified = self.notified.clone();
+            self.generation += 1;
+            let generation = self.generation;
+            let inbox = self.inbox.clone();
+            let wake = self.wake.clone();
+            // Bounded: a link that does not take them keeps the newest of
+            // each item only.
+            let most = (self.served.sources.len() * 4).max(4096);
             let id = self
                 .call(
                     "CreateSubscription",
@@ -610,10 +637,13 @@ impl OpcuaBackend {
                         0,
                         true,
                         DataChangeCallback::new(move |value, item| {
-                            notified
-                                .lock()
-                                .unwrap_or_else(|e| e.into_inner())
-                                .insert(item.client_handle(), value);
+                            let mut inbox = inbox.lock().unwrap_or_else(|e| e.into_inner());
+                            if inbox.len() >= most {
+                                keep_newest(&mut inbox);
+                            }
+                            inbox.push((generation, item.client_handle(), value));
+                            drop(inbox);
+                            wake.notify_one();
                         }),
                     ),
                 )
@@ -669,7 +699,9 @@ impl OpcuaBackend {
             let created = self
                 .call(
                     "CreateMonitoredItems",
-                    session.create_monitored_items(id, TimestampsToReturn::Source, items),
+                    // Both: ServerTimestamp stands in for a missing
+                    // SourceTimestamp in the history.
+                    session.create_monitored_items(id, TimestampsToReturn::Both, items),
                 )
                 .await?;
             let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
@@ -701,18 +733,7 @@ impl OpcuaBackend {
             let Some(value) = values.get(&entry.source) else {
                 return Err(Refusal::Opcua(StatusCode::BadWaitingForInitialData.bits()));
             };
-            let status = value.status.unwrap_or(StatusCode::Good);
-            if status.is_bad() {
-                return Err(refusal(status));
-            }
-            let element = match (&value.value, entry.index) {
-                (Some(Variant::Array(array)), Some(at)) => array.values.get(at as usize),
-                (value, None) => value.as_ref(),
-                (_, Some(_)) => None,
-            };
-            let Some(own) = element.and_then(|v| convert::bytes_of(v, entry.ty)) else {
-                return Err(Refusal::Opcua(StatusCode::BadTypeMismatch.bits()));
-            };
+            let own = entry_bytes(entry, value)?;
             // The overlap of the entry's bytes and the read.
             let (start, end) = (entry.offset, entry.offset + own.len() as u32);
             let (from, to) = (start.max(read.offset), end.min(read.offset + read.len));
@@ -871,6 +892,46 @@ impl OpcuaBackend {
     }
 }
 
+/// An entry's bytes in `value` (of its source), or the refusal its status
+/// or type makes.
+fn entry_bytes(entry: &Entry, value: &DataValue) -> Answer<Vec<u8>> {
+    let status = value.status.unwrap_or(StatusCode::Good);
+    if status.is_bad() {
+        return Err(refusal(status));
+    }
+    let element = match (&value.value, entry.index) {
+        (Some(Variant::Array(array)), Some(at)) => array.values.get(at as usize),
+        (value, None) => value.as_ref(),
+        (_, Some(_)) => None,
+    };
+    element
+        .and_then(|v| convert::bytes_of(v, entry.ty))
+        .ok_or(Refusal::Opcua(StatusCode::BadTypeMismatch.bits()))
+}
+
+/// The device's time of a notified value: its SourceTimestamp, else its
+/// ServerTimestamp, else now (UTC ms).
+fn stamp_of(value: &DataValue) -> i64 {
+    value
+        .source_timestamp
+        .or(value.server_timestamp)
+        .map(|t| t.as_chrono().timestamp_millis())
+        .filter(|&ms| ms > 0)
+        .unwrap_or_else(|| plccoms_core::changes::unix_ms(std::time::SystemTime::now()))
+}
+
+/// Keeps the newest notification of each item only, in their order.
+fn keep_newest(inbox: &mut Vec<(u64, u32, DataValue)>) {
+    let mut seen = HashSet::new();
+    let mut kept: Vec<_> = inbox
+        .drain(..)
+        .rev()
+        .filter(|(g, h, _)| seen.insert((*g, *h)))
+        .collect();
+    kept.reverse();
+    *inbox = kept;
+}
+
 /// Largest message accepted from a server.
 const MAX_MESSAGE: usize = 64 * 1024 * 1024;
 
@@ -984,7 +1045,7 @@ fn list_of(bytes: Vec<u8>, builtins: &HashMap<String, Builtin>) -> List {
     let placed = tags::vars(&file.tags);
     let mut sources: Vec<NodeId> = Vec::new();
     let mut source_of: HashMap<NodeId, usize> = HashMap::new();
-    let entries = file
+    let entries: Vec<Entry> = file
         .tags
         .iter()
         .filter(|t| t.ty.is_some())
@@ -997,6 +1058,7 @@ fn list_of(bytes: Vec<u8>, builtins: &HashMap<String, Builtin>) -> List {
                 sources.len() - 1
             });
             Entry {
+                name: var.name,
                 offset: var.offset,
                 ty: var.ty,
                 builtin: builtins
@@ -1009,10 +1071,15 @@ fn list_of(bytes: Vec<u8>, builtins: &HashMap<String, Builtin>) -> List {
             }
         })
         .collect();
+    let mut by_source = vec![Vec::new(); sources.len()];
+    for (i, entry) in entries.iter().enumerate() {
+        by_source[entry.source].push(i);
+    }
     List {
         bytes,
         entries,
         sources,
+        by_source,
     }
 }
 
@@ -1161,6 +1228,52 @@ impl PlcBackend for OpcuaBackend {
     async fn status(&mut self) -> Result<PlcStatus, PlcError> {
         self.session()?;
         Ok(PlcStatus { run: self.run })
+    }
+
+    /// Subscribe mode: the values notified since the last call, each with
+    /// its SourceTimestamp; the last of each item is what reads answer
+    /// from now on. A Bad one is no value: reads answer its refusal.
+    fn take_pushed(&mut self) -> Vec<Pushed> {
+        let inbox = std::mem::take(&mut *self.inbox.lock().unwrap_or_else(|e| e.into_inner()));
+        if inbox.is_empty() || self.subscription.is_none() {
+            return Vec::new();
+        }
+        let mut pushed = Vec::new();
+        let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
+        for (generation, handle, value) in inbox {
+            if generation != self.generation {
+                continue;
+            }
+            if handle != STATE_HANDLE {
+                let Some(entries) = (handle as usize)
+                    .checked_sub(1)
+                    .and_then(|source| self.served.by_source.get(source))
+                else {
+                    continue;
+                };
+                let unix_ms = stamp_of(&value);
+                for &i in entries {
+                    let entry = &self.served.entries[i];
+                    if let Ok(bytes) = entry_bytes(entry, &value) {
+                        pushed.push(Pushed {
+                            name: entry.name.clone(),
+                            bytes,
+                            unix_ms,
+                        });
+                    }
+                }
+            }
+            notified.insert(handle, value);
+        }
+        pushed
+    }
+
+    async fn wait_pushed(&mut self) -> Result<(), PlcError> {
+        if self.subscription.is_none() {
+            return std::future::pending().await;
+        }
+        self.wake.notified().await;
+        Ok(())
     }
 
     /// The variable list ([`VARS_FILE`]), the newest built.
