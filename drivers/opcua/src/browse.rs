@@ -104,22 +104,24 @@ pub fn node_ref(id: &NodeId) -> NodeRef {
 const FIXED_NAMES: [&str; 2] = ["__PLC_RUN", "__PF_CRC"];
 
 /// A variable found, before its attributes are read.
-struct Found {
+#[derive(Clone, PartialEq)]
+pub struct Found {
     name: String,
     node: NodeId,
     /// From a tag file: what it says.
     tag: Option<Tag>,
 }
 
-/// Builds the list: from the tag file's tags, or by browsing `starts`.
-pub async fn build(
+/// The variables: the tag file's tags, or those found by browsing
+/// `starts`; [`build`] reads their attributes.
+pub async fn find(
     section: &str,
     session: &Session,
     limits: &Limits,
     tags: Option<Vec<Tag>>,
     starts: &[NodeRef],
-) -> Result<Built, PlcError> {
-    let found = match tags {
+) -> Result<Vec<Found>, PlcError> {
+    Ok(match tags {
         Some(tags) => {
             let mut found = Vec::with_capacity(tags.len());
             for tag in tags {
@@ -135,7 +137,16 @@ pub async fn build(
             found
         }
         None => browse(section, session, limits, starts).await?,
-    };
+    })
+}
+
+/// Builds the list of `found`, typed from their attributes.
+pub async fn build(
+    section: &str,
+    session: &Session,
+    limits: &Limits,
+    found: Vec<Found>,
+) -> Result<Built, PlcError> {
     let attributes = read_attributes(session, limits, &found).await?;
     let mut tags = Vec::with_capacity(found.len());
     let mut builtins = HashMap::with_capacity(found.len());

@@ -44,12 +44,14 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use async_trait::async_trait;
-use opcua::client::{ClientBuilder, DataChangeCallback, IdentityToken, Session};
+use opcua::client::{
+    ClientBuilder, IdentityToken, MonitoredItemMap, OnSubscriptionNotificationCore, Session,
+};
 use opcua::crypto::SecurityPolicy;
 use opcua::types::{
-    DataValue, EndpointDescription, MessageSecurityMode, MonitoredItemCreateRequest,
-    MonitoringMode, MonitoringParameters, NodeId, ReadValueId, StatusCode, TimestampsToReturn,
-    UserTokenPolicy, Variant, WriteValue,
+    DataChangeNotification, DataValue, EndpointDescription, MessageSecurityMode,
+    MonitoredItemCreateRequest, MonitoringMode, MonitoringParameters, NodeId, NotificationMessage,
+    ReadValueId, StatusCode, TimestampsToReturn, UserTokenPolicy, Variant, WriteValue,
 };
 use tokio::task::JoinHandle;
 use tracing::{info, warn};
@@ -226,6 +228,9 @@ pub struct OpcuaBackend {
     /// The list being fetched by the link (file_info .. last read_file).
     fetching: Option<(Vec<u8>, HashMap<String, Builtin>)>,
     built_at: Option<Instant>,
+    /// The variables the newest list was built of (not those of an older
+    /// session: a new session reads every attribute again).
+    found: Option<Vec<browse::Found>>,
     subscription: Option<Subscription>,
     notified: Notified,
     inbox: Inbox,
@@ -234,6 +239,9 @@ pub struct OpcuaBackend {
     /// Of the current subscription: notifications of an older one (its
     /// handles meant another list) are dropped.
     generation: u64,
+    /// SourceTimestamp of each SET's read-back, by client handle, until
+    /// the next notification of its item.
+    read_back: HashMap<u32, opcua::types::DateTime>,
     /// Sources written since their last notification: read from the server.
     written: HashSet<usize>,
     /// When the link's last read started, and the gap before it.
@@ -298,12 +306,14 @@ impl OpcuaBackend {
             newest: None,
             fetching: None,
             built_at: None,
+            found: None,
             subscription: None,
             notified: Arc::default(),
             inbox: Arc::default(),
             wake: Arc::default(),
             generation: 0,
             written: HashSet::new(),
+            read_back: HashMap::new(),
             last_read: None,
             poll_gaps: [None; 3],
         }
@@ -355,12 +365,14 @@ impl OpcuaBackend {
             .unwrap_or_else(|e| e.into_inner())
             .clear();
         self.written.clear();
+        self.read_back.clear();
     }
 
     /// A new session: endpoint, security and identity as configured, the
     /// server's limits and state read, and the variable list built.
     async fn open_session(&mut self) -> Result<String, PlcError> {
         self.lose();
+        self.found = None;
         if self.client.is_none() {
             self.client = Some(new_client(&self.config)?);
         }
@@ -498,13 +510,21 @@ impl OpcuaBackend {
             self.config.browse.clone()
         };
         let limits = self.limits;
-        let built = tokio::time::timeout(
-            self.config.timeout * 60,
-            browse::build(&section, &session, &limits, file_tags, &starts),
-        )
+        let known = self.found.take();
+        let built = tokio::time::timeout(self.config.timeout * 60, async {
+            let found = browse::find(&section, &session, &limits, file_tags, &starts).await?;
+            // The same nodes by the same names as last time: their
+            // attributes are not read again (at 100,000 variables that
+            // is 400,000 of them every OPCUA_REBROWSE).
+            if known.as_ref() == Some(&found) {
+                return Ok::<_, PlcError>((found, None));
+            }
+            let built = browse::build(&section, &session, &limits, found.clone()).await?;
+            Ok((found, Some(built)))
+        })
         .await
         .map_err(|_| PlcError::Timeout("browsing the server's variables took too long".into()))?;
-        let built = match built {
+        let (found, built) = match built {
             Ok(built) => built,
             Err(e) => {
                 if e.is_link_failure() {
@@ -514,6 +534,10 @@ impl OpcuaBackend {
             }
         };
         self.built_at = Some(Instant::now());
+        self.found = Some(found);
+        let Some(built) = built else {
+            return Ok(());
+        };
         let bytes = tags::write(&built.tags);
         if bytes == self.served.bytes && !self.served.bytes.is_empty() {
             // Same list: the link keeps its table; node ids are the same.
@@ -618,12 +642,13 @@ impl OpcuaBackend {
         let interval = (gap.as_secs_f64() * 1000.0).max(self.limits.min_sampling);
         if self.subscription.is_none() {
             self.generation += 1;
-            let generation = self.generation;
-            let inbox = self.inbox.clone();
-            let wake = self.wake.clone();
-            // Bounded: a link that does not take them keeps the newest of
-            // each item only.
-            let most = (self.served.sources.len() * 4).max(4096);
+            let sink = Sink {
+                inbox: self.inbox.clone(),
+                wake: self.wake.clone(),
+                generation: self.generation,
+                most: (self.served.sources.len() * 4).max(4096),
+                counters: self.counters.clone(),
+            };
             let id = self
                 .call(
                     "CreateSubscription",
@@ -636,15 +661,7 @@ impl OpcuaBackend {
                         0,
                         0,
                         true,
-                        DataChangeCallback::new(move |value, item| {
-                            let mut inbox = inbox.lock().unwrap_or_else(|e| e.into_inner());
-                            if inbox.len() >= most {
-                                keep_newest(&mut inbox);
-                            }
-                            inbox.push((generation, item.client_handle(), value));
-                            drop(inbox);
-                            wake.notify_one();
-                        }),
+                        sink,
                     ),
                 )
                 .await?;
@@ -918,6 +935,46 @@ fn stamp_of(value: &DataValue) -> i64 {
         .map(|t| t.as_chrono().timestamp_millis())
         .filter(|&ms| ms > 0)
         .unwrap_or_else(|| plccoms_core::changes::unix_ms(std::time::SystemTime::now()))
+}
+
+/// Where a subscription's notifications go: the inbox, the link woken.
+struct Sink {
+    inbox: Inbox,
+    wake: Arc<tokio::sync::Notify>,
+    generation: u64,
+    /// Bounded: a link that does not take them keeps the newest of each
+    /// item only.
+    most: usize,
+    counters: Arc<BackendCounters>,
+}
+
+impl OnSubscriptionNotificationCore for Sink {
+    fn on_subscription_notification(
+        &mut self,
+        notification: NotificationMessage,
+        _items: MonitoredItemMap<'_>,
+    ) {
+        // Each message answers one Publish request: counted with the
+        // others, so requests per cycle include them.
+        self.counters.requests.inc();
+        let Some(data) = notification.notification_data else {
+            return;
+        };
+        let mut inbox = self.inbox.lock().unwrap_or_else(|e| e.into_inner());
+        for object in data {
+            let Some(changes) = object.into_inner_as::<DataChangeNotification>() else {
+                continue;
+            };
+            for change in changes.monitored_items.into_iter().flatten() {
+                if inbox.len() >= self.most {
+                    keep_newest(&mut inbox);
+                }
+                inbox.push((self.generation, change.client_handle, change.value));
+            }
+        }
+        drop(inbox);
+        self.wake.notify_one();
+    }
 }
 
 /// Keeps the newest notification of each item only, in their order.
@@ -1198,6 +1255,9 @@ impl PlcBackend for OpcuaBackend {
                 let read = self.read_values(&direct, state).await?;
                 let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
                 for (i, value) in read {
+                    if let (true, Some(at)) = (self.written.contains(&i), value.source_timestamp) {
+                        self.read_back.insert(i as u32 + 1, at);
+                    }
                     notified.insert(i as u32 + 1, value.clone());
                     values.insert(i, value);
                 }
@@ -1243,6 +1303,22 @@ impl PlcBackend for OpcuaBackend {
         for (generation, handle, value) in inbox {
             if generation != self.generation {
                 continue;
+            }
+            // The server has no value yet (a plccoms serving a variable it
+            // starts polling now): the one it notifies next is what counts,
+            // and the value shown stays meanwhile.
+            if value.status == Some(StatusCode::BadWaitingForInitialData) {
+                continue;
+            }
+            // The first notification after a SET's read-back, sampled
+            // before it (older): it would undo the SET. Only that one: the
+            // server's later ones are newer (one value per item a publish).
+            if let (Some(shown), Some(new)) =
+                (self.read_back.remove(&handle), value.source_timestamp)
+            {
+                if new < shown {
+                    continue;
+                }
             }
             if handle != STATE_HANDLE {
                 let Some(entries) = (handle as usize)
@@ -1341,6 +1417,7 @@ impl PlcBackend for OpcuaBackend {
                     .unwrap_or_else(|e| e.into_inner())
                     .clear();
                 self.written.clear();
+                self.read_back.clear();
             }
         }
         Ok(Ok(part))
