@@ -263,3 +263,22 @@ pub async fn time_sets(
         .collect();
     (confirm_ms, diff_ms)
 }
+
+/// The value at fraction `p` of `sorted` (NaN when empty).
+pub fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+}
+
+/// Appends `text` to the results file `path` (bench/run's `--out`).
+pub fn append(path: &std::path::Path, text: &str) {
+    use std::io::Write;
+    let mut file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .expect("--out");
+    file.write_all(text.as_bytes()).expect("--out");
+}

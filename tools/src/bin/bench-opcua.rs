@@ -33,6 +33,7 @@ use clap::Parser;
 
 use plcsim::program::ProgramKind;
 use plcsim::{PubSource as SimPub, SimConfig};
+use timed::percentile;
 
 #[derive(Debug, Parser)]
 #[command(name = "bench-opcua")]
@@ -186,13 +187,6 @@ fn ask(port: u16, line: &str) -> String {
             return answer.trim_end().to_string();
         }
     }
-}
-
-fn percentile(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
 }
 
 struct Row {
@@ -371,12 +365,6 @@ async fn main() {
     }
     print!("{out}");
     if let Some(path) = &args.out {
-        use std::io::Write;
-        let mut file = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)
-            .expect("--out");
-        file.write_all(results.as_bytes()).expect("--out");
+        timed::append(path, &results);
     }
 }
