@@ -225,8 +225,12 @@ async fn run(args: &Args, binary: &Path, n: usize) -> Row {
         "serving",
         &format!(
             "[*]\nCOMM_LOOP_DELAY = {delay}\nOPCUA_PORT = {ua}\nOPCUA_USERS = opcua-users\n\
+             OPCUA_MAX_MONITORED_ITEMS = {}\n\
              [Sim]\nIPADDR = 127.0.0.1\nIPADDR_LOCAL = 127.0.0.1\nEPSPORT = {}\n\
              SERVER_PORT = {sim_port}\nPUBFILE = //bench.pub\nPUBFILE_CRC = No\nPUBFILE_WRITE = No\nOPCUA_WRITE = T*\n",
+            // Its default, 100,000 a subscription, is one short of N
+            // variables and ServerStatus.State (the client makes one).
+            n + 1000,
             plc.local_addr().port()
         ),
     );
