@@ -530,3 +530,81 @@ async fn security_first_contact_and_a_user() {
     .await;
     drop(server);
 }
+
+fn http_get(port: u16, path: &str) -> String {
+    use std::io::Read;
+    let mut stream = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
+    write!(
+        stream,
+        "GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut answer = String::new();
+    stream.read_to_string(&mut answer).unwrap();
+    answer
+}
+
+/// Subscribed values reach DIFFs and the history with the server's
+/// SourceTimestamp, not the time plccoms received them.
+#[tokio::test]
+async fn source_timestamps_are_the_historys_time() {
+    // 2024-03-15T13:45:30.000Z: far from now, so no poll's time matches.
+    const MS0: i64 = 1_710_510_330_000;
+    let mut server = OpcServer::start(free_port(), None);
+    let (port, http) = (free_port(), free_port());
+    let ini = format!(
+        "[*]\nHTTP_PORT = {http}\nHISTORY_SYNC = 1\nCOMM_LOOP_DELAY = 100\n\
+         [P]\nPROTOCOL = OPCUA\nOPCUA_URL = {}\nSERVER_PORT = {port}\n\
+         HISTORY = DB_LINE1.MOTOR.SPEED\n",
+        server.url()
+    );
+    let plc = ServerProcess::with_config(&ini, port);
+    let mut c = Client::connect(plc.addr).await;
+    listed(&mut c, "DB_LINE1.MOTOR.SPEED").await;
+    c.ask(
+        "EN:db_line1.motor.speed\r\n",
+        "WARNING:252 Changed active variables in public file: '[3/24]'\r\n",
+    )
+    .await;
+    c.expect(b"DIFF:DB_LINE1.MOTOR.SPEED,1450.5000000000\r\n")
+        .await;
+    // The subscription is made once the poll's period is known.
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    for k in 1..=5i64 {
+        server.command(&format!("stamp SPEED {k} {}", MS0 + k * 1000));
+        c.wait_for_line(
+            format!("DIFF:DB_LINE1.MOTOR.SPEED,{k}.0000000000\r\n").as_bytes(),
+            Duration::from_secs(5),
+        )
+        .await;
+    }
+    let path = format!(
+        "/api/history?section=P&vars=DB_LINE1.MOTOR.SPEED&from={}&to={}&format=csv",
+        MS0 - 1000,
+        MS0 + 10_000
+    );
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let csv = loop {
+        let answer = http_get(http, &path);
+        if answer.matches(",DB_LINE1.MOTOR.SPEED,").count() >= 5 || Instant::now() > deadline {
+            break answer;
+        }
+        std::thread::sleep(Duration::from_millis(300));
+    };
+    assert_eq!(csv.matches(",DB_LINE1.MOTOR.SPEED,").count(), 5, "{csv}");
+    for k in 1..=5i64 {
+        let at = chrono::DateTime::from_timestamp_millis(MS0 + 1000 * k)
+            .unwrap()
+            .format("%Y-%m-%dT%H:%M:%S%.3fZ")
+            .to_string();
+        assert!(
+            csv.lines()
+                .any(|l| l.contains(&at) && l.contains(&format!(",{k},"))
+                    || l.contains(&at) && l.contains(&format!(",{k}.0,"))),
+            "no sample {k} at {at} in:\n{csv}"
+        );
+    }
+}

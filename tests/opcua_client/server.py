@@ -21,6 +21,7 @@ stdin, one a line:
   add NAME   adds a Double variable NAME (= 1.5) to DB_LINE1/MOTOR
   set NAME V sets TYPES or MOTOR variable NAME to the number V
   slow MS    answers every Read MS milliseconds late (0: at once again)
+  stamp NAME V MS  sets NAME to V with SourceTimestamp MS (Unix ms)
 """
 
 import asyncio
@@ -182,6 +183,11 @@ async def main():
                 await var(motor, "DB_LINE1.MOTOR", words[1], 1.5, ua.VariantType.Double)
             elif words[:1] == ["slow"]:
                 READ_DELAY[0] = int(words[1]) / 1000
+            elif words[:1] == ["stamp"]:
+                node, vtype = nodes[words[1]]
+                at = datetime.datetime.fromtimestamp(int(words[3]) / 1000, datetime.timezone.utc)
+                value = type(await node.read_value())(words[2])
+                await node.write_value(ua.DataValue(ua.Variant(value, vtype), SourceTimestamp=at))
             elif words[:1] == ["set"]:
                 node, vtype = nodes[words[1]]
                 await node.write_value(ua.Variant(type(await node.read_value())(words[2]) if vtype != ua.VariantType.Boolean else words[2] == "1", vtype))

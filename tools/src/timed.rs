@@ -153,10 +153,7 @@ pub async fn measure(
     use plccoms::startup::start_section;
     use plccoms_core::link::tables::PubSource;
     use plccoms_core::link::Tables;
-    use std::collections::HashMap;
     use std::net::SocketAddr;
-    use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
-    use tokio::net::TcpStream;
 
     let loaded = plccoms_core::config::parse(&dir.join("bench.ini"), ini).expect("ini");
     let section = loaded.config.sections.into_iter().next().expect("section");
@@ -179,32 +176,66 @@ pub async fn measure(
     .await
     .expect("section");
 
-    // The watcher: every tag enabled; DIFF arrival times by line.
-    let watcher = TcpStream::connect(running.local_addr)
-        .await
-        .expect("watcher");
-    let (read, mut write) = watcher.into_split();
-    write.write_all(b"EN:*\r\n").await.unwrap();
-    let arrivals: Arc<Mutex<HashMap<String, Instant>>> = Arc::default();
-    let seen = arrivals.clone();
-    tokio::spawn(async move {
-        let mut lines = BufReader::new(read).lines();
-        while let Ok(Some(line)) = lines.next_line().await {
-            if line.starts_with("DIFF:T") && line.len() < 24 {
-                seen.lock().unwrap().insert(line, Instant::now());
-            }
-        }
-    });
+    let arrivals = watch(running.local_addr).await;
     tokio::time::sleep(Duration::from_millis(10 * delay + 500)).await;
 
     reads.lock().unwrap().clear();
     tokio::time::sleep(Duration::from_millis(cycles_wanted as u64 * delay)).await;
     let polls = cycles(&std::mem::take(&mut *reads.lock().unwrap()));
 
-    // SET -> confirmed -> DIFF, with the polls going on.
-    let writer = TcpStream::connect(running.local_addr)
-        .await
-        .expect("writer");
+    let (confirm_ms, diff_ms) =
+        time_sets(running.local_addr, arrivals, delay, sets, set_tags).await;
+    drop(running);
+    Measured {
+        requests: polls.iter().map(|(_, n)| *n).collect(),
+        cycle_ms: polls.iter().map(|(d, _)| ms(*d)).collect(),
+        confirm_ms,
+        diff_ms,
+    }
+}
+
+/// When each `DIFF:T<n>,<v>` line reached a watcher.
+pub type Arrivals = Arc<Mutex<std::collections::HashMap<String, Instant>>>;
+
+/// A watcher on the section at `addr`: every tag enabled, the arrival of
+/// each `DIFF:T...` line noted (the rest read and dropped).
+pub async fn watch(addr: std::net::SocketAddr) -> Arrivals {
+    use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+    let watcher = tokio::net::TcpStream::connect(addr).await.expect("watcher");
+    let (read, mut write) = watcher.into_split();
+    write.write_all(b"EN:*\r\n").await.unwrap();
+    let arrivals: Arrivals = Arc::default();
+    let seen = arrivals.clone();
+    tokio::spawn(async move {
+        // Dropping the write half would shut the connection down.
+        let _write = write;
+        let mut lines = BufReader::new(read).lines();
+        while let Ok(Some(line)) = lines.next_line().await {
+            if line.starts_with("DIFF:T") && line.len() < 24 {
+                // The first arrival: a value that comes again later (set
+                // back and forth) is not late.
+                seen.lock()
+                    .unwrap()
+                    .entry(line)
+                    .or_insert_with(Instant::now);
+            }
+        }
+    });
+    arrivals
+}
+
+/// `sets` SETs of `t0`..`t<set_tags>` to the section at `addr`, one by
+/// one, with the polls going on: each timed to its answer (the confirmed
+/// DIFF) and to the DIFF at the watcher of `arrivals`, in ms.
+pub async fn time_sets(
+    addr: std::net::SocketAddr,
+    arrivals: Arrivals,
+    delay: u64,
+    sets: usize,
+    set_tags: usize,
+) -> (Vec<f64>, Vec<f64>) {
+    use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+    let writer = tokio::net::TcpStream::connect(addr).await.expect("writer");
     let (read, mut write) = writer.into_split();
     let mut answers = BufReader::new(read).lines();
     let mut sent = Vec::new();
@@ -230,11 +261,24 @@ pub async fn measure(
         .iter()
         .filter_map(|(line, started)| arrivals.get(line).map(|at| ms(at.duration_since(*started))))
         .collect();
-    drop(running);
-    Measured {
-        requests: polls.iter().map(|(_, n)| *n).collect(),
-        cycle_ms: polls.iter().map(|(d, _)| ms(*d)).collect(),
-        confirm_ms,
-        diff_ms,
+    (confirm_ms, diff_ms)
+}
+
+/// The value at fraction `p` of `sorted` (NaN when empty).
+pub fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
     }
+    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+}
+
+/// Appends `text` to the results file `path` (bench/run's `--out`).
+pub fn append(path: &std::path::Path, text: &str) {
+    use std::io::Write;
+    let mut file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .expect("--out");
+    file.write_all(text.as_bytes()).expect("--out");
 }

@@ -1063,7 +1063,9 @@ fn read_section(
         let misplaced = misplaced.or_else(|| match (opcua, key.starts_with("OPCUA_")) {
             (true, false) => matches!(*key, "PUBFILE" | "PUBFILE_FIXED" | "IPADDR")
                 .then(|| format!("{key} has no effect with PROTOCOL = OPCUA (the server is OPCUA_URL, its variables come from OPCUA_BROWSE or OPCUA_TAGS)")),
-            (false, true) => Some(format!("{key} has no effect without PROTOCOL = OPCUA")),
+            // OPCUA_PUBLISH and OPCUA_WRITE are the OPC UA server's, for any section.
+            (false, true) => (!matches!(*key, "OPCUA_PUBLISH" | "OPCUA_WRITE"))
+                .then(|| format!("{key} has no effect without PROTOCOL = OPCUA")),
             _ => None,
         });
         if let Some(message) = misplaced {

@@ -1073,6 +1073,8 @@ fn opcua_keys_where_they_do_nothing_are_warnings() {
         warnings("SERVER_PORT = 1\nOPCUA_URL = opc.tcp://plc:4840"),
         ["PLCComS.ini:4: OPCUA_URL has no effect without PROTOCOL = OPCUA"]
     );
+    // The OPC UA server's section keys belong to any section.
+    assert!(warnings("SERVER_PORT = 1\nOPCUA_WRITE = T*\nOPCUA_PUBLISH = *").is_empty());
     assert_eq!(
         warnings("SERVER_PORT = 1\nPROTOCOL = OPCUA\nPUBFILE = x.pub"),
         [

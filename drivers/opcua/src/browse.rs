@@ -34,6 +34,10 @@ const MAX_DEPTH: usize = 32;
 /// (BadEncodingLimitsExceeded, as asyncua's server answered).
 const REFERENCES_PER_NODE: u32 = 1000;
 const BROWSE_BATCH: usize = 10;
+/// Most variables browsed (for a structure's fields) in one Browse: most
+/// have no children, so their answers are small; 10 a request made a
+/// rebrowse of 100,000 variables 10,000 round trips.
+const VARIABLE_BATCH: usize = 1000;
 
 /// Most nodes a browse visits (objects and variables): a server that
 /// shows endless folders is browsed this far, not until memory runs out.
@@ -100,23 +104,28 @@ pub fn node_ref(id: &NodeId) -> NodeRef {
     }
 }
 
+/// The standard fixed file's variables: served by the backend itself.
+const FIXED_NAMES: [&str; 2] = ["__PLC_RUN", "__PF_CRC"];
+
 /// A variable found, before its attributes are read.
-struct Found {
+#[derive(Clone, PartialEq)]
+pub struct Found {
     name: String,
     node: NodeId,
     /// From a tag file: what it says.
     tag: Option<Tag>,
 }
 
-/// Builds the list: from the tag file's tags, or by browsing `starts`.
-pub async fn build(
+/// The variables: the tag file's tags, or those found by browsing
+/// `starts`; [`build`] reads their attributes.
+pub async fn find(
     section: &str,
     session: &Session,
     limits: &Limits,
     tags: Option<Vec<Tag>>,
     starts: &[NodeRef],
-) -> Result<Built, PlcError> {
-    let found = match tags {
+) -> Result<Vec<Found>, PlcError> {
+    Ok(match tags {
         Some(tags) => {
             let mut found = Vec::with_capacity(tags.len());
             for tag in tags {
@@ -132,7 +141,16 @@ pub async fn build(
             found
         }
         None => browse(section, session, limits, starts).await?,
-    };
+    })
+}
+
+/// Builds the list of `found`, typed from their attributes.
+pub async fn build(
+    section: &str,
+    session: &Session,
+    limits: &Limits,
+    found: Vec<Found>,
+) -> Result<Built, PlcError> {
     let attributes = read_attributes(session, limits, &found).await?;
     let mut tags = Vec::with_capacity(found.len());
     let mut builtins = HashMap::with_capacity(found.len());
@@ -234,25 +252,37 @@ async fn browse(
     limits: &Limits,
     starts: &[NodeRef],
 ) -> Result<Vec<Found>, PlcError> {
-    let mut queue: VecDeque<(NodeId, Vec<String>)> = VecDeque::new();
+    // (node, browse path, whether a variable)
+    let mut queue: VecDeque<(NodeId, Vec<String>, bool)> = VecDeque::new();
     let mut visited: HashSet<NodeId> = HashSet::new();
     for start in starts {
         match node_id(session, start).await {
             Ok(node) => {
                 visited.insert(node.clone());
-                queue.push_back((node, Vec::new()));
+                queue.push_back((node, Vec::new(), false));
             }
             Err(e) => warn!(section, "OPCUA_BROWSE {start}: {e}"),
         }
     }
     let mut found = Vec::new();
     while !queue.is_empty() {
-        let batch: Vec<(NodeId, Vec<String>)> = queue
-            .drain(..queue.len().min(limits.per_browse.min(BROWSE_BATCH)))
-            .collect();
+        // In queue order (the names' order): up to BROWSE_BATCH objects,
+        // whose answers may be long, and variables up to VARIABLE_BATCH.
+        let most = limits.per_browse.clamp(1, VARIABLE_BATCH);
+        let mut objects = 0;
+        let take = queue
+            .iter()
+            .take(most)
+            .take_while(|(_, _, variable)| {
+                objects += usize::from(!variable);
+                objects <= BROWSE_BATCH.min(most)
+            })
+            .count()
+            .max(1);
+        let batch: Vec<(NodeId, Vec<String>, bool)> = queue.drain(..take).collect();
         let descriptions: Vec<BrowseDescription> = batch
             .iter()
-            .map(|(node, _)| BrowseDescription {
+            .map(|(node, _, _)| BrowseDescription {
                 node_id: node.clone(),
                 browse_direction: BrowseDirection::Forward,
                 reference_type_id: NodeId::new(0, HIERARCHICAL),
@@ -265,7 +295,7 @@ async fn browse(
             .browse(&descriptions, REFERENCES_PER_NODE, None)
             .await
             .map_err(|e| service_error("Browse", e))?;
-        for ((_, path), result) in batch.iter().zip(results.iter_mut()) {
+        for ((_, path, _), result) in batch.iter().zip(results.iter_mut()) {
             let mut references = result.references.take().unwrap_or_default();
             let mut point = result.continuation_point.clone();
             // Continuation points bring the rest of a long list.
@@ -318,15 +348,21 @@ async fn browse(
                         );
                         return Ok(named(section, found));
                     }
+                    let name = path_name(&child);
+                    // Another plccoms's section (loopback) shows the fixed
+                    // file's variables, which every table has already.
+                    if FIXED_NAMES.iter().any(|f| f.eq_ignore_ascii_case(&name)) {
+                        continue;
+                    }
                     found.push(Found {
-                        name: path_name(&child),
+                        name,
                         node: node.clone(),
                         tag: None,
                     });
                 }
                 // Variables have fields (a structure's) as components too.
                 if child.len() < MAX_DEPTH {
-                    queue.push_back((node, child));
+                    queue.push_back((node, child, reference.node_class == NodeClass::Variable));
                 }
             }
         }

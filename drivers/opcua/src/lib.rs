@@ -17,10 +17,12 @@
 //! - `OPCUA_MODE = subscribe` (default): a subscription with a monitored
 //!   item per enabled variable, created when the link first reads it, at
 //!   the sampling interval the link polls at (the time between its reads,
-//!   no faster than the server's MinSupportedSampleRate); the link's reads
-//!   are answered from the last notified values, without a round trip. A
-//!   variable just written is read from the server once, so the value
-//!   confirmed is the server's.
+//!   no faster than the server's MinSupportedSampleRate). Notifications
+//!   reach the link as pushed values ([`PlcBackend::take_pushed`]) stamped
+//!   with their SourceTimestamp (else ServerTimestamp), so DIFFs and the
+//!   history carry the PLC's time; the link's reads are answered from the
+//!   last values taken, without a round trip. A variable just written is
+//!   read from the server once, so the value confirmed is the server's.
 //! - Quality: Good is a value; Uncertain is served as a value (the core has
 //!   no per-value quality to mark it stale with); Bad is the refusal of
 //!   that variable, with the StatusCode's name.
@@ -42,12 +44,14 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use async_trait::async_trait;
-use opcua::client::{ClientBuilder, DataChangeCallback, IdentityToken, Session};
+use opcua::client::{
+    ClientBuilder, IdentityToken, MonitoredItemMap, OnSubscriptionNotificationCore, Session,
+};
 use opcua::crypto::SecurityPolicy;
 use opcua::types::{
-    DataValue, EndpointDescription, MessageSecurityMode, MonitoredItemCreateRequest,
-    MonitoringMode, MonitoringParameters, NodeId, ReadValueId, StatusCode, TimestampsToReturn,
-    UserTokenPolicy, Variant, WriteValue,
+    DataChangeNotification, DataValue, EndpointDescription, MessageSecurityMode,
+    MonitoredItemCreateRequest, MonitoringMode, MonitoringParameters, NodeId, NotificationMessage,
+    ReadValueId, StatusCode, TimestampsToReturn, UserTokenPolicy, Variant, WriteValue,
 };
 use tokio::task::JoinHandle;
 use tracing::{info, warn};
@@ -55,8 +59,8 @@ use tracing::{info, warn};
 use convert::Builtin;
 use plccoms_core::config::Protocol;
 use plccoms_core::driver::{
-    Answer, Driver, FileInfo, Opened, PlcBackend, PlcError, PlcStatus, ReadRequest, Refusal,
-    WriteData, WriteRequest,
+    Answer, Driver, FileInfo, Opened, PlcBackend, PlcError, PlcStatus, Pushed, ReadRequest,
+    Refusal, WriteData, WriteRequest,
 };
 use plccoms_core::metrics::BackendCounters;
 use plccoms_plc::memory::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
@@ -157,6 +161,8 @@ impl Default for Limits {
 /// A variable the link reads and writes: its place in R and its node.
 #[derive(Debug, Clone)]
 struct Entry {
+    /// As the list names it (the link's table looks pushed values up by it).
+    name: Box<[u8]>,
     offset: u32,
     ty: IecType,
     builtin: Builtin,
@@ -175,6 +181,8 @@ struct List {
     /// The nodes read or monitored, each once: a whole array for all its
     /// elements (servers differ in honouring index ranges).
     sources: Vec<NodeId>,
+    /// The entries of each source, by index.
+    by_source: Vec<Vec<usize>>,
 }
 
 struct Connection {
@@ -192,8 +200,13 @@ impl Drop for Connection {
 /// are source index + 1).
 const STATE_HANDLE: u32 = u32::MAX;
 
-/// Values notified, by client handle (source index + 1).
+/// Values notified and taken by the link, by client handle (source index
+/// + 1): what reads answer.
 type Notified = Arc<Mutex<HashMap<u32, DataValue>>>;
+
+/// Notifications not yet taken by the link, oldest first: (subscription
+/// generation, client handle, value).
+type Inbox = Arc<Mutex<Vec<(u64, u32, DataValue)>>>;
 
 struct Subscription {
     id: u32,
@@ -215,8 +228,20 @@ pub struct OpcuaBackend {
     /// The list being fetched by the link (file_info .. last read_file).
     fetching: Option<(Vec<u8>, HashMap<String, Builtin>)>,
     built_at: Option<Instant>,
+    /// The variables the newest list was built of (not those of an older
+    /// session: a new session reads every attribute again).
+    found: Option<Vec<browse::Found>>,
     subscription: Option<Subscription>,
     notified: Notified,
+    inbox: Inbox,
+    /// Rung by each notification (the link's `wait_pushed`).
+    wake: Arc<tokio::sync::Notify>,
+    /// Of the current subscription: notifications of an older one (its
+    /// handles meant another list) are dropped.
+    generation: u64,
+    /// SourceTimestamp of each SET's read-back, by client handle, until
+    /// the next notification of its item.
+    read_back: HashMap<u32, opcua::types::DateTime>,
     /// Sources written since their last notification: read from the server.
     written: HashSet<usize>,
     /// When the link's last read started, and the gap before it.
@@ -281,9 +306,14 @@ impl OpcuaBackend {
             newest: None,
             fetching: None,
             built_at: None,
+            found: None,
             subscription: None,
             notified: Arc::default(),
+            inbox: Arc::default(),
+            wake: Arc::default(),
+            generation: 0,
             written: HashSet::new(),
+            read_back: HashMap::new(),
             last_read: None,
             poll_gaps: [None; 3],
         }
@@ -329,17 +359,20 @@ impl OpcuaBackend {
     fn lose(&mut self) {
         self.connection = None;
         self.subscription = None;
+        self.inbox.lock().unwrap_or_else(|e| e.into_inner()).clear();
         self.notified
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .clear();
         self.written.clear();
+        self.read_back.clear();
     }
 
     /// A new session: endpoint, security and identity as configured, the
     /// server's limits and state read, and the variable list built.
     async fn open_session(&mut self) -> Result<String, PlcError> {
         self.lose();
+        self.found = None;
         if self.client.is_none() {
             self.client = Some(new_client(&self.config)?);
         }
@@ -477,13 +510,21 @@ impl OpcuaBackend {
             self.config.browse.clone()
         };
         let limits = self.limits;
-        let built = tokio::time::timeout(
-            self.config.timeout * 60,
-            browse::build(&section, &session, &limits, file_tags, &starts),
-        )
+        let known = self.found.take();
+        let built = tokio::time::timeout(self.config.timeout * 60, async {
+            let found = browse::find(&section, &session, &limits, file_tags, &starts).await?;
+            // The same nodes by the same names as last time: their
+            // attributes are not read again (at 100,000 variables that
+            // is 400,000 of them every OPCUA_REBROWSE).
+            if known.as_ref() == Some(&found) {
+                return Ok::<_, PlcError>((found, None));
+            }
+            let built = browse::build(&section, &session, &limits, found.clone()).await?;
+            Ok((found, Some(built)))
+        })
         .await
         .map_err(|_| PlcError::Timeout("browsing the server's variables took too long".into()))?;
-        let built = match built {
+        let (found, built) = match built {
             Ok(built) => built,
             Err(e) => {
                 if e.is_link_failure() {
@@ -493,6 +534,10 @@ impl OpcuaBackend {
             }
         };
         self.built_at = Some(Instant::now());
+        self.found = Some(found);
+        let Some(built) = built else {
+            return Ok(());
+        };
         let bytes = tags::write(&built.tags);
         if bytes == self.served.bytes && !self.served.bytes.is_empty() {
             // Same list: the link keeps its table; node ids are the same.
@@ -596,7 +641,14 @@ impl OpcuaBackend {
         let gap = gap.clamp(Duration::from_millis(10), Duration::from_secs(10));
         let interval = (gap.as_secs_f64() * 1000.0).max(self.limits.min_sampling);
         if self.subscription.is_none() {
-            let notified = self.notified.clone();
+            self.generation += 1;
+            let sink = Sink {
+                inbox: self.inbox.clone(),
+                wake: self.wake.clone(),
+                generation: self.generation,
+                most: (self.served.sources.len() * 4).max(4096),
+                counters: self.counters.clone(),
+            };
             let id = self
                 .call(
                     "CreateSubscription",
@@ -609,12 +661,7 @@ impl OpcuaBackend {
                         0,
                         0,
                         true,
-                        DataChangeCallback::new(move |value, item| {
-                            notified
-                                .lock()
-                                .unwrap_or_else(|e| e.into_inner())
-                                .insert(item.client_handle(), value);
-                        }),
+                        sink,
                     ),
                 )
                 .await?;
@@ -669,7 +716,9 @@ impl OpcuaBackend {
             let created = self
                 .call(
                     "CreateMonitoredItems",
-                    session.create_monitored_items(id, TimestampsToReturn::Source, items),
+                    // Both: ServerTimestamp stands in for a missing
+                    // SourceTimestamp in the history.
+                    session.create_monitored_items(id, TimestampsToReturn::Both, items),
                 )
                 .await?;
             let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
@@ -701,18 +750,7 @@ impl OpcuaBackend {
             let Some(value) = values.get(&entry.source) else {
                 return Err(Refusal::Opcua(StatusCode::BadWaitingForInitialData.bits()));
             };
-            let status = value.status.unwrap_or(StatusCode::Good);
-            if status.is_bad() {
-                return Err(refusal(status));
-            }
-            let element = match (&value.value, entry.index) {
-                (Some(Variant::Array(array)), Some(at)) => array.values.get(at as usize),
-                (value, None) => value.as_ref(),
-                (_, Some(_)) => None,
-            };
-            let Some(own) = element.and_then(|v| convert::bytes_of(v, entry.ty)) else {
-                return Err(Refusal::Opcua(StatusCode::BadTypeMismatch.bits()));
-            };
+            let own = entry_bytes(entry, value)?;
             // The overlap of the entry's bytes and the read.
             let (start, end) = (entry.offset, entry.offset + own.len() as u32);
             let (from, to) = (start.max(read.offset), end.min(read.offset + read.len));
@@ -871,6 +909,86 @@ impl OpcuaBackend {
     }
 }
 
+/// An entry's bytes in `value` (of its source), or the refusal its status
+/// or type makes.
+fn entry_bytes(entry: &Entry, value: &DataValue) -> Answer<Vec<u8>> {
+    let status = value.status.unwrap_or(StatusCode::Good);
+    if status.is_bad() {
+        return Err(refusal(status));
+    }
+    let element = match (&value.value, entry.index) {
+        (Some(Variant::Array(array)), Some(at)) => array.values.get(at as usize),
+        (value, None) => value.as_ref(),
+        (_, Some(_)) => None,
+    };
+    element
+        .and_then(|v| convert::bytes_of(v, entry.ty))
+        .ok_or(Refusal::Opcua(StatusCode::BadTypeMismatch.bits()))
+}
+
+/// The device's time of a notified value: its SourceTimestamp, else its
+/// ServerTimestamp, else now (UTC ms).
+fn stamp_of(value: &DataValue) -> i64 {
+    value
+        .source_timestamp
+        .or(value.server_timestamp)
+        .map(|t| t.as_chrono().timestamp_millis())
+        .filter(|&ms| ms > 0)
+        .unwrap_or_else(|| plccoms_core::changes::unix_ms(std::time::SystemTime::now()))
+}
+
+/// Where a subscription's notifications go: the inbox, the link woken.
+struct Sink {
+    inbox: Inbox,
+    wake: Arc<tokio::sync::Notify>,
+    generation: u64,
+    /// Bounded: a link that does not take them keeps the newest of each
+    /// item only.
+    most: usize,
+    counters: Arc<BackendCounters>,
+}
+
+impl OnSubscriptionNotificationCore for Sink {
+    fn on_subscription_notification(
+        &mut self,
+        notification: NotificationMessage,
+        _items: MonitoredItemMap<'_>,
+    ) {
+        // Each message answers one Publish request: counted with the
+        // others, so requests per cycle include them.
+        self.counters.requests.inc();
+        let Some(data) = notification.notification_data else {
+            return;
+        };
+        let mut inbox = self.inbox.lock().unwrap_or_else(|e| e.into_inner());
+        for object in data {
+            let Some(changes) = object.into_inner_as::<DataChangeNotification>() else {
+                continue;
+            };
+            for change in changes.monitored_items.into_iter().flatten() {
+                if inbox.len() >= self.most {
+                    keep_newest(&mut inbox);
+                }
+                inbox.push((self.generation, change.client_handle, change.value));
+            }
+        }
+        drop(inbox);
+        self.wake.notify_one();
+    }
+}
+
+/// Keeps the newest notification of each item only, in their order.
+fn keep_newest(inbox: &mut Vec<(u64, u32, DataValue)>) {
+    let mut seen = HashSet::new();
+    let mut kept: Vec<_> = inbox
+        .drain(..)
+        .rev()
+        .filter(|(g, h, _)| seen.insert((*g, *h)))
+        .collect();
+    kept.reverse();
+    *inbox = kept;
+}
+
 /// Largest message accepted from a server.
 const MAX_MESSAGE: usize = 64 * 1024 * 1024;
 
@@ -984,7 +1102,7 @@ fn list_of(bytes: Vec<u8>, builtins: &HashMap<String, Builtin>) -> List {
     let placed = tags::vars(&file.tags);
     let mut sources: Vec<NodeId> = Vec::new();
     let mut source_of: HashMap<NodeId, usize> = HashMap::new();
-    let entries = file
+    let entries: Vec<Entry> = file
         .tags
         .iter()
         .filter(|t| t.ty.is_some())
@@ -997,6 +1115,7 @@ fn list_of(bytes: Vec<u8>, builtins: &HashMap<String, Builtin>) -> List {
                 sources.len() - 1
             });
             Entry {
+                name: var.name,
                 offset: var.offset,
                 ty: var.ty,
                 builtin: builtins
@@ -1009,10 +1128,15 @@ fn list_of(bytes: Vec<u8>, builtins: &HashMap<String, Builtin>) -> List {
             }
         })
         .collect();
+    let mut by_source = vec![Vec::new(); sources.len()];
+    for (i, entry) in entries.iter().enumerate() {
+        by_source[entry.source].push(i);
+    }
     List {
         bytes,
         entries,
         sources,
+        by_source,
     }
 }
 
@@ -1131,6 +1255,9 @@ impl PlcBackend for OpcuaBackend {
                 let read = self.read_values(&direct, state).await?;
                 let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
                 for (i, value) in read {
+                    if let (true, Some(at)) = (self.written.contains(&i), value.source_timestamp) {
+                        self.read_back.insert(i as u32 + 1, at);
+                    }
                     notified.insert(i as u32 + 1, value.clone());
                     values.insert(i, value);
                 }
@@ -1161,6 +1288,68 @@ impl PlcBackend for OpcuaBackend {
     async fn status(&mut self) -> Result<PlcStatus, PlcError> {
         self.session()?;
         Ok(PlcStatus { run: self.run })
+    }
+
+    /// Subscribe mode: the values notified since the last call, each with
+    /// its SourceTimestamp; the last of each item is what reads answer
+    /// from now on. A Bad one is no value: reads answer its refusal.
+    fn take_pushed(&mut self) -> Vec<Pushed> {
+        let inbox = std::mem::take(&mut *self.inbox.lock().unwrap_or_else(|e| e.into_inner()));
+        if inbox.is_empty() || self.subscription.is_none() {
+            return Vec::new();
+        }
+        let mut pushed = Vec::new();
+        let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
+        for (generation, handle, value) in inbox {
+            if generation != self.generation {
+                continue;
+            }
+            // The server has no value yet (a plccoms serving a variable it
+            // starts polling now): the one it notifies next is what counts,
+            // and the value shown stays meanwhile.
+            if value.status == Some(StatusCode::BadWaitingForInitialData) {
+                continue;
+            }
+            // The first notification after a SET's read-back, sampled
+            // before it (older): it would undo the SET. Only that one: the
+            // server's later ones are newer (one value per item a publish).
+            if let (Some(shown), Some(new)) =
+                (self.read_back.remove(&handle), value.source_timestamp)
+            {
+                if new < shown {
+                    continue;
+                }
+            }
+            if handle != STATE_HANDLE {
+                let Some(entries) = (handle as usize)
+                    .checked_sub(1)
+                    .and_then(|source| self.served.by_source.get(source))
+                else {
+                    continue;
+                };
+                let unix_ms = stamp_of(&value);
+                for &i in entries {
+                    let entry = &self.served.entries[i];
+                    if let Ok(bytes) = entry_bytes(entry, &value) {
+                        pushed.push(Pushed {
+                            name: entry.name.clone(),
+                            bytes,
+                            unix_ms,
+                        });
+                    }
+                }
+            }
+            notified.insert(handle, value);
+        }
+        pushed
+    }
+
+    async fn wait_pushed(&mut self) -> Result<(), PlcError> {
+        if self.subscription.is_none() {
+            return std::future::pending().await;
+        }
+        self.wake.notified().await;
+        Ok(())
     }
 
     /// The variable list ([`VARS_FILE`]), the newest built.
@@ -1228,6 +1417,7 @@ impl PlcBackend for OpcuaBackend {
                     .unwrap_or_else(|e| e.into_inner())
                     .clear();
                 self.written.clear();
+                self.read_back.clear();
             }
         }
         Ok(Ok(part))

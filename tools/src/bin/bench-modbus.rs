@@ -20,7 +20,6 @@ mod timed;
 
 use std::fmt::Write as _;
 use std::net::SocketAddr;
-use std::path::Path;
 use std::time::Duration;
 
 use clap::Parser;
@@ -28,7 +27,7 @@ use clap::Parser;
 use plccoms_driver_modbus::ModbusBackend;
 use plcsim::program::ProgramKind;
 use plcsim::{PubSource as SimPub, SimConfig};
-use timed::measure;
+use timed::{measure, percentile};
 
 #[derive(Debug, Parser)]
 #[command(name = "bench-modbus")]
@@ -170,13 +169,6 @@ fn minimum_requests(project: &Project, max_regs: u32, max_bits: u32) -> usize {
         .sum()
 }
 
-fn percentile(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
-}
-
 /// What one run measured.
 struct Run {
     label: String,
@@ -298,16 +290,6 @@ async fn main() {
     }
     print!("{out}");
     if let Some(path) = &args.out {
-        append(path, &results);
+        timed::append(path, &results);
     }
-}
-
-fn append(path: &Path, text: &str) {
-    use std::io::Write;
-    let mut file = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(path)
-        .expect("--out");
-    file.write_all(text.as_bytes()).expect("--out");
 }

@@ -28,7 +28,7 @@ use clap::Parser;
 use plccoms_driver_s7::S7Backend;
 use plcsim::program::ProgramKind;
 use plcsim::{PubSource as SimPub, SimConfig};
-use timed::{measure, Measured};
+use timed::{measure, percentile, Measured};
 
 #[derive(Debug, Parser)]
 #[command(name = "bench-s7")]
@@ -201,13 +201,6 @@ fn minimum_jobs(project: &Project, pdu: u32) -> usize {
     items.div_ceil(max_items).max(bytes.div_ceil(room))
 }
 
-fn percentile(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
-}
-
 /// What one run measured.
 type Run = Measured;
 
@@ -362,12 +355,6 @@ async fn main() {
     }
     print!("{out}");
     if let Some(path) = &args.out {
-        use std::io::Write;
-        let mut file = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)
-            .expect("--out");
-        file.write_all(results.as_bytes()).expect("--out");
+        timed::append(path, &results);
     }
 }
