@@ -23,9 +23,11 @@
 //!   history carry the PLC's time; the link's reads are answered from the
 //!   last values taken, without a round trip. A variable just written is
 //!   read from the server once, so the value confirmed is the server's.
-//! - Quality: Good is a value; Uncertain is served as a value (the core has
-//!   no per-value quality to mark it stale with); Bad is the refusal of
-//!   that variable, with the StatusCode's name.
+//! - Quality: Good is a value; Uncertain is a value marked uncertain
+//!   ([`Pushed::uncertain`], [`PlcBackend::take_uncertain`]), which the
+//!   faces that show quality show as stale (the line protocol has no
+//!   quality: GET and DIFF serve it as a value); Bad is the refusal of that
+//!   variable, with the StatusCode's name.
 //! - Arrays: each element is a variable (`NAME[i]`); the array node is
 //!   read or monitored once for all ([`List::sources`]), and a write of an
 //!   element writes the whole array read just before.
@@ -248,6 +250,9 @@ pub struct OpcuaBackend {
     last_read: Option<Instant>,
     /// The last three periods between poll cycles.
     poll_gaps: [Option<Duration>; 3],
+    /// Variables whose values reads answered with an Uncertain status since
+    /// the link last took them (bounded by the variables' names).
+    uncertain: HashSet<Box<[u8]>>,
 }
 
 fn not_connected() -> PlcError {
@@ -316,6 +321,7 @@ impl OpcuaBackend {
             read_back: HashMap::new(),
             last_read: None,
             poll_gaps: [None; 3],
+            uncertain: HashSet::new(),
         }
     }
 
@@ -926,6 +932,11 @@ fn entry_bytes(entry: &Entry, value: &DataValue) -> Answer<Vec<u8>> {
         .ok_or(Refusal::Opcua(StatusCode::BadTypeMismatch.bits()))
 }
 
+/// Whether the server marked `value` Uncertain (served, as stale).
+fn is_uncertain(value: &DataValue) -> bool {
+    value.status.is_some_and(|s| s.is_uncertain())
+}
+
 /// The device's time of a notified value: its SourceTimestamp, else its
 /// ServerTimestamp, else now (UTC ms).
 fn stamp_of(value: &DataValue) -> i64 {
@@ -1270,6 +1281,14 @@ impl PlcBackend for OpcuaBackend {
         } else {
             self.read_values(&wanted, state).await?
         };
+        for read in reads.iter().filter(|r| r.area == Area::R) {
+            for i in self.covered(read.offset, read.len) {
+                let entry = &self.served.entries[i];
+                if values.get(&entry.source).is_some_and(is_uncertain) {
+                    self.uncertain.insert(entry.name.clone());
+                }
+            }
+        }
         Ok(reads
             .iter()
             .map(|read| match read.area {
@@ -1335,6 +1354,7 @@ impl PlcBackend for OpcuaBackend {
                             name: entry.name.clone(),
                             bytes,
                             unix_ms,
+                            uncertain: is_uncertain(&value),
                         });
                     }
                 }
@@ -1342,6 +1362,11 @@ impl PlcBackend for OpcuaBackend {
             notified.insert(handle, value);
         }
         pushed
+    }
+
+    /// The variables reads answered with an Uncertain status.
+    fn take_uncertain(&mut self) -> Option<Vec<Box<[u8]>>> {
+        Some(self.uncertain.drain().collect())
     }
 
     async fn wait_pushed(&mut self) -> Result<(), PlcError> {
