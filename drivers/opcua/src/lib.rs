@@ -748,8 +748,14 @@ impl OpcuaBackend {
         Ok(())
     }
 
-    /// The answer to a read of `read` (R) from `values`.
-    fn answer(&self, read: &ReadRequest, values: &HashMap<usize, DataValue>) -> Answer<Vec<u8>> {
+    /// The answer to a read of `read` (R) from `values`; the entries whose
+    /// value is Uncertain added to `uncertain`.
+    fn answer(
+        &self,
+        read: &ReadRequest,
+        values: &HashMap<usize, DataValue>,
+        uncertain: &mut Vec<usize>,
+    ) -> Answer<Vec<u8>> {
         let mut bytes = vec![0u8; read.len as usize];
         for i in self.covered(read.offset, read.len) {
             let entry = &self.served.entries[i];
@@ -757,6 +763,9 @@ impl OpcuaBackend {
                 return Err(Refusal::Opcua(StatusCode::BadWaitingForInitialData.bits()));
             };
             let own = entry_bytes(entry, value)?;
+            if is_uncertain(value) {
+                uncertain.push(i);
+            }
             // The overlap of the entry's bytes and the read.
             let (start, end) = (entry.offset, entry.offset + own.len() as u32);
             let (from, to) = (start.max(read.offset), end.min(read.offset + read.len));
@@ -1281,22 +1290,19 @@ impl PlcBackend for OpcuaBackend {
         } else {
             self.read_values(&wanted, state).await?
         };
-        for read in reads.iter().filter(|r| r.area == Area::R) {
-            for i in self.covered(read.offset, read.len) {
-                let entry = &self.served.entries[i];
-                if values.get(&entry.source).is_some_and(is_uncertain) {
-                    self.uncertain.insert(entry.name.clone());
-                }
-            }
-        }
-        Ok(reads
+        let mut uncertain = Vec::new();
+        let answers = reads
             .iter()
             .map(|read| match read.area {
-                Area::R => self.answer(read, &values),
+                Area::R => self.answer(read, &values, &mut uncertain),
                 Area::S => self.system(read.offset, read.len),
                 _ => Err(Refusal::BAD_PARAMETERS),
             })
-            .collect())
+            .collect();
+        for i in uncertain {
+            self.uncertain.insert(self.served.entries[i].name.clone());
+        }
+        Ok(answers)
     }
 
     async fn write(&mut self, writes: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {
@@ -1574,7 +1580,26 @@ mod tests {
             offset: 0,
             len: 3,
         };
-        assert_eq!(backend.answer(&read, &values), Ok(vec![1, 0xFE, 0xFF]));
+        let mut uncertain = Vec::new();
+        assert_eq!(
+            backend.answer(&read, &values, &mut uncertain),
+            Ok(vec![1, 0xFE, 0xFF])
+        );
+        assert!(uncertain.is_empty());
+        // Uncertain: the value, and the entry marked.
+        values.insert(
+            1,
+            DataValue {
+                value: Some(Variant::Int16(-3)),
+                status: Some(StatusCode::UncertainLastUsableValue),
+                ..Default::default()
+            },
+        );
+        assert_eq!(
+            backend.answer(&read, &values, &mut uncertain),
+            Ok(vec![1, 0xFD, 0xFF])
+        );
+        assert_eq!(uncertain, [1]);
         values.insert(
             1,
             DataValue {
@@ -1583,7 +1608,7 @@ mod tests {
             },
         );
         assert_eq!(
-            backend.answer(&read, &values),
+            backend.answer(&read, &values, &mut uncertain),
             Err(Refusal::Opcua(StatusCode::BadNotReadable.bits()))
         );
     }
