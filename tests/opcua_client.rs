@@ -3,8 +3,9 @@
 //! (tests/opcua_client/server.py). Browse naming and types, LIST, GET of
 //! every scalar type, SET with the confirmed value, EN with DIFFs, the
 //! server's refusals by StatusCode name, a tag file, a user, the server
-//! restarted mid-subscription, nodes added while running; in both modes
-//! (subscribe, read). All through the line protocol of the real binary.
+//! restarted mid-subscription, nodes added while running, Uncertain values
+//! shown as stale; in both modes (subscribe, read). All through the line
+//! protocol of the real binary (and its web API where quality shows).
 
 mod common;
 
@@ -158,6 +159,17 @@ async fn listed(c: &mut Client, name: &str) {
     }
 }
 
+/// EN of DB_LINE1.MOTOR.SPEED, and its first DIFF.
+async fn enable_speed(c: &mut Client) {
+    c.ask(
+        "EN:db_line1.motor.speed\r\n",
+        "WARNING:252 Changed active variables in public file: '[3/24]'\r\n",
+    )
+    .await;
+    c.expect(b"DIFF:DB_LINE1.MOTOR.SPEED,1450.5000000000\r\n")
+        .await;
+}
+
 /// Asks `request` until it is answered with a link error, within `secs`.
 async fn until_lost(c: &mut Client, request: &str, secs: u64) {
     let deadline = Instant::now() + Duration::from_secs(secs);
@@ -281,13 +293,7 @@ async fn browse_get_set(mode: &str) {
         assert!(!info.iter().any(|l| l.starts_with(&key)), "{info:?}");
     }
     // EN: the server's own changes come as DIFFs.
-    c.ask(
-        "EN:db_line1.motor.speed\r\n",
-        "WARNING:252 Changed active variables in public file: '[3/24]'\r\n",
-    )
-    .await;
-    c.expect(b"DIFF:DB_LINE1.MOTOR.SPEED,1450.5000000000\r\n")
-        .await;
+    enable_speed(&mut c).await;
     let mut server = server;
     server.command("set SPEED 99.5");
     c.wait_for_line(
@@ -564,13 +570,7 @@ async fn source_timestamps_are_the_historys_time() {
     let plc = ServerProcess::with_config(&ini, port);
     let mut c = Client::connect(plc.addr).await;
     listed(&mut c, "DB_LINE1.MOTOR.SPEED").await;
-    c.ask(
-        "EN:db_line1.motor.speed\r\n",
-        "WARNING:252 Changed active variables in public file: '[3/24]'\r\n",
-    )
-    .await;
-    c.expect(b"DIFF:DB_LINE1.MOTOR.SPEED,1450.5000000000\r\n")
-        .await;
+    enable_speed(&mut c).await;
     // The subscription is made once the poll's period is known.
     tokio::time::sleep(Duration::from_secs(1)).await;
     for k in 1..=5i64 {
@@ -607,4 +607,112 @@ async fn source_timestamps_are_the_historys_time() {
             "no sample {k} at {at} in:\n{csv}"
         );
     }
+}
+
+/// The value of `name` in section P as the web API shows it: (quality, text).
+fn web_value(http: u16, name: &str) -> (String, String) {
+    let answer = http_get(http, &format!("/api/sections/P/values?vars={name}"));
+    let body = &answer[answer.find("\r\n\r\n").expect("an HTTP answer") + 4..];
+    let json: serde_json::Value =
+        serde_json::from_str(body).unwrap_or_else(|e| panic!("{e}: {answer}"));
+    let value = &json["values"][0];
+    let field = |key: &str| value[key].as_str().unwrap_or_default().to_string();
+    (field("quality"), field("text"))
+}
+
+/// Waits until the web API shows `name` with `quality` and `text`.
+fn web_until(http: u16, name: &str, quality: &str, text: &str) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let shown = web_value(http, name);
+        if shown == (quality.to_string(), text.to_string()) {
+            return;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{name}: {shown:?}, not ({quality}, {text})"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// An Uncertain status is served as a value (GET, DIFF: the line protocol
+/// has no quality) and shown as stale where quality is shown (web API,
+/// history); Good again is good. A change of status alone sends no DIFF.
+async fn uncertain_is_stale(mode: &str) {
+    const SPEED: &str = "DB_LINE1.MOTOR.SPEED";
+    let mut server = OpcServer::start(free_port(), None);
+    let (port, http) = (free_port(), free_port());
+    let ini = format!(
+        "[*]\nHTTP_PORT = {http}\nHISTORY_SYNC = 1\nCOMM_LOOP_DELAY = 100\n\
+         [P]\nPROTOCOL = OPCUA\nOPCUA_URL = {}\nOPCUA_MODE = {mode}\nSERVER_PORT = {port}\n\
+         HISTORY = {SPEED}\n",
+        server.url()
+    );
+    let from = chrono::Utc::now().timestamp_millis() - 1000;
+    let plc = ServerProcess::with_config(&ini, port);
+    let mut c = Client::connect(plc.addr).await;
+    listed(&mut c, SPEED).await;
+    enable_speed(&mut c).await;
+    web_until(http, SPEED, "good", "1450.5");
+    // Subscribe mode: the subscription is made once the poll's period is known.
+    tokio::time::sleep(Duration::from_secs(1)).await;
+
+    // Uncertain, the same value: stale on the web, as it was on telnet.
+    server.command("status SPEED uncertain");
+    web_until(http, SPEED, "stale", "1450.5");
+    c.ask(
+        "GET:DB_LINE1.MOTOR.SPEED\r\n",
+        "GET:DB_LINE1.MOTOR.SPEED,1450.5000000000\r\n",
+    )
+    .await;
+    c.silent(300).await;
+    // Uncertain with a new value: the DIFF, still stale.
+    server.command("status SPEED uncertain 12.5");
+    c.wait_for_line(
+        b"DIFF:DB_LINE1.MOTOR.SPEED,12.5000000000\r\n",
+        Duration::from_secs(5),
+    )
+    .await;
+    web_until(http, SPEED, "stale", "12.5");
+    // Good again, the same value: good, no DIFF.
+    server.command("status SPEED good");
+    web_until(http, SPEED, "good", "12.5");
+    c.silent(300).await;
+
+    // The history: the stale samples, and the good one after them.
+    let path = format!(
+        "/api/history?section=P&vars={SPEED}&from={from}&to={}&format=csv",
+        chrono::Utc::now().timestamp_millis() + 60_000
+    );
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let want = ["1450.5,good", "1450.5,stale", "12.5,stale", "12.5,good"];
+    let mut rows;
+    loop {
+        let csv = http_get(http, &path);
+        rows = csv
+            .lines()
+            .filter(|l| l.contains(&format!(",{SPEED},")))
+            // time,name,value,text,quality: the value and the quality.
+            .map(|l| l.rsplitn(4, ',').collect::<Vec<_>>())
+            .map(|f| format!("{},{}", f[2], f[0]))
+            .collect::<Vec<_>>();
+        rows.dedup();
+        if rows == want || Instant::now() > deadline {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(300));
+    }
+    assert_eq!(rows, want);
+    drop(plc);
+}
+
+#[tokio::test]
+async fn uncertain_is_stale_subscribed() {
+    uncertain_is_stale("subscribe").await;
+}
+
+#[tokio::test]
+async fn uncertain_is_stale_read() {
+    uncertain_is_stale("read").await;
 }

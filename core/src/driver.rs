@@ -83,6 +83,9 @@ pub struct Pushed {
     pub bytes: Vec<u8>,
     /// The device's time stamp: UTC milliseconds since 1970.
     pub unix_ms: i64,
+    /// The device marked the value uncertain (OPC UA's Uncertain status):
+    /// served as stale; `false` is good.
+    pub uncertain: bool,
 }
 
 /// PLC run state.
@@ -183,6 +186,15 @@ pub trait PlcBackend: Send {
     /// poll never publishes a pushed change before its own stamp does.
     fn take_pushed(&mut self) -> Vec<Pushed> {
         Vec::new()
+    }
+
+    /// The variables (named as in [`Pushed`]) whose values the reads
+    /// since the last call answered as uncertain, once each; `None` for a
+    /// device without a per-value quality (the default). The link takes
+    /// them before and after each poll: with `Some`, every value the poll
+    /// read is marked uncertain if named here, good if not.
+    fn take_uncertain(&mut self) -> Option<Vec<Box<[u8]>>> {
+        None
     }
 
     /// Returns when the device may have pushed something (never, by

@@ -22,6 +22,8 @@ stdin, one a line:
   set NAME V sets TYPES or MOTOR variable NAME to the number V
   slow MS    answers every Read MS milliseconds late (0: at once again)
   stamp NAME V MS  sets NAME to V with SourceTimestamp MS (Unix ms)
+  status NAME uncertain|good [V]  sets NAME's StatusCode (UncertainLastUsableValue
+                   or Good), its value to V if given, SourceTimestamp now
 """
 
 import asyncio
@@ -188,6 +190,18 @@ async def main():
                 at = datetime.datetime.fromtimestamp(int(words[3]) / 1000, datetime.timezone.utc)
                 value = type(await node.read_value())(words[2])
                 await node.write_value(ua.DataValue(ua.Variant(value, vtype), SourceTimestamp=at))
+            elif words[:1] == ["status"]:
+                # status NAME uncertain|good [VALUE]: the value (the same
+                # unless given) with that StatusCode, stamped now.
+                node, vtype = nodes[words[1]]
+                value = (await node.read_data_value(raise_on_bad_status=False)).Value.Value
+                if len(words) > 3:
+                    value = type(value)(words[3])
+                code = ua.StatusCodes.UncertainLastUsableValue if words[2] == "uncertain" else ua.StatusCodes.Good
+                await node.write_value(ua.DataValue(
+                    ua.Variant(value, vtype), StatusCode=ua.StatusCode(code),
+                    SourceTimestamp=datetime.datetime.now(datetime.timezone.utc),
+                ))
             elif words[:1] == ["set"]:
                 node, vtype = nodes[words[1]]
                 await node.write_value(ua.Variant(type(await node.read_value())(words[2]) if vtype != ua.VariantType.Boolean else words[2] == "1", vtype))

@@ -527,7 +527,8 @@ pub async fn vars(
 /// the last poll), `not_polled` (no client or subscriber enabled it, so
 /// nobody reads it: the value is whatever was read last, if ever),
 /// `stale` (polled, but the last poll did not read it, or that poll is
-/// older than a GET would serve) and `link_lost`.
+/// older than a GET would serve, or the device marked it uncertain) and
+/// `link_lost`.
 pub fn quality_of(snapshot: &Snapshot, id: VarId, now: tokio::time::Instant) -> &'static str {
     if !snapshot.online {
         return Quality::LinkLost.as_str();

@@ -37,9 +37,9 @@ const CHUNK: usize = 256;
 /// it misses changes: this many publishes, or [`FOLLOW_BYTES`] of the
 /// slots its queued snapshots hold that no other snapshot shares, whichever
 /// comes first. A poll that changes a few variables costs one chunk of
-/// slots (256 of 48 bytes: 12 KiB), so the bytes allow minutes of polls or
+/// slots (256 of 56 bytes: 14 KiB), so the bytes allow minutes of polls or
 /// seconds of a client's rapid SETs; a poll that changes every variable of
-/// a 10,000 variable table costs about 480 KiB, so 68 of them. The queue holds
+/// a 10,000 variable table costs about 560 KiB, so 58 of them. The queue holds
 /// snapshots only while its consumer lags.
 pub const FOLLOW_BOUND: usize = 10_000;
 /// See [`FOLLOW_BOUND`].
@@ -179,8 +179,13 @@ pub struct Slot {
     /// Snapshot sequence at which the value was last read from the PLC.
     pub read_seq: u64,
     /// UTC milliseconds of the poll (or SET read-back) that read the value
-    /// as it is now.
+    /// as it is now, or of the device's last change of its quality.
     pub changed_ms: i64,
+    /// The device marked the value uncertain (OPC UA's Uncertain status):
+    /// served, but as [`Quality::Stale`]. A change of it alone is listed in
+    /// [`Snapshot::requalified`], not in `changed_seq` (no DIFF line: the
+    /// line protocol has no quality).
+    uncertain: bool,
 }
 
 impl Slot {
@@ -190,6 +195,11 @@ impl Slot {
 
     pub fn shared_text(&self) -> Option<Arc<[u8]>> {
         self.text.clone()
+    }
+
+    /// The device marked the value uncertain.
+    pub fn uncertain(&self) -> bool {
+        self.uncertain
     }
 
     /// The value, decoded (for delta comparisons).
@@ -213,7 +223,8 @@ pub enum Quality {
     /// Read by the last poll, with the link up.
     Good,
     /// The link is up but the last poll did not read it (not polled, or its
-    /// read refused): the value is an older one.
+    /// read refused): the value is an older one; or the device marked it
+    /// uncertain.
     Stale,
     /// The link to the PLC is lost: the value is the last one known.
     LinkLost,
@@ -285,6 +296,9 @@ pub struct Snapshot {
     pub interest: Arc<Interest>,
     /// Variables whose value changed in this publish.
     pub changed: Vec<VarId>,
+    /// Variables whose quality alone the device changed in this publish
+    /// (not in `changed`: no DIFF line).
+    pub requalified: Vec<VarId>,
     /// The latest public-file notices, oldest first: a session that missed
     /// snapshots still tells its client of every reload, in order.
     pub notices: Arc<[Arc<Notice>]>,
@@ -353,7 +367,7 @@ impl Snapshot {
     pub fn quality(&self, id: VarId) -> Quality {
         if !self.online {
             Quality::LinkLost
-        } else if self.current(id).is_some() {
+        } else if self.current(id).is_some_and(|slot| !slot.uncertain) {
             Quality::Good
         } else {
             Quality::Stale
@@ -478,6 +492,7 @@ pub struct Publisher {
     interest: Arc<Interest>,
     chunks: Vec<Arc<Vec<Slot>>>,
     changed: Vec<VarId>,
+    requalified: Vec<VarId>,
     format: FormatOptions,
     scratch: Vec<u8>,
     notices: Arc<[Arc<Notice>]>,
@@ -504,6 +519,7 @@ impl Publisher {
             table: table.clone(),
             interest: interest.clone(),
             changed: Vec::new(),
+            requalified: Vec::new(),
             notices: Arc::new([]),
             diff_block: None,
             chunks: chunks.clone(),
@@ -522,6 +538,7 @@ impl Publisher {
             interest,
             chunks,
             changed: Vec::new(),
+            requalified: Vec::new(),
             format,
             scratch: Vec::new(),
             notices: Arc::new([]),
@@ -615,6 +632,26 @@ impl Publisher {
         changed
     }
 
+    /// Marks the value of `id` uncertain or good again, as the device said
+    /// at `unix_ms`; [`Publisher::update`] leaves the mark as it is. A change
+    /// of the mark alone is published in [`Snapshot::requalified`], for the
+    /// faces that show quality. Returns whether it changed.
+    pub fn set_uncertain(&mut self, id: VarId, uncertain: bool, unix_ms: i64) -> bool {
+        let index = id as usize;
+        if self.slot(id).uncertain == uncertain {
+            return false;
+        }
+        let seq = self.seq + 1;
+        let chunk = Arc::make_mut(&mut self.chunks[index / CHUNK]);
+        let slot = &mut chunk[index % CHUNK];
+        slot.uncertain = uncertain;
+        if slot.changed_seq != seq {
+            slot.changed_ms = unix_ms;
+            self.requalified.push(id);
+        }
+        true
+    }
+
     /// A poll cycle completed at `stamp`: every slot it read is current.
     pub fn publish_poll(&mut self, stamp: PollStamp) {
         self.polled = Some(stamp);
@@ -671,6 +708,7 @@ impl Publisher {
             table: self.table.clone(),
             interest: self.interest.clone(),
             changed: std::mem::take(&mut self.changed),
+            requalified: std::mem::take(&mut self.requalified),
             notices: self.notices.clone(),
             diff_block,
             chunks: self.chunks.clone(),
@@ -694,6 +732,7 @@ impl Publisher {
         self.interest = Arc::new(Interest::new(table.len()));
         self.chunks = empty_chunks(table.len());
         self.changed.clear();
+        self.requalified.clear();
         self.table = table;
     }
 
@@ -853,6 +892,79 @@ mod tests {
         );
         assert_eq!(told(&latest, 1), [(2, false, "other.pub")]);
         assert!(told(&latest, 2).is_empty());
+    }
+
+    #[test]
+    fn an_uncertain_value_is_stale_until_the_device_says_good() {
+        let table = Arc::new(crate::vars::table_of(&[("A", "INT"), ("B", "INT")]));
+        let (publisher, stream) =
+            Publisher::new(table, FormatOptions::default(), Duration::from_secs(60));
+        let mut publisher = publisher.with_diff_block(b"\r\n");
+        let a = publisher.table().fixed_count() as VarId;
+        let b = a + 1;
+        let poll = |publisher: &mut Publisher, value: i16| {
+            let stamp = PollStamp::now();
+            publisher.update(a, &value.to_le_bytes(), stamp.unix_ms);
+            publisher.update(b, &value.to_le_bytes(), stamp.unix_ms);
+            publisher.publish_poll(stamp);
+        };
+        poll(&mut publisher, 1);
+        let first = stream.latest();
+        assert_eq!(first.quality(a), Quality::Good);
+
+        // Uncertain, same value: a change of quality only.
+        assert!(publisher.set_uncertain(a, true, 1_000));
+        assert!(!publisher.set_uncertain(a, true, 2_000), "no change");
+        publisher.publish();
+        let now = stream.latest();
+        assert_eq!(now.quality(a), Quality::Stale);
+        assert_eq!(now.quality_at(a, Instant::now()), Quality::Stale);
+        assert_eq!(now.quality(b), Quality::Good);
+        assert!(now.slot(a).uncertain());
+        assert_eq!(now.slot(a).changed_seq, first.slot(a).changed_seq);
+        assert_eq!(now.slot(a).changed_ms, 1_000, "the device's time of it");
+        assert_eq!(now.requalified, [a]);
+        assert!(now.changed.is_empty(), "no value changed");
+        assert!(now.diff_block.is_none(), "no DIFF line for quality alone");
+        // Still served as a value (GET and DIFF have no quality).
+        assert_eq!(now.current(a).and_then(Slot::text), Some(&b"1"[..]));
+
+        // The poll's update leaves the mark alone, changed value or not.
+        poll(&mut publisher, 1);
+        assert_eq!(stream.latest().quality(a), Quality::Stale);
+        poll(&mut publisher, 2);
+        let now = stream.latest();
+        assert_eq!(now.quality(a), Quality::Stale);
+        assert_eq!(now.changed, [a, b]);
+        assert!(now.requalified.is_empty());
+
+        // Good again.
+        assert!(publisher.set_uncertain(a, false, 3_000));
+        publisher.publish();
+        let now = stream.latest();
+        assert_eq!(now.quality(a), Quality::Good);
+        assert_eq!(now.requalified, [a]);
+
+        // A value and its quality changed in one publish: a value change.
+        let stamp = PollStamp::now();
+        publisher.update(a, &5i16.to_le_bytes(), stamp.unix_ms);
+        publisher.set_uncertain(a, true, 4_000);
+        publisher.publish_poll(stamp);
+        let now = stream.latest();
+        assert_eq!(
+            (now.changed.as_slice(), now.requalified.as_slice()),
+            (&[a][..], &[][..])
+        );
+        assert_eq!(now.slot(a).changed_ms, stamp.unix_ms);
+        assert_eq!(now.quality(a), Quality::Stale);
+
+        // Lost is lost, uncertain or not; a new table starts good.
+        publisher.publish_offline();
+        assert_eq!(stream.latest().quality(a), Quality::LinkLost);
+        let table = Arc::new(crate::vars::table_of(&[("A", "INT"), ("B", "INT")]));
+        publisher.replace_table(table);
+        poll(&mut publisher, 7);
+        assert_eq!(stream.latest().quality(a), Quality::Good);
     }
 
     #[test]

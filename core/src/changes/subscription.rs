@@ -42,7 +42,7 @@ pub struct ChangeBatch {
     /// subscribed variable of it that has a value.
     pub table_changed: bool,
     pub link: Option<LinkEvent>,
-    /// Subscribed variables whose value changed, in table order.
+    /// Subscribed variables whose value or quality changed, in table order.
     pub changes: Vec<VarId>,
 }
 
@@ -58,8 +58,9 @@ pub struct Subscription {
     interest: Arc<Interest>,
     /// Subscribed variables of `table`, ascending.
     wanted: Vec<VarId>,
-    /// Per entry of `wanted`: change sequence of the value last delivered.
-    delivered: Vec<u64>,
+    /// Per entry of `wanted`: change sequence of the value last delivered,
+    /// and whether it was uncertain.
+    delivered: Vec<(u64, bool)>,
     seen_seq: u64,
     online: Option<bool>,
     /// Also a batch for every poll cycle, changes or not.
@@ -147,7 +148,7 @@ impl Subscription {
                 self.interest.add(id);
             }
         }
-        self.delivered = vec![0; self.wanted.len()];
+        self.delivered = vec![(0, false); self.wanted.len()];
     }
 
     fn release(&mut self) {
@@ -245,7 +246,7 @@ impl Subscription {
         let mut changes = Vec::new();
         if consecutive && !table_changed && !first {
             // Only what this publish changed; `changed` is short.
-            for &id in &snapshot.changed {
+            for &id in snapshot.changed.iter().chain(&snapshot.requalified) {
                 if let Ok(index) = self.wanted.binary_search(&id) {
                     self.offer(&snapshot, index, &mut changes);
                 }
@@ -274,10 +275,13 @@ impl Subscription {
     fn offer(&mut self, snapshot: &Snapshot, index: usize, changes: &mut Vec<VarId>) {
         let id = self.wanted[index];
         let slot = snapshot.slot(id);
-        if slot.text().is_none() || slot.changed_seq <= self.delivered[index] {
+        let (seq, uncertain) = self.delivered[index];
+        let news =
+            slot.changed_seq > seq || (slot.changed_seq == seq && slot.uncertain() != uncertain);
+        if slot.text().is_none() || !news {
             return;
         }
-        self.delivered[index] = slot.changed_seq;
+        self.delivered[index] = (slot.changed_seq, slot.uncertain());
         changes.push(id);
     }
 }
@@ -353,6 +357,52 @@ mod tests {
         assert!(!publisher.interest().is_wanted(a), "interest released");
     }
 
+    #[tokio::test]
+    async fn a_change_of_quality_alone_is_a_change_of_the_slot() {
+        use crate::changes::Quality;
+        let (mut publisher, stream) = setup();
+        let a = publisher.table().fixed_count() as VarId;
+        let mut sub = stream.subscribe(&["A"]);
+        let mut follower = stream.subscribe(&["A"]).every_change();
+        poll(&mut publisher, &[(a, 1)]);
+        assert_eq!(names(&sub.next().await.unwrap()), ["A"]);
+        assert_eq!(names(&follower.next().await.unwrap()), ["A"]);
+        // Same value, marked uncertain by the device, then good again: each
+        // a change; polled again with the same value and mark, nothing new.
+        let quiet = Duration::from_millis(50);
+        for (uncertain, quality) in [(true, Quality::Stale), (false, Quality::Good)] {
+            publisher.set_uncertain(a, uncertain, 5);
+            publisher.publish();
+            for sub in [&mut sub, &mut follower] {
+                let batch = sub.next().await.unwrap();
+                assert_eq!(names(&batch), ["A"]);
+                assert_eq!(batch.snapshot.quality(a), quality);
+            }
+            poll(&mut publisher, &[(a, 1)]);
+            assert!(tokio::time::timeout(quiet, sub.next()).await.is_err());
+            assert!(tokio::time::timeout(quiet, follower.next()).await.is_err());
+        }
+        // A consumer that missed the publish compares the mark too.
+        publisher.set_uncertain(a, true, 7);
+        publisher.publish();
+        poll(&mut publisher, &[(a, 1)]);
+        let batch = sub.next().await.unwrap();
+        assert_eq!((names(&batch), batch.missed), (vec!["A".to_string()], 1));
+        assert_eq!(batch.snapshot.quality(a), Quality::Stale);
+        publisher.set_uncertain(a, false, 8);
+        publisher.publish();
+        poll(&mut publisher, &[(a, 1)]);
+        let batch = sub.next().await.unwrap();
+        assert_eq!(batch.snapshot.quality(a), Quality::Good);
+        // Marked and cleared unseen: nothing changed for it.
+        publisher.set_uncertain(a, true, 9);
+        publisher.publish();
+        publisher.set_uncertain(a, false, 10);
+        publisher.publish();
+        poll(&mut publisher, &[(a, 1)]);
+        assert!(tokio::time::timeout(quiet, sub.next()).await.is_err());
+    }
+
     /// Publishes `values` of A, then reads until the last: the values seen
     /// and the publishes missed.
     async fn lag(
@@ -400,8 +450,8 @@ mod tests {
     #[tokio::test]
     async fn a_follower_is_bounded_in_bytes_too() {
         let (mut publisher, stream) = setup();
-        // FOLLOW_BYTES's doc and README count 12 KiB a chunk.
-        assert_eq!(CHUNK_BYTES, 12 * 1024);
+        // FOLLOW_BYTES's doc and README count 14 KiB a chunk.
+        assert_eq!(CHUNK_BYTES, 14 * 1024);
         // Each poll here copies one chunk of slots.
         let one = CHUNK_BYTES + std::mem::size_of::<Arc<Vec<crate::changes::Slot>>>();
         let a = publisher.table().fixed_count() as VarId;

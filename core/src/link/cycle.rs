@@ -145,7 +145,9 @@ impl Cycle {
     /// Starts a poll: plans anew when something changed. The blocks are
     /// then read a slice at a time ([`Cycle::read_slice`]), so SETs can go
     /// between slices, and [`Cycle::finish`] publishes.
-    pub fn begin(&mut self, backend: &dyn PlcBackend, publisher: &Publisher) -> Round {
+    pub fn begin(&mut self, backend: &mut dyn PlcBackend, publisher: &Publisher) -> Round {
+        // Marks of reads outside the poll (GETs, SET read-backs) are not its.
+        backend.take_uncertain();
         let limits = Limits::of(backend);
         if publisher.interest().take_dirty() || self.poll_vars.is_empty() || self.replan {
             self.rebuild_plan(publisher, &limits);
@@ -253,6 +255,18 @@ impl Cycle {
                 }
             }
             self.replan = true;
+        }
+        if let Some(names) = backend.take_uncertain() {
+            let uncertain: std::collections::HashSet<VarId> =
+                names.iter().filter_map(|name| table.lookup(name)).collect();
+            // What this poll read carries the publish's sequence (a SET's
+            // read-back meanwhile was published already).
+            let seq = publisher.next_seq();
+            for &id in &self.poll_vars {
+                if publisher.slot(id).read_seq == seq {
+                    publisher.set_uncertain(id, uncertain.contains(&id), stamp.unix_ms);
+                }
+            }
         }
         publisher.publish_poll(stamp);
         self.system_events(publisher);

@@ -610,6 +610,8 @@ impl Link {
                 pending.insert(id);
             }
             self.publisher.update(id, &value.bytes, value.unix_ms);
+            self.publisher
+                .set_uncertain(id, value.uncertain, value.unix_ms);
         }
         self.publisher.publish();
     }

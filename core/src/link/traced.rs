@@ -193,10 +193,11 @@ impl PlcBackend for Traced {
                 self.trace.plc(
                     "<-",
                     format_args!(
-                        "pushed {} at {} ms: {}",
+                        "pushed {} at {} ms: {}{}",
                         String::from_utf8_lossy(&value.name),
                         value.unix_ms,
-                        hex(&value.bytes)
+                        hex(&value.bytes),
+                        if value.uncertain { " (uncertain)" } else { "" }
                     ),
                 );
             }
@@ -206,6 +207,19 @@ impl PlcBackend for Traced {
 
     async fn wait_pushed(&mut self) -> Result<(), PlcError> {
         self.inner.wait_pushed().await
+    }
+
+    fn take_uncertain(&mut self) -> Option<Vec<Box<[u8]>>> {
+        let uncertain = self.inner.take_uncertain();
+        if let (true, Some(names)) = (self.trace.on(), &uncertain) {
+            for name in names {
+                self.trace.plc(
+                    "<-",
+                    format_args!("uncertain {}", String::from_utf8_lossy(name)),
+                );
+            }
+        }
+        uncertain
     }
 
     async fn file_info(&mut self, path: &[u8]) -> Result<Answer<FileInfo>, PlcError> {

@@ -953,6 +953,8 @@ impl PlcBackend for AdsBackend {
                     name: leaf.name.as_bytes().into(),
                     bytes: sample.data.to_vec(),
                     unix_ms,
+                    // ADS has no per-value quality.
+                    uncertain: false,
                 });
                 self.notes.last.insert(i, Some(sample.data));
             }

@@ -23,9 +23,11 @@
 //!   history carry the PLC's time; the link's reads are answered from the
 //!   last values taken, without a round trip. A variable just written is
 //!   read from the server once, so the value confirmed is the server's.
-//! - Quality: Good is a value; Uncertain is served as a value (the core has
-//!   no per-value quality to mark it stale with); Bad is the refusal of
-//!   that variable, with the StatusCode's name.
+//! - Quality: Good is a value; Uncertain is a value marked uncertain
+//!   ([`Pushed::uncertain`], [`PlcBackend::take_uncertain`]), which the
+//!   faces that show quality show as stale (the line protocol has no
+//!   quality: GET and DIFF serve it as a value); Bad is the refusal of that
+//!   variable, with the StatusCode's name.
 //! - Arrays: each element is a variable (`NAME[i]`); the array node is
 //!   read or monitored once for all ([`List::sources`]), and a write of an
 //!   element writes the whole array read just before.
@@ -248,6 +250,9 @@ pub struct OpcuaBackend {
     last_read: Option<Instant>,
     /// The last three periods between poll cycles.
     poll_gaps: [Option<Duration>; 3],
+    /// Variables whose values reads answered with an Uncertain status since
+    /// the link last took them (bounded by the variables' names).
+    uncertain: HashSet<Box<[u8]>>,
 }
 
 fn not_connected() -> PlcError {
@@ -316,6 +321,7 @@ impl OpcuaBackend {
             read_back: HashMap::new(),
             last_read: None,
             poll_gaps: [None; 3],
+            uncertain: HashSet::new(),
         }
     }
 
@@ -742,8 +748,14 @@ impl OpcuaBackend {
         Ok(())
     }
 
-    /// The answer to a read of `read` (R) from `values`.
-    fn answer(&self, read: &ReadRequest, values: &HashMap<usize, DataValue>) -> Answer<Vec<u8>> {
+    /// The answer to a read of `read` (R) from `values`; the entries whose
+    /// value is Uncertain added to `uncertain`.
+    fn answer(
+        &self,
+        read: &ReadRequest,
+        values: &HashMap<usize, DataValue>,
+        uncertain: &mut Vec<usize>,
+    ) -> Answer<Vec<u8>> {
         let mut bytes = vec![0u8; read.len as usize];
         for i in self.covered(read.offset, read.len) {
             let entry = &self.served.entries[i];
@@ -751,6 +763,9 @@ impl OpcuaBackend {
                 return Err(Refusal::Opcua(StatusCode::BadWaitingForInitialData.bits()));
             };
             let own = entry_bytes(entry, value)?;
+            if is_uncertain(value) {
+                uncertain.push(i);
+            }
             // The overlap of the entry's bytes and the read.
             let (start, end) = (entry.offset, entry.offset + own.len() as u32);
             let (from, to) = (start.max(read.offset), end.min(read.offset + read.len));
@@ -924,6 +939,11 @@ fn entry_bytes(entry: &Entry, value: &DataValue) -> Answer<Vec<u8>> {
     element
         .and_then(|v| convert::bytes_of(v, entry.ty))
         .ok_or(Refusal::Opcua(StatusCode::BadTypeMismatch.bits()))
+}
+
+/// Whether the server marked `value` Uncertain (served, as stale).
+fn is_uncertain(value: &DataValue) -> bool {
+    value.status.is_some_and(|s| s.is_uncertain())
 }
 
 /// The device's time of a notified value: its SourceTimestamp, else its
@@ -1270,14 +1290,19 @@ impl PlcBackend for OpcuaBackend {
         } else {
             self.read_values(&wanted, state).await?
         };
-        Ok(reads
+        let mut uncertain = Vec::new();
+        let answers = reads
             .iter()
             .map(|read| match read.area {
-                Area::R => self.answer(read, &values),
+                Area::R => self.answer(read, &values, &mut uncertain),
                 Area::S => self.system(read.offset, read.len),
                 _ => Err(Refusal::BAD_PARAMETERS),
             })
-            .collect())
+            .collect();
+        for i in uncertain {
+            self.uncertain.insert(self.served.entries[i].name.clone());
+        }
+        Ok(answers)
     }
 
     async fn write(&mut self, writes: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {
@@ -1335,6 +1360,7 @@ impl PlcBackend for OpcuaBackend {
                             name: entry.name.clone(),
                             bytes,
                             unix_ms,
+                            uncertain: is_uncertain(&value),
                         });
                     }
                 }
@@ -1342,6 +1368,11 @@ impl PlcBackend for OpcuaBackend {
             notified.insert(handle, value);
         }
         pushed
+    }
+
+    /// The variables reads answered with an Uncertain status.
+    fn take_uncertain(&mut self) -> Option<Vec<Box<[u8]>>> {
+        Some(self.uncertain.drain().collect())
     }
 
     async fn wait_pushed(&mut self) -> Result<(), PlcError> {
@@ -1549,7 +1580,26 @@ mod tests {
             offset: 0,
             len: 3,
         };
-        assert_eq!(backend.answer(&read, &values), Ok(vec![1, 0xFE, 0xFF]));
+        let mut uncertain = Vec::new();
+        assert_eq!(
+            backend.answer(&read, &values, &mut uncertain),
+            Ok(vec![1, 0xFE, 0xFF])
+        );
+        assert!(uncertain.is_empty());
+        // Uncertain: the value, and the entry marked.
+        values.insert(
+            1,
+            DataValue {
+                value: Some(Variant::Int16(-3)),
+                status: Some(StatusCode::UncertainLastUsableValue),
+                ..Default::default()
+            },
+        );
+        assert_eq!(
+            backend.answer(&read, &values, &mut uncertain),
+            Ok(vec![1, 0xFD, 0xFF])
+        );
+        assert_eq!(uncertain, [1]);
         values.insert(
             1,
             DataValue {
@@ -1558,7 +1608,7 @@ mod tests {
             },
         );
         assert_eq!(
-            backend.answer(&read, &values),
+            backend.answer(&read, &values, &mut uncertain),
             Err(Refusal::Opcua(StatusCode::BadNotReadable.bits()))
         );
     }
