@@ -9,8 +9,6 @@ mod common;
 #[allow(dead_code)]
 mod fixture;
 
-use std::io::{Read, Write};
-use std::net::TcpStream;
 use std::time::Duration;
 
 use common::modbus::until;
@@ -21,21 +19,6 @@ use fixture::Fixture;
 /// 2024-03-15T13:45:30.000Z as a FILETIME, and in Unix milliseconds.
 const FT0: u64 = 133_549_839_300_000_000;
 const MS0: i64 = 1_710_510_330_000;
-
-fn http_get(port: u16, path: &str) -> String {
-    let mut stream = TcpStream::connect(("127.0.0.1", port)).unwrap();
-    stream
-        .set_read_timeout(Some(Duration::from_secs(10)))
-        .unwrap();
-    write!(
-        stream,
-        "GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
-    )
-    .unwrap();
-    let mut answer = String::new();
-    stream.read_to_string(&mut answer).unwrap();
-    answer
-}
 
 /// How many notifications the fixture holds for clients.
 fn notifications(device: &mut Fixture) -> usize {
@@ -84,14 +67,9 @@ async fn notified_values_carry_the_plcs_time_into_diffs_and_history() {
     let from = MS0 - 1000;
     let to = MS0 + 10_000;
     let path = format!("/api/history?section=A&vars=MAIN.COUNTER&from={from}&to={to}&format=csv");
-    let deadline = std::time::Instant::now() + Duration::from_secs(10);
-    let csv = loop {
-        let answer = http_get(http, &path);
-        if answer.matches("MAIN.COUNTER").count() >= 20 || std::time::Instant::now() > deadline {
-            break answer;
-        }
-        std::thread::sleep(Duration::from_millis(300));
-    };
+    let csv = common::http::get_until(http, &path, Duration::from_secs(10), |answer| {
+        answer.matches("MAIN.COUNTER").count() >= 20
+    });
     // None lost, none twice.
     assert_eq!(csv.matches(",MAIN.COUNTER,").count(), 20, "{csv}");
     for k in 1..=20i64 {

@@ -537,22 +537,6 @@ async fn security_first_contact_and_a_user() {
     drop(server);
 }
 
-fn http_get(port: u16, path: &str) -> String {
-    use std::io::Read;
-    let mut stream = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
-    stream
-        .set_read_timeout(Some(Duration::from_secs(10)))
-        .unwrap();
-    write!(
-        stream,
-        "GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
-    )
-    .unwrap();
-    let mut answer = String::new();
-    stream.read_to_string(&mut answer).unwrap();
-    answer
-}
-
 /// Subscribed values reach DIFFs and the history with the server's
 /// SourceTimestamp, not the time plccoms received them.
 #[tokio::test]
@@ -586,14 +570,9 @@ async fn source_timestamps_are_the_historys_time() {
         MS0 - 1000,
         MS0 + 10_000
     );
-    let deadline = Instant::now() + Duration::from_secs(10);
-    let csv = loop {
-        let answer = http_get(http, &path);
-        if answer.matches(",DB_LINE1.MOTOR.SPEED,").count() >= 5 || Instant::now() > deadline {
-            break answer;
-        }
-        std::thread::sleep(Duration::from_millis(300));
-    };
+    let csv = common::http::get_until(http, &path, Duration::from_secs(10), |answer| {
+        answer.matches(",DB_LINE1.MOTOR.SPEED,").count() >= 5
+    });
     assert_eq!(csv.matches(",DB_LINE1.MOTOR.SPEED,").count(), 5, "{csv}");
     for k in 1..=5i64 {
         let at = chrono::DateTime::from_timestamp_millis(MS0 + 1000 * k)
@@ -611,7 +590,7 @@ async fn source_timestamps_are_the_historys_time() {
 
 /// The value of `name` in section P as the web API shows it: (quality, text).
 fn web_value(http: u16, name: &str) -> (String, String) {
-    let answer = http_get(http, &format!("/api/sections/P/values?vars={name}"));
+    let answer = common::http::get(http, &format!("/api/sections/P/values?vars={name}"));
     let body = &answer[answer.find("\r\n\r\n").expect("an HTTP answer") + 4..];
     let json: serde_json::Value =
         serde_json::from_str(body).unwrap_or_else(|e| panic!("{e}: {answer}"));
@@ -689,7 +668,7 @@ async fn uncertain_is_stale(mode: &str) {
     let want = ["1450.5,good", "1450.5,stale", "12.5,stale", "12.5,good"];
     let mut rows;
     loop {
-        let csv = http_get(http, &path);
+        let csv = common::http::get(http, &path);
         rows = csv
             .lines()
             .filter(|l| l.contains(&format!(",{SPEED},")))

@@ -4,6 +4,7 @@
 
 pub mod epsnet;
 pub mod health;
+pub mod http;
 pub mod line;
 pub mod logs;
 pub mod memory;

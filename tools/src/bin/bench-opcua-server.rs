@@ -19,6 +19,10 @@
 //!
 //! Results are `label.metric value` lines on stdout, appended to `--out`.
 
+#[path = "../procfs.rs"]
+#[allow(dead_code)]
+mod procfs;
+
 use std::collections::HashMap;
 use std::io::Write as _;
 use std::sync::{Arc, Mutex};
@@ -198,17 +202,6 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     }
     let i = ((sorted.len() as f64 - 1.0) * p).round() as usize;
     sorted[i.min(sorted.len() - 1)]
-}
-
-fn rss_kib(pid: u32) -> Option<u64> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))?
-        .split_whitespace()
-        .next()?
-        .parse()
-        .ok()
 }
 
 type Fail = Box<dyn std::error::Error>;
@@ -486,7 +479,7 @@ async fn run(args: Args) -> Result<(), Fail> {
             let mut tick = tokio::time::interval(Duration::from_secs(1));
             loop {
                 tick.tick().await;
-                if let Some(kib) = rss_kib(pid) {
+                if let Some(kib) = procfs::status_field(pid, "VmRSS") {
                     rss.lock().unwrap_or_else(|e| e.into_inner()).push(kib);
                 }
             }

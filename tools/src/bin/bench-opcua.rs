@@ -19,6 +19,8 @@
 //!
 //! Run: `cargo run --release -p plccoms-tools --bin bench-opcua -- --help`.
 
+#[path = "../procfs.rs"]
+mod procfs;
 #[path = "../timed.rs"]
 #[allow(dead_code)]
 mod timed;
@@ -119,34 +121,6 @@ impl Drop for Server {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
-}
-
-/// CPU seconds (user + system) of `pid`.
-fn cpu_seconds(pid: u32) -> f64 {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
-    // Fields after the command's closing parenthesis; utime and stime are
-    // the 14th and 15th of the line.
-    let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    let ticks = |i: usize| {
-        fields
-            .get(i)
-            .and_then(|f| f.parse::<f64>().ok())
-            .unwrap_or(0.0)
-    };
-    // SAFETY: sysconf has no preconditions.
-    let hz = unsafe { libc::sysconf(libc::_SC_CLK_TCK) } as f64;
-    (ticks(11) + ticks(12)) / hz
-}
-
-/// A /proc/<pid>/status field in MiB (VmHWM, VmRSS).
-fn status_mib(pid: u32, field: &str) -> f64 {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix(field)?.strip_prefix(':'))
-        .and_then(|v| v.split_whitespace().next()?.parse::<f64>().ok())
-        .map_or(f64::NAN, |kib| kib / 1024.0)
 }
 
 /// The section's OPC UA requests so far, from the client side's /metrics.
@@ -264,9 +238,9 @@ async fn run(args: &Args, binary: &Path, n: usize) -> Row {
     let arrivals = timed::watch(addr).await;
     // The subscription made (three poll periods), its first values in.
     tokio::time::sleep(Duration::from_millis(10 * delay)).await;
-    let (c0, r0, t0) = (cpu_seconds(pid), requests(http), Instant::now());
+    let (c0, r0, t0) = (procfs::cpu_seconds(pid), requests(http), Instant::now());
     tokio::time::sleep(Duration::from_secs(args.window)).await;
-    let (c1, r1, t1) = (cpu_seconds(pid), requests(http), Instant::now());
+    let (c1, r1, t1) = (procfs::cpu_seconds(pid), requests(http), Instant::now());
     let seconds = (t1 - t0).as_secs_f64();
     let cycles = seconds * 1000.0 / delay as f64;
     let requests_per_cycle = match (r0, r1) {
@@ -293,8 +267,9 @@ async fn run(args: &Args, binary: &Path, n: usize) -> Row {
         vars: n,
         ready_s,
         cpu_cores: (c1 - c0) / seconds,
-        rss_peak_mib: status_mib(pid, "VmHWM"),
-        rss_mib: status_mib(pid, "VmRSS"),
+        rss_peak_mib: procfs::status_field(pid, "VmHWM")
+            .map_or(f64::NAN, |kib| kib as f64 / 1024.0),
+        rss_mib: procfs::status_field(pid, "VmRSS").map_or(f64::NAN, |kib| kib as f64 / 1024.0),
         requests_per_cycle,
         confirm,
         diff,

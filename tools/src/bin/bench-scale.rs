@@ -23,6 +23,9 @@
 //!
 //! Run: `cargo run --release -p plccoms-tools --bin bench-scale -- --help`.
 
+#[path = "../procfs.rs"]
+mod procfs;
+
 use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -309,35 +312,6 @@ async fn changes_made(port: u16) -> u64 {
         .find_map(|w| w.strip_prefix("changes="))
         .and_then(|n| n.parse().ok())
         .unwrap_or_else(|| panic!("changes= in {status}"))
-}
-
-/// Resident set and threads of `pid` (from /proc).
-fn rss_and_threads(pid: u32) -> (u64, u64) {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
-    let field = |name: &str| {
-        status
-            .lines()
-            .find_map(|l| l.strip_prefix(name))
-            .and_then(|v| v.split_whitespace().next()?.parse::<u64>().ok())
-            .unwrap_or(0)
-    };
-    (field("VmRSS:") * 1024, field("Threads:"))
-}
-
-/// utime + stime of `pid`, seconds.
-fn cpu_seconds(pid: u32) -> f64 {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
-    // Fields after the command name (which may hold spaces), from field 3.
-    let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    let ticks = |i: usize| {
-        fields
-            .get(i)
-            .and_then(|v| v.parse::<f64>().ok())
-            .unwrap_or(0.0)
-    };
-    let hz = unsafe { libc::sysconf(libc::_SC_CLK_TCK) } as f64;
-    (ticks(11) + ticks(12)) / hz.max(1.0)
 }
 
 /// Raises the open-file limit to the hard limit: the children inherit it
@@ -719,18 +693,21 @@ async fn main() {
     control(control_port, &format!("animate {mask}")).await;
 
     // The window: RSS each second, CPU over it.
-    let cpu0 = cpu_seconds(server_pid);
+    let cpu0 = procfs::cpu_seconds(server_pid);
     let t0 = Instant::now();
     let a = scrape(http_port).await.expect("scrape");
     let (mut rss_max, mut rss_last, mut threads) = (0, 0, 0);
     while t0.elapsed() < Duration::from_secs(window_s) {
         tokio::time::sleep(Duration::from_secs(1)).await;
         children.check();
-        (rss_last, threads) = rss_and_threads(server_pid);
+        (rss_last, threads) = (
+            procfs::status_field(server_pid, "VmRSS").unwrap_or(0) * 1024,
+            procfs::status_field(server_pid, "Threads").unwrap_or(0),
+        );
         rss_max = rss_max.max(rss_last);
     }
     let b = scrape(http_port).await.expect("scrape");
-    let cpu = (cpu_seconds(server_pid) - cpu0) / t0.elapsed().as_secs_f64();
+    let cpu = (procfs::cpu_seconds(server_pid) - cpu0) / t0.elapsed().as_secs_f64();
     let (p99, missed, cycles) = window(&a, &b, |_| true);
     control(control_port, "animate").await;
     let changes = changes_made(control_port).await - changes0;
