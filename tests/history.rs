@@ -714,39 +714,6 @@ assert all(a[0] <= b[0] for a, b in zip(s, s[1:]))
     );
 }
 
-/// `GET path` on the web port; the body, its chunks joined.
-fn http_get(port: u16, path: &str) -> String {
-    use std::io::Read;
-    let mut stream = TcpStream::connect(("127.0.0.1", port)).unwrap();
-    stream.set_read_timeout(Some(DEADLINE)).unwrap();
-    write!(
-        stream,
-        "GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n"
-    )
-    .unwrap();
-    let mut answer = Vec::new();
-    stream.read_to_end(&mut answer).unwrap();
-    let answer = String::from_utf8(answer).unwrap();
-    let (head, mut rest) = answer.split_once("\r\n\r\n").unwrap();
-    assert!(head.starts_with("HTTP/1.1 200"), "{head}");
-    if !head
-        .to_ascii_lowercase()
-        .contains("transfer-encoding: chunked")
-    {
-        return rest.to_string();
-    }
-    let mut body = String::new();
-    loop {
-        let (size, after) = rest.split_once("\r\n").unwrap();
-        let size = usize::from_str_radix(size.trim(), 16).unwrap();
-        if size == 0 {
-            return body;
-        }
-        body.push_str(&after[..size]);
-        rest = &after[size + 2..];
-    }
-}
-
 /// The ISO 8601 form of UTC ms, as `--from`/`--to` take it.
 fn iso(ms: i64) -> String {
     chrono::DateTime::from_timestamp_millis(ms)
@@ -867,7 +834,7 @@ fn outages_and_server_downtime_are_gaps_in_every_export() {
     let server = Server::start(dir.path(), &plc, section, &format!("HTTP_PORT = {http}"));
     std::thread::sleep(Duration::from_millis(500));
     // The first run, written and closed: the web's rows are the export's.
-    let web = http_get(
+    let web = common::http::get_body(
         http,
         &format!("/api/history?section=Hist&from={began}&to={stopped}&format=csv"),
     );
@@ -876,7 +843,7 @@ fn outages_and_server_downtime_are_gaps_in_every_export() {
     let cli = history(dir.path(), &["--from", &from, "--to", &to]);
     assert_eq!(web, cli);
     assert!(cli.contains(",__LINK,,link_lost,link_lost\n"), "{cli}");
-    let web_json = http_get(
+    let web_json = common::http::get_body(
         http,
         &format!("/api/history?section=Hist&from={began}&to={stopped}"),
     );

@@ -33,3 +33,26 @@ pub fn get_until(port: u16, path: &str, within: Duration, done: impl Fn(&str) ->
         std::thread::sleep(Duration::from_millis(300));
     }
 }
+
+/// `GET path`, which must answer 200: its body, chunks joined.
+pub fn get_body(port: u16, path: &str) -> String {
+    let answer = get(port, path);
+    let (head, mut rest) = answer.split_once("\r\n\r\n").unwrap();
+    assert!(head.starts_with("HTTP/1.1 200"), "{head}");
+    if !head
+        .to_ascii_lowercase()
+        .contains("transfer-encoding: chunked")
+    {
+        return rest.to_string();
+    }
+    let mut body = String::new();
+    loop {
+        let (size, after) = rest.split_once("\r\n").unwrap();
+        let size = usize::from_str_radix(size.trim(), 16).unwrap();
+        if size == 0 {
+            return body;
+        }
+        body.push_str(&after[..size]);
+        rest = &after[size + 2..];
+    }
+}
