@@ -406,16 +406,12 @@ impl Link {
                 // A due cycle goes before queued requests, so a flood of
                 // them cannot delay polling.
                 _ = tokio::time::sleep_until(wake) => {
-                    // tokio's timer has millisecond granularity; on a
-                    // dedicated thread the last stretch is slept precisely,
-                    // on the shared pool it is waited out by the timer.
+                    // tokio's timer has millisecond granularity: a dedicated
+                    // thread sleeps the last stretch precisely. A pooled
+                    // loop woke at the deadline (the timer is never early).
                     let now = Instant::now();
-                    if deadline > now {
-                        if self.own_thread {
-                            std::thread::sleep(deadline - now);
-                        } else {
-                            tokio::time::sleep_until(deadline).await;
-                        }
+                    if self.own_thread && deadline > now {
+                        std::thread::sleep(deadline - now);
                     }
                     self.metrics.poll_start_late.observe(Instant::now().saturating_duration_since(deadline));
                     self.tick().await;
