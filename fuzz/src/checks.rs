@@ -1062,8 +1062,8 @@ pub fn opcua_tags(data: &[u8]) {
         assert_eq!(again.tags.len(), file.tags.len(), "{:?}", again.warnings);
         for (a, b) in again.tags.iter().zip(&file.tags) {
             assert_eq!(
-                (&a.name, &a.node, a.ty, a.writable, a.index),
-                (&b.name, &b.node, b.ty, b.writable, b.index)
+                (&a.name, &a.node, a.ty, a.writable, a.index, &a.field),
+                (&b.name, &b.node, b.ty, b.writable, b.index, &b.field)
             );
         }
     }
