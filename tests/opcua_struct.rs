@@ -251,3 +251,70 @@ async fn tag_file_fields() {
     let log = plc.log();
     assert!(log.contains("no field NOPE in its DataType"), "{log}");
 }
+
+/// plccoms's own OPC UA server as the PLC (loopback, one process): it shows
+/// a public file's array elements as scalar nodes (`ARR[1]`), so a SET of
+/// an element through the OPC UA section is a plain write of that node,
+/// the neighbours untouched; no read-modify-write is involved.
+#[tokio::test]
+async fn array_elements_through_our_own_server() {
+    let (p_sim, p_via, p_ua) = (free_port(), free_port(), free_port());
+    let dir = tempfile::tempdir().unwrap();
+    let pubfile = dir.path().join("arr.pub");
+    std::fs::write(
+        &pubfile,
+        " ARR[0] R B 0 INT PUB_INOUT\r\n ARR[1] R B 2 INT PUB_INOUT\r\n ARR[2] R B 4 INT PUB_INOUT\r\n",
+    )
+    .unwrap();
+    // A user who may write ARR* (password "secret").
+    let users = dir.path().join("users");
+    std::fs::write(
+        &users,
+        "hmi write pbkdf2-sha256:1000:00112233445566778899aabbccddeeff:\
+         588372775fb38b5711b6f36b465e293dc7b793e008550ee8a10bb26a8e7f85b8\n",
+    )
+    .unwrap();
+    let ini = format!(
+        "[*]\nCOMM_LOOP_DELAY = 100\nOPCUA_PORT = {p_ua}\nOPCUA_USERS = {u}\n\n\
+         [Sim]\nSIMULATOR = Yes\nSIMULATOR_PROGRAM = idle\nSIMULATOR_PUB = {p}\nSERVER_PORT = {p_sim}\nPUBFILE = {p}\nOPCUA_WRITE = ARR*\n\n\
+         [Via]\nPROTOCOL = OPCUA\nOPCUA_URL = opc.tcp://127.0.0.1:{p_ua}/\nOPCUA_USER = hmi\nOPCUA_PASSWORD = secret\n\
+         OPCUA_BROWSE = nsu=urn:plccoms;s=Sim\nSERVER_PORT = {p_via}\n",
+        p = pubfile.display(),
+        u = users.display()
+    );
+    let server = ServerProcess::with_config(&ini, p_via);
+    let mut sim = Client::connect(std::net::SocketAddr::from(([127, 0, 0, 1], p_sim))).await;
+    for (i, v) in [(0, 11), (1, 12), (2, 13)] {
+        sim.ask(
+            &format!("SET:arr[{i}],{v}\r\n"),
+            &format!("DIFF:ARR[{i}],{v}\r\n"),
+        )
+        .await;
+    }
+    let mut via = Client::connect(server.addr).await;
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        via.send(b"GET:arr[1]\r\n").await;
+        let line = String::from_utf8(via.line().await).unwrap();
+        if line == "GET:ARR[1],12\r\n" {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "Via has no ARR[1]: {line:?}; log:\n{}",
+            server.log()
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    // A new client: the table's reload may have said more than the GETs
+    // above were answered with.
+    let mut via = Client::connect(server.addr).await;
+    via.ask("SET:arr[1],-5\r\n", "DIFF:ARR[1],-5\r\n").await;
+    for (name, value) in [("ARR[0]", 11), ("ARR[1]", -5), ("ARR[2]", 13)] {
+        sim.ask(
+            &format!("GET:{name}\r\n"),
+            &format!("GET:{name},{value}\r\n"),
+        )
+        .await;
+    }
+}
