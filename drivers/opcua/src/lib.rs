@@ -766,12 +766,13 @@ impl OpcuaBackend {
         uncertain: &mut Vec<usize>,
     ) -> Answer<Vec<u8>> {
         let mut bytes = vec![0u8; read.len as usize];
+        let mut fields = structure::Fields::default();
         for i in self.covered(read.offset, read.len) {
             let entry = &self.served.entries[i];
             let Some(value) = values.get(&entry.source) else {
                 return Err(Refusal::Opcua(StatusCode::BadWaitingForInitialData.bits()));
             };
-            let own = entry_bytes(entry, value)?;
+            let own = entry_bytes(entry, value, &mut fields)?;
             if is_uncertain(value) {
                 uncertain.push(i);
             }
@@ -954,8 +955,13 @@ fn put(whole: &mut Variant, entry: &Entry, value: &Variant) -> Result<(), Status
 }
 
 /// An entry's bytes in `value` (of its source), or the refusal its status
-/// or type makes.
-fn entry_bytes(entry: &Entry, value: &DataValue) -> Answer<Vec<u8>> {
+/// or type makes; a structure's body decoded once in `fields` for all the
+/// entries of one value.
+fn entry_bytes(
+    entry: &Entry,
+    value: &DataValue,
+    fields: &mut structure::Fields,
+) -> Answer<Vec<u8>> {
     let status = value.status.unwrap_or(StatusCode::Good);
     if status.is_bad() {
         return Err(refusal(status));
@@ -968,8 +974,10 @@ fn entry_bytes(entry: &Entry, value: &DataValue) -> Answer<Vec<u8>> {
     let field;
     let element = match (&entry.leaf, element) {
         (Some((layout, leaf)), Some(object)) => {
-            field = layout
-                .read(object, *leaf)
+            // An array of structures: each element its own body.
+            let key = (entry.source, entry.index);
+            field = fields
+                .read(key, layout, object, *leaf)
                 .map_err(|_| refusal(StatusCode::BadDecodingError))?;
             Some(&field)
         }
@@ -1399,9 +1407,10 @@ impl PlcBackend for OpcuaBackend {
                     continue;
                 };
                 let unix_ms = stamp_of(&value);
+                let mut fields = structure::Fields::default();
                 for &i in entries {
                     let entry = &self.served.entries[i];
-                    if let Ok(bytes) = entry_bytes(entry, &value) {
+                    if let Ok(bytes) = entry_bytes(entry, &value, &mut fields) {
                         pushed.push(Pushed {
                             name: entry.name.clone(),
                             bytes,

@@ -63,10 +63,7 @@ impl Layout {
 
     /// Leaf `i`'s value in `value` (an ExtensionObject of this type).
     pub fn read(&self, value: &Variant, i: usize) -> Result<Variant, String> {
-        let (body, _) = body_of(value)?;
-        let spans = self.spans(&body)?;
-        let span = spans.get(i).ok_or("no such field")?.clone();
-        decode_scalar(self.leaves[i].builtin, &body[span])
+        Fields::default().read((0, None), self, value, i)
     }
 
     /// `value` (an ExtensionObject of this type) with leaf `i` set to `new`.
@@ -90,6 +87,46 @@ impl Layout {
             }
             text
         })
+    }
+}
+
+/// Bodies decoded once for all the fields served from them: a structure
+/// of n fields is walked once per value, not n times.
+#[derive(Default)]
+pub struct Fields {
+    /// The last value's key (the caller's: one per value) and its body
+    /// with its leaves' spans.
+    last: Option<(FieldsKey, DecodedBody)>,
+}
+
+/// A value's key: its source and element.
+pub type FieldsKey = (usize, Option<u32>);
+
+type DecodedBody = Result<(Vec<u8>, Vec<std::ops::Range<usize>>), String>;
+
+impl Fields {
+    /// Leaf `i` of `value`, a structure of `layout`; `key` names `value`
+    /// among those this cache sees.
+    pub fn read(
+        &mut self,
+        key: FieldsKey,
+        layout: &Layout,
+        value: &Variant,
+        i: usize,
+    ) -> Result<Variant, String> {
+        if self.last.as_ref().is_none_or(|(k, _)| *k != key) {
+            let decoded = body_of(value).and_then(|(body, _)| {
+                let spans = layout.spans(&body)?;
+                Ok((body, spans))
+            });
+            self.last = Some((key, decoded));
+        }
+        let Some((_, decoded)) = &self.last else {
+            return Err("no value".into());
+        };
+        let (body, spans) = decoded.as_ref().map_err(Clone::clone)?;
+        let span = spans.get(i).ok_or("no such field")?.clone();
+        decode_scalar(layout.leaves[i].builtin, &body[span])
     }
 }
 
