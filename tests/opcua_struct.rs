@@ -125,17 +125,7 @@ async fn plccoms(server: &Structs, extra: &str, first: &str) -> (ServerProcess, 
 async fn structures(mode: &str) {
     let mut server = Structs::start();
     let (plc, mut c) = plccoms(&server, &format!("OPCUA_MODE = {mode}"), "MOTOR.SPEED").await;
-    c.send(b"LIST:\r\n").await;
-    let mut list = String::new();
-    loop {
-        let line = String::from_utf8(c.line().await).unwrap();
-        list.push_str(line.trim_end());
-        list.push('\n');
-        if line == "LIST:\r\n" {
-            break;
-        }
-    }
-    assert_eq!(list, LIST);
+    assert_eq!(c.list().await, LIST);
     for (request, answer) in [
         ("GET:motor.speed", "GET:MOTOR.SPEED,1450.5000000000"),
         ("GET:motor.running", "GET:MOTOR.RUNNING,1"),

@@ -196,7 +196,13 @@ pub async fn build(
     let mut tags = Vec::with_capacity(found.len());
     let (mut arrays, mut unknown) = (0usize, 0usize);
     let mut structures: HashMap<String, (usize, String)> = HashMap::new();
+    let most = plccoms_plc::pubfile::MAX_VARS;
     for (found, attrs) in found.into_iter().zip(attributes) {
+        // Arrays and structures multiply: the list stays a table's size.
+        if tags.len() >= most {
+            warn!(section, "more than {most} variables with arrays and structures expanded: the rest is left out");
+            break;
+        }
         let builtin = attrs.data_type.as_ref().and_then(Builtin::of_data_type);
         let node = node_ref(&found.node);
         let text = node.to_string();
@@ -284,7 +290,7 @@ pub async fn build(
         };
         if let Some(builtin) = builtin {
             types.builtins.insert(text, builtin);
-            for i in 0..count {
+            for i in 0..count.min((most - tags.len()) as u64) {
                 tags.push(tag(&name_of(i), index_of(i), None, builtin));
             }
             continue;
@@ -323,6 +329,10 @@ pub async fn build(
                 ))
                 .0 += 1;
             continue;
+        }
+        if tags.len() as u64 + count * served.len() as u64 > most as u64 {
+            warn!(section, "more than {most} variables with arrays and structures expanded: the rest is left out");
+            break;
         }
         types.layouts.insert(text, layout.clone());
         for i in 0..count {
@@ -390,35 +400,19 @@ async fn layouts(
         if pending.is_empty() {
             break;
         }
-        for chunk in pending.chunks(limits.per_read.max(1)) {
-            let ids: Vec<ReadValueId> = chunk
-                .iter()
-                .map(|t| ReadValueId {
-                    node_id: t.clone(),
-                    // DataTypeDefinition (OPC UA 1.04).
-                    attribute_id: 23,
-                    ..Default::default()
-                })
-                .collect();
-            let values = session
-                .read(&ids, TimestampsToReturn::Neither, 0.0)
-                .await
-                .map_err(|e| service_error("Read", e))?;
-            for (i, t) in chunk.iter().enumerate() {
-                let def = match values.get(i) {
-                    Some(v) if v.status.is_some_and(|s| s.is_bad()) => Err(format!(
-                        "its DataTypeDefinition is not readable ({})",
-                        v.status.unwrap_or_default()
-                    )),
-                    Some(v) => v
-                        .value
-                        .clone()
-                        .ok_or_else(|| "no DataTypeDefinition".to_string())
-                        .and_then(Definition::of),
-                    None => Err("no DataTypeDefinition answered".into()),
-                };
-                defs.insert(t.clone(), def);
-            }
+        // DataTypeDefinition (23, OPC UA 1.04).
+        let values = read_all(session, limits, &pending, &[23]).await?;
+        for (t, v) in pending.iter().zip(values) {
+            let def = match v.status {
+                Some(status) if status.is_bad() => {
+                    Err(format!("its DataTypeDefinition is not readable ({status})"))
+                }
+                _ => v
+                    .value
+                    .ok_or_else(|| "no DataTypeDefinition".to_string())
+                    .and_then(Definition::of),
+            };
+            defs.insert(t.clone(), def);
         }
         pending = defs
             .values()
@@ -604,21 +598,23 @@ impl Attributes {
     }
 }
 
-async fn read_attributes(
+/// `attributes` of each of `nodes` (in that order), in as few Read calls
+/// as MaxNodesPerRead allows, a node's attributes in one call; one value
+/// each, or the failure.
+async fn read_all(
     session: &Session,
     limits: &Limits,
-    found: &[Found],
-) -> Result<Vec<Attributes>, PlcError> {
-    // DataType (14), ValueRank (15), ArrayDimensions (16), UserAccessLevel (18).
-    const ATTRIBUTES: [u32; 4] = [14, 15, 16, 18];
-    let mut out = Vec::with_capacity(found.len());
-    let per_read = (limits.per_read / ATTRIBUTES.len()).max(1);
-    for chunk in found.chunks(per_read) {
+    nodes: &[NodeId],
+    attributes: &[u32],
+) -> Result<Vec<opcua::types::DataValue>, PlcError> {
+    let per_read = (limits.per_read / attributes.len().max(1)).max(1);
+    let mut out = Vec::with_capacity(nodes.len() * attributes.len());
+    for chunk in nodes.chunks(per_read) {
         let ids: Vec<ReadValueId> = chunk
             .iter()
-            .flat_map(|f| {
-                ATTRIBUTES.iter().map(|&attribute_id| ReadValueId {
-                    node_id: f.node.clone(),
+            .flat_map(|node| {
+                attributes.iter().map(|&attribute_id| ReadValueId {
+                    node_id: node.clone(),
                     attribute_id,
                     ..Default::default()
                 })
@@ -635,41 +631,55 @@ async fn read_attributes(
                 values.len()
             )));
         }
-        for four in values.chunks(ATTRIBUTES.len()) {
-            let good = |i: usize| {
-                four[i]
-                    .status
-                    .is_none_or(|s| s.is_good())
-                    .then(|| four[i].value.clone())
-                    .flatten()
-            };
-            out.push(Attributes {
-                data_type: match good(0) {
-                    Some(Variant::NodeId(id)) => Some(*id),
-                    _ => None,
-                },
-                value_rank: match good(1) {
-                    Some(Variant::Int32(rank)) => Some(rank),
-                    _ => None,
-                },
-                dims: match good(2) {
-                    Some(Variant::Array(a)) => a
-                        .values
-                        .iter()
-                        .map(|d| match d {
-                            Variant::UInt32(n) if *n > 0 => Some(*n),
-                            _ => None,
-                        })
-                        .collect::<Option<Vec<u32>>>()
-                        .filter(|d| !d.is_empty()),
-                    _ => None,
-                },
-                user_access: match good(3) {
-                    Some(Variant::Byte(a)) => Some(a),
-                    _ => None,
-                },
-            });
-        }
+        out.extend(values);
+    }
+    Ok(out)
+}
+
+async fn read_attributes(
+    session: &Session,
+    limits: &Limits,
+    found: &[Found],
+) -> Result<Vec<Attributes>, PlcError> {
+    // DataType (14), ValueRank (15), ArrayDimensions (16), UserAccessLevel (18).
+    const ATTRIBUTES: [u32; 4] = [14, 15, 16, 18];
+    let mut out = Vec::with_capacity(found.len());
+    let nodes: Vec<NodeId> = found.iter().map(|f| f.node.clone()).collect();
+    let values = read_all(session, limits, &nodes, &ATTRIBUTES).await?;
+    for four in values.chunks(ATTRIBUTES.len()) {
+        let good = |i: usize| {
+            four[i]
+                .status
+                .is_none_or(|s| s.is_good())
+                .then(|| four[i].value.clone())
+                .flatten()
+        };
+        out.push(Attributes {
+            data_type: match good(0) {
+                Some(Variant::NodeId(id)) => Some(*id),
+                _ => None,
+            },
+            value_rank: match good(1) {
+                Some(Variant::Int32(rank)) => Some(rank),
+                _ => None,
+            },
+            dims: match good(2) {
+                Some(Variant::Array(a)) => a
+                    .values
+                    .iter()
+                    .map(|d| match d {
+                        Variant::UInt32(n) if *n > 0 => Some(*n),
+                        _ => None,
+                    })
+                    .collect::<Option<Vec<u32>>>()
+                    .filter(|d| !d.is_empty()),
+                _ => None,
+            },
+            user_access: match good(3) {
+                Some(Variant::Byte(a)) => Some(a),
+                _ => None,
+            },
+        });
     }
     // Arrays whose dimensions the server leaves open (ArrayDimensions 0):
     // those of their value now.
