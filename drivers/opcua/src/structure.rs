@@ -359,5 +359,14 @@ mod tests {
             .read(&Variant::Double(1.0), 0)
             .unwrap_err()
             .contains("not a structure"));
+        // A body the definition does not fit: the field and offset named.
+        let short = Variant::ExtensionObject(ExtensionObject::new(ByteStringBody::new(
+            ByteString::from(vec![0u8; 10]),
+            NodeId::new(2, 9u32),
+        )));
+        assert_eq!(
+            layout.read(&short, 0).unwrap_err(),
+            "a value of DataType ns=2;i=7: field NAME at byte 8: needs 4 bytes, 2 left"
+        );
     }
 }
