@@ -131,6 +131,17 @@ struct Node {
 }
 
 impl Node {
+    /// Not started yet; its log is `<name>.log` in `dir`.
+    fn new(dir: &Path, name: String, mqtt: u16, command: Command) -> Node {
+        Node {
+            log: dir.join(format!("{name}.log")),
+            name,
+            mqtt,
+            command,
+            child: None,
+        }
+    }
+
     fn start(&mut self) {
         let log = std::fs::OpenOptions::new()
             .create(true)
@@ -236,13 +247,7 @@ fn nats_cluster(dir: &Path) -> Cluster {
             .expect("node config");
             let mut command = Command::new(nats_bin());
             command.arg("-c").arg(&conf);
-            Node {
-                log: dir.join(format!("{name}.log")),
-                name,
-                mqtt,
-                command,
-                child: None,
-            }
+            Node::new(dir, name, mqtt, command)
         })
         .collect();
     for node in &mut nodes {
@@ -336,13 +341,7 @@ fn rabbit_cluster(dir: &Path) -> Cluster {
                 // to pass on signals), and -noinput keeps it off stdin.
                 .env("RABBITMQ_ALLOW_INPUT", "1")
                 .env("RABBITMQ_SERVER_ADDITIONAL_ERL_ARGS", "-noinput");
-            Node {
-                log: dir.join(format!("{name}.log")),
-                name,
-                mqtt,
-                command,
-                child: None,
-            }
+            Node::new(dir, name, mqtt, command)
         })
         .collect();
     nodes[0].start();
