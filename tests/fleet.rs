@@ -1,16 +1,22 @@
 //! Many gateways, one broker cluster (issue 36): gateways (`plccoms`
-//! processes) publish QoS 1 through a real 3-node NATS cluster started here
-//! on loopback ports, while the node gateways are connected to is killed
-//! (SIGKILL), then another one, each brought back; a subscriber on the node
-//! that is never killed must see every value of every section, in order.
+//! processes) publish QoS 1 through a real 3-node broker cluster started
+//! here on loopback ports, while the node gateways are connected to is
+//! killed (SIGKILL), then another one, each brought back; a subscriber on
+//! the node that is never killed must see every value of every section, in
+//! order, and every section must flow again within 5 s of a kill (the
+//! issue's failover goal).
 //!
-//! Why NATS: Debian's `nats-server` (2.9) is one small static binary that
-//! clusters on loopback in a second; its MQTT keeps QoS 1 messages and
-//! persistent sessions in JetStream, replicated on all 3 nodes (R3), so a
-//! node may die without losing what it acknowledged. RabbitMQ's MQTT plugin
-//! would need an Erlang cluster (three named nodes, a shared cookie, ~10 s
-//! per start) for the same. NATS speaks MQTT 3.1.1 only: the gateways run
-//! with `MQTT_VERSION = 3.1.1`.
+//! Why RabbitMQ (Debian's rabbitmq-server 3.10, its MQTT plugin): a killed
+//! node's peers see its Erlang distribution connection close at once, so
+//! its Raft groups (the client-id tracker, the quorum queues that hold
+//! persistent sessions) elect new leaders in well under a second and the
+//! other nodes never stop taking clients; a message is acknowledged once a
+//! majority of the queue's replicas has it. NATS 2.9 (`FLEET_BROKER=nats`,
+//! JetStream R3) keeps the same promise but its JetStream leader election
+//! takes 4-10 s (fixed in the server, not configurable), in which no node
+//! takes a QoS 1 message or a CONNECT: it misses the 5 s goal and is no
+//! longer in the suite. Both speak MQTT 3.1.1 only: the gateways run with
+//! `MQTT_VERSION = 3.1.1`.
 //!
 //! Every value is known: a writer per gateway SETs each section's counter
 //! `N` to 1, 2, 3, ... over the line protocol (each SET is one change, so
@@ -22,10 +28,9 @@
 //! suite runs), a value per section every `FLEET_PERIOD_MS` (100);
 //! `bench/fleet/run` runs 10 x 100 at 1 s. The writes are published as
 //! they are confirmed, not when polled: the polls (every 500 ms) add
-//! nothing but load. The failover time (from
-//! the kill until every section of every gateway has a value written after
-//! the kill at the subscriber) is printed; it is asserted only against a
-//! generous sanity bound.
+//! nothing but load. The failover time (from the kill until every section
+//! of every gateway has a value written after the kill at the subscriber)
+//! is printed.
 
 mod common;
 
@@ -48,7 +53,10 @@ use common::process::{free_port, which, ChildGuard, ServerProcess};
 fn deadline() -> Duration {
     Duration::from_secs(env_size("FLEET_WAIT_S", 90) as u64)
 }
-/// Sanity bound of a failover (the goal is 5 s; this only catches a hang).
+/// Issue 36's failover goal, asserted with RabbitMQ at the end of the run
+/// (after every figure is printed); NATS misses it by its election alone.
+const FAILOVER_GOAL: Duration = Duration::from_secs(5);
+/// The wait for a failover that only catches a hang.
 const FAILOVER_BOUND: Duration = Duration::from_secs(30);
 
 fn env_size(name: &str, default: usize) -> usize {
@@ -73,6 +81,23 @@ fn port() -> u16 {
     }
 }
 
+/// The cluster under test: `FLEET_BROKER` = `rabbitmq` (the default, what
+/// the suite runs) or `nats` (kept for comparison: its JetStream leader
+/// election takes 4-10 s).
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Broker {
+    Rabbit,
+    Nats,
+}
+
+fn broker() -> Broker {
+    match std::env::var("FLEET_BROKER").as_deref() {
+        Err(_) | Ok("" | "rabbitmq") => Broker::Rabbit,
+        Ok("nats") => Broker::Nats,
+        Ok(other) => panic!("FLEET_BROKER = {other}: rabbitmq or nats"),
+    }
+}
+
 fn nats_bin() -> PathBuf {
     which("nats-server")
         .or_else(|| {
@@ -82,29 +107,56 @@ fn nats_bin() -> PathBuf {
         .expect("nats-server is not installed (apt-get install nats-server)")
 }
 
-/// One NATS node: client, cluster and MQTT ports, JetStream on disk.
+/// Debian's scripts themselves: `/usr/sbin/rabbitmq-*` are wrappers that
+/// switch to the `rabbitmq` user when run as root, and drop the environment
+/// that places each node.
+fn rabbit_bin(program: &str) -> PathBuf {
+    let path = Path::new("/usr/lib/rabbitmq/bin").join(program);
+    assert!(
+        path.exists(),
+        "{} is not installed (apt-get install rabbitmq-server)",
+        path.display()
+    );
+    path
+}
+
+/// One broker node: its MQTT port, the command that starts it (again after
+/// a kill, on the same data), its log (appended to by every start).
 struct Node {
     name: String,
     mqtt: u16,
-    conf: PathBuf,
+    command: Command,
     log: PathBuf,
     child: Option<ChildGuard>,
 }
 
 impl Node {
+    /// Not started yet; its log is `<name>.log` in `dir`.
+    fn new(dir: &Path, name: String, mqtt: u16, command: Command) -> Node {
+        Node {
+            log: dir.join(format!("{name}.log")),
+            name,
+            mqtt,
+            command,
+            child: None,
+        }
+    }
+
     fn start(&mut self) {
-        let log = std::fs::File::create(&self.log).expect("node log");
+        let log = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&self.log)
+            .expect("node log");
+        let out = log.try_clone().expect("node log");
         self.child = Some(ChildGuard::spawn(
             &self.name,
-            Command::new(nats_bin())
-                .arg("-c")
-                .arg(&self.conf)
-                .stdin(Stdio::null())
-                .stdout(Stdio::null())
-                .stderr(log),
+            self.command.stdin(Stdio::null()).stdout(out).stderr(log),
         ));
     }
 
+    /// SIGKILL: the node dies without a word to its peers or clients.
+    /// (RabbitMQ's script execs the Erlang VM, so the pid is the VM's.)
     fn kill(&mut self) {
         if let Some(mut child) = self.child.take() {
             signal(child.child().id(), libc::SIGKILL);
@@ -117,7 +169,8 @@ impl Node {
     }
 
     /// Whether a QoS 1 message published through this node is acknowledged
-    /// (the node is up, in the cluster, its JetStream has a leader).
+    /// (the node is up and in the cluster; for NATS, its JetStream has a
+    /// leader).
     fn takes_qos1(&self) -> bool {
         Command::new("mosquitto_pub")
             .args(["-h", "127.0.0.1", "-p", &self.mqtt.to_string()])
@@ -143,8 +196,30 @@ impl Node {
     }
 }
 
-/// Three NATS nodes in one cluster, MQTT on each, JetStream R3.
-fn cluster(dir: &Path) -> Vec<Node> {
+/// Three nodes in one cluster, MQTT on each; for RabbitMQ also its own
+/// `epmd` (Erlang's node name service), on a port of its own so the node
+/// names are this test's alone. Fields drop in order: the nodes, then epmd.
+struct Cluster {
+    nodes: Vec<Node>,
+    _epmd: Option<ChildGuard>,
+}
+
+fn cluster(dir: &Path) -> Cluster {
+    let started = Instant::now();
+    let cluster = match broker() {
+        Broker::Rabbit => rabbit_cluster(dir),
+        Broker::Nats => nats_cluster(dir),
+    };
+    println!(
+        "{:?} cluster of 3 nodes ready after {:?}",
+        broker(),
+        started.elapsed()
+    );
+    cluster
+}
+
+/// Three NATS nodes, JetStream R3 (QoS 1 messages and sessions on all 3).
+fn nats_cluster(dir: &Path) -> Cluster {
     let routes: Vec<u16> = (0..3).map(|_| port()).collect();
     let route_list = routes
         .iter()
@@ -170,13 +245,9 @@ fn cluster(dir: &Path) -> Vec<Node> {
                 ),
             )
             .expect("node config");
-            Node {
-                log: dir.join(format!("{name}.log")),
-                name,
-                mqtt,
-                conf,
-                child: None,
-            }
+            let mut command = Command::new(nats_bin());
+            command.arg("-c").arg(&conf);
+            Node::new(dir, name, mqtt, command)
         })
         .collect();
     for node in &mut nodes {
@@ -185,7 +256,104 @@ fn cluster(dir: &Path) -> Vec<Node> {
     for node in &nodes {
         node.wait_ready();
     }
-    nodes
+    Cluster { nodes, _epmd: None }
+}
+
+/// Three RabbitMQ nodes with the MQTT plugin, clustered (Erlang
+/// distribution on loopback, a shared cookie). Persistent sessions are
+/// quorum queues (Raft over all 3 nodes: a message is acknowledged once 2
+/// have it); client ids are tracked in a Raft cluster too, so a majority
+/// must be up to connect. Each node has its own name, ports, data and logs
+/// under `dir`; nothing of the system's own RabbitMQ (configuration, data,
+/// epmd, service) is used.
+fn rabbit_cluster(dir: &Path) -> Cluster {
+    const PREFETCH: usize = 1000;
+    let epmd_port = port();
+    let epmd_bin = which("epmd")
+        .or_else(|| {
+            let bin = PathBuf::from("/usr/lib/erlang/bin/epmd");
+            bin.exists().then_some(bin)
+        })
+        .expect("epmd is not installed (apt-get install rabbitmq-server)");
+    let epmd = ChildGuard::spawn(
+        "epmd",
+        Command::new(epmd_bin)
+            .args(["-port", &epmd_port.to_string()])
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null()),
+    );
+    // Listening before the first node looks for it (a node would start a
+    // daemon of its own, which would outlive the test).
+    let start = Instant::now();
+    while TcpStream::connect(("127.0.0.1", epmd_port)).is_err() {
+        assert!(start.elapsed() < deadline(), "epmd does not listen");
+        thread::sleep(Duration::from_millis(20));
+    }
+    // The nodes and their CLI find the cookie in $HOME; Erlang wants it
+    // readable by its owner only.
+    let cookie = dir.join(".erlang.cookie");
+    std::fs::write(&cookie, "plccoms-fleet-test").expect("cookie");
+    {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&cookie, std::fs::Permissions::from_mode(0o400))
+            .expect("cookie mode");
+    }
+    let plugins = dir.join("enabled_plugins");
+    std::fs::write(&plugins, "[rabbitmq_mqtt].\n").expect("enabled_plugins");
+    let mut nodes: Vec<Node> = (0..3)
+        .map(|i| {
+            let name = format!("rabbit{}", i + 1);
+            let mqtt = port();
+            let conf = dir.join(format!("{name}.conf"));
+            // A subscriber's unacknowledged window (10 by default) is its
+            // throughput at one round trip each: 10 x 100 values a second
+            // need more.
+            // The first node starts alone; the others join it at their
+            // first start (classic peer discovery); a node started again
+            // rejoins from its own data.
+            std::fs::write(
+                &conf,
+                format!(
+                    "listeners.tcp = none\n\
+                     mqtt.listeners.tcp.default = 127.0.0.1:{mqtt}\n\
+                     mqtt.durable_queue_type = quorum\n\
+                     mqtt.prefetch = {PREFETCH}\n\
+                     cluster_formation.peer_discovery_backend = classic_config\n\
+                     cluster_formation.classic_config.nodes.1 = rabbit1@localhost\n"
+                ),
+            )
+            .expect("node config");
+            let mut command = Command::new(rabbit_bin("rabbitmq-server"));
+            command
+                .env("HOME", dir)
+                .env("ERL_EPMD_PORT", epmd_port.to_string())
+                .env("RABBITMQ_NODENAME", format!("{name}@localhost"))
+                .env("RABBITMQ_DIST_PORT", port().to_string())
+                .env("RABBITMQ_CONF_ENV_FILE", "/dev/null")
+                .env("RABBITMQ_CONFIG_FILE", &conf)
+                .env("RABBITMQ_ADVANCED_CONFIG_FILE", dir.join("none.config"))
+                .env("RABBITMQ_ENABLED_PLUGINS_FILE", &plugins)
+                .env("RABBITMQ_MNESIA_BASE", dir.join(format!("{name}-data")))
+                .env("RABBITMQ_LOG_BASE", dir.join(format!("{name}-logs")))
+                .env("RABBITMQ_LOGS", "-")
+                // The script then execs the VM (no shell left in between
+                // to pass on signals), and -noinput keeps it off stdin.
+                .env("RABBITMQ_ALLOW_INPUT", "1")
+                .env("RABBITMQ_SERVER_ADDITIONAL_ERL_ARGS", "-noinput");
+            Node::new(dir, name, mqtt, command)
+        })
+        .collect();
+    nodes[0].start();
+    nodes[0].wait_ready();
+    nodes[1].start();
+    nodes[2].start();
+    nodes[1].wait_ready();
+    nodes[2].wait_ready();
+    Cluster {
+        nodes,
+        _epmd: Some(epmd),
+    }
 }
 
 /// What the subscriber saw of one section.
@@ -266,9 +434,20 @@ struct Gateway {
 fn gateway(g: usize, sections: usize, nodes: &[Node], dir: &Path) -> Gateway {
     let pubfile = dir.join("counter.pub");
     std::fs::write(&pubfile, " N R B 0 UDINT PUB_INOUT\r\n").expect("pub file");
-    // Gateways start on different nodes: the list rotated by one each.
-    let urls: Vec<String> = (0..nodes.len())
-        .map(|i| nodes[(g + i) % nodes.len()].url())
+    // Gateways start on different nodes, and those of one node go on to
+    // different ones: the 6 orders of 3 nodes, rotations first (the
+    // suite's 3 gateways), so a dead node's connections are split.
+    const ORDERS: [[usize; 3]; 6] = [
+        [0, 1, 2],
+        [1, 2, 0],
+        [2, 0, 1],
+        [0, 2, 1],
+        [1, 0, 2],
+        [2, 1, 0],
+    ];
+    let urls: Vec<String> = ORDERS[g % ORDERS.len()]
+        .iter()
+        .map(|&i| nodes[i].url())
         .collect();
     let mut ini = format!(
         "[*]\nCOMM_LOOP_DELAY = 500\nMQTT_URL = {}\nMQTT_VERSION = 3.1.1\n\
@@ -435,14 +614,15 @@ fn gateways_lose_nothing_while_broker_nodes_die() {
     let gateways_n = env_size("FLEET_GATEWAYS", 3);
     let sections = env_size("FLEET_SECTIONS", 10);
     let dir = tempfile::tempdir().expect("tempdir");
-    let mut nodes = cluster(dir.path());
+    let mut cluster = cluster(dir.path());
+    let nodes = &mut cluster.nodes;
     // On n3, which is never killed.
     let sub = Subscriber::start(nodes[2].mqtt);
     let mut gateways: Vec<Gateway> = (0..gateways_n)
         .map(|g| {
             let gdir = dir.path().join(format!("g{g}"));
             std::fs::create_dir_all(&gdir).unwrap();
-            gateway(g, sections, &nodes, &gdir)
+            gateway(g, sections, &nodes[..], &gdir)
         })
         .collect();
     let _keep = KeepLogs(
@@ -465,8 +645,8 @@ fn gateways_lose_nothing_while_broker_nodes_die() {
     let started = time_to_flow(&gateways, &sub, deadline());
     println!("{gateways_n} gateways x {sections} sections flowing after {started:?}");
 
-    // n1 dies: the gateways on it (every third, from the first) move to n2.
-    // Back, then n2 dies: those, and the ones that started there, move on.
+    // n1 dies: the gateways on it move to the next node of their list (n2
+    // or n3). Back, then n2 dies: those on it now move on.
     // Each gateway's time says when all its sections flow again; those not
     // on the killed node show what the cluster's own recovery costs.
     let mut failovers = Vec::new();
@@ -539,7 +719,7 @@ fn gateways_lose_nothing_while_broker_nodes_die() {
         }
     }
     println!(
-        "{values} values from {} sections, none lost, none out of order; {repeats} repeats (QoS 1); failover times {failovers:?} (goal <= 5 s)",
+        "{values} values from {} sections, none lost, none out of order; {repeats} repeats (QoS 1); failover times {failovers:?} (goal <= {FAILOVER_GOAL:?})",
         gateways_n * sections
     );
     // The moves, as the first gateway's first section logged them.
@@ -555,7 +735,13 @@ fn gateways_lose_nothing_while_broker_nodes_die() {
         gateways[0].server.log()
     );
     drop(seen);
-    for node in &mut nodes {
+    if broker() == Broker::Rabbit {
+        assert!(
+            failovers.iter().all(|&t| t <= FAILOVER_GOAL),
+            "failover times {failovers:?}: over the goal of {FAILOVER_GOAL:?}"
+        );
+    }
+    for node in nodes.iter_mut() {
         node.kill();
     }
 }
