@@ -10,7 +10,7 @@ use std::collections::{HashMap, HashSet, VecDeque};
 use opcua::client::Session;
 use opcua::types::{
     BrowseDescription, BrowseDirection, BrowseResultMask, ByteString, Guid, NodeClass,
-    NodeClassMask, NodeId, ReadValueId, TimestampsToReturn, Variant,
+    NodeClassMask, NodeId, ReadValueId, Variant,
 };
 use tracing::warn;
 
@@ -22,7 +22,7 @@ use plccoms_plc::VarInfo;
 use plccoms_protocol::cp1250;
 
 use crate::convert::Builtin;
-use crate::{service_error, Limits};
+use crate::Limits;
 
 /// Deepest browse path followed: PLC models are a few levels deep; a
 /// deeper one is a loop through references the visited set cannot see.
@@ -291,10 +291,9 @@ async fn browse(
                 result_mask: BrowseResultMask::All as u32,
             })
             .collect();
-        let mut results = session
-            .browse(&descriptions, REFERENCES_PER_NODE, None)
-            .await
-            .map_err(|e| service_error("Browse", e))?;
+        let mut results =
+            crate::rebrowse::browse_nodes(session, limits, descriptions, REFERENCES_PER_NODE)
+                .await?;
         for ((_, path, _), result) in batch.iter().zip(results.iter_mut()) {
             let mut references = result.references.take().unwrap_or_default();
             let mut point = result.continuation_point.clone();
@@ -302,10 +301,7 @@ async fn browse(
             let mut pages = 0;
             while !point.is_null() && pages < 10_000 && references.len() < MAX_NODES {
                 pages += 1;
-                let next = session
-                    .browse_next(false, &[point.clone()])
-                    .await
-                    .map_err(|e| service_error("BrowseNext", e))?;
+                let next = crate::rebrowse::browse_next(session, limits, point.clone()).await?;
                 let Some(mut next) = next.into_iter().next() else {
                     break;
                 };
@@ -428,10 +424,7 @@ async fn read_attributes(
                 })
             })
             .collect();
-        let values = session
-            .read(&ids, TimestampsToReturn::Neither, 0.0)
-            .await
-            .map_err(|e| service_error("Read", e))?;
+        let values = crate::rebrowse::read_attributes(session, limits, &ids).await?;
         if values.len() != ids.len() {
             return Err(PlcError::Protocol(format!(
                 "Read of {} attributes answered {}",
@@ -480,10 +473,7 @@ async fn read_attributes(
             .iter()
             .map(|&i| found[i].node.clone().into())
             .collect();
-        let values = session
-            .read(&ids, TimestampsToReturn::Neither, 0.0)
-            .await
-            .map_err(|e| service_error("Read", e))?;
+        let values = crate::rebrowse::read_attributes(session, limits, &ids).await?;
         for (&i, value) in chunk.iter().zip(values) {
             if let Some(Variant::Array(a)) = value.value {
                 out[i].length = u32::try_from(a.values.len()).ok().filter(|&n| n > 0);

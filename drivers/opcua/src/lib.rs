@@ -39,6 +39,7 @@
 
 pub mod browse;
 pub mod convert;
+mod rebrowse;
 
 use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
@@ -142,6 +143,9 @@ pub struct Limits {
     pub per_call: usize,
     /// MinSupportedSampleRate, ms.
     pub min_sampling: f64,
+    /// How long one request of a browse may take: a server answers a
+    /// Browse or a Read of thousands of attributes slower than a poll.
+    pub browse_timeout: Duration,
 }
 
 /// Most nodes one of our requests carries when the server sets no limit,
@@ -156,6 +160,7 @@ impl Default for Limits {
             per_browse: 1000,
             per_call: OWN_LIMIT,
             min_sampling: 0.0,
+            browse_timeout: Duration::from_secs(10),
         }
     }
 }
@@ -190,11 +195,18 @@ struct List {
 struct Connection {
     session: Arc<Session>,
     event_loop: JoinHandle<StatusCode>,
+    /// Looking for the variables again (OPCUA_REBROWSE), on this session.
+    rebrowse: Option<JoinHandle<()>>,
+    /// The list it built last, for the link's next read.
+    rebuilt: rebrowse::Slot,
 }
 
 impl Drop for Connection {
     fn drop(&mut self) {
         self.event_loop.abort();
+        if let Some(task) = &self.rebrowse {
+            task.abort();
+        }
     }
 }
 
@@ -229,10 +241,6 @@ pub struct OpcuaBackend {
     newest: Option<(Vec<u8>, HashMap<String, Builtin>)>,
     /// The list being fetched by the link (file_info .. last read_file).
     fetching: Option<(Vec<u8>, HashMap<String, Builtin>)>,
-    built_at: Option<Instant>,
-    /// The variables the newest list was built of (not those of an older
-    /// session: a new session reads every attribute again).
-    found: Option<Vec<browse::Found>>,
     subscription: Option<Subscription>,
     notified: Notified,
     inbox: Inbox,
@@ -310,8 +318,6 @@ impl OpcuaBackend {
             served: List::default(),
             newest: None,
             fetching: None,
-            built_at: None,
-            found: None,
             subscription: None,
             notified: Arc::default(),
             inbox: Arc::default(),
@@ -378,74 +384,52 @@ impl OpcuaBackend {
     /// server's limits and state read, and the variable list built.
     async fn open_session(&mut self) -> Result<String, PlcError> {
         self.lose();
-        self.found = None;
         if self.client.is_none() {
-            self.client = Some(new_client(&self.config)?);
+            self.client = Some(new_client(&self.config, self.config.timeout)?);
         }
-        let config = &self.config;
         let client = self.client.as_mut().expect("made above");
-        let token_policy = match &config.user {
-            Some(_) => UserTokenPolicy {
-                token_type: opcua::types::UserTokenType::UserName,
-                ..UserTokenPolicy::anonymous()
-            },
-            None => UserTokenPolicy::anonymous(),
-        };
-        let endpoint: EndpointDescription = (
-            config.url.as_str(),
-            config.policy.to_str(),
-            config.mode,
-            token_policy,
-        )
-            .into();
-        let identity = match &config.user {
-            Some((user, password)) => IdentityToken::new_user_name(user.clone(), password.clone()),
-            None => IdentityToken::Anonymous,
-        };
-        let timeout = config.timeout;
-        let url = config.url.clone();
-        let pki = config.pki.clone();
         self.counters.requests.inc();
-        let (session, event_loop) = match tokio::time::timeout(
-            timeout,
-            client.connect_to_matching_endpoint(endpoint, identity),
-        )
-        .await
-        {
-            Ok(Ok(pair)) => pair,
-            Ok(Err(e)) => return Err(connect_error(&url, &pki, e.status(), &e.to_string())),
-            Err(_) => {
-                return Err(PlcError::Timeout(format!(
-                    "{url}: no endpoints within {} ms",
-                    timeout.as_millis()
-                )))
-            }
-        };
-        session.disable_reconnects();
-        let mut event_loop = event_loop.spawn();
-        // Secure channel, CreateSession, ActivateSession: a few round trips.
-        let connected = tokio::select! {
-            connected = session.wait_for_connection() => Ok(connected),
-            ended = &mut event_loop => Err(ended.unwrap_or(StatusCode::BadUnexpectedError)),
-            _ = tokio::time::sleep(timeout * 3) => Err(StatusCode::BadTimeout),
-        };
-        match connected {
-            Ok(true) => {}
-            Ok(false) => {
-                event_loop.abort();
-                return Err(PlcError::Timeout(format!("{url}: session not established")));
-            }
-            Err(status) => {
-                event_loop.abort();
-                return Err(connect_error(&url, &pki, status, ""));
-            }
-        }
+        let (session, event_loop) = connect_session(client, &self.config).await?;
         self.connection = Some(Connection {
-            session,
+            session: session.clone(),
             event_loop,
+            rebrowse: None,
+            rebuilt: rebrowse::Slot::default(),
         });
         let ident = self.read_capabilities().await?;
-        self.rebuild().await?;
+        // The first list before the link serves; the later ones beside it.
+        let lister = self.lister();
+        let limits = self.limits;
+        let listed = tokio::time::timeout(
+            self.config.timeout * 60,
+            rebrowse::list(&session, &lister, &limits, None),
+        )
+        .await
+        .map_err(|_| PlcError::Timeout("browsing the server's variables took too long".into()))
+        .and_then(|listed| listed);
+        let (found, built) = match listed {
+            Ok(listed) => listed,
+            Err(e) => {
+                if e.is_link_failure() {
+                    self.lose();
+                }
+                return Err(e);
+            }
+        };
+        if let Some(built) = built {
+            self.take_list(built);
+        }
+        if let (Some(every), Some(connection)) = (self.config.rebrowse, &mut self.connection) {
+            connection.rebrowse = Some(rebrowse::spawn(
+                session,
+                self.config.clone(),
+                lister,
+                limits,
+                every,
+                found,
+                connection.rebuilt.clone(),
+            ));
+        }
         Ok(ident)
     }
 
@@ -490,6 +474,7 @@ impl OpcuaBackend {
             per_browse: limit(2, own.per_browse),
             per_call: limit(3, own.per_call),
             min_sampling: number(4).unwrap_or(0.0).max(0.0),
+            browse_timeout: (self.config.timeout * 10).max(own.browse_timeout),
         };
         self.run = number(5) == Some(0.0);
         let text = |i: usize| match values.get(i).and_then(|v| v.value.as_ref()) {
@@ -500,50 +485,23 @@ impl OpcuaBackend {
         Ok(ident.trim().to_string())
     }
 
-    /// Builds the variable list again; a list that differs from the one
-    /// served becomes the newest, whose CRC `__PF_CRC` shows.
-    async fn rebuild(&mut self) -> Result<(), PlcError> {
-        let session = self.session()?;
-        let section = self.config.section.clone();
-        let file_tags = self
-            .config
-            .tags
-            .as_ref()
-            .map(|path| read_tag_file(&section, path));
-        let starts = if self.config.browse.is_empty() {
-            vec![NodeRef::standard(85)]
-        } else {
-            self.config.browse.clone()
-        };
-        let limits = self.limits;
-        let known = self.found.take();
-        let built = tokio::time::timeout(self.config.timeout * 60, async {
-            let found = browse::find(&section, &session, &limits, file_tags, &starts).await?;
-            // The same nodes by the same names as last time: their
-            // attributes are not read again (at 100,000 variables that
-            // is 400,000 of them every OPCUA_REBROWSE).
-            if known.as_ref() == Some(&found) {
-                return Ok::<_, PlcError>((found, None));
-            }
-            let built = browse::build(&section, &session, &limits, found.clone()).await?;
-            Ok((found, Some(built)))
-        })
-        .await
-        .map_err(|_| PlcError::Timeout("browsing the server's variables took too long".into()))?;
-        let (found, built) = match built {
-            Ok(built) => built,
-            Err(e) => {
-                if e.is_link_failure() {
-                    self.lose();
-                }
-                return Err(e);
-            }
-        };
-        self.built_at = Some(Instant::now());
-        self.found = Some(found);
-        let Some(built) = built else {
-            return Ok(());
-        };
+    /// What the section's variables are looked for by.
+    fn lister(&self) -> rebrowse::Lister {
+        rebrowse::Lister {
+            section: self.config.section.clone(),
+            tags: self.config.tags.clone(),
+            starts: if self.config.browse.is_empty() {
+                vec![NodeRef::standard(85)]
+            } else {
+                self.config.browse.clone()
+            },
+        }
+    }
+
+    /// A list built: one that differs from the one served becomes the
+    /// newest, whose CRC `__PF_CRC` shows.
+    fn take_list(&mut self, built: browse::Built) {
+        let section = &self.config.section;
         let bytes = tags::write(&built.tags);
         if bytes == self.served.bytes && !self.served.bytes.is_empty() {
             // Same list: the link keeps its table; node ids are the same.
@@ -560,7 +518,6 @@ impl OpcuaBackend {
             }
             self.newest = Some((bytes, built.builtins));
         }
-        Ok(())
     }
 
     /// The list whose CRC `__PF_CRC` shows: the newest built.
@@ -1009,12 +966,80 @@ fn keep_newest(inbox: &mut Vec<(u64, u32, DataValue)>) {
     *inbox = kept;
 }
 
+/// A session with the server: endpoint, security and identity as
+/// configured; its event loop spawned.
+pub(crate) async fn connect_session(
+    client: &mut opcua::client::Client,
+    config: &OpcuaConfig,
+) -> Result<(Arc<Session>, JoinHandle<StatusCode>), PlcError> {
+    let token_policy = match &config.user {
+        Some(_) => UserTokenPolicy {
+            token_type: opcua::types::UserTokenType::UserName,
+            ..UserTokenPolicy::anonymous()
+        },
+        None => UserTokenPolicy::anonymous(),
+    };
+    let endpoint: EndpointDescription = (
+        config.url.as_str(),
+        config.policy.to_str(),
+        config.mode,
+        token_policy,
+    )
+        .into();
+    let identity = match &config.user {
+        Some((user, password)) => IdentityToken::new_user_name(user.clone(), password.clone()),
+        None => IdentityToken::Anonymous,
+    };
+    let timeout = config.timeout;
+    let url = config.url.clone();
+    let pki = config.pki.clone();
+    let (session, event_loop) = match tokio::time::timeout(
+        timeout,
+        client.connect_to_matching_endpoint(endpoint, identity),
+    )
+    .await
+    {
+        Ok(Ok(pair)) => pair,
+        Ok(Err(e)) => return Err(connect_error(&url, &pki, e.status(), &e.to_string())),
+        Err(_) => {
+            return Err(PlcError::Timeout(format!(
+                "{url}: no endpoints within {} ms",
+                timeout.as_millis()
+            )))
+        }
+    };
+    session.disable_reconnects();
+    let mut event_loop = event_loop.spawn();
+    // Secure channel, CreateSession, ActivateSession: a few round trips.
+    let connected = tokio::select! {
+        connected = session.wait_for_connection() => Ok(connected),
+        ended = &mut event_loop => Err(ended.unwrap_or(StatusCode::BadUnexpectedError)),
+        _ = tokio::time::sleep(timeout * 3) => Err(StatusCode::BadTimeout),
+    };
+    match connected {
+        Ok(true) => {}
+        Ok(false) => {
+            event_loop.abort();
+            return Err(PlcError::Timeout(format!("{url}: session not established")));
+        }
+        Err(status) => {
+            event_loop.abort();
+            return Err(connect_error(&url, &pki, status, ""));
+        }
+    }
+    Ok((session, event_loop))
+}
+
 /// Largest message accepted from a server.
 const MAX_MESSAGE: usize = 64 * 1024 * 1024;
 
 /// The client (its certificate store loaded once): a key pair is made in
-/// the PKI folder only where security needs one.
-fn new_client(config: &OpcuaConfig) -> Result<opcua::client::Client, PlcError> {
+/// the PKI folder only where security needs one. Its requests and
+/// keep-alives wait up to `timeout`.
+pub(crate) fn new_client(
+    config: &OpcuaConfig,
+    timeout: Duration,
+) -> Result<opcua::client::Client, PlcError> {
     ClientBuilder::new()
         .application_name("plccoms")
         .application_uri("urn:plccoms:client")
@@ -1025,8 +1050,8 @@ fn new_client(config: &OpcuaConfig) -> Result<opcua::client::Client, PlcError> {
         // stored in pki/rejected; moving it to pki/trusted trusts it.
         .trust_server_certs(false)
         .session_retry_limit(0)
-        .request_timeout(config.timeout)
-        .keep_alive_interval(config.timeout.max(Duration::from_millis(500)))
+        .request_timeout(timeout)
+        .keep_alive_interval(timeout.max(Duration::from_millis(500)))
         .max_failed_keep_alive_count(1)
         // async-opcua accepts 5 chunks (about 320 KB) by default: too
         // little for a Browse of a folder of thousands of variables from a
@@ -1092,7 +1117,7 @@ fn connect_error(url: &str, pki: &std::path::Path, status: StatusCode, detail: &
 }
 
 /// The tag file's tags, its problems logged (a few lines at most).
-fn read_tag_file(section: &str, path: &std::path::Path) -> Vec<Tag> {
+pub(crate) fn read_tag_file(section: &str, path: &std::path::Path) -> Vec<Tag> {
     match std::fs::read(path) {
         Ok(bytes) => {
             let file = tags::parse(&bytes);
@@ -1212,19 +1237,13 @@ impl PlcBackend for OpcuaBackend {
 
     async fn read(&mut self, reads: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
         self.session()?;
-        if let (Some(every), Some(at)) = (self.config.rebrowse, self.built_at) {
-            if at.elapsed() >= every {
-                match self.rebuild().await {
-                    Ok(()) => {}
-                    Err(e) if e.is_link_failure() => return Err(e),
-                    // The server refused a Browse or Read of attributes:
-                    // the list stays as it is, looked for again later.
-                    Err(e) => {
-                        warn!(section = %self.config.section, "looking for the server's variables again failed: {e}; the variables stay as they are");
-                        self.built_at = Some(Instant::now());
-                    }
-                }
-            }
+        // A list the rebrowse built since.
+        let rebuilt = self
+            .connection
+            .as_ref()
+            .and_then(|c| c.rebuilt.lock().unwrap_or_else(|e| e.into_inner()).take());
+        if let Some(built) = rebuilt {
+            self.take_list(built);
         }
         let mut wanted: Vec<usize> = Vec::new();
         let mut state = false;
