@@ -112,8 +112,29 @@ const FIXED_NAMES: [&str; 2] = ["__PLC_RUN", "__PF_CRC"];
 pub struct Found {
     name: String,
     node: NodeId,
-    /// From a tag file: what it says.
-    tag: Option<Tag>,
+    /// From a tag file: what it says (boxed: a browse finds 100,000
+    /// variables without one).
+    tag: Option<Box<Tag>>,
+}
+
+/// What [`find`] found, in 128 bits: the rebrowse keeps this, not the list,
+/// to tell whether the server's variables changed.
+pub fn fingerprint(found: &[Found]) -> u128 {
+    use std::hash::{Hash, Hasher};
+    let half = |seed: u8| {
+        let mut h = std::hash::DefaultHasher::new();
+        seed.hash(&mut h);
+        found.len().hash(&mut h);
+        for f in found {
+            f.name.hash(&mut h);
+            f.node.hash(&mut h);
+            if let Some(tag) = &f.tag {
+                format!("{tag:?}").hash(&mut h);
+            }
+        }
+        h.finish()
+    };
+    (u128::from(half(0)) << 64) | u128::from(half(1))
 }
 
 /// The variables: the tag file's tags, or those found by browsing
@@ -133,7 +154,7 @@ pub async fn find(
                     Ok(node) => found.push(Found {
                         name: cp1250::decode(&tag.name).into_owned(),
                         node,
-                        tag: Some(tag),
+                        tag: Some(Box::new(tag)),
                     }),
                     Err(e) => warn!(section, "tag file line {}: {e}; skipped", tag.line),
                 }
@@ -159,7 +180,8 @@ pub async fn build(
         let builtin = attrs.data_type.as_ref().and_then(Builtin::of_data_type);
         let node = node_ref(&found.node);
         let text = node.to_string();
-        if let Some(mut tag) = found.tag {
+        if let Some(tag) = found.tag {
+            let mut tag = *tag;
             // A tag file's type wins; its node's DataType writes it.
             let builtin = match (tag.ty, builtin) {
                 (_, Some(b)) => b,

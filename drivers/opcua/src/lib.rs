@@ -173,10 +173,10 @@ struct Entry {
     offset: u32,
     ty: IecType,
     builtin: Builtin,
-    node: NodeId,
     /// The element of an array node.
     index: Option<u32>,
-    /// Its node in [`List::sources`]: an array's elements share one.
+    /// Its node in [`List::sources`] (each node id held once): an array's
+    /// elements share one.
     source: usize,
 }
 
@@ -188,8 +188,29 @@ struct List {
     /// The nodes read or monitored, each once: a whole array for all its
     /// elements (servers differ in honouring index ranges).
     sources: Vec<NodeId>,
-    /// The entries of each source, by index.
-    by_source: Vec<Vec<usize>>,
+    /// The entries of each source: those of source `s` are
+    /// `members[starts[s]..starts[s + 1]]` (one allocation, not one per
+    /// node).
+    starts: Vec<u32>,
+    members: Vec<u32>,
+}
+
+/// The list as built, shared by `newest` and the fetch in progress:
+/// its bytes, and each node's built-in type by node id text.
+type Listing = Arc<(Vec<u8>, HashMap<String, Builtin>)>;
+
+impl List {
+    /// The node of entry `i`.
+    fn node(&self, i: usize) -> &NodeId {
+        &self.sources[self.entries[i].source]
+    }
+
+    /// The entries of source `s`, by index.
+    fn of_source(&self, s: usize) -> Option<&[u32]> {
+        let from = *self.starts.get(s)? as usize;
+        let to = *self.starts.get(s + 1)? as usize;
+        self.members.get(from..to)
+    }
 }
 
 struct Connection {
@@ -238,9 +259,9 @@ pub struct OpcuaBackend {
     /// The list the link's table was built from.
     served: List,
     /// The list as last built (served once the link fetches it).
-    newest: Option<(Vec<u8>, HashMap<String, Builtin>)>,
+    newest: Option<Listing>,
     /// The list being fetched by the link (file_info .. last read_file).
-    fetching: Option<(Vec<u8>, HashMap<String, Builtin>)>,
+    fetching: Option<Listing>,
     subscription: Option<Subscription>,
     notified: Notified,
     inbox: Inbox,
@@ -508,7 +529,7 @@ impl OpcuaBackend {
             self.served = list_of(bytes, &built.builtins);
             self.newest = None;
         } else {
-            if self.newest.as_ref().is_none_or(|(b, _)| *b != bytes) {
+            if self.newest.as_ref().is_none_or(|n| n.0 != bytes) {
                 if !self.served.bytes.is_empty() {
                     info!(section = %section, "the server's variables changed: {} now", built.tags.len());
                 }
@@ -516,15 +537,13 @@ impl OpcuaBackend {
                     info!(section = %section, "{line}");
                 }
             }
-            self.newest = Some((bytes, built.builtins));
+            self.newest = Some(Arc::new((bytes, built.builtins)));
         }
     }
 
     /// The list whose CRC `__PF_CRC` shows: the newest built.
     fn current_bytes(&self) -> &[u8] {
-        self.newest
-            .as_ref()
-            .map_or(&self.served.bytes, |(bytes, _)| bytes)
+        self.newest.as_ref().map_or(&self.served.bytes, |n| &n.0)
     }
 
     fn system(&self, offset: u32, len: u32) -> Answer<Vec<u8>> {
@@ -762,7 +781,7 @@ impl OpcuaBackend {
         let mut serves: Vec<Vec<(usize, usize)>> = Vec::new();
         for (n, i, value) in scalars {
             values.push(WriteValue {
-                node_id: self.served.entries[i].node.clone(),
+                node_id: self.served.node(i).clone(),
                 attribute_id: 13,
                 value: DataValue::new_now(value),
                 ..Default::default()
@@ -772,7 +791,7 @@ impl OpcuaBackend {
         if !elements.is_empty() {
             let mut nodes: Vec<NodeId> = Vec::new();
             for (_, i, _) in &elements {
-                let node = &self.served.entries[*i].node;
+                let node = self.served.node(*i);
                 if !nodes.contains(node) {
                     nodes.push(node.clone());
                 }
@@ -792,7 +811,7 @@ impl OpcuaBackend {
             for (node, now) in nodes.into_iter().zip(current) {
                 let mine: Vec<&(usize, usize, Variant)> = elements
                     .iter()
-                    .filter(|(_, i, _)| self.served.entries[*i].node == node)
+                    .filter(|(_, i, _)| *self.served.node(*i) == node)
                     .collect();
                 let status = now.status.unwrap_or(StatusCode::Good);
                 let Some(Variant::Array(mut array)) = now.value.filter(|_| !status.is_bad()) else {
@@ -847,8 +866,7 @@ impl OpcuaBackend {
         for (served, status) in serves.into_iter().zip(results) {
             for (n, i) in served {
                 if status.is_bad() {
-                    let entry = &self.served.entries[i];
-                    warn!(section = %self.config.section, "write of {} refused: {}", entry.node, refusal(status));
+                    warn!(section = %self.config.section, "write of {} refused: {}", self.served.node(i), refusal(status));
                     answers[n] = Err(refusal(status));
                 } else {
                     let source = self.served.entries[i].source;
@@ -1147,41 +1165,53 @@ fn list_of(bytes: Vec<u8>, builtins: &HashMap<String, Builtin>) -> List {
     let placed = tags::vars(&file.tags);
     let mut sources: Vec<NodeId> = Vec::new();
     let mut source_of: HashMap<NodeId, usize> = HashMap::new();
-    let entries: Vec<Entry> = file
-        .tags
-        .iter()
-        .filter(|t| t.ty.is_some())
-        .zip(placed)
-        .map(|(tag, var)| {
-            let text = tag.node.to_string();
-            let node = node_of(&tag.node);
-            let source = *source_of.entry(node.clone()).or_insert_with(|| {
-                sources.push(node.clone());
+    let mut entries: Vec<Entry> = Vec::with_capacity(placed.len());
+    for (tag, var) in file.tags.iter().filter(|t| t.ty.is_some()).zip(placed) {
+        let node = node_of(&tag.node);
+        let builtin = builtins
+            .get(&tag.node.to_string())
+            .copied()
+            .unwrap_or_else(|| Builtin::of_iec(var.ty));
+        let source = match source_of.get(&node) {
+            Some(&s) => s,
+            None => {
+                source_of.insert(node.clone(), sources.len());
+                sources.push(node);
                 sources.len() - 1
-            });
-            Entry {
-                name: var.name,
-                offset: var.offset,
-                ty: var.ty,
-                builtin: builtins
-                    .get(&text)
-                    .copied()
-                    .unwrap_or_else(|| Builtin::of_iec(var.ty)),
-                node,
-                index: tag.index,
-                source,
             }
-        })
-        .collect();
-    let mut by_source = vec![Vec::new(); sources.len()];
+        };
+        entries.push(Entry {
+            name: var.name,
+            offset: var.offset,
+            ty: var.ty,
+            builtin,
+            index: tag.index,
+            source,
+        });
+    }
+    drop(source_of);
+    drop(file);
+    sources.shrink_to_fit();
+    // The entries of each source, counted then placed (a counting sort).
+    let mut starts = vec![0u32; sources.len() + 1];
+    for entry in &entries {
+        starts[entry.source + 1] += 1;
+    }
+    for s in 1..starts.len() {
+        starts[s] += starts[s - 1];
+    }
+    let mut next = starts.clone();
+    let mut members = vec![0u32; entries.len()];
     for (i, entry) in entries.iter().enumerate() {
-        by_source[entry.source].push(i);
+        members[next[entry.source] as usize] = i as u32;
+        next[entry.source] += 1;
     }
     List {
         bytes,
         entries,
         sources,
-        by_source,
+        starts,
+        members,
     }
 }
 
@@ -1367,13 +1397,13 @@ impl PlcBackend for OpcuaBackend {
             if handle != STATE_HANDLE {
                 let Some(entries) = (handle as usize)
                     .checked_sub(1)
-                    .and_then(|source| self.served.by_source.get(source))
+                    .and_then(|source| self.served.of_source(source))
                 else {
                     continue;
                 };
                 let unix_ms = stamp_of(&value);
                 for &i in entries {
-                    let entry = &self.served.entries[i];
+                    let entry = &self.served.entries[i as usize];
                     if let Ok(bytes) = entry_bytes(entry, &value) {
                         pushed.push(Pushed {
                             name: entry.name.clone(),
@@ -1414,9 +1444,14 @@ impl PlcBackend for OpcuaBackend {
                     .served
                     .entries
                     .iter()
-                    .map(|e| (browse::node_ref(&e.node).to_string(), e.builtin))
+                    .map(|e| {
+                        (
+                            browse::node_ref(&self.served.sources[e.source]).to_string(),
+                            e.builtin,
+                        )
+                    })
                     .collect();
-                (self.served.bytes.clone(), builtins)
+                Arc::new((self.served.bytes.clone(), builtins))
             }
         };
         let size = fetching.0.len() as u64;
@@ -1437,19 +1472,22 @@ impl PlcBackend for OpcuaBackend {
         offset: u64,
         len: u32,
     ) -> Result<Answer<Vec<u8>>, PlcError> {
-        let Some((bytes, _)) = &self.fetching else {
+        let Some(fetching) = &self.fetching else {
             return Ok(Err(Refusal::BAD_PARAMETERS));
         };
+        let bytes = &fetching.0;
         if path != VARS_FILE.as_bytes() || offset > bytes.len() as u64 {
             return Ok(Err(Refusal::BAD_PARAMETERS));
         }
         let end = (offset + u64::from(len)).min(bytes.len() as u64);
         let part = bytes[offset as usize..end as usize].to_vec();
         if end == bytes.len() as u64 {
-            if let Some((bytes, builtins)) = self.fetching.take() {
-                if self.newest.as_ref().is_some_and(|(b, _)| *b == bytes) {
+            if let Some(fetched) = self.fetching.take() {
+                if self.newest.as_ref().is_some_and(|n| n.0 == fetched.0) {
                     self.newest = None;
                 }
+                // Its only holder now, unless a newer list came meanwhile.
+                let (bytes, builtins) = Arc::unwrap_or_clone(fetched);
                 self.served = list_of(bytes, &builtins);
                 // The handles of the old list mean other variables now.
                 if let (Some(subscription), Ok(session)) =

@@ -26,7 +26,7 @@ use tracing::{info, warn};
 use plccoms_core::driver::PlcError;
 use plccoms_plc::opcua::nodeid::NodeRef;
 
-use crate::browse::{self, Built, Found};
+use crate::browse::{self, Built};
 use crate::{connect_session, new_client, service_error, Limits, OpcuaConfig};
 
 /// What to look for.
@@ -43,25 +43,26 @@ pub(crate) struct Lister {
 pub(crate) type Slot = Arc<Mutex<Option<Built>>>;
 
 /// Finds the variables and builds their list; `None` for the list where
-/// the same nodes by the same names as `known` were found (their
-/// attributes are not read again: at 100,000 variables that is 400,000 of
-/// them every OPCUA_REBROWSE).
+/// the same nodes by the same names as last time were found (`known`, their
+/// [`browse::fingerprint`]): their attributes are not read again (at
+/// 100,000 variables that is 400,000 of them every OPCUA_REBROWSE).
 pub(crate) async fn list(
     session: &Session,
     lister: &Lister,
     limits: &Limits,
-    known: Option<&[Found]>,
-) -> Result<(Vec<Found>, Option<Built>), PlcError> {
+    known: Option<u128>,
+) -> Result<(u128, Option<Built>), PlcError> {
     let file_tags = lister
         .tags
         .as_ref()
         .map(|path| crate::read_tag_file(&lister.section, path));
     let found = browse::find(&lister.section, session, limits, file_tags, &lister.starts).await?;
-    if known == Some(found.as_slice()) {
-        return Ok((found, None));
+    let print = browse::fingerprint(&found);
+    if known == Some(print) {
+        return Ok((print, None));
     }
-    let built = browse::build(&lister.section, session, limits, found.clone()).await?;
-    Ok((found, Some(built)))
+    let built = browse::build(&lister.section, session, limits, found).await?;
+    Ok((print, Some(built)))
 }
 
 /// Every `every`: the list again, put in `slot` where it differs from the
@@ -72,7 +73,7 @@ pub(crate) fn spawn(
     lister: Lister,
     limits: Limits,
     every: Duration,
-    known: Vec<Found>,
+    known: u128,
     slot: Slot,
 ) -> JoinHandle<()> {
     tokio::spawn(async move {
@@ -96,7 +97,7 @@ pub(crate) fn spawn(
                 Ok((session, event_loop)) => {
                     let event_loop = Aborted(event_loop);
                     shared = false;
-                    let listed = list(&session, &lister, &limits, Some(&known)).await;
+                    let listed = list(&session, &lister, &limits, Some(known)).await;
                     let _ = tokio::time::timeout(config.timeout, session.disconnect()).await;
                     drop(event_loop);
                     listed
@@ -105,7 +106,7 @@ pub(crate) fn spawn(
                     if !std::mem::replace(&mut shared, true) {
                         info!(section = %lister.section, "no session of its own to look for the server's variables again ({e}): on the link's session");
                     }
-                    list(&link, &lister, &limits, Some(&known)).await
+                    list(&link, &lister, &limits, Some(known)).await
                 }
             };
             match listed {
