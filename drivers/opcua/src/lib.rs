@@ -141,6 +141,9 @@ pub struct Limits {
     pub per_write: usize,
     pub per_browse: usize,
     pub per_call: usize,
+    /// MaxMonitoredItemsPerSubscription (else learnt from the server's
+    /// BadTooManyMonitoredItems).
+    pub per_subscription: usize,
     /// MinSupportedSampleRate, ms.
     pub min_sampling: f64,
     /// How long one request of a browse may take: a server answers a
@@ -159,6 +162,7 @@ impl Default for Limits {
             per_write: OWN_LIMIT,
             per_browse: 1000,
             per_call: OWN_LIMIT,
+            per_subscription: usize::MAX,
             min_sampling: 0.0,
             browse_timeout: Duration::from_secs(10),
         }
@@ -243,8 +247,12 @@ type Notified = Arc<Mutex<HashMap<u32, DataValue>>>;
 /// generation, client handle, value).
 type Inbox = Arc<Mutex<Vec<(u64, u32, DataValue)>>>;
 
+/// The subscriptions of the enabled variables: more than one where the
+/// server limits the monitored items of one.
 struct Subscription {
-    id: u32,
+    /// Each subscription's id and its monitored items; the last one is
+    /// filled next.
+    ids: Vec<(u32, usize)>,
     monitored: HashSet<usize>,
 }
 
@@ -388,6 +396,35 @@ impl OpcuaBackend {
         result
     }
 
+    /// As [`Self::call`], but the server's answer that a request asked
+    /// too much (BadTooManyOperations, BadTooManyMonitoredItems) is
+    /// returned to be asked again in smaller parts.
+    async fn call_within_limits<T, F>(
+        &mut self,
+        what: &str,
+        f: F,
+    ) -> Result<Result<T, StatusCode>, PlcError>
+    where
+        F: std::future::Future<Output = Result<T, opcua::types::Error>>,
+    {
+        let limited = |e: &opcua::types::Error| {
+            matches!(
+                e.status(),
+                StatusCode::BadTooManyOperations | StatusCode::BadTooManyMonitoredItems
+            )
+        };
+        let answer = self
+            .call(what, async {
+                match f.await {
+                    Ok(value) => Ok(Ok(value)),
+                    Err(e) if limited(&e) => Ok(Err(e.status())),
+                    Err(e) => Err(e),
+                }
+            })
+            .await?;
+        Ok(answer)
+    }
+
     /// Gives the session up: the link probes for a new one.
     fn lose(&mut self) {
         self.connection = None;
@@ -466,6 +503,7 @@ impl OpcuaBackend {
             V::Server_ServerStatus_State,
             V::Server_ServerStatus_BuildInfo_ProductName,
             V::Server_ServerStatus_BuildInfo_SoftwareVersion,
+            V::Server_ServerCapabilities_MaxMonitoredItemsPerSubscription,
         ];
         let reads: Vec<ReadValueId> = ids.iter().map(|&id| NodeId::from(id).into()).collect();
         let session = self.session()?;
@@ -494,6 +532,7 @@ impl OpcuaBackend {
             per_write: limit(1, own.per_write),
             per_browse: limit(2, own.per_browse),
             per_call: limit(3, own.per_call),
+            per_subscription: limit(8, own.per_subscription),
             min_sampling: number(4).unwrap_or(0.0).max(0.0),
             browse_timeout: (self.config.timeout * 10).max(own.browse_timeout),
         };
@@ -624,32 +663,9 @@ impl OpcuaBackend {
         let interval = (gap.as_secs_f64() * 1000.0).max(self.limits.min_sampling);
         if self.subscription.is_none() {
             self.generation += 1;
-            let sink = Sink {
-                inbox: self.inbox.clone(),
-                wake: self.wake.clone(),
-                generation: self.generation,
-                most: (self.served.sources.len() * 4).max(4096),
-                counters: self.counters.clone(),
-            };
-            let id = self
-                .call(
-                    "CreateSubscription",
-                    session.create_subscription(
-                        Duration::from_secs_f64(interval / 1000.0),
-                        // Lifetime and keep-alive counts: the server ends a
-                        // forgotten subscription within a minute or so.
-                        60,
-                        10,
-                        0,
-                        0,
-                        true,
-                        sink,
-                    ),
-                )
-                .await?;
-            tracing::debug!(section = %self.config.section, "subscription {id} made, publishing and sampling every {interval:.0} ms");
+            let id = self.new_subscription(&session, interval).await?;
             self.subscription = Some(Subscription {
-                id,
+                ids: vec![(id, 0)],
                 monitored: HashSet::new(),
             });
             // ServerStatus.State too: `__PLC_RUN` without a round trip.
@@ -670,17 +686,37 @@ impl OpcuaBackend {
                 session.create_monitored_items(id, TimestampsToReturn::Neither, vec![state]),
             )
             .await?;
+            if let Some(subscription) = &mut self.subscription {
+                subscription.ids[0].1 = 1;
+            }
         }
         let Some(subscription) = &self.subscription else {
             return Ok(());
         };
-        let id = subscription.id;
-        let new: Vec<usize> = indexes
+        let mut pending: std::collections::VecDeque<usize> = indexes
             .iter()
             .copied()
             .filter(|i| !subscription.monitored.contains(i))
             .collect();
-        for chunk in new.chunks(self.limits.per_call.max(1)) {
+        // Within the server's limits: MaxMonitoredItemsPerCall (halved
+        // while it answers BadTooManyOperations) and the items one
+        // subscription takes (its capability, else learnt from its
+        // BadTooManyMonitoredItems): more subscriptions, not a failure.
+        let mut most = self.limits.per_call.max(1);
+        while !pending.is_empty() {
+            let Some(&(id, count)) = self.subscription.as_ref().and_then(|s| s.ids.last()) else {
+                return Ok(());
+            };
+            let room = self.limits.per_subscription.saturating_sub(count);
+            if room == 0 {
+                let id = self.new_subscription(&session, interval).await?;
+                if let Some(subscription) = &mut self.subscription {
+                    subscription.ids.push((id, 0));
+                }
+                continue;
+            }
+            let n = pending.len().min(most).min(room);
+            let chunk: Vec<usize> = pending.drain(..n).collect();
             let items: Vec<MonitoredItemCreateRequest> = chunk
                 .iter()
                 .map(|&i| MonitoredItemCreateRequest {
@@ -696,32 +732,114 @@ impl OpcuaBackend {
                 })
                 .collect();
             let created = self
-                .call(
+                .call_within_limits(
                     "CreateMonitoredItems",
                     // Both: ServerTimestamp stands in for a missing
                     // SourceTimestamp in the history.
                     session.create_monitored_items(id, TimestampsToReturn::Both, items),
                 )
                 .await?;
+            let created = match created {
+                Ok(created) => created,
+                Err(status) => {
+                    for &i in chunk.iter().rev() {
+                        pending.push_front(i);
+                    }
+                    if n > 1 {
+                        // Too many at once (for the call or for the room
+                        // left in this subscription): half as many.
+                        most = n / 2;
+                        if status == StatusCode::BadTooManyOperations {
+                            self.limits.per_call = most;
+                        }
+                    } else if status == StatusCode::BadTooManyMonitoredItems && count > 0 {
+                        // Not one more: this subscription is full.
+                        self.limits.per_subscription = count;
+                        most = self.limits.per_call.max(1);
+                        info!(section = %self.config.section, "the server takes {count} monitored items a subscription: more subscriptions");
+                    } else {
+                        return Err(PlcError::Protocol(format!(
+                            "CreateMonitoredItems refused: {status}"
+                        )));
+                    }
+                    continue;
+                }
+            };
             let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
+            let mut full = Vec::new();
             for (&i, result) in chunk.iter().zip(created) {
-                if result.result.status_code.is_bad() {
+                let status = result.result.status_code;
+                if status == StatusCode::BadTooManyMonitoredItems {
+                    // Refused one by one: in the next subscription.
+                    full.push(i);
+                } else if status.is_bad() {
                     // Its refusal stands until the next table.
                     notified.insert(
                         i as u32 + 1,
                         DataValue {
-                            status: Some(result.result.status_code),
+                            status: Some(status),
                             ..Default::default()
                         },
                     );
                 }
             }
             drop(notified);
+            let taken = chunk.len() - full.len();
             if let Some(subscription) = &mut self.subscription {
-                subscription.monitored.extend(chunk.iter().copied());
+                subscription
+                    .monitored
+                    .extend(chunk.iter().copied().filter(|i| !full.contains(i)));
+                if let Some(last) = subscription.ids.last_mut() {
+                    last.1 += taken;
+                }
+            }
+            if !full.is_empty() {
+                if count + taken == 0 {
+                    return Err(PlcError::Protocol(
+                        "CreateMonitoredItems refused: BadTooManyMonitoredItems".into(),
+                    ));
+                }
+                self.limits.per_subscription = count + taken;
+                info!(section = %self.config.section, "the server takes {} monitored items a subscription: more subscriptions", count + taken);
+                for &i in full.iter().rev() {
+                    pending.push_front(i);
+                }
             }
         }
         Ok(())
+    }
+
+    /// A subscription publishing every `interval` ms into the inbox.
+    async fn new_subscription(
+        &mut self,
+        session: &Arc<Session>,
+        interval: f64,
+    ) -> Result<u32, PlcError> {
+        let sink = Sink {
+            inbox: self.inbox.clone(),
+            wake: self.wake.clone(),
+            generation: self.generation,
+            most: (self.served.sources.len() * 4).max(4096),
+            counters: self.counters.clone(),
+        };
+        let id = self
+            .call(
+                "CreateSubscription",
+                session.create_subscription(
+                    Duration::from_secs_f64(interval / 1000.0),
+                    // Lifetime and keep-alive counts: the server ends a
+                    // forgotten subscription within a minute or so.
+                    60,
+                    10,
+                    0,
+                    0,
+                    true,
+                    sink,
+                ),
+            )
+            .await?;
+        tracing::debug!(section = %self.config.section, "subscription {id} made, publishing and sampling every {interval:.0} ms");
+        Ok(id)
     }
 
     /// The answer to a read of `read` (R) from `values`; the entries whose
@@ -1496,7 +1614,9 @@ impl PlcBackend for OpcuaBackend {
                     let _ = self
                         .call(
                             "DeleteSubscriptions",
-                            session.delete_subscriptions(&[subscription.id]),
+                            session.delete_subscriptions(
+                                &subscription.ids.iter().map(|s| s.0).collect::<Vec<_>>(),
+                            ),
                         )
                         .await;
                 }
