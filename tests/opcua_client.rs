@@ -170,6 +170,16 @@ async fn enable_speed(c: &mut Client) {
         .await;
 }
 
+/// EN of DB_LINE1.MOTOR.RUNNING, and its first DIFF.
+async fn enable_running(c: &mut Client) {
+    c.ask(
+        "EN:db_line1.motor.running\r\n",
+        "WARNING:252 Changed active variables in public file: '[3/24]'\r\n",
+    )
+    .await;
+    c.expect(b"DIFF:DB_LINE1.MOTOR.RUNNING,1\r\n").await;
+}
+
 /// Asks `request` until it is answered with a link error, within `secs`.
 async fn until_lost(c: &mut Client, request: &str, secs: u64) {
     let deadline = Instant::now() + Duration::from_secs(secs);
@@ -390,12 +400,7 @@ async fn server_restart_mid_subscription_and_nodes_added() {
     let plc = plccoms(&server.url(), "OPCUA_REBROWSE = 1");
     let mut c = Client::connect(plc.addr).await;
     listed(&mut c, "DB_LINE1.MOTOR.SPEED").await;
-    c.ask(
-        "EN:db_line1.motor.running\r\n",
-        "WARNING:252 Changed active variables in public file: '[3/24]'\r\n",
-    )
-    .await;
-    c.expect(b"DIFF:DB_LINE1.MOTOR.RUNNING,1\r\n").await;
+    enable_running(&mut c).await;
 
     // Nodes added while running: the table is reloaded.
     server.command("add TORQUE");
@@ -484,12 +489,7 @@ async fn a_slow_browse_holds_no_set_up() {
     let mut c = Client::connect(plc.addr).await;
     listed(&mut c, "DB_LINE1.MOTOR.SPEED").await;
     // (A changed list is told to clients with variables enabled.)
-    c.ask(
-        "EN:db_line1.motor.running\r\n",
-        "WARNING:252 Changed active variables in public file: '[3/24]'\r\n",
-    )
-    .await;
-    c.expect(b"DIFF:DB_LINE1.MOTOR.RUNNING,1\r\n").await;
+    enable_running(&mut c).await;
     server.command("slowbrowse 800");
     server.command("add TORQUE");
     for i in 0..12 {

@@ -53,18 +53,25 @@ impl Client {
     }
 }
 
-#[test]
-fn a_section_read_through_our_own_opcua_server() {
+/// One plccoms: a simulated PLC `Sim` served over OPC UA (with `global`
+/// keys added to [*]), read back by section `Via`; clients of both.
+fn sim_and_via(global: &str) -> (ServerProcess, Client, Client) {
     let (p_sim, p_via, p_ua) = (free_port(), free_port(), free_port());
     let ini = format!(
-        "[*]\nCOMM_LOOP_DELAY = 100\nOPCUA_PORT = {p_ua}\n\n\
+        "[*]\nCOMM_LOOP_DELAY = 100\nOPCUA_PORT = {p_ua}\n{global}\n\
          [Sim]\nSIMULATOR = Yes\nSIMULATOR_PROGRAM = idle\nSERVER_PORT = {p_sim}\nPUBFILE = //demo.pub\n\n\
          [Via]\nPROTOCOL = OPCUA\nOPCUA_URL = opc.tcp://127.0.0.1:{p_ua}/\n\
          OPCUA_BROWSE = nsu=urn:plccoms;s=Sim\nSERVER_PORT = {p_via}\n"
     );
     let server = ServerProcess::with_config(&ini, p_via);
-    let mut sim = Client::connect(p_sim);
-    let mut via = Client::connect(p_via);
+    let sim = Client::connect(p_sim);
+    let via = Client::connect(p_via);
+    (server, sim, via)
+}
+
+#[test]
+fn a_section_read_through_our_own_opcua_server() {
+    let (server, mut sim, mut via) = sim_and_via("");
     // Via's variables come once the OPC UA server answers.
     let start = Instant::now();
     while !via.ask("GET:setpoint").starts_with("GET:SETPOINT,") {
@@ -113,16 +120,7 @@ fn a_section_read_through_our_own_opcua_server() {
 /// variables over more subscriptions, and every change still arrives.
 #[test]
 fn a_server_limiting_monitored_items_gets_more_subscriptions() {
-    let (p_sim, p_via, p_ua) = (free_port(), free_port(), free_port());
-    let ini = format!(
-        "[*]\nCOMM_LOOP_DELAY = 100\nOPCUA_PORT = {p_ua}\nOPCUA_MAX_MONITORED_ITEMS = 3\n\n\
-         [Sim]\nSIMULATOR = Yes\nSIMULATOR_PROGRAM = idle\nSERVER_PORT = {p_sim}\nPUBFILE = //demo.pub\n\n\
-         [Via]\nPROTOCOL = OPCUA\nOPCUA_URL = opc.tcp://127.0.0.1:{p_ua}/\n\
-         OPCUA_BROWSE = nsu=urn:plccoms;s=Sim\nSERVER_PORT = {p_via}\n"
-    );
-    let server = ServerProcess::with_config(&ini, p_via);
-    let mut sim = Client::connect(p_sim);
-    let mut via = Client::connect(p_via);
+    let (server, mut sim, mut via) = sim_and_via("OPCUA_MAX_MONITORED_ITEMS = 3\n");
     let start = Instant::now();
     while !via.ask("GET:setpoint").starts_with("GET:SETPOINT,") {
         assert!(start.elapsed() < DEADLINE, "Via has no SETPOINT");
