@@ -159,6 +159,11 @@ fn every_target_runs_on_ordinary_input() {
         b"name,node,type,access,unit\nspeed,\"ns=3;s=\"\"DB\"\".\"\"x\"\"\",REAL,rw,rpm\nb,i=1,BOOL\nu,ns=1;i=2\n",
     );
     checks::opcua_client_node_id(b"nsu=http://x/;g=09087e75-8e5e-499b-954f-f2a9603db28a");
+    // A Double, a String and a UInt16[2], then their body.
+    checks::opcua_structure(
+        b"\x03\x0b\x00\x00\x0c\x00\x00\x05\x02\x02\
+          \x00\x00\x00\x00\x00\x00\xf8\x3f\x02\x00\x00\x00ab\x02\x00\x00\x00\x07\x00\x08\x00",
+    );
     // FC 3 answer of two registers, then an exception, then half an ADU.
     checks::modbus_answer(&[
         0, 2, 0, 1, 0, 0, 0, 7, 1, 3, 4, 0xBE, 0xEF, 0, 1, 0, 2, 0, 0, 0, 3, 1, 0x83, 2, 0, 3, 0,
@@ -251,6 +256,25 @@ proptest::proptest! {
             checks::opcua_client_node_id(node.as_bytes());
         }
         checks::opcua_tags(text.as_bytes());
+    }
+
+    /// Structure bodies walked by definitions, both from random bytes
+    /// (the first bytes the definition, see `checks::opcua_structure`).
+    #[test]
+    fn opcua_structures_walk_any_body(data in proptest::collection::vec(proptest::num::u8::ANY, 0..400)) {
+        checks::opcua_structure(&data);
+    }
+
+    /// Valid definitions of nested, array and string fields over bodies
+    /// that are mostly small lengths, so the walk goes deep.
+    #[test]
+    fn opcua_structures_walk_plausible_bodies(
+        definition in proptest::collection::vec(proptest::sample::select(vec![0u8, 1, 2, 3, 4, 5, 11, 12, 17, 18, 21, 23, 24]), 0..24),
+        body in proptest::collection::vec(proptest::sample::select(vec![0u8, 1, 2, 3, 0xff, 0x80]), 0..300),
+    ) {
+        let mut data = definition;
+        data.extend(body);
+        checks::opcua_structure(&data);
     }
 
     /// Names built from the characters that matter to the path rules.

@@ -1062,8 +1062,8 @@ pub fn opcua_tags(data: &[u8]) {
         assert_eq!(again.tags.len(), file.tags.len(), "{:?}", again.warnings);
         for (a, b) in again.tags.iter().zip(&file.tags) {
             assert_eq!(
-                (&a.name, &a.node, a.ty, a.writable, a.index),
-                (&b.name, &b.node, b.ty, b.writable, b.index)
+                (&a.name, &a.node, a.ty, a.writable, a.index, &a.field),
+                (&b.name, &b.node, b.ty, b.writable, b.index, &b.field)
             );
         }
     }
@@ -1094,6 +1094,73 @@ pub fn opcua_client_node_id(data: &[u8]) {
         .bytes()
         .any(|b| b <= b' ' || matches!(b, b',' | b':' | b'*' | b'"' | b';')));
     assert!(!name.starts_with(['%', '#']));
+}
+
+// ---------------------------------------------------------------------------
+// opcua_structure
+
+/// A structure definition from the front of `data` (what a server's
+/// DataTypeDefinition could say: any built-in id, nesting, shapes), taken
+/// off it.
+fn structure_of(data: &mut &[u8], depth: usize) -> plccoms_plc::opcua::structure::Structure {
+    use plccoms_plc::opcua::structure::{Field, Kind, Shape, Structure};
+    use std::sync::Arc;
+
+    fn next(data: &mut &[u8]) -> u8 {
+        let (&b, rest) = data.split_first().unwrap_or((&0, &[]));
+        *data = rest;
+        b
+    }
+    let n = next(data) % 6;
+    let mut fields = Vec::new();
+    for i in 0..n {
+        let (kind, shape, size) = (next(data), next(data), next(data));
+        let kind = if kind >= 23 && depth < 10 {
+            Kind::Structure(Arc::new(structure_of(data, depth + 1)))
+        } else {
+            Kind::Builtin(kind % 25)
+        };
+        let shape = match shape % 6 {
+            0 | 1 => Shape::Scalar,
+            2 => Shape::Fixed(vec![u32::from(size % 5)]),
+            3 => Shape::Fixed(vec![2, u32::from(size % 4)]),
+            4 => Shape::Open(1),
+            _ => Shape::Open(2),
+        };
+        fields.push(Field {
+            name: format!("F{i}"),
+            kind,
+            shape,
+        });
+    }
+    Structure { fields }
+}
+
+/// A structure's body walked by its definition (both from `data`): no
+/// panic, no hang; the leaves found lie inside the body, in order, one per
+/// leaf the definition names; a leaf replaced by its own bytes is the same
+/// body.
+pub fn opcua_structure(data: &[u8]) {
+    use plccoms_plc::opcua::structure::replace;
+
+    let mut rest = data;
+    let structure = structure_of(&mut rest, 0);
+    let body = rest;
+    let Ok(spans) = structure.spans(body) else {
+        return;
+    };
+    let mut end = 0;
+    for span in &spans {
+        assert!(span.start >= end && span.end >= span.start && span.end <= body.len());
+        end = span.end;
+    }
+    if let Ok(leaves) = structure.leaves() {
+        assert_eq!(leaves.len(), spans.len());
+    }
+    if let Some(span) = spans.first() {
+        let same = replace(body, span.clone(), &body[span.clone()]).expect("in the body");
+        assert_eq!(same, body);
+    }
 }
 
 // ---------------------------------------------------------------------------

@@ -285,6 +285,20 @@ impl Client {
         self.expect(answer.as_bytes()).await;
     }
 
+    /// `LIST:`'s answer, the closing line too, each line ended by `\n`.
+    pub async fn list(&mut self) -> String {
+        self.send(b"LIST:\r\n").await;
+        let mut list = String::new();
+        loop {
+            let line = String::from_utf8(self.line().await).unwrap();
+            list.push_str(line.trim_end());
+            list.push('\n');
+            if line == "LIST:\r\n" {
+                return list;
+            }
+        }
+    }
+
     /// `GETINFO:`'s lines, without their line ends and the closing line.
     pub async fn getinfo(&mut self) -> Vec<String> {
         self.send(b"GETINFO:\r\n").await;

@@ -6,6 +6,7 @@
 //! the one list both the backend and the section's variable table use.
 
 use std::collections::{HashMap, HashSet, VecDeque};
+use std::sync::Arc;
 
 use opcua::client::Session;
 use opcua::types::{
@@ -16,12 +17,14 @@ use tracing::warn;
 
 use plccoms_core::driver::PlcError;
 use plccoms_plc::opcua::nodeid::{Identifier, Namespace, NodeRef};
+use plccoms_plc::opcua::structure::{element_suffix, elements};
 use plccoms_plc::opcua::tags::Tag;
 use plccoms_plc::opcua::{path_name, unique_names};
 use plccoms_plc::VarInfo;
 use plccoms_protocol::cp1250;
 
 use crate::convert::Builtin;
+use crate::structure::{Definition, Layout};
 use crate::Limits;
 
 /// Deepest browse path followed: PLC models are a few levels deep; a
@@ -56,11 +59,19 @@ const CURRENT_WRITE: u8 = 0x02;
 /// array is skipped.
 pub const MAX_ELEMENTS: u32 = 1024;
 
-/// The list built: tags with their type and access, and each node's
-/// built-in type (by node id text) for writes.
+/// What a list's nodes are written and read as, by node id text: a
+/// node's built-in type, or the layout of its structure type.
+#[derive(Clone, Default)]
+pub struct Types {
+    pub builtins: HashMap<String, Builtin>,
+    pub layouts: HashMap<String, Arc<Layout>>,
+}
+
+/// The list built: tags with their type and access, and how each node is
+/// written.
 pub struct Built {
     pub tags: Vec<Tag>,
-    pub builtins: HashMap<String, Builtin>,
+    pub types: Types,
     /// What was left out, for the log when the list is new.
     pub skipped: Vec<String>,
 }
@@ -165,7 +176,12 @@ pub async fn find(
     })
 }
 
-/// Builds the list of `found`, typed from their attributes.
+/// Most variables one node is served as (an array's elements times its
+/// structure's fields); a larger node is skipped.
+pub const MAX_PER_NODE: u64 = 4096;
+
+/// Builds the list of `found`, typed from their attributes; structures
+/// expanded into their fields by their DataTypeDefinition.
 pub async fn build(
     section: &str,
     session: &Session,
@@ -173,15 +189,75 @@ pub async fn build(
     found: Vec<Found>,
 ) -> Result<Built, PlcError> {
     let attributes = read_attributes(session, limits, &found).await?;
+    // The structure types among them, and their layouts.
+    let mut structured: Vec<NodeId> = found
+        .iter()
+        .zip(&attributes)
+        .filter(|(f, a)| {
+            a.data_type
+                .as_ref()
+                .and_then(Builtin::of_data_type)
+                .is_none()
+                && f.tag.as_ref().is_none_or(|t| t.field.is_some())
+        })
+        .filter_map(|(_, a)| a.data_type.clone())
+        .filter(may_be_structure)
+        .collect();
+    structured.sort_unstable_by_key(|n| n.to_string());
+    structured.dedup();
+    let layouts = layouts(session, limits, structured).await?;
+    // Variables with child variables: a structure whose fields the server
+    // shows as its children (S7-1500, TwinCAT) is served by those.
+    let parents: HashSet<String> = found
+        .iter()
+        .filter_map(|f| Some(f.name.rsplit_once('.')?.0.to_uppercase()))
+        .collect();
+    let mut shown = 0usize;
+    let mut types = Types::default();
     let mut tags = Vec::with_capacity(found.len());
-    let mut builtins = HashMap::with_capacity(found.len());
-    let (mut structures, mut arrays, mut unknown) = (0usize, 0usize, 0usize);
+    let (mut arrays, mut unknown) = (0usize, 0usize);
+    let mut structures: HashMap<String, (usize, String)> = HashMap::new();
+    let most = plccoms_plc::pubfile::MAX_VARS;
     for (found, attrs) in found.into_iter().zip(attributes) {
+        // Arrays and structures multiply: the list stays a table's size.
+        if tags.len() >= most {
+            warn!(section, "more than {most} variables with arrays and structures expanded: the rest is left out");
+            break;
+        }
         let builtin = attrs.data_type.as_ref().and_then(Builtin::of_data_type);
         let node = node_ref(&found.node);
         let text = node.to_string();
+        let layout = attrs.data_type.as_ref().and_then(|d| layouts.get(d));
         if let Some(tag) = found.tag {
             let mut tag = *tag;
+            // A structure's field: typed by its definition.
+            if let Some(path) = &tag.field {
+                let leaf = match layout {
+                    Some(Ok(layout)) => layout.leaf(path).map(|i| (layout, i)),
+                    _ => None,
+                };
+                let Some((layout, i)) = leaf else {
+                    let why = match layout {
+                        Some(Err(e)) => e.clone(),
+                        _ => format!("no field {path} in its DataType"),
+                    };
+                    warn!(
+                        section,
+                        "tag file line {}: node {}: {why}; skipped", tag.line, tag.node
+                    );
+                    continue;
+                };
+                let Some(leaf_builtin) = layout.builtin(i) else {
+                    warn!(section, "tag file line {}: field {path} is of a type plccoms does not serve; skipped", tag.line);
+                    continue;
+                };
+                tag.node = node;
+                tag.ty = tag.ty.or(Some(leaf_builtin.iec()));
+                tag.writable = tag.writable.or(Some(attrs.writable(leaf_builtin)));
+                types.layouts.insert(text, layout.clone());
+                tags.push(tag);
+                continue;
+            }
             // A tag file's type wins; its node's DataType writes it.
             let builtin = match (tag.ty, builtin) {
                 (_, Some(b)) => b,
@@ -195,64 +271,122 @@ pub async fn build(
             tag.node = node;
             tag.ty = tag.ty.or(Some(builtin.iec()));
             tag.writable = tag.writable.or(Some(attrs.writable(builtin)));
-            builtins.insert(text, builtin);
+            types.builtins.insert(text, builtin);
             tags.push(tag);
             continue;
         }
-        let elements = match attrs.value_rank {
-            None | Some(-1) => None,
-            // One dimension of a known length: its elements.
-            Some(1) => match attrs.length {
-                Some(n) if n <= MAX_ELEMENTS => Some(n),
-                _ => {
-                    arrays += 1;
-                    continue;
-                }
-            },
-            Some(_) => {
+        // Its elements (one for a scalar), each named `[i]` or `[i][j]`.
+        let dims = match (attrs.value_rank, &attrs.dims) {
+            (None | Some(-1), _) => None,
+            (Some(rank), Some(dims)) if rank >= 1 && dims.len() == rank as usize => {
+                Some(dims.clone())
+            }
+            _ => {
                 arrays += 1;
                 continue;
             }
         };
-        let Some(builtin) = builtin else {
-            match &attrs.data_type {
-                Some(d)
-                    if d.namespace != 0
-                        || matches!(d.identifier, opcua::types::Identifier::Numeric(22)) =>
-                {
-                    structures += 1
-                }
-                _ => unknown += 1,
-            }
+        let count = match &dims {
+            None => Some(1),
+            Some(dims) => elements(dims, u64::from(MAX_ELEMENTS)),
+        };
+        let Some(count) = count else {
+            arrays += 1;
             continue;
         };
-        builtins.insert(text, builtin);
-        let tag = |name: &str, index| Tag {
+        let name_of = |i: u64| match &dims {
+            None => found.name.clone(),
+            Some(dims) => format!("{}{}", found.name, element_suffix(dims, i)),
+        };
+        let index_of = |i: u64| dims.as_ref().map(|_| i as u32);
+        let tag = |name: &str, index, field: Option<&str>, builtin: Builtin| Tag {
             // path_name keeps cp1250's characters only.
             name: cp1250::encode(name).into_owned().into_boxed_slice(),
             node: node.clone(),
             ty: Some(builtin.iec()),
             writable: Some(attrs.writable(builtin)),
             index,
+            field: field.map(str::to_string),
             info: VarInfo::default(),
             line: 0,
         };
-        match elements {
-            None => tags.push(tag(&found.name, None)),
-            Some(n) => {
-                for i in 0..n {
-                    tags.push(tag(&format!("{}[{i}]", found.name), Some(i)));
-                }
+        if let Some(builtin) = builtin {
+            types.builtins.insert(text, builtin);
+            for i in 0..count.min((most - tags.len()) as u64) {
+                tags.push(tag(&name_of(i), index_of(i), None, builtin));
+            }
+            continue;
+        }
+        let Some(data_type) = &attrs.data_type else {
+            unknown += 1;
+            continue;
+        };
+        if parents.contains(&found.name.to_uppercase()) {
+            shown += 1;
+            continue;
+        }
+        let layout = match layouts.get(data_type) {
+            Some(Ok(layout)) => layout,
+            Some(Err(e)) => {
+                structures
+                    .entry(data_type.to_string())
+                    .or_insert((0, e.clone()))
+                    .0 += 1;
+                continue;
+            }
+            None => {
+                unknown += 1;
+                continue;
+            }
+        };
+        let served: Vec<(usize, Builtin)> = (0..layout.leaves.len())
+            .filter_map(|i| Some((i, layout.builtin(i)?)))
+            .collect();
+        if count.saturating_mul(served.len() as u64) > MAX_PER_NODE {
+            structures
+                .entry(data_type.to_string())
+                .or_insert((
+                    0,
+                    format!("more than {MAX_PER_NODE} fields in one variable"),
+                ))
+                .0 += 1;
+            continue;
+        }
+        if tags.len() as u64 + count * served.len() as u64 > most as u64 {
+            warn!(section, "more than {most} variables with arrays and structures expanded: the rest is left out");
+            break;
+        }
+        types.layouts.insert(text, layout.clone());
+        for i in 0..count {
+            let base = name_of(i);
+            for &(leaf, builtin) in &served {
+                let path = &layout.leaves[leaf].path;
+                tags.push(tag(
+                    &format!("{base}.{path}"),
+                    index_of(i),
+                    Some(path),
+                    builtin,
+                ));
             }
         }
     }
     let mut skipped = Vec::new();
-    if structures > 0 {
-        skipped.push(format!("{structures} structured variables skipped (their fields are served where the server shows them as child variables)"));
+    if shown > 0 {
+        skipped.push(format!("{shown} structured variables skipped (their fields are served as the child variables the server shows)"));
+    }
+    let mut kinds: Vec<_> = structures.into_iter().collect();
+    kinds.sort();
+    for (data_type, (n, why)) in kinds.iter().take(5) {
+        skipped.push(format!(
+            "{n} structured variables of DataType {data_type} skipped: {why}"
+        ));
+    }
+    if kinds.len() > 5 {
+        skipped.push(format!("{} more structure types skipped", kinds.len() - 5));
     }
     if arrays > 0 {
         skipped.push(format!(
-            "{arrays} array variables skipped (more than one dimension, more than {MAX_ELEMENTS} elements, or a length the server does not tell)"
+            "{arrays} array variables skipped (more than {MAX_ELEMENTS} elements, or dimensions the server does not tell)"
         ));
     }
     if unknown > 0 {
@@ -260,9 +394,65 @@ pub async fn build(
     }
     Ok(Built {
         tags,
-        builtins,
+        types,
         skipped,
     })
+}
+
+/// Whether a DataType may be a structure: the server's own types, and the
+/// standard ones past the built-in and abstract types (Range, EUInformation).
+fn may_be_structure(data_type: &NodeId) -> bool {
+    data_type.namespace != 0
+        || matches!(data_type.identifier, opcua::types::Identifier::Numeric(id) if id > 29)
+}
+
+/// The layouts of structure types `types`, from their DataTypeDefinition
+/// attributes (and those of the types their fields name); a type whose
+/// definition cannot be had is the reason why.
+async fn layouts(
+    session: &Session,
+    limits: &Limits,
+    types: Vec<NodeId>,
+) -> Result<HashMap<NodeId, Result<Arc<Layout>, String>>, PlcError> {
+    let mut defs: HashMap<NodeId, Result<Definition, String>> = HashMap::new();
+    let mut pending = types.clone();
+    for _ in 0..plccoms_plc::opcua::structure::MAX_DEPTH {
+        pending.retain(|t| !defs.contains_key(t));
+        pending.dedup();
+        if pending.is_empty() {
+            break;
+        }
+        // DataTypeDefinition (23, OPC UA 1.04).
+        let values = read_all(session, limits, &pending, &[23]).await?;
+        for (t, v) in pending.iter().zip(values) {
+            let def = match v.status {
+                Some(status) if status.is_bad() => {
+                    Err(format!("its DataTypeDefinition is not readable ({status})"))
+                }
+                _ => v
+                    .value
+                    .ok_or_else(|| "no DataTypeDefinition".to_string())
+                    .and_then(Definition::of),
+            };
+            defs.insert(t.clone(), def);
+        }
+        pending = defs
+            .values()
+            .flatten()
+            .flat_map(Definition::needs)
+            .filter(|t| !defs.contains_key(t))
+            .collect();
+        pending.sort_unstable_by_key(|n| n.to_string());
+    }
+    Ok(types
+        .into_iter()
+        .map(|t| {
+            let layout = crate::structure::resolve(&t, &defs, 0)
+                .and_then(|s| Layout::new(t.clone(), s))
+                .map(Arc::new);
+            (t, layout)
+        })
+        .collect())
 }
 
 /// Browses from `starts` down hierarchical references (not properties),
@@ -416,8 +606,8 @@ struct Attributes {
     data_type: Option<NodeId>,
     value_rank: Option<i32>,
     user_access: Option<u8>,
-    /// A one-dimensional array's length (ArrayDimensions, else its value's).
-    length: Option<u32>,
+    /// An array's dimensions (ArrayDimensions, else its value's).
+    dims: Option<Vec<u32>>,
 }
 
 impl Attributes {
@@ -426,21 +616,23 @@ impl Attributes {
     }
 }
 
-async fn read_attributes(
+/// `attributes` of each of `nodes` (in that order), in as few Read calls
+/// as MaxNodesPerRead allows, a node's attributes in one call; one value
+/// each, or the failure.
+async fn read_all(
     session: &Session,
     limits: &Limits,
-    found: &[Found],
-) -> Result<Vec<Attributes>, PlcError> {
-    // DataType (14), ValueRank (15), ArrayDimensions (16), UserAccessLevel (18).
-    const ATTRIBUTES: [u32; 4] = [14, 15, 16, 18];
-    let mut out = Vec::with_capacity(found.len());
-    let per_read = (limits.per_read / ATTRIBUTES.len()).max(1);
-    for chunk in found.chunks(per_read) {
+    nodes: &[NodeId],
+    attributes: &[u32],
+) -> Result<Vec<opcua::types::DataValue>, PlcError> {
+    let per_read = (limits.per_read / attributes.len().max(1)).max(1);
+    let mut out = Vec::with_capacity(nodes.len() * attributes.len());
+    for chunk in nodes.chunks(per_read) {
         let ids: Vec<ReadValueId> = chunk
             .iter()
-            .flat_map(|f| {
-                ATTRIBUTES.iter().map(|&attribute_id| ReadValueId {
-                    node_id: f.node.clone(),
+            .flat_map(|node| {
+                attributes.iter().map(|&attribute_id| ReadValueId {
+                    node_id: node.clone(),
                     attribute_id,
                     ..Default::default()
                 })
@@ -454,41 +646,60 @@ async fn read_attributes(
                 values.len()
             )));
         }
-        for four in values.chunks(ATTRIBUTES.len()) {
-            let good = |i: usize| {
-                four[i]
-                    .status
-                    .is_none_or(|s| s.is_good())
-                    .then(|| four[i].value.clone())
-                    .flatten()
-            };
-            out.push(Attributes {
-                data_type: match good(0) {
-                    Some(Variant::NodeId(id)) => Some(*id),
-                    _ => None,
-                },
-                value_rank: match good(1) {
-                    Some(Variant::Int32(rank)) => Some(rank),
-                    _ => None,
-                },
-                length: match good(2) {
-                    Some(Variant::Array(a)) => match a.values.as_slice() {
-                        [Variant::UInt32(n)] if *n > 0 => Some(*n),
-                        _ => None,
-                    },
-                    _ => None,
-                },
-                user_access: match good(3) {
-                    Some(Variant::Byte(a)) => Some(a),
-                    _ => None,
-                },
-            });
-        }
+        out.extend(values);
     }
-    // Arrays whose length the server leaves open (ArrayDimensions 0):
-    // the length of their value now.
+    Ok(out)
+}
+
+async fn read_attributes(
+    session: &Session,
+    limits: &Limits,
+    found: &[Found],
+) -> Result<Vec<Attributes>, PlcError> {
+    // DataType (14), ValueRank (15), ArrayDimensions (16), UserAccessLevel (18).
+    const ATTRIBUTES: [u32; 4] = [14, 15, 16, 18];
+    let mut out = Vec::with_capacity(found.len());
+    let nodes: Vec<NodeId> = found.iter().map(|f| f.node.clone()).collect();
+    let values = read_all(session, limits, &nodes, &ATTRIBUTES).await?;
+    for four in values.chunks(ATTRIBUTES.len()) {
+        let good = |i: usize| {
+            four[i]
+                .status
+                .is_none_or(|s| s.is_good())
+                .then(|| four[i].value.clone())
+                .flatten()
+        };
+        out.push(Attributes {
+            data_type: match good(0) {
+                Some(Variant::NodeId(id)) => Some(*id),
+                _ => None,
+            },
+            value_rank: match good(1) {
+                Some(Variant::Int32(rank)) => Some(rank),
+                _ => None,
+            },
+            dims: match good(2) {
+                Some(Variant::Array(a)) => a
+                    .values
+                    .iter()
+                    .map(|d| match d {
+                        Variant::UInt32(n) if *n > 0 => Some(*n),
+                        _ => None,
+                    })
+                    .collect::<Option<Vec<u32>>>()
+                    .filter(|d| !d.is_empty()),
+                _ => None,
+            },
+            user_access: match good(3) {
+                Some(Variant::Byte(a)) => Some(a),
+                _ => None,
+            },
+        });
+    }
+    // Arrays whose dimensions the server leaves open (ArrayDimensions 0):
+    // those of their value now.
     let open: Vec<usize> = (0..out.len())
-        .filter(|&i| out[i].value_rank == Some(1) && out[i].length.is_none())
+        .filter(|&i| out[i].value_rank.is_some_and(|r| r >= 1) && out[i].dims.is_none())
         .collect();
     for chunk in open.chunks(limits.per_read.max(1)) {
         let ids: Vec<ReadValueId> = chunk
@@ -498,7 +709,11 @@ async fn read_attributes(
         let values = crate::rebrowse::read_attributes(session, limits, &ids).await?;
         for (&i, value) in chunk.iter().zip(values) {
             if let Some(Variant::Array(a)) = value.value {
-                out[i].length = u32::try_from(a.values.len()).ok().filter(|&n| n > 0);
+                out[i].dims = match a.dimensions {
+                    Some(dims) if !dims.is_empty() => Some(dims),
+                    _ => u32::try_from(a.values.len()).ok().map(|n| vec![n]),
+                }
+                .filter(|d| d.iter().all(|&n| n > 0));
             }
         }
     }

@@ -28,9 +28,12 @@
 //!   faces that show quality show as stale (the line protocol has no
 //!   quality: GET and DIFF serve it as a value); Bad is the refusal of that
 //!   variable, with the StatusCode's name.
-//! - Arrays: each element is a variable (`NAME[i]`); the array node is
-//!   read or monitored once for all ([`List::sources`]), and a write of an
-//!   element writes the whole array read just before.
+//! - Arrays: each element is a variable (`NAME[i]`, `NAME[i][j]`); the
+//!   array node is read or monitored once for all ([`List::sources`]), and
+//!   a write of an element writes the whole array read just before.
+//! - Structures without child variables: each scalar field is a variable
+//!   (`NAME.FIELD`), decoded by the DataType's definition ([`structure`]);
+//!   read, monitored and written as the whole node, as arrays are.
 //! - `__PLC_RUN` (S2.2) is the server's ServerStatus.State = Running.
 //! - Session loss (the server closes, a request times out): the link
 //!   probes (a new session, a GetEndpoints and the session's own requests)
@@ -40,6 +43,7 @@
 pub mod browse;
 pub mod convert;
 mod rebrowse;
+pub mod structure;
 
 use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
@@ -182,6 +186,9 @@ struct Entry {
     /// Its node in [`List::sources`] (each node id held once): an array's
     /// elements share one.
     source: usize,
+    /// A structure's field (of the element `index` for an array of
+    /// structures): its layout and leaf.
+    leaf: Option<(Arc<structure::Layout>, usize)>,
 }
 
 /// The variable list the link's table was built from.
@@ -197,11 +204,13 @@ struct List {
     /// node).
     starts: Vec<u32>,
     members: Vec<u32>,
+    /// How its nodes are written and read.
+    types: browse::Types,
 }
 
 /// The list as built, shared by `newest` and the fetch in progress:
-/// its bytes, and each node's built-in type by node id text.
-type Listing = Arc<(Vec<u8>, HashMap<String, Builtin>)>;
+/// its bytes, and how its nodes are written and read.
+type Listing = Arc<(Vec<u8>, browse::Types)>;
 
 impl List {
     /// The node of entry `i`.
@@ -565,7 +574,7 @@ impl OpcuaBackend {
         let bytes = tags::write(&built.tags);
         if bytes == self.served.bytes && !self.served.bytes.is_empty() {
             // Same list: the link keeps its table; node ids are the same.
-            self.served = list_of(bytes, &built.builtins);
+            self.served = list_of(bytes, &built.types);
             self.newest = None;
         } else {
             if self.newest.as_ref().is_none_or(|n| n.0 != bytes) {
@@ -576,7 +585,7 @@ impl OpcuaBackend {
                     info!(section = %section, "{line}");
                 }
             }
-            self.newest = Some(Arc::new((bytes, built.builtins)));
+            self.newest = Some(Arc::new((bytes, built.types)));
         }
     }
 
@@ -851,12 +860,13 @@ impl OpcuaBackend {
         uncertain: &mut Vec<usize>,
     ) -> Answer<Vec<u8>> {
         let mut bytes = vec![0u8; read.len as usize];
+        let mut fields = structure::Fields::default();
         for i in self.covered(read.offset, read.len) {
             let entry = &self.served.entries[i];
             let Some(value) = values.get(&entry.source) else {
                 return Err(Refusal::Opcua(StatusCode::BadWaitingForInitialData.bits()));
             };
-            let own = entry_bytes(entry, value)?;
+            let own = entry_bytes(entry, value, &mut fields)?;
             if is_uncertain(value) {
                 uncertain.push(i);
             }
@@ -871,11 +881,12 @@ impl OpcuaBackend {
         Ok(bytes)
     }
 
-    /// Writes in one Write call per MaxNodesPerWrite. An array element is
-    /// written as its whole array, read just before with the element
-    /// changed (servers differ in honouring an index range on Write:
-    /// asyncua's replaces the whole array by the one element): a change
-    /// the PLC makes to the array's other elements in between is lost.
+    /// Writes in one Write call per MaxNodesPerWrite. An array element or
+    /// a structure's field is written as its whole node, read just before
+    /// with the element or field changed (servers differ in honouring an
+    /// index range on Write: asyncua's replaces the whole array by the one
+    /// element; a structure has none): a change the PLC makes to the
+    /// node's other elements or fields in between is lost.
     async fn write_all(&mut self, writes: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {
         let mut answers: Vec<Answer<()>> = Vec::with_capacity(writes.len());
         // (write, entry, value) of scalars and of array elements.
@@ -885,7 +896,8 @@ impl OpcuaBackend {
             match self.write_value(write) {
                 Ok((i, value)) => {
                     answers.push(Ok(()));
-                    if self.served.entries[i].index.is_some() {
+                    let entry = &self.served.entries[i];
+                    if entry.index.is_some() || entry.leaf.is_some() {
                         elements.push((n, i, value));
                     } else {
                         scalars.push((n, i, value));
@@ -932,7 +944,7 @@ impl OpcuaBackend {
                     .filter(|(_, i, _)| *self.served.node(*i) == node)
                     .collect();
                 let status = now.status.unwrap_or(StatusCode::Good);
-                let Some(Variant::Array(mut array)) = now.value.filter(|_| !status.is_bad()) else {
+                let Some(mut whole) = now.value.filter(|_| !status.is_bad()) else {
                     let why = if status.is_bad() {
                         status
                     } else {
@@ -945,20 +957,16 @@ impl OpcuaBackend {
                 };
                 let mut served = Vec::new();
                 for (n, i, value) in mine {
-                    let at = self.served.entries[*i].index.unwrap_or(0) as usize;
-                    match array.values.get_mut(at) {
-                        Some(slot) => {
-                            *slot = value.clone();
-                            served.push((*n, *i));
-                        }
-                        None => answers[*n] = Err(refusal(StatusCode::BadIndexRangeNoData)),
+                    match put(&mut whole, &self.served.entries[*i], value) {
+                        Ok(()) => served.push((*n, *i)),
+                        Err(status) => answers[*n] = Err(refusal(status)),
                     }
                 }
                 if !served.is_empty() {
                     values.push(WriteValue {
                         node_id: node,
                         attribute_id: 13,
-                        value: DataValue::new_now(Variant::Array(array)),
+                        value: DataValue::new_now(whole),
                         ..Default::default()
                     });
                     serves.push(served);
@@ -1017,9 +1025,36 @@ impl OpcuaBackend {
     }
 }
 
+/// `whole` (an entry's node's value) with the entry's element or field
+/// set to `value`.
+fn put(whole: &mut Variant, entry: &Entry, value: &Variant) -> Result<(), StatusCode> {
+    let slot = match (entry.index, whole) {
+        (Some(at), Variant::Array(array)) => array
+            .values
+            .get_mut(at as usize)
+            .ok_or(StatusCode::BadIndexRangeNoData)?,
+        (Some(_), _) => return Err(StatusCode::BadTypeMismatch),
+        (None, whole) => whole,
+    };
+    match &entry.leaf {
+        Some((layout, leaf)) => {
+            *slot = layout
+                .write(slot, *leaf, value)
+                .map_err(|_| StatusCode::BadDecodingError)?;
+        }
+        None => *slot = value.clone(),
+    }
+    Ok(())
+}
+
 /// An entry's bytes in `value` (of its source), or the refusal its status
-/// or type makes.
-fn entry_bytes(entry: &Entry, value: &DataValue) -> Answer<Vec<u8>> {
+/// or type makes; a structure's body decoded once in `fields` for all the
+/// entries of one value.
+fn entry_bytes(
+    entry: &Entry,
+    value: &DataValue,
+    fields: &mut structure::Fields,
+) -> Answer<Vec<u8>> {
     let status = value.status.unwrap_or(StatusCode::Good);
     if status.is_bad() {
         return Err(refusal(status));
@@ -1028,6 +1063,18 @@ fn entry_bytes(entry: &Entry, value: &DataValue) -> Answer<Vec<u8>> {
         (Some(Variant::Array(array)), Some(at)) => array.values.get(at as usize),
         (value, None) => value.as_ref(),
         (_, Some(_)) => None,
+    };
+    let field;
+    let element = match (&entry.leaf, element) {
+        (Some((layout, leaf)), Some(object)) => {
+            // An array of structures: each element its own body.
+            let key = (entry.source, entry.index);
+            field = fields
+                .read(key, layout, object, *leaf)
+                .map_err(|_| refusal(StatusCode::BadDecodingError))?;
+            Some(&field)
+        }
+        (_, element) => element,
     };
     element
         .and_then(|v| convert::bytes_of(v, entry.ty))
@@ -1278,18 +1325,15 @@ pub(crate) fn read_tag_file(section: &str, path: &std::path::Path) -> Vec<Tag> {
 }
 
 /// The entries of a list's bytes, placed as the link's table places them.
-fn list_of(bytes: Vec<u8>, builtins: &HashMap<String, Builtin>) -> List {
+fn list_of(bytes: Vec<u8>, types: &browse::Types) -> List {
     let file = tags::parse(&bytes);
     let placed = tags::vars(&file.tags);
     let mut sources: Vec<NodeId> = Vec::new();
     let mut source_of: HashMap<NodeId, usize> = HashMap::new();
     let mut entries: Vec<Entry> = Vec::with_capacity(placed.len());
     for (tag, var) in file.tags.iter().filter(|t| t.ty.is_some()).zip(placed) {
+        let text = tag.node.to_string();
         let node = node_of(&tag.node);
-        let builtin = builtins
-            .get(&tag.node.to_string())
-            .copied()
-            .unwrap_or_else(|| Builtin::of_iec(var.ty));
         let source = match source_of.get(&node) {
             Some(&s) => s,
             None => {
@@ -1298,13 +1342,22 @@ fn list_of(bytes: Vec<u8>, builtins: &HashMap<String, Builtin>) -> List {
                 sources.len() - 1
             }
         };
+        let leaf = tag.field.as_deref().and_then(|path| {
+            let layout = types.layouts.get(&text)?;
+            Some((layout.clone(), layout.leaf(path)?))
+        });
+        let builtin = match &leaf {
+            Some((layout, i)) => layout.builtin(*i),
+            None => types.builtins.get(&text).copied(),
+        };
         entries.push(Entry {
             name: var.name,
             offset: var.offset,
             ty: var.ty,
-            builtin,
+            builtin: builtin.unwrap_or_else(|| Builtin::of_iec(var.ty)),
             index: tag.index,
             source,
+            leaf,
         });
     }
     drop(source_of);
@@ -1330,6 +1383,7 @@ fn list_of(bytes: Vec<u8>, builtins: &HashMap<String, Builtin>) -> List {
         sources,
         starts,
         members,
+        types: types.clone(),
     }
 }
 
@@ -1520,9 +1574,10 @@ impl PlcBackend for OpcuaBackend {
                     continue;
                 };
                 let unix_ms = stamp_of(&value);
+                let mut fields = structure::Fields::default();
                 for &i in entries {
                     let entry = &self.served.entries[i as usize];
-                    if let Ok(bytes) = entry_bytes(entry, &value) {
+                    if let Ok(bytes) = entry_bytes(entry, &value, &mut fields) {
                         pushed.push(Pushed {
                             name: entry.name.clone(),
                             bytes,
@@ -1557,20 +1612,7 @@ impl PlcBackend for OpcuaBackend {
         }
         let fetching = match &self.newest {
             Some(newest) => newest.clone(),
-            None => {
-                let builtins = self
-                    .served
-                    .entries
-                    .iter()
-                    .map(|e| {
-                        (
-                            browse::node_ref(&self.served.sources[e.source]).to_string(),
-                            e.builtin,
-                        )
-                    })
-                    .collect();
-                Arc::new((self.served.bytes.clone(), builtins))
-            }
+            None => Arc::new((self.served.bytes.clone(), self.served.types.clone())),
         };
         let size = fetching.0.len() as u64;
         self.fetching = Some(fetching);
@@ -1605,8 +1647,8 @@ impl PlcBackend for OpcuaBackend {
                     self.newest = None;
                 }
                 // Its only holder now, unless a newer list came meanwhile.
-                let (bytes, builtins) = Arc::unwrap_or_clone(fetched);
-                self.served = list_of(bytes, &builtins);
+                let (bytes, types) = Arc::unwrap_or_clone(fetched);
+                self.served = list_of(bytes, &types);
                 // The handles of the old list mean other variables now.
                 if let (Some(subscription), Ok(session)) =
                     (self.subscription.take(), self.session())
@@ -1726,7 +1768,7 @@ mod tests {
     fn reads_cover_the_variables_they_touch() {
         let list = list_of(
             b"name,node,type\nA,i=1,BOOL\nB,i=2,INT\nC,i=3,LREAL\n".to_vec(),
-            &HashMap::new(),
+            &browse::Types::default(),
         );
         let backend = OpcuaBackend {
             served: list,

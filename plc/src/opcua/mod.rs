@@ -12,6 +12,7 @@
 
 pub mod nodeid;
 pub mod status;
+pub mod structure;
 pub mod tags;
 
 use std::collections::HashSet;

@@ -16,6 +16,9 @@
 //! - `index`: an element of an array node (0-based); the backend names a
 //!   browsed array's elements `NAME[0]`, `NAME[1]`, ... as public files
 //!   name array elements.
+//! - `field`: a field of a structure node, by its path in the structure
+//!   (`TEMP`, `STEPS[2]`, `INNER.X`): the backend reads the structure and
+//!   serves that field (see [`super::structure`]).
 //! - `unit`, `description`: for people (MQTT, the web page), as a Modbus
 //!   tag file's.
 //!
@@ -45,6 +48,8 @@ pub struct Tag {
     pub writable: Option<bool>,
     /// The element of an array node, when the variable is one.
     pub index: Option<u32>,
+    /// The field of a structure node (after `index`'s element), by path.
+    pub field: Option<String>,
     pub info: VarInfo,
     /// 1-based line in the file.
     pub line: usize,
@@ -102,6 +107,7 @@ enum Column {
     Unit,
     Description,
     Index,
+    Field,
 }
 
 const COLUMNS: tag_csv::Columns<Column> = tag_csv::Columns {
@@ -113,6 +119,7 @@ const COLUMNS: tag_csv::Columns<Column> = tag_csv::Columns {
         ("unit", Column::Unit),
         ("description", Column::Description),
         ("index", Column::Index),
+        ("field", Column::Field),
     ],
     required: &[Column::Name, Column::Node],
     expected: "name,node,type,access,...",
@@ -180,6 +187,10 @@ fn tag(
                 .map_err(|_| (index_col, format!("index '{index}' is not 0-4294967295")))?,
         ),
     };
+    let field_path = match field(Column::Field).0.trim() {
+        "" => None,
+        path => Some(path.to_string()),
+    };
     let info = VarInfo {
         unit: field(Column::Unit).0.to_string(),
         description: field(Column::Description).0.to_string(),
@@ -191,6 +202,7 @@ fn tag(
         ty,
         writable,
         index,
+        field: field_path,
         info,
         line,
     })
@@ -210,6 +222,7 @@ pub fn write(tags: &[Tag]) -> Vec<u8> {
         "unit",
         "description",
         "index",
+        "field",
     ]);
     for tag in tags {
         let ty = tag.ty.map(|t| t.to_string()).unwrap_or_default();
@@ -227,6 +240,7 @@ pub fn write(tags: &[Tag]) -> Vec<u8> {
             tag.info.unit.as_str(),
             tag.info.description.as_str(),
             index.as_str(),
+            tag.field.as_deref().unwrap_or(""),
         ]);
     }
     out.into_inner().unwrap_or_default()
@@ -275,7 +289,7 @@ mod tests {
     #[test]
     fn typed_tags_are_placed_one_after_another_and_written_back() {
         let file =
-            parse(b"name,node,type,index\nA,i=1,BOOL\nB,i=2\nC,i=3,LREAL\nD,i=4,STRING[10]\nE[1],i=5,INT,1\n");
+            parse(b"name,node,type,index,field\nA,i=1,BOOL\nB,i=2\nC,i=3,LREAL\nD,i=4,STRING[10]\nE[1],i=5,INT,1\nR.S[1].X,i=6,INT,,S[1].X\n");
         let defs = file.var_defs();
         let placed: Vec<_> = defs
             .iter()
@@ -283,7 +297,13 @@ mod tests {
             .collect();
         assert_eq!(
             placed,
-            [(0, Some(0), 2), (1, None, 4), (9, None, 5), (20, None, 6)]
+            [
+                (0, Some(0), 2),
+                (1, None, 4),
+                (9, None, 5),
+                (20, None, 6),
+                (22, None, 7)
+            ]
         );
         let again = parse(&write(&file.tags));
         assert!(again.warnings.is_empty(), "{:?}", again.warnings);
@@ -293,6 +313,8 @@ mod tests {
         );
         assert_eq!(vars(&again.tags), vars(&file.tags));
         assert_eq!(again.tags[4].index, Some(1));
+        assert_eq!(again.tags[5].field.as_deref(), Some("S[1].X"));
+        assert_eq!(again.tags[4].field, None);
         assert!(parse(b"name,node,index\nA,i=1,-1\n").warnings[0]
             .to_string()
             .contains("column 3: index '-1'"));
