@@ -170,6 +170,16 @@ async fn enable_speed(c: &mut Client) {
         .await;
 }
 
+/// EN of DB_LINE1.MOTOR.RUNNING, and its first DIFF.
+async fn enable_running(c: &mut Client) {
+    c.ask(
+        "EN:db_line1.motor.running\r\n",
+        "WARNING:252 Changed active variables in public file: '[3/24]'\r\n",
+    )
+    .await;
+    c.expect(b"DIFF:DB_LINE1.MOTOR.RUNNING,1\r\n").await;
+}
+
 /// Asks `request` until it is answered with a link error, within `secs`.
 async fn until_lost(c: &mut Client, request: &str, secs: u64) {
     let deadline = Instant::now() + Duration::from_secs(secs);
@@ -390,12 +400,7 @@ async fn server_restart_mid_subscription_and_nodes_added() {
     let plc = plccoms(&server.url(), "OPCUA_REBROWSE = 1");
     let mut c = Client::connect(plc.addr).await;
     listed(&mut c, "DB_LINE1.MOTOR.SPEED").await;
-    c.ask(
-        "EN:db_line1.motor.running\r\n",
-        "WARNING:252 Changed active variables in public file: '[3/24]'\r\n",
-    )
-    .await;
-    c.expect(b"DIFF:DB_LINE1.MOTOR.RUNNING,1\r\n").await;
+    enable_running(&mut c).await;
 
     // Nodes added while running: the table is reloaded.
     server.command("add TORQUE");
@@ -469,6 +474,46 @@ async fn a_slow_server() {
     .await;
     let log = plc.log();
     assert_eq!(log.matches("PLC lost").count(), 1, "{log}");
+}
+
+/// A server slow to browse (slower than OPCUA_TIMEOUT, as a PLC with a
+/// large address space): the rebrowse runs beside the link on a session of
+/// its own, so SETs are answered meanwhile (asyncua answers a session's
+/// requests one after another: a Write behind a Browse on the link's
+/// session would wait past the timeout), the link is never lost, and the
+/// nodes added are found all the same.
+#[tokio::test]
+async fn a_slow_browse_holds_no_set_up() {
+    let mut server = OpcServer::start(free_port(), None);
+    let plc = plccoms(&server.url(), "OPCUA_REBROWSE = 1\nOPCUA_TIMEOUT = 500");
+    let mut c = Client::connect(plc.addr).await;
+    listed(&mut c, "DB_LINE1.MOTOR.SPEED").await;
+    // (A changed list is told to clients with variables enabled.)
+    enable_running(&mut c).await;
+    server.command("slowbrowse 800");
+    server.command("add TORQUE");
+    for i in 0..12 {
+        c.ask(
+            &format!("SET:types.int16_v,{i}\r\n"),
+            &format!("DIFF:TYPES.INT16_V,{i}\r\n"),
+        )
+        .await;
+        tokio::time::sleep(Duration::from_millis(300)).await;
+    }
+    c.wait_for_line(
+        b"WARNING:250 Changed public file: 'OPCUA_VARS.csv'\r\n",
+        Duration::from_secs(40),
+    )
+    .await;
+    until(
+        &mut c,
+        "GET:db_line1.motor.torque",
+        "GET:DB_LINE1.MOTOR.TORQUE,1.5000000000",
+        5,
+    )
+    .await;
+    let log = plc.log();
+    assert!(!log.contains("PLC lost"), "{log}");
 }
 
 #[tokio::test]

@@ -53,18 +53,25 @@ impl Client {
     }
 }
 
-#[test]
-fn a_section_read_through_our_own_opcua_server() {
+/// One plccoms: a simulated PLC `Sim` served over OPC UA (with `global`
+/// keys added to [*]), read back by section `Via`; clients of both.
+fn sim_and_via(global: &str) -> (ServerProcess, Client, Client) {
     let (p_sim, p_via, p_ua) = (free_port(), free_port(), free_port());
     let ini = format!(
-        "[*]\nCOMM_LOOP_DELAY = 100\nOPCUA_PORT = {p_ua}\n\n\
+        "[*]\nCOMM_LOOP_DELAY = 100\nOPCUA_PORT = {p_ua}\n{global}\n\
          [Sim]\nSIMULATOR = Yes\nSIMULATOR_PROGRAM = idle\nSERVER_PORT = {p_sim}\nPUBFILE = //demo.pub\n\n\
          [Via]\nPROTOCOL = OPCUA\nOPCUA_URL = opc.tcp://127.0.0.1:{p_ua}/\n\
          OPCUA_BROWSE = nsu=urn:plccoms;s=Sim\nSERVER_PORT = {p_via}\n"
     );
     let server = ServerProcess::with_config(&ini, p_via);
-    let mut sim = Client::connect(p_sim);
-    let mut via = Client::connect(p_via);
+    let sim = Client::connect(p_sim);
+    let via = Client::connect(p_via);
+    (server, sim, via)
+}
+
+#[test]
+fn a_section_read_through_our_own_opcua_server() {
+    let (server, mut sim, mut via) = sim_and_via("");
     // Via's variables come once the OPC UA server answers.
     let start = Instant::now();
     while !via.ask("GET:setpoint").starts_with("GET:SETPOINT,") {
@@ -105,4 +112,57 @@ fn a_section_read_through_our_own_opcua_server() {
     // already: left out quietly.
     let log = server.log();
     assert!(!log.contains("defined twice"), "{log}");
+}
+
+/// A server that takes 3 monitored items a subscription (our own, with
+/// OPCUA_MAX_MONITORED_ITEMS = 3, answering BadTooManyMonitoredItems to a
+/// CreateMonitoredItems beyond that): the client spreads the enabled
+/// variables over more subscriptions, and every change still arrives.
+#[test]
+fn a_server_limiting_monitored_items_gets_more_subscriptions() {
+    let (server, mut sim, mut via) = sim_and_via("OPCUA_MAX_MONITORED_ITEMS = 3\n");
+    let start = Instant::now();
+    while !via.ask("GET:setpoint").starts_with("GET:SETPOINT,") {
+        assert!(start.elapsed() < DEADLINE, "Via has no SETPOINT");
+        thread::sleep(Duration::from_millis(200));
+    }
+    let changes = [
+        ("SETPOINT", "33.5"),
+        ("V_DINT", "123"),
+        ("V_LINT", "-456"),
+        ("V_SINT", "-7"),
+        ("COUNTER", "99"),
+    ];
+    for (name, _) in changes {
+        via.send(&format!("EN:{name}"));
+    }
+    // Polled a few cycles: the subscriptions made.
+    thread::sleep(Duration::from_secs(2));
+    for (name, value) in changes {
+        assert!(
+            sim.ask(&format!("SET:{name},{value}"))
+                .starts_with(&format!("DIFF:{name},{value}")),
+            "{name}"
+        );
+    }
+    let mut missing: Vec<String> = changes
+        .iter()
+        .map(|(name, value)| format!("DIFF:{name},{value}"))
+        .collect();
+    let start = Instant::now();
+    while !missing.is_empty() {
+        let line = via.line();
+        missing.retain(|want| !line.starts_with(want.as_str()));
+        assert!(
+            start.elapsed() < DEADLINE,
+            "no {missing:?} at Via; log:\n{}",
+            server.log()
+        );
+    }
+    let log = server.log();
+    assert!(
+        log.contains("the server takes 3 monitored items a subscription"),
+        "{log}"
+    );
+    assert!(!log.contains("PLC lost"), "{log}");
 }

@@ -21,6 +21,7 @@ stdin, one a line:
   add NAME   adds a Double variable NAME (= 1.5) to DB_LINE1/MOTOR
   set NAME V sets TYPES or MOTOR variable NAME to the number V
   slow MS    answers every Read MS milliseconds late (0: at once again)
+  slowbrowse MS  answers every Browse MS milliseconds late (0: at once again)
   stamp NAME V MS  sets NAME to V with SourceTimestamp MS (Unix ms)
   status NAME uncertain|good [V]  sets NAME's StatusCode (UncertainLastUsableValue
                    or Good), its value to V if given, SourceTimestamp now
@@ -50,6 +51,20 @@ async def _slow_read(self, params):
 
 
 InternalSession.read = _slow_read
+
+# A server slow to browse (a PLC's large address space): every Browse waits
+# this long (seconds).
+BROWSE_DELAY = [0.0]
+_browse = InternalSession.browse
+
+
+async def _slow_browse(self, params):
+    if BROWSE_DELAY[0]:
+        await asyncio.sleep(BROWSE_DELAY[0])
+    return await _browse(self, params)
+
+
+InternalSession.browse = _slow_browse
 
 
 class Users(UserManager):
@@ -185,6 +200,8 @@ async def main():
                 await var(motor, "DB_LINE1.MOTOR", words[1], 1.5, ua.VariantType.Double)
             elif words[:1] == ["slow"]:
                 READ_DELAY[0] = int(words[1]) / 1000
+            elif words[:1] == ["slowbrowse"]:
+                BROWSE_DELAY[0] = int(words[1]) / 1000
             elif words[:1] == ["stamp"]:
                 node, vtype = nodes[words[1]]
                 at = datetime.datetime.fromtimestamp(int(words[3]) / 1000, datetime.timezone.utc)

@@ -11,7 +11,7 @@ use std::sync::Arc;
 use opcua::client::Session;
 use opcua::types::{
     BrowseDescription, BrowseDirection, BrowseResultMask, ByteString, Guid, NodeClass,
-    NodeClassMask, NodeId, ReadValueId, TimestampsToReturn, Variant,
+    NodeClassMask, NodeId, ReadValueId, Variant,
 };
 use tracing::warn;
 
@@ -25,7 +25,7 @@ use plccoms_protocol::cp1250;
 
 use crate::convert::Builtin;
 use crate::structure::{Definition, Layout};
-use crate::{service_error, Limits};
+use crate::Limits;
 
 /// Deepest browse path followed: PLC models are a few levels deep; a
 /// deeper one is a loop through references the visited set cannot see.
@@ -123,8 +123,29 @@ const FIXED_NAMES: [&str; 2] = ["__PLC_RUN", "__PF_CRC"];
 pub struct Found {
     name: String,
     node: NodeId,
-    /// From a tag file: what it says.
-    tag: Option<Tag>,
+    /// From a tag file: what it says (boxed: a browse finds 100,000
+    /// variables without one).
+    tag: Option<Box<Tag>>,
+}
+
+/// What [`find`] found, in 128 bits: the rebrowse keeps this, not the list,
+/// to tell whether the server's variables changed.
+pub fn fingerprint(found: &[Found]) -> u128 {
+    use std::hash::{Hash, Hasher};
+    let half = |seed: u8| {
+        let mut h = std::hash::DefaultHasher::new();
+        seed.hash(&mut h);
+        found.len().hash(&mut h);
+        for f in found {
+            f.name.hash(&mut h);
+            f.node.hash(&mut h);
+            if let Some(tag) = &f.tag {
+                format!("{tag:?}").hash(&mut h);
+            }
+        }
+        h.finish()
+    };
+    (u128::from(half(0)) << 64) | u128::from(half(1))
 }
 
 /// The variables: the tag file's tags, or those found by browsing
@@ -144,7 +165,7 @@ pub async fn find(
                     Ok(node) => found.push(Found {
                         name: cp1250::decode(&tag.name).into_owned(),
                         node,
-                        tag: Some(tag),
+                        tag: Some(Box::new(tag)),
                     }),
                     Err(e) => warn!(section, "tag file line {}: {e}; skipped", tag.line),
                 }
@@ -207,7 +228,8 @@ pub async fn build(
         let node = node_ref(&found.node);
         let text = node.to_string();
         let layout = attrs.data_type.as_ref().and_then(|d| layouts.get(d));
-        if let Some(mut tag) = found.tag {
+        if let Some(tag) = found.tag {
+            let mut tag = *tag;
             // A structure's field: typed by its definition.
             if let Some(path) = &tag.field {
                 let leaf = match layout {
@@ -481,10 +503,9 @@ async fn browse(
                 result_mask: BrowseResultMask::All as u32,
             })
             .collect();
-        let mut results = session
-            .browse(&descriptions, REFERENCES_PER_NODE, None)
-            .await
-            .map_err(|e| service_error("Browse", e))?;
+        let mut results =
+            crate::rebrowse::browse_nodes(session, limits, descriptions, REFERENCES_PER_NODE)
+                .await?;
         for ((_, path, _), result) in batch.iter().zip(results.iter_mut()) {
             let mut references = result.references.take().unwrap_or_default();
             let mut point = result.continuation_point.clone();
@@ -492,10 +513,7 @@ async fn browse(
             let mut pages = 0;
             while !point.is_null() && pages < 10_000 && references.len() < MAX_NODES {
                 pages += 1;
-                let next = session
-                    .browse_next(false, &[point.clone()])
-                    .await
-                    .map_err(|e| service_error("BrowseNext", e))?;
+                let next = crate::rebrowse::browse_next(session, limits, point.clone()).await?;
                 let Some(mut next) = next.into_iter().next() else {
                     break;
                 };
@@ -620,10 +638,7 @@ async fn read_all(
                 })
             })
             .collect();
-        let values = session
-            .read(&ids, TimestampsToReturn::Neither, 0.0)
-            .await
-            .map_err(|e| service_error("Read", e))?;
+        let values = crate::rebrowse::read_attributes(session, limits, &ids).await?;
         if values.len() != ids.len() {
             return Err(PlcError::Protocol(format!(
                 "Read of {} attributes answered {}",
@@ -691,10 +706,7 @@ async fn read_attributes(
             .iter()
             .map(|&i| found[i].node.clone().into())
             .collect();
-        let values = session
-            .read(&ids, TimestampsToReturn::Neither, 0.0)
-            .await
-            .map_err(|e| service_error("Read", e))?;
+        let values = crate::rebrowse::read_attributes(session, limits, &ids).await?;
         for (&i, value) in chunk.iter().zip(values) {
             if let Some(Variant::Array(a)) = value.value {
                 out[i].dims = match a.dimensions {

@@ -42,6 +42,7 @@
 
 pub mod browse;
 pub mod convert;
+mod rebrowse;
 pub mod structure;
 
 use std::collections::{HashMap, HashSet};
@@ -144,8 +145,14 @@ pub struct Limits {
     pub per_write: usize,
     pub per_browse: usize,
     pub per_call: usize,
+    /// MaxMonitoredItemsPerSubscription (else learnt from the server's
+    /// BadTooManyMonitoredItems).
+    pub per_subscription: usize,
     /// MinSupportedSampleRate, ms.
     pub min_sampling: f64,
+    /// How long one request of a browse may take: a server answers a
+    /// Browse or a Read of thousands of attributes slower than a poll.
+    pub browse_timeout: Duration,
 }
 
 /// Most nodes one of our requests carries when the server sets no limit,
@@ -159,7 +166,9 @@ impl Default for Limits {
             per_write: OWN_LIMIT,
             per_browse: 1000,
             per_call: OWN_LIMIT,
+            per_subscription: usize::MAX,
             min_sampling: 0.0,
+            browse_timeout: Duration::from_secs(10),
         }
     }
 }
@@ -172,10 +181,10 @@ struct Entry {
     offset: u32,
     ty: IecType,
     builtin: Builtin,
-    node: NodeId,
     /// The element of an array node.
     index: Option<u32>,
-    /// Its node in [`List::sources`]: an array's elements share one.
+    /// Its node in [`List::sources`] (each node id held once): an array's
+    /// elements share one.
     source: usize,
     /// A structure's field (of the element `index` for an array of
     /// structures): its layout and leaf.
@@ -190,20 +199,48 @@ struct List {
     /// The nodes read or monitored, each once: a whole array for all its
     /// elements (servers differ in honouring index ranges).
     sources: Vec<NodeId>,
-    /// The entries of each source, by index.
-    by_source: Vec<Vec<usize>>,
+    /// The entries of each source: those of source `s` are
+    /// `members[starts[s]..starts[s + 1]]` (one allocation, not one per
+    /// node).
+    starts: Vec<u32>,
+    members: Vec<u32>,
     /// How its nodes are written and read.
     types: browse::Types,
+}
+
+/// The list as built, shared by `newest` and the fetch in progress:
+/// its bytes, and how its nodes are written and read.
+type Listing = Arc<(Vec<u8>, browse::Types)>;
+
+impl List {
+    /// The node of entry `i`.
+    fn node(&self, i: usize) -> &NodeId {
+        &self.sources[self.entries[i].source]
+    }
+
+    /// The entries of source `s`, by index.
+    fn of_source(&self, s: usize) -> Option<&[u32]> {
+        let from = *self.starts.get(s)? as usize;
+        let to = *self.starts.get(s + 1)? as usize;
+        self.members.get(from..to)
+    }
 }
 
 struct Connection {
     session: Arc<Session>,
     event_loop: JoinHandle<StatusCode>,
+    /// Looking for the variables again (OPCUA_REBROWSE), on this session.
+    rebrowse: Option<JoinHandle<()>>,
+    /// The list it built last, for the link's next read.
+    rebuilt: rebrowse::Slot,
 }
 
 impl Drop for Connection {
     fn drop(&mut self) {
         self.event_loop.abort();
+        if let Some(task) = &self.rebrowse {
+            task.abort();
+        }
     }
 }
 
@@ -219,8 +256,12 @@ type Notified = Arc<Mutex<HashMap<u32, DataValue>>>;
 /// generation, client handle, value).
 type Inbox = Arc<Mutex<Vec<(u64, u32, DataValue)>>>;
 
+/// The subscriptions of the enabled variables: more than one where the
+/// server limits the monitored items of one.
 struct Subscription {
-    id: u32,
+    /// Each subscription's id and its monitored items; the last one is
+    /// filled next.
+    ids: Vec<(u32, usize)>,
     monitored: HashSet<usize>,
 }
 
@@ -235,13 +276,9 @@ pub struct OpcuaBackend {
     /// The list the link's table was built from.
     served: List,
     /// The list as last built (served once the link fetches it).
-    newest: Option<(Vec<u8>, browse::Types)>,
+    newest: Option<Listing>,
     /// The list being fetched by the link (file_info .. last read_file).
-    fetching: Option<(Vec<u8>, browse::Types)>,
-    built_at: Option<Instant>,
-    /// The variables the newest list was built of (not those of an older
-    /// session: a new session reads every attribute again).
-    found: Option<Vec<browse::Found>>,
+    fetching: Option<Listing>,
     subscription: Option<Subscription>,
     notified: Notified,
     inbox: Inbox,
@@ -319,8 +356,6 @@ impl OpcuaBackend {
             served: List::default(),
             newest: None,
             fetching: None,
-            built_at: None,
-            found: None,
             subscription: None,
             notified: Arc::default(),
             inbox: Arc::default(),
@@ -370,6 +405,35 @@ impl OpcuaBackend {
         result
     }
 
+    /// As [`Self::call`], but the server's answer that a request asked
+    /// too much (BadTooManyOperations, BadTooManyMonitoredItems) is
+    /// returned to be asked again in smaller parts.
+    async fn call_within_limits<T, F>(
+        &mut self,
+        what: &str,
+        f: F,
+    ) -> Result<Result<T, StatusCode>, PlcError>
+    where
+        F: std::future::Future<Output = Result<T, opcua::types::Error>>,
+    {
+        let limited = |e: &opcua::types::Error| {
+            matches!(
+                e.status(),
+                StatusCode::BadTooManyOperations | StatusCode::BadTooManyMonitoredItems
+            )
+        };
+        let answer = self
+            .call(what, async {
+                match f.await {
+                    Ok(value) => Ok(Ok(value)),
+                    Err(e) if limited(&e) => Ok(Err(e.status())),
+                    Err(e) => Err(e),
+                }
+            })
+            .await?;
+        Ok(answer)
+    }
+
     /// Gives the session up: the link probes for a new one.
     fn lose(&mut self) {
         self.connection = None;
@@ -387,74 +451,52 @@ impl OpcuaBackend {
     /// server's limits and state read, and the variable list built.
     async fn open_session(&mut self) -> Result<String, PlcError> {
         self.lose();
-        self.found = None;
         if self.client.is_none() {
-            self.client = Some(new_client(&self.config)?);
+            self.client = Some(new_client(&self.config, self.config.timeout)?);
         }
-        let config = &self.config;
         let client = self.client.as_mut().expect("made above");
-        let token_policy = match &config.user {
-            Some(_) => UserTokenPolicy {
-                token_type: opcua::types::UserTokenType::UserName,
-                ..UserTokenPolicy::anonymous()
-            },
-            None => UserTokenPolicy::anonymous(),
-        };
-        let endpoint: EndpointDescription = (
-            config.url.as_str(),
-            config.policy.to_str(),
-            config.mode,
-            token_policy,
-        )
-            .into();
-        let identity = match &config.user {
-            Some((user, password)) => IdentityToken::new_user_name(user.clone(), password.clone()),
-            None => IdentityToken::Anonymous,
-        };
-        let timeout = config.timeout;
-        let url = config.url.clone();
-        let pki = config.pki.clone();
         self.counters.requests.inc();
-        let (session, event_loop) = match tokio::time::timeout(
-            timeout,
-            client.connect_to_matching_endpoint(endpoint, identity),
-        )
-        .await
-        {
-            Ok(Ok(pair)) => pair,
-            Ok(Err(e)) => return Err(connect_error(&url, &pki, e.status(), &e.to_string())),
-            Err(_) => {
-                return Err(PlcError::Timeout(format!(
-                    "{url}: no endpoints within {} ms",
-                    timeout.as_millis()
-                )))
-            }
-        };
-        session.disable_reconnects();
-        let mut event_loop = event_loop.spawn();
-        // Secure channel, CreateSession, ActivateSession: a few round trips.
-        let connected = tokio::select! {
-            connected = session.wait_for_connection() => Ok(connected),
-            ended = &mut event_loop => Err(ended.unwrap_or(StatusCode::BadUnexpectedError)),
-            _ = tokio::time::sleep(timeout * 3) => Err(StatusCode::BadTimeout),
-        };
-        match connected {
-            Ok(true) => {}
-            Ok(false) => {
-                event_loop.abort();
-                return Err(PlcError::Timeout(format!("{url}: session not established")));
-            }
-            Err(status) => {
-                event_loop.abort();
-                return Err(connect_error(&url, &pki, status, ""));
-            }
-        }
+        let (session, event_loop) = connect_session(client, &self.config).await?;
         self.connection = Some(Connection {
-            session,
+            session: session.clone(),
             event_loop,
+            rebrowse: None,
+            rebuilt: rebrowse::Slot::default(),
         });
         let ident = self.read_capabilities().await?;
-        self.rebuild().await?;
+        // The first list before the link serves; the later ones beside it.
+        let lister = self.lister();
+        let limits = self.limits;
+        let listed = tokio::time::timeout(
+            self.config.timeout * 60,
+            rebrowse::list(&session, &lister, &limits, None),
+        )
+        .await
+        .map_err(|_| PlcError::Timeout("browsing the server's variables took too long".into()))
+        .and_then(|listed| listed);
+        let (found, built) = match listed {
+            Ok(listed) => listed,
+            Err(e) => {
+                if e.is_link_failure() {
+                    self.lose();
+                }
+                return Err(e);
+            }
+        };
+        if let Some(built) = built {
+            self.take_list(built);
+        }
+        if let (Some(every), Some(connection)) = (self.config.rebrowse, &mut self.connection) {
+            connection.rebrowse = Some(rebrowse::spawn(
+                session,
+                self.config.clone(),
+                lister,
+                limits,
+                every,
+                found,
+                connection.rebuilt.clone(),
+            ));
+        }
         Ok(ident)
     }
 
@@ -470,6 +512,7 @@ impl OpcuaBackend {
             V::Server_ServerStatus_State,
             V::Server_ServerStatus_BuildInfo_ProductName,
             V::Server_ServerStatus_BuildInfo_SoftwareVersion,
+            V::Server_ServerCapabilities_MaxMonitoredItemsPerSubscription,
         ];
         let reads: Vec<ReadValueId> = ids.iter().map(|&id| NodeId::from(id).into()).collect();
         let session = self.session()?;
@@ -498,7 +541,9 @@ impl OpcuaBackend {
             per_write: limit(1, own.per_write),
             per_browse: limit(2, own.per_browse),
             per_call: limit(3, own.per_call),
+            per_subscription: limit(8, own.per_subscription),
             min_sampling: number(4).unwrap_or(0.0).max(0.0),
+            browse_timeout: (self.config.timeout * 10).max(own.browse_timeout),
         };
         self.run = number(5) == Some(0.0);
         let text = |i: usize| match values.get(i).and_then(|v| v.value.as_ref()) {
@@ -509,57 +554,30 @@ impl OpcuaBackend {
         Ok(ident.trim().to_string())
     }
 
-    /// Builds the variable list again; a list that differs from the one
-    /// served becomes the newest, whose CRC `__PF_CRC` shows.
-    async fn rebuild(&mut self) -> Result<(), PlcError> {
-        let session = self.session()?;
-        let section = self.config.section.clone();
-        let file_tags = self
-            .config
-            .tags
-            .as_ref()
-            .map(|path| read_tag_file(&section, path));
-        let starts = if self.config.browse.is_empty() {
-            vec![NodeRef::standard(85)]
-        } else {
-            self.config.browse.clone()
-        };
-        let limits = self.limits;
-        let known = self.found.take();
-        let built = tokio::time::timeout(self.config.timeout * 60, async {
-            let found = browse::find(&section, &session, &limits, file_tags, &starts).await?;
-            // The same nodes by the same names as last time: their
-            // attributes are not read again (at 100,000 variables that
-            // is 400,000 of them every OPCUA_REBROWSE).
-            if known.as_ref() == Some(&found) {
-                return Ok::<_, PlcError>((found, None));
-            }
-            let built = browse::build(&section, &session, &limits, found.clone()).await?;
-            Ok((found, Some(built)))
-        })
-        .await
-        .map_err(|_| PlcError::Timeout("browsing the server's variables took too long".into()))?;
-        let (found, built) = match built {
-            Ok(built) => built,
-            Err(e) => {
-                if e.is_link_failure() {
-                    self.lose();
-                }
-                return Err(e);
-            }
-        };
-        self.built_at = Some(Instant::now());
-        self.found = Some(found);
-        let Some(built) = built else {
-            return Ok(());
-        };
+    /// What the section's variables are looked for by.
+    fn lister(&self) -> rebrowse::Lister {
+        rebrowse::Lister {
+            section: self.config.section.clone(),
+            tags: self.config.tags.clone(),
+            starts: if self.config.browse.is_empty() {
+                vec![NodeRef::standard(85)]
+            } else {
+                self.config.browse.clone()
+            },
+        }
+    }
+
+    /// A list built: one that differs from the one served becomes the
+    /// newest, whose CRC `__PF_CRC` shows.
+    fn take_list(&mut self, built: browse::Built) {
+        let section = &self.config.section;
         let bytes = tags::write(&built.tags);
         if bytes == self.served.bytes && !self.served.bytes.is_empty() {
             // Same list: the link keeps its table; node ids are the same.
             self.served = list_of(bytes, &built.types);
             self.newest = None;
         } else {
-            if self.newest.as_ref().is_none_or(|(b, _)| *b != bytes) {
+            if self.newest.as_ref().is_none_or(|n| n.0 != bytes) {
                 if !self.served.bytes.is_empty() {
                     info!(section = %section, "the server's variables changed: {} now", built.tags.len());
                 }
@@ -567,16 +585,13 @@ impl OpcuaBackend {
                     info!(section = %section, "{line}");
                 }
             }
-            self.newest = Some((bytes, built.types));
+            self.newest = Some(Arc::new((bytes, built.types)));
         }
-        Ok(())
     }
 
     /// The list whose CRC `__PF_CRC` shows: the newest built.
     fn current_bytes(&self) -> &[u8] {
-        self.newest
-            .as_ref()
-            .map_or(&self.served.bytes, |(bytes, _)| bytes)
+        self.newest.as_ref().map_or(&self.served.bytes, |n| &n.0)
     }
 
     fn system(&self, offset: u32, len: u32) -> Answer<Vec<u8>> {
@@ -657,32 +672,9 @@ impl OpcuaBackend {
         let interval = (gap.as_secs_f64() * 1000.0).max(self.limits.min_sampling);
         if self.subscription.is_none() {
             self.generation += 1;
-            let sink = Sink {
-                inbox: self.inbox.clone(),
-                wake: self.wake.clone(),
-                generation: self.generation,
-                most: (self.served.sources.len() * 4).max(4096),
-                counters: self.counters.clone(),
-            };
-            let id = self
-                .call(
-                    "CreateSubscription",
-                    session.create_subscription(
-                        Duration::from_secs_f64(interval / 1000.0),
-                        // Lifetime and keep-alive counts: the server ends a
-                        // forgotten subscription within a minute or so.
-                        60,
-                        10,
-                        0,
-                        0,
-                        true,
-                        sink,
-                    ),
-                )
-                .await?;
-            tracing::debug!(section = %self.config.section, "subscription {id} made, publishing and sampling every {interval:.0} ms");
+            let id = self.new_subscription(&session, interval).await?;
             self.subscription = Some(Subscription {
-                id,
+                ids: vec![(id, 0)],
                 monitored: HashSet::new(),
             });
             // ServerStatus.State too: `__PLC_RUN` without a round trip.
@@ -703,17 +695,37 @@ impl OpcuaBackend {
                 session.create_monitored_items(id, TimestampsToReturn::Neither, vec![state]),
             )
             .await?;
+            if let Some(subscription) = &mut self.subscription {
+                subscription.ids[0].1 = 1;
+            }
         }
         let Some(subscription) = &self.subscription else {
             return Ok(());
         };
-        let id = subscription.id;
-        let new: Vec<usize> = indexes
+        let mut pending: std::collections::VecDeque<usize> = indexes
             .iter()
             .copied()
             .filter(|i| !subscription.monitored.contains(i))
             .collect();
-        for chunk in new.chunks(self.limits.per_call.max(1)) {
+        // Within the server's limits: MaxMonitoredItemsPerCall (halved
+        // while it answers BadTooManyOperations) and the items one
+        // subscription takes (its capability, else learnt from its
+        // BadTooManyMonitoredItems): more subscriptions, not a failure.
+        let mut most = self.limits.per_call.max(1);
+        while !pending.is_empty() {
+            let Some(&(id, count)) = self.subscription.as_ref().and_then(|s| s.ids.last()) else {
+                return Ok(());
+            };
+            let room = self.limits.per_subscription.saturating_sub(count);
+            if room == 0 {
+                let id = self.new_subscription(&session, interval).await?;
+                if let Some(subscription) = &mut self.subscription {
+                    subscription.ids.push((id, 0));
+                }
+                continue;
+            }
+            let n = pending.len().min(most).min(room);
+            let chunk: Vec<usize> = pending.drain(..n).collect();
             let items: Vec<MonitoredItemCreateRequest> = chunk
                 .iter()
                 .map(|&i| MonitoredItemCreateRequest {
@@ -729,32 +741,114 @@ impl OpcuaBackend {
                 })
                 .collect();
             let created = self
-                .call(
+                .call_within_limits(
                     "CreateMonitoredItems",
                     // Both: ServerTimestamp stands in for a missing
                     // SourceTimestamp in the history.
                     session.create_monitored_items(id, TimestampsToReturn::Both, items),
                 )
                 .await?;
+            let created = match created {
+                Ok(created) => created,
+                Err(status) => {
+                    for &i in chunk.iter().rev() {
+                        pending.push_front(i);
+                    }
+                    if n > 1 {
+                        // Too many at once (for the call or for the room
+                        // left in this subscription): half as many.
+                        most = n / 2;
+                        if status == StatusCode::BadTooManyOperations {
+                            self.limits.per_call = most;
+                        }
+                    } else if status == StatusCode::BadTooManyMonitoredItems && count > 0 {
+                        // Not one more: this subscription is full.
+                        self.limits.per_subscription = count;
+                        most = self.limits.per_call.max(1);
+                        info!(section = %self.config.section, "the server takes {count} monitored items a subscription: more subscriptions");
+                    } else {
+                        return Err(PlcError::Protocol(format!(
+                            "CreateMonitoredItems refused: {status}"
+                        )));
+                    }
+                    continue;
+                }
+            };
             let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
+            let mut full = Vec::new();
             for (&i, result) in chunk.iter().zip(created) {
-                if result.result.status_code.is_bad() {
+                let status = result.result.status_code;
+                if status == StatusCode::BadTooManyMonitoredItems {
+                    // Refused one by one: in the next subscription.
+                    full.push(i);
+                } else if status.is_bad() {
                     // Its refusal stands until the next table.
                     notified.insert(
                         i as u32 + 1,
                         DataValue {
-                            status: Some(result.result.status_code),
+                            status: Some(status),
                             ..Default::default()
                         },
                     );
                 }
             }
             drop(notified);
+            let taken = chunk.len() - full.len();
             if let Some(subscription) = &mut self.subscription {
-                subscription.monitored.extend(chunk.iter().copied());
+                subscription
+                    .monitored
+                    .extend(chunk.iter().copied().filter(|i| !full.contains(i)));
+                if let Some(last) = subscription.ids.last_mut() {
+                    last.1 += taken;
+                }
+            }
+            if !full.is_empty() {
+                if count + taken == 0 {
+                    return Err(PlcError::Protocol(
+                        "CreateMonitoredItems refused: BadTooManyMonitoredItems".into(),
+                    ));
+                }
+                self.limits.per_subscription = count + taken;
+                info!(section = %self.config.section, "the server takes {} monitored items a subscription: more subscriptions", count + taken);
+                for &i in full.iter().rev() {
+                    pending.push_front(i);
+                }
             }
         }
         Ok(())
+    }
+
+    /// A subscription publishing every `interval` ms into the inbox.
+    async fn new_subscription(
+        &mut self,
+        session: &Arc<Session>,
+        interval: f64,
+    ) -> Result<u32, PlcError> {
+        let sink = Sink {
+            inbox: self.inbox.clone(),
+            wake: self.wake.clone(),
+            generation: self.generation,
+            most: (self.served.sources.len() * 4).max(4096),
+            counters: self.counters.clone(),
+        };
+        let id = self
+            .call(
+                "CreateSubscription",
+                session.create_subscription(
+                    Duration::from_secs_f64(interval / 1000.0),
+                    // Lifetime and keep-alive counts: the server ends a
+                    // forgotten subscription within a minute or so.
+                    60,
+                    10,
+                    0,
+                    0,
+                    true,
+                    sink,
+                ),
+            )
+            .await?;
+        tracing::debug!(section = %self.config.section, "subscription {id} made, publishing and sampling every {interval:.0} ms");
+        Ok(id)
     }
 
     /// The answer to a read of `read` (R) from `values`; the entries whose
@@ -817,7 +911,7 @@ impl OpcuaBackend {
         let mut serves: Vec<Vec<(usize, usize)>> = Vec::new();
         for (n, i, value) in scalars {
             values.push(WriteValue {
-                node_id: self.served.entries[i].node.clone(),
+                node_id: self.served.node(i).clone(),
                 attribute_id: 13,
                 value: DataValue::new_now(value),
                 ..Default::default()
@@ -827,7 +921,7 @@ impl OpcuaBackend {
         if !elements.is_empty() {
             let mut nodes: Vec<NodeId> = Vec::new();
             for (_, i, _) in &elements {
-                let node = &self.served.entries[*i].node;
+                let node = self.served.node(*i);
                 if !nodes.contains(node) {
                     nodes.push(node.clone());
                 }
@@ -847,7 +941,7 @@ impl OpcuaBackend {
             for (node, now) in nodes.into_iter().zip(current) {
                 let mine: Vec<&(usize, usize, Variant)> = elements
                     .iter()
-                    .filter(|(_, i, _)| self.served.entries[*i].node == node)
+                    .filter(|(_, i, _)| *self.served.node(*i) == node)
                     .collect();
                 let status = now.status.unwrap_or(StatusCode::Good);
                 let Some(mut whole) = now.value.filter(|_| !status.is_bad()) else {
@@ -898,8 +992,7 @@ impl OpcuaBackend {
         for (served, status) in serves.into_iter().zip(results) {
             for (n, i) in served {
                 if status.is_bad() {
-                    let entry = &self.served.entries[i];
-                    warn!(section = %self.config.section, "write of {} refused: {}", entry.node, refusal(status));
+                    warn!(section = %self.config.section, "write of {} refused: {}", self.served.node(i), refusal(status));
                     answers[n] = Err(refusal(status));
                 } else {
                     let source = self.served.entries[i].source;
@@ -1056,12 +1149,80 @@ fn keep_newest(inbox: &mut Vec<(u64, u32, DataValue)>) {
     *inbox = kept;
 }
 
+/// A session with the server: endpoint, security and identity as
+/// configured; its event loop spawned.
+pub(crate) async fn connect_session(
+    client: &mut opcua::client::Client,
+    config: &OpcuaConfig,
+) -> Result<(Arc<Session>, JoinHandle<StatusCode>), PlcError> {
+    let token_policy = match &config.user {
+        Some(_) => UserTokenPolicy {
+            token_type: opcua::types::UserTokenType::UserName,
+            ..UserTokenPolicy::anonymous()
+        },
+        None => UserTokenPolicy::anonymous(),
+    };
+    let endpoint: EndpointDescription = (
+        config.url.as_str(),
+        config.policy.to_str(),
+        config.mode,
+        token_policy,
+    )
+        .into();
+    let identity = match &config.user {
+        Some((user, password)) => IdentityToken::new_user_name(user.clone(), password.clone()),
+        None => IdentityToken::Anonymous,
+    };
+    let timeout = config.timeout;
+    let url = config.url.clone();
+    let pki = config.pki.clone();
+    let (session, event_loop) = match tokio::time::timeout(
+        timeout,
+        client.connect_to_matching_endpoint(endpoint, identity),
+    )
+    .await
+    {
+        Ok(Ok(pair)) => pair,
+        Ok(Err(e)) => return Err(connect_error(&url, &pki, e.status(), &e.to_string())),
+        Err(_) => {
+            return Err(PlcError::Timeout(format!(
+                "{url}: no endpoints within {} ms",
+                timeout.as_millis()
+            )))
+        }
+    };
+    session.disable_reconnects();
+    let mut event_loop = event_loop.spawn();
+    // Secure channel, CreateSession, ActivateSession: a few round trips.
+    let connected = tokio::select! {
+        connected = session.wait_for_connection() => Ok(connected),
+        ended = &mut event_loop => Err(ended.unwrap_or(StatusCode::BadUnexpectedError)),
+        _ = tokio::time::sleep(timeout * 3) => Err(StatusCode::BadTimeout),
+    };
+    match connected {
+        Ok(true) => {}
+        Ok(false) => {
+            event_loop.abort();
+            return Err(PlcError::Timeout(format!("{url}: session not established")));
+        }
+        Err(status) => {
+            event_loop.abort();
+            return Err(connect_error(&url, &pki, status, ""));
+        }
+    }
+    Ok((session, event_loop))
+}
+
 /// Largest message accepted from a server.
 const MAX_MESSAGE: usize = 64 * 1024 * 1024;
 
 /// The client (its certificate store loaded once): a key pair is made in
-/// the PKI folder only where security needs one.
-fn new_client(config: &OpcuaConfig) -> Result<opcua::client::Client, PlcError> {
+/// the PKI folder only where security needs one. Its requests and
+/// keep-alives wait up to `timeout`.
+pub(crate) fn new_client(
+    config: &OpcuaConfig,
+    timeout: Duration,
+) -> Result<opcua::client::Client, PlcError> {
     ClientBuilder::new()
         .application_name("plccoms")
         .application_uri("urn:plccoms:client")
@@ -1072,8 +1233,8 @@ fn new_client(config: &OpcuaConfig) -> Result<opcua::client::Client, PlcError> {
         // stored in pki/rejected; moving it to pki/trusted trusts it.
         .trust_server_certs(false)
         .session_retry_limit(0)
-        .request_timeout(config.timeout)
-        .keep_alive_interval(config.timeout.max(Duration::from_millis(500)))
+        .request_timeout(timeout)
+        .keep_alive_interval(timeout.max(Duration::from_millis(500)))
         .max_failed_keep_alive_count(1)
         // async-opcua accepts 5 chunks (about 320 KB) by default: too
         // little for a Browse of a folder of thousands of variables from a
@@ -1139,7 +1300,7 @@ fn connect_error(url: &str, pki: &std::path::Path, status: StatusCode, detail: &
 }
 
 /// The tag file's tags, its problems logged (a few lines at most).
-fn read_tag_file(section: &str, path: &std::path::Path) -> Vec<Tag> {
+pub(crate) fn read_tag_file(section: &str, path: &std::path::Path) -> Vec<Tag> {
     match std::fs::read(path) {
         Ok(bytes) => {
             let file = tags::parse(&bytes);
@@ -1169,47 +1330,59 @@ fn list_of(bytes: Vec<u8>, types: &browse::Types) -> List {
     let placed = tags::vars(&file.tags);
     let mut sources: Vec<NodeId> = Vec::new();
     let mut source_of: HashMap<NodeId, usize> = HashMap::new();
-    let entries: Vec<Entry> = file
-        .tags
-        .iter()
-        .filter(|t| t.ty.is_some())
-        .zip(placed)
-        .map(|(tag, var)| {
-            let text = tag.node.to_string();
-            let node = node_of(&tag.node);
-            let source = *source_of.entry(node.clone()).or_insert_with(|| {
-                sources.push(node.clone());
+    let mut entries: Vec<Entry> = Vec::with_capacity(placed.len());
+    for (tag, var) in file.tags.iter().filter(|t| t.ty.is_some()).zip(placed) {
+        let text = tag.node.to_string();
+        let node = node_of(&tag.node);
+        let source = match source_of.get(&node) {
+            Some(&s) => s,
+            None => {
+                source_of.insert(node.clone(), sources.len());
+                sources.push(node);
                 sources.len() - 1
-            });
-            let leaf = tag.field.as_deref().and_then(|path| {
-                let layout = types.layouts.get(&text)?;
-                Some((layout.clone(), layout.leaf(path)?))
-            });
-            let builtin = match &leaf {
-                Some((layout, i)) => layout.builtin(*i),
-                None => types.builtins.get(&text).copied(),
-            };
-            Entry {
-                name: var.name,
-                offset: var.offset,
-                ty: var.ty,
-                builtin: builtin.unwrap_or_else(|| Builtin::of_iec(var.ty)),
-                node,
-                index: tag.index,
-                source,
-                leaf,
             }
-        })
-        .collect();
-    let mut by_source = vec![Vec::new(); sources.len()];
+        };
+        let leaf = tag.field.as_deref().and_then(|path| {
+            let layout = types.layouts.get(&text)?;
+            Some((layout.clone(), layout.leaf(path)?))
+        });
+        let builtin = match &leaf {
+            Some((layout, i)) => layout.builtin(*i),
+            None => types.builtins.get(&text).copied(),
+        };
+        entries.push(Entry {
+            name: var.name,
+            offset: var.offset,
+            ty: var.ty,
+            builtin: builtin.unwrap_or_else(|| Builtin::of_iec(var.ty)),
+            index: tag.index,
+            source,
+            leaf,
+        });
+    }
+    drop(source_of);
+    drop(file);
+    sources.shrink_to_fit();
+    // The entries of each source, counted then placed (a counting sort).
+    let mut starts = vec![0u32; sources.len() + 1];
+    for entry in &entries {
+        starts[entry.source + 1] += 1;
+    }
+    for s in 1..starts.len() {
+        starts[s] += starts[s - 1];
+    }
+    let mut next = starts.clone();
+    let mut members = vec![0u32; entries.len()];
     for (i, entry) in entries.iter().enumerate() {
-        by_source[entry.source].push(i);
+        members[next[entry.source] as usize] = i as u32;
+        next[entry.source] += 1;
     }
     List {
         bytes,
         entries,
         sources,
-        by_source,
+        starts,
+        members,
         types: types.clone(),
     }
 }
@@ -1266,19 +1439,13 @@ impl PlcBackend for OpcuaBackend {
 
     async fn read(&mut self, reads: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
         self.session()?;
-        if let (Some(every), Some(at)) = (self.config.rebrowse, self.built_at) {
-            if at.elapsed() >= every {
-                match self.rebuild().await {
-                    Ok(()) => {}
-                    Err(e) if e.is_link_failure() => return Err(e),
-                    // The server refused a Browse or Read of attributes:
-                    // the list stays as it is, looked for again later.
-                    Err(e) => {
-                        warn!(section = %self.config.section, "looking for the server's variables again failed: {e}; the variables stay as they are");
-                        self.built_at = Some(Instant::now());
-                    }
-                }
-            }
+        // A list the rebrowse built since.
+        let rebuilt = self
+            .connection
+            .as_ref()
+            .and_then(|c| c.rebuilt.lock().unwrap_or_else(|e| e.into_inner()).take());
+        if let Some(built) = rebuilt {
+            self.take_list(built);
         }
         let mut wanted: Vec<usize> = Vec::new();
         let mut state = false;
@@ -1402,14 +1569,14 @@ impl PlcBackend for OpcuaBackend {
             if handle != STATE_HANDLE {
                 let Some(entries) = (handle as usize)
                     .checked_sub(1)
-                    .and_then(|source| self.served.by_source.get(source))
+                    .and_then(|source| self.served.of_source(source))
                 else {
                     continue;
                 };
                 let unix_ms = stamp_of(&value);
                 let mut fields = structure::Fields::default();
                 for &i in entries {
-                    let entry = &self.served.entries[i];
+                    let entry = &self.served.entries[i as usize];
                     if let Ok(bytes) = entry_bytes(entry, &value, &mut fields) {
                         pushed.push(Pushed {
                             name: entry.name.clone(),
@@ -1445,7 +1612,7 @@ impl PlcBackend for OpcuaBackend {
         }
         let fetching = match &self.newest {
             Some(newest) => newest.clone(),
-            None => (self.served.bytes.clone(), self.served.types.clone()),
+            None => Arc::new((self.served.bytes.clone(), self.served.types.clone())),
         };
         let size = fetching.0.len() as u64;
         self.fetching = Some(fetching);
@@ -1465,19 +1632,22 @@ impl PlcBackend for OpcuaBackend {
         offset: u64,
         len: u32,
     ) -> Result<Answer<Vec<u8>>, PlcError> {
-        let Some((bytes, _)) = &self.fetching else {
+        let Some(fetching) = &self.fetching else {
             return Ok(Err(Refusal::BAD_PARAMETERS));
         };
+        let bytes = &fetching.0;
         if path != VARS_FILE.as_bytes() || offset > bytes.len() as u64 {
             return Ok(Err(Refusal::BAD_PARAMETERS));
         }
         let end = (offset + u64::from(len)).min(bytes.len() as u64);
         let part = bytes[offset as usize..end as usize].to_vec();
         if end == bytes.len() as u64 {
-            if let Some((bytes, types)) = self.fetching.take() {
-                if self.newest.as_ref().is_some_and(|(b, _)| *b == bytes) {
+            if let Some(fetched) = self.fetching.take() {
+                if self.newest.as_ref().is_some_and(|n| n.0 == fetched.0) {
                     self.newest = None;
                 }
+                // Its only holder now, unless a newer list came meanwhile.
+                let (bytes, types) = Arc::unwrap_or_clone(fetched);
                 self.served = list_of(bytes, &types);
                 // The handles of the old list mean other variables now.
                 if let (Some(subscription), Ok(session)) =
@@ -1486,7 +1656,9 @@ impl PlcBackend for OpcuaBackend {
                     let _ = self
                         .call(
                             "DeleteSubscriptions",
-                            session.delete_subscriptions(&[subscription.id]),
+                            session.delete_subscriptions(
+                                &subscription.ids.iter().map(|s| s.0).collect::<Vec<_>>(),
+                            ),
                         )
                         .await;
                 }
