@@ -518,6 +518,34 @@ async fn a_client_killed_mid_subscription_leaves_the_server_serving() {
     ua.server.shutdown().await;
 }
 
+/// A change that comes sooner after the last one reported than its item's
+/// sampling interval is held back by the stack to that interval's end; it
+/// must still arrive when no change follows it (async-opcua 0.19 looked at
+/// the item again only on its next change: the last value never came).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_change_held_back_by_the_sampling_interval_still_arrives() {
+    let ua = Ua::start("", "").await;
+    let mut c = ua.telnet().await;
+    set(&mut c, "COUNTER", "1").await;
+    // Publishing every 20 ms (the poll's rate), sampling every 1000 ms.
+    let (mut sub, ready) = Subscription::start(
+        &ua.url,
+        &[],
+        "subscribe",
+        &["PLC.COUNTER", "none", "0", "5", "20", "10", "1000"],
+    )
+    .await;
+    assert_eq!(ready["revised_sampling"], 1000.0, "{ready}");
+    // Long after the first value's time: reported at once. The next, a
+    // poll or two later: held back.
+    set(&mut c, "COUNTER", "2").await;
+    set(&mut c, "COUNTER", "3").await;
+    let got: Vec<Value> = sub.values().await;
+    let values: Vec<&Value> = got.iter().map(|v| &v["value"]).collect();
+    assert_eq!(values.last(), Some(&&Value::from(3)), "{got:?}");
+    ua.server.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn an_untrusted_certificate_is_rejected_then_signandencrypt_with_a_user() {
     let ua = Ua::start("", "").await;

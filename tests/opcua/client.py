@@ -5,10 +5,10 @@ prints JSON lines on stdout; a failure to connect prints
 
   client.py browse URL                       the tree under plccoms, every variable read
   client.py write URL NODE TYPE VALUE        one Write; prints its StatusCode's name
-  client.py subscribe URL NODE KIND DEADBAND SECONDS [PUBLISH_MS QUEUE]
+  client.py subscribe URL NODE KIND DEADBAND SECONDS [PUBLISH_MS QUEUE SAMPLING_MS]
                                              one monitored item (KIND none, absolute,
-                                             percent; publishing every 20 ms and a
-                                             queue of 1000 unless given); prints
+                                             percent; publishing every 20 ms, a queue
+                                             of 1000 and sampling 0 unless given); prints
                                              "ready", then each value (with "overflow":
                                              the StatusCode's Overflow bit, 0x80)
   client.py history URL NODE FROM_MS TO_MS PER_PAGE
@@ -175,7 +175,7 @@ async def subscribe(client, args):
     kind = {"none": 0, "absolute": 1, "percent": 2}[args.kind]
     params = ua.MonitoringParameters()
     params.ClientHandle = 1
-    params.SamplingInterval = 0
+    params.SamplingInterval = float(getattr(args, "sampling_ms", 0))
     params.QueueSize = int(getattr(args, "queue", 1000))
     params.DiscardOldest = True
     if kind:
@@ -353,7 +353,7 @@ async def main():
     args = parser.parse_args()
     names = {
         "browse": [], "write": ["node", "type", "value"],
-        "subscribe": ["node", "kind", "deadband", "seconds", "publish_ms", "queue"],
+        "subscribe": ["node", "kind", "deadband", "seconds", "publish_ms", "queue", "sampling_ms"],
         "history": ["node", "from_ms", "to_ms", "per_page"], "hold": ["node"],
         "makecert": [], "events": ["seconds"], "watch": ["nodes"], "read": ["node"], "paths": ["section", "variable", "page"],
     }[args.command]
