@@ -67,8 +67,7 @@ impl Feed {
             let names: Vec<String> = view.monitored.keys().cloned().collect();
             for name in names {
                 if let Some(&id) = view.by_name.get(&name) {
-                    let node = shared.node(ids::variable(&nodes.name, &name));
-                    view.enable(id, node, shared.resample_ms());
+                    view.enable(id, shared.resample_ms());
                 }
             }
             std::mem::replace(&mut *current, view)
@@ -125,14 +124,17 @@ impl Feed {
                     continue;
                 }
                 watched.due = (changed && watched.resample_ms > 0.0).then(|| {
-                    now + Duration::from_secs_f64(watched.resample_ms.min(3.6e6) / 1000.0)
+                    now + Duration::from_secs_f64(
+                        f64::from(watched.resample_ms.min(3.6e6)) / 1000.0,
+                    )
                 });
                 next_due = earliest(next_due, watched.due);
                 watched.seq = slot.changed_seq;
                 watched.quality = Some(quality);
                 let stamp = view.stamp_of.get(&id).copied();
+                let node = ids::variable(&nodes.name, &space::shown_name(&view.table, id));
                 updates.push((
-                    watched.node.clone(),
+                    self.shared.node(node),
                     space::data_value(snapshot, id, stamp, opts),
                 ));
             }

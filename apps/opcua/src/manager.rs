@@ -20,7 +20,7 @@ use opcua::server::node_manager::{
 };
 use opcua::server::{ContinuationPoint, CreateMonitoredItem, MonitoredItemHandle};
 use opcua::types::{
-    AttributeId, DataValue, DateTime, HistoryData, MonitoringMode, NodeId, ReadRawModifiedDetails,
+    AttributeId, DataValue, DateTime, HistoryData, MonitoringMode, ReadRawModifiedDetails,
     StatusCode, TimestampsToReturn,
 };
 use plccoms_core::driver::ReadRequest;
@@ -265,10 +265,9 @@ impl InMemoryNodeManagerImpl for Manager {
             }
             let snapshot = nodes.section.latest();
             let mut view = nodes.lock();
-            let node_id = node.node_id.clone();
             let sampling = item.sampling_interval();
             self.shared.sampled(sampling);
-            match watch(&mut view, &name, node_id, sampling) {
+            match watch(&mut view, &name, sampling) {
                 Some(id) if Arc::ptr_eq(&view.table, &snapshot.table) => {
                     let stamp = view.stamp_of.get(&id).copied();
                     let value = space::data_value(&snapshot, id, stamp, nodes.section.format());
@@ -343,7 +342,7 @@ impl InMemoryNodeManagerImpl for Manager {
                     // Counted by name even if this table lacks it: a
                     // later table may have it.
                     let resample = self.shared.resample_ms();
-                    let _ = watch(view, &name, item.node_id().clone(), resample);
+                    let _ = watch(view, &name, resample);
                 }
                 _ => {}
             }
@@ -679,15 +678,15 @@ pub const BOUND_LOOKBACK_MS: i64 = 24 * 3_600_000;
 /// One more monitored item on `name`, of sampling interval `sampling_ms`:
 /// the first enables it in the poll. The variable's id in the view's
 /// table, if it has it.
-pub fn watch(view: &mut View, name: &str, node: NodeId, sampling_ms: f64) -> Option<VarId> {
+pub fn watch(view: &mut View, name: &str, sampling_ms: f64) -> Option<VarId> {
     let count = view.monitored.entry(name.to_string()).or_default();
     *count += 1;
     let first = *count == 1;
     let &id = view.by_name.get(name)?;
     if first {
-        view.enable(id, node, sampling_ms);
+        view.enable(id, sampling_ms);
     } else if let Some(watched) = view.watched.get_mut(&id) {
-        watched.resample_ms = watched.resample_ms.max(sampling_ms);
+        watched.resample_ms = watched.resample_ms.max(sampling_ms as f32);
     }
     Some(id)
 }
@@ -738,9 +737,8 @@ mod tests {
     fn monitored_items_enable_their_variable_until_the_last_goes() {
         let mut view = view();
         let a = view.table.lookup(b"A").unwrap();
-        let node = NodeId::new(2, "S.A");
-        assert_eq!(watch(&mut view, "A", node.clone(), 0.0), Some(a));
-        assert_eq!(watch(&mut view, "A", node, 0.0), Some(a));
+        assert_eq!(watch(&mut view, "A", 0.0), Some(a));
+        assert_eq!(watch(&mut view, "A", 0.0), Some(a));
         assert!(view.interest.is_wanted(a));
         unwatch(&mut view, "A");
         assert!(view.interest.is_wanted(a));
@@ -749,10 +747,7 @@ mod tests {
         assert!(!view.interest.is_wanted(a));
         assert!(view.watched.is_empty() && view.monitored.is_empty());
         // A name the table lacks is counted, and enables nothing.
-        assert_eq!(
-            watch(&mut view, "GONE", NodeId::new(2, "S.GONE"), 0.0),
-            None
-        );
+        assert_eq!(watch(&mut view, "GONE", 0.0), None);
         assert_eq!(view.monitored.get("GONE"), Some(&1));
         unwatch(&mut view, "GONE");
         assert!(view.monitored.is_empty());

@@ -26,14 +26,17 @@ use crate::ids;
 
 /// A variable a monitored item watches: what was last given to the stack.
 #[derive(Debug, Clone)]
+///
+/// One per monitored variable (100,000 with a SCADA's items): kept small,
+/// its NodeId made when a change is given (a change is rarer than a
+/// variable watched).
 pub struct Watched {
-    pub node: NodeId,
     /// `changed_seq` of the value given, and its quality.
     pub seq: u64,
     pub quality: Option<Quality>,
     /// The longest sampling interval of its monitored items (ms), and when
     /// its last change is to be given again (see [`View::enable`]).
-    pub resample_ms: f64,
+    pub resample_ms: f32,
     pub due: Option<std::time::Instant>,
 }
 
@@ -110,11 +113,7 @@ impl SectionNodes {
         let mut view = self.lock();
         for (name, count) in monitored {
             if let Some(&id) = view.by_name.get(&name) {
-                view.enable(
-                    id,
-                    shared.node(ids::variable(&self.name, &name)),
-                    shared.resample_ms(),
-                );
+                view.enable(id, shared.resample_ms());
             }
             *view.monitored.entry(name).or_default() += count;
         }
@@ -240,7 +239,7 @@ impl View {
     }
 
     /// Enables `id` in the poll (with its HISTORY_STAMP variable) and hands
-    /// its changes to the monitored items on `node`.
+    /// its changes to its monitored items.
     ///
     /// `resample_ms`: the longest sampling interval of those items. The
     /// stack holds back a change that comes sooner than that after the last
@@ -250,7 +249,7 @@ impl View {
     /// list of items to look at on the publish before that end): a last
     /// change would never arrive. The feed gives such a change again one
     /// interval after it, which makes the stack report it.
-    pub fn enable(&mut self, id: VarId, node: NodeId, resample_ms: f64) {
+    pub fn enable(&mut self, id: VarId, resample_ms: f64) {
         for enabled in [Some(id), self.stamp_of.get(&id).copied()]
             .into_iter()
             .flatten()
@@ -262,10 +261,9 @@ impl View {
         self.watched.insert(
             id,
             Watched {
-                node,
                 seq: u64::MAX,
                 quality: None,
-                resample_ms,
+                resample_ms: resample_ms as f32,
                 due: None,
             },
         );
