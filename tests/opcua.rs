@@ -526,23 +526,28 @@ async fn a_client_killed_mid_subscription_leaves_the_server_serving() {
 async fn a_change_held_back_by_the_sampling_interval_still_arrives() {
     let ua = Ua::start("", "").await;
     let mut c = ua.telnet().await;
-    set(&mut c, "COUNTER", "1").await;
-    // Publishing every 20 ms (the poll's rate), sampling every 1000 ms.
-    let (mut sub, ready) = Subscription::start(
-        &ua.url,
-        &[],
-        "subscribe",
-        &["PLC.COUNTER", "none", "0", "5", "20", "10", "1000"],
-    )
-    .await;
-    assert_eq!(ready["revised_sampling"], 1000.0, "{ready}");
-    // Long after the first value's time: reported at once. The next, a
-    // poll or two later: held back.
-    set(&mut c, "COUNTER", "2").await;
-    set(&mut c, "COUNTER", "3").await;
-    let got: Vec<Value> = sub.values().await;
-    let values: Vec<&Value> = got.iter().map(|v| &v["value"]).collect();
-    assert_eq!(values.last(), Some(&&Value::from(3)), "{got:?}");
+    // Publishing every 20 ms (the poll's rate), sampling every 1000 ms: as
+    // made, and as modified from 0 (on V_DINT, so that the first item's
+    // interval does not stand in for the second's).
+    for (node, name, sampling) in [
+        ("PLC.COUNTER", "COUNTER", ["1000", "-"]),
+        ("PLC.V_DINT", "V_DINT", ["0", "1000"]),
+    ] {
+        set(&mut c, name, "1").await;
+        let mut rest = vec![node, "none", "0", "5", "20", "10", sampling[0]];
+        if sampling[1] != "-" {
+            rest.push(sampling[1]);
+        }
+        let (mut sub, ready) = Subscription::start(&ua.url, &[], "subscribe", &rest).await;
+        assert_eq!(ready["revised_sampling"], 1000.0, "{ready}");
+        // The first change soon after the first value (its time): held back,
+        // and the next after it too.
+        set(&mut c, name, "2").await;
+        set(&mut c, name, "3").await;
+        let got: Vec<Value> = sub.values().await;
+        let values: Vec<&Value> = got.iter().map(|v| &v["value"]).collect();
+        assert_eq!(values.last(), Some(&&Value::from(3)), "{name}: {got:?}");
+    }
     ua.server.shutdown().await;
 }
 

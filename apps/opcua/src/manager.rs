@@ -16,7 +16,8 @@ use opcua::server::node_manager::memory::{
     InMemoryNodeManagerImpl, InMemoryNodeManagerImplBuilder,
 };
 use opcua::server::node_manager::{
-    HistoryNode, MonitoredItemRef, ParsedReadValueId, RequestContext, ServerContext, WriteNode,
+    HistoryNode, MonitoredItemRef, MonitoredItemUpdateRef, ParsedReadValueId, RequestContext,
+    ServerContext, WriteNode,
 };
 use opcua::server::{ContinuationPoint, CreateMonitoredItem, MonitoredItemHandle};
 use opcua::types::{
@@ -299,6 +300,32 @@ impl InMemoryNodeManagerImpl for Manager {
                     items[i].set_initial_value(value);
                 }
                 items[i].set_status(StatusCode::Good);
+            }
+        }
+    }
+
+    /// A sampling interval modified counts for giving held-back changes
+    /// again (see View::enable).
+    async fn modify_monitored_items(
+        &self,
+        _context: &RequestContext,
+        items: &[&MonitoredItemUpdateRef],
+    ) {
+        for item in items {
+            if item.attribute() != AttributeId::Value || !item.status_code().is_good() {
+                continue;
+            }
+            let sampling = item.update().revised_sampling_interval;
+            self.shared.sampled(sampling);
+            let Some((nodes, name)) = self.shared.variable(item.node_id()) else {
+                continue;
+            };
+            let view = &mut *nodes.lock();
+            let Some(&id) = view.by_name.get(&name) else {
+                continue;
+            };
+            if let Some(watched) = view.watched.get_mut(&id) {
+                watched.resample_ms = watched.resample_ms.max(sampling as f32);
             }
         }
     }
