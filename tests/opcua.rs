@@ -518,6 +518,39 @@ async fn a_client_killed_mid_subscription_leaves_the_server_serving() {
     ua.server.shutdown().await;
 }
 
+/// A change that comes sooner after the last one reported than its item's
+/// sampling interval is held back by the stack to that interval's end; it
+/// must still arrive when no change follows it (async-opcua 0.19 looked at
+/// the item again only on its next change: the last value never came).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_change_held_back_by_the_sampling_interval_still_arrives() {
+    let ua = Ua::start("", "").await;
+    let mut c = ua.telnet().await;
+    // Publishing every 20 ms (the poll's rate), sampling every 1000 ms: as
+    // made, and as modified from 0 (on V_DINT, so that the first item's
+    // interval does not stand in for the second's).
+    for (node, name, sampling) in [
+        ("PLC.COUNTER", "COUNTER", ["1000", "-"]),
+        ("PLC.V_DINT", "V_DINT", ["0", "1000"]),
+    ] {
+        set(&mut c, name, "1").await;
+        let mut rest = vec![node, "none", "0", "5", "20", "10", sampling[0]];
+        if sampling[1] != "-" {
+            rest.push(sampling[1]);
+        }
+        let (mut sub, ready) = Subscription::start(&ua.url, &[], "subscribe", &rest).await;
+        assert_eq!(ready["revised_sampling"], 1000.0, "{ready}");
+        // The first change soon after the first value (its time): held back,
+        // and the next after it too.
+        set(&mut c, name, "2").await;
+        set(&mut c, name, "3").await;
+        let got: Vec<Value> = sub.values().await;
+        let values: Vec<&Value> = got.iter().map(|v| &v["value"]).collect();
+        assert_eq!(values.last(), Some(&&Value::from(3)), "{name}: {got:?}");
+    }
+    ua.server.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn an_untrusted_certificate_is_rejected_then_signandencrypt_with_a_user() {
     let ua = Ua::start("", "").await;

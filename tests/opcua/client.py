@@ -5,10 +5,11 @@ prints JSON lines on stdout; a failure to connect prints
 
   client.py browse URL                       the tree under plccoms, every variable read
   client.py write URL NODE TYPE VALUE        one Write; prints its StatusCode's name
-  client.py subscribe URL NODE KIND DEADBAND SECONDS [PUBLISH_MS QUEUE]
+  client.py subscribe URL NODE KIND DEADBAND SECONDS [PUBLISH_MS QUEUE SAMPLING_MS MODIFY_MS]
                                              one monitored item (KIND none, absolute,
-                                             percent; publishing every 20 ms and a
-                                             queue of 1000 unless given); prints
+                                             percent; publishing every 20 ms, a queue
+                                             of 1000 and sampling 0 unless given; with
+                                             MODIFY_MS, then modified to sample so); prints
                                              "ready", then each value (with "overflow":
                                              the StatusCode's Overflow bit, 0x80)
   client.py history URL NODE FROM_MS TO_MS PER_PAGE
@@ -175,7 +176,7 @@ async def subscribe(client, args):
     kind = {"none": 0, "absolute": 1, "percent": 2}[args.kind]
     params = ua.MonitoringParameters()
     params.ClientHandle = 1
-    params.SamplingInterval = 0
+    params.SamplingInterval = float(getattr(args, "sampling_ms", 0))
     params.QueueSize = int(getattr(args, "queue", 1000))
     params.DiscardOldest = True
     if kind:
@@ -201,8 +202,13 @@ async def subscribe(client, args):
     sub.server.create_monitored_items = keep
     await sub.create_monitored_items([request])
     result = answers["results"][0]
+    revised_sampling = result.RevisedSamplingInterval
+    if getattr(args, "modify_ms", None) is not None:
+        modified = await sub.modify_monitored_item(
+            result.MonitoredItemId, float(args.modify_ms), params.QueueSize)
+        revised_sampling = modified[0].RevisedSamplingInterval
     out({"ready": True, "status": status_name(result.StatusCode),
-         "revised_sampling": result.RevisedSamplingInterval,
+         "revised_sampling": revised_sampling,
          "revised_queue": result.RevisedQueueSize})
     await drain(handler.values, float(args.seconds))
 
@@ -353,7 +359,8 @@ async def main():
     args = parser.parse_args()
     names = {
         "browse": [], "write": ["node", "type", "value"],
-        "subscribe": ["node", "kind", "deadband", "seconds", "publish_ms", "queue"],
+        "subscribe": ["node", "kind", "deadband", "seconds", "publish_ms", "queue", "sampling_ms",
+                      "modify_ms"],
         "history": ["node", "from_ms", "to_ms", "per_page"], "hold": ["node"],
         "makecert": [], "events": ["seconds"], "watch": ["nodes"], "read": ["node"], "paths": ["section", "variable", "page"],
     }[args.command]

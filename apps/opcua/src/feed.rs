@@ -5,6 +5,7 @@
 //! section's nodes, keeping every monitored item's variable enabled.
 
 use std::sync::Arc;
+use std::time::Duration;
 
 use opcua::server::node_manager::memory::InMemoryNodeManager;
 use opcua::server::SubscriptionCache;
@@ -37,9 +38,18 @@ impl Feed {
             if stale_table {
                 self.rebuild(&snapshot);
             }
-            self.push(&snapshot);
+            let due = self.push(&snapshot);
+            // A change to give again (see View::enable) wakes it without a
+            // new snapshot (none comes while the link is lost).
+            let resample = async {
+                match due {
+                    Some(due) => tokio::time::sleep_until(due.into()).await,
+                    None => std::future::pending().await,
+                }
+            };
             tokio::select! {
                 changed = rx.changed() => if changed.is_err() { break },
+                () = resample => {}
                 () = self.stop.cancelled() => break,
             }
         }
@@ -57,8 +67,7 @@ impl Feed {
             let names: Vec<String> = view.monitored.keys().cloned().collect();
             for name in names {
                 if let Some(&id) = view.by_name.get(&name) {
-                    let node = shared.node(ids::variable(&nodes.name, &name));
-                    view.enable(id, node);
+                    view.enable(id, shared.resample_ms());
                 }
             }
             std::mem::replace(&mut *current, view)
@@ -90,28 +99,42 @@ impl Feed {
     }
 
     /// Gives the stack what changed for the monitored variables, and the
-    /// section object's link state and last poll.
-    fn push(&self, snapshot: &Snapshot) {
+    /// section object's link state and last poll. When a change is next to
+    /// be given again.
+    fn push(&self, snapshot: &Snapshot) -> Option<std::time::Instant> {
         let nodes = &self.nodes;
         let opts = nodes.section.format();
         let mut updates: Vec<(NodeId, DataValue)> = Vec::new();
+        let mut next_due = None;
         {
             let mut view = nodes.lock();
             if !Arc::ptr_eq(&view.table, &snapshot.table) {
-                return;
+                return None;
             }
             let view = &mut *view;
+            let now = std::time::Instant::now();
             for (&id, watched) in view.watched.iter_mut() {
                 let slot = snapshot.slot(id);
                 let quality = snapshot.quality(id);
-                if slot.changed_seq == watched.seq && Some(quality) == watched.quality {
+                let changed = slot.changed_seq != watched.seq || Some(quality) != watched.quality;
+                // Given again one sampling interval after its change: see
+                // View::enable.
+                if !changed && watched.due.is_none_or(|due| due > now) {
+                    next_due = earliest(next_due, watched.due);
                     continue;
                 }
+                watched.due = (changed && watched.resample_ms > 0.0).then(|| {
+                    now + Duration::from_secs_f64(
+                        f64::from(watched.resample_ms.min(3.6e6)) / 1000.0,
+                    )
+                });
+                next_due = earliest(next_due, watched.due);
                 watched.seq = slot.changed_seq;
                 watched.quality = Some(quality);
                 let stamp = view.stamp_of.get(&id).copied();
+                let node = ids::variable(&nodes.name, &space::shown_name(&view.table, id));
                 updates.push((
-                    watched.node.clone(),
+                    self.shared.node(node),
                     space::data_value(snapshot, id, stamp, opts),
                 ));
             }
@@ -137,7 +160,7 @@ impl Feed {
             }
         }
         if updates.is_empty() {
-            return;
+            return next_due;
         }
         // Every node exists: rebuild() ran for this table first.
         let (ids, values): (Vec<NodeId>, Vec<DataValue>) = updates.into_iter().unzip();
@@ -147,6 +170,18 @@ impl Feed {
                 .zip(values)
                 .map(|(node, value)| (node, None, space::notified(value))),
         );
+        next_due
+    }
+}
+
+/// The earlier of two times, if any.
+fn earliest(
+    a: Option<std::time::Instant>,
+    b: Option<std::time::Instant>,
+) -> Option<std::time::Instant> {
+    match (a, b) {
+        (Some(a), Some(b)) => Some(a.min(b)),
+        (a, b) => a.or(b),
     }
 }
 

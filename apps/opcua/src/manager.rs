@@ -16,11 +16,12 @@ use opcua::server::node_manager::memory::{
     InMemoryNodeManagerImpl, InMemoryNodeManagerImplBuilder,
 };
 use opcua::server::node_manager::{
-    HistoryNode, MonitoredItemRef, ParsedReadValueId, RequestContext, ServerContext, WriteNode,
+    HistoryNode, MonitoredItemRef, MonitoredItemUpdateRef, ParsedReadValueId, RequestContext,
+    ServerContext, WriteNode,
 };
 use opcua::server::{ContinuationPoint, CreateMonitoredItem, MonitoredItemHandle};
 use opcua::types::{
-    AttributeId, DataValue, DateTime, HistoryData, MonitoringMode, NodeId, ReadRawModifiedDetails,
+    AttributeId, DataValue, DateTime, HistoryData, MonitoringMode, ReadRawModifiedDetails,
     StatusCode, TimestampsToReturn,
 };
 use plccoms_core::driver::ReadRequest;
@@ -265,8 +266,9 @@ impl InMemoryNodeManagerImpl for Manager {
             }
             let snapshot = nodes.section.latest();
             let mut view = nodes.lock();
-            let node_id = node.node_id.clone();
-            match watch(&mut view, &name, node_id) {
+            let sampling = item.sampling_interval();
+            self.shared.sampled(sampling);
+            match watch(&mut view, &name, sampling) {
                 Some(id) if Arc::ptr_eq(&view.table, &snapshot.table) => {
                     let stamp = view.stamp_of.get(&id).copied();
                     let value = space::data_value(&snapshot, id, stamp, nodes.section.format());
@@ -298,6 +300,32 @@ impl InMemoryNodeManagerImpl for Manager {
                     items[i].set_initial_value(value);
                 }
                 items[i].set_status(StatusCode::Good);
+            }
+        }
+    }
+
+    /// A sampling interval modified counts for giving held-back changes
+    /// again (see View::enable).
+    async fn modify_monitored_items(
+        &self,
+        _context: &RequestContext,
+        items: &[&MonitoredItemUpdateRef],
+    ) {
+        for item in items {
+            if item.attribute() != AttributeId::Value || !item.status_code().is_good() {
+                continue;
+            }
+            let sampling = item.update().revised_sampling_interval;
+            self.shared.sampled(sampling);
+            let Some((nodes, name)) = self.shared.variable(item.node_id()) else {
+                continue;
+            };
+            let view = &mut *nodes.lock();
+            let Some(&id) = view.by_name.get(&name) else {
+                continue;
+            };
+            if let Some(watched) = view.watched.get_mut(&id) {
+                watched.resample_ms = watched.resample_ms.max(sampling as f32);
             }
         }
     }
@@ -340,7 +368,8 @@ impl InMemoryNodeManagerImpl for Manager {
                     self.disabled_set().remove(&item.handle());
                     // Counted by name even if this table lacks it: a
                     // later table may have it.
-                    let _ = watch(view, &name, item.node_id().clone());
+                    let resample = self.shared.resample_ms();
+                    let _ = watch(view, &name, resample);
                 }
                 _ => {}
             }
@@ -673,15 +702,18 @@ fn bound_not_found(at_ms: i64) -> DataValue {
 /// How far before the start and after the end a bound is looked for.
 pub const BOUND_LOOKBACK_MS: i64 = 24 * 3_600_000;
 
-/// One more monitored item on `name`: the first enables it in the poll.
-/// The variable's id in the view's table, if it has it.
-pub fn watch(view: &mut View, name: &str, node: NodeId) -> Option<VarId> {
+/// One more monitored item on `name`, of sampling interval `sampling_ms`:
+/// the first enables it in the poll. The variable's id in the view's
+/// table, if it has it.
+pub fn watch(view: &mut View, name: &str, sampling_ms: f64) -> Option<VarId> {
     let count = view.monitored.entry(name.to_string()).or_default();
     *count += 1;
     let first = *count == 1;
     let &id = view.by_name.get(name)?;
     if first {
-        view.enable(id, node);
+        view.enable(id, sampling_ms);
+    } else if let Some(watched) = view.watched.get_mut(&id) {
+        watched.resample_ms = watched.resample_ms.max(sampling_ms as f32);
     }
     Some(id)
 }
@@ -732,9 +764,8 @@ mod tests {
     fn monitored_items_enable_their_variable_until_the_last_goes() {
         let mut view = view();
         let a = view.table.lookup(b"A").unwrap();
-        let node = NodeId::new(2, "S.A");
-        assert_eq!(watch(&mut view, "A", node.clone()), Some(a));
-        assert_eq!(watch(&mut view, "A", node), Some(a));
+        assert_eq!(watch(&mut view, "A", 0.0), Some(a));
+        assert_eq!(watch(&mut view, "A", 0.0), Some(a));
         assert!(view.interest.is_wanted(a));
         unwatch(&mut view, "A");
         assert!(view.interest.is_wanted(a));
@@ -743,7 +774,7 @@ mod tests {
         assert!(!view.interest.is_wanted(a));
         assert!(view.watched.is_empty() && view.monitored.is_empty());
         // A name the table lacks is counted, and enables nothing.
-        assert_eq!(watch(&mut view, "GONE", NodeId::new(2, "S.GONE")), None);
+        assert_eq!(watch(&mut view, "GONE", 0.0), None);
         assert_eq!(view.monitored.get("GONE"), Some(&1));
         unwatch(&mut view, "GONE");
         assert!(view.monitored.is_empty());

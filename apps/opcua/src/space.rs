@@ -26,11 +26,18 @@ use crate::ids;
 
 /// A variable a monitored item watches: what was last given to the stack.
 #[derive(Debug, Clone)]
+///
+/// One per monitored variable (100,000 with a SCADA's items): kept small,
+/// its NodeId made when a change is given (a change is rarer than a
+/// variable watched).
 pub struct Watched {
-    pub node: NodeId,
     /// `changed_seq` of the value given, and its quality.
     pub seq: u64,
     pub quality: Option<Quality>,
+    /// The longest sampling interval of its monitored items (ms), and when
+    /// its last change is to be given again (see [`View::enable`]).
+    pub resample_ms: f32,
+    pub due: Option<std::time::Instant>,
 }
 
 /// One section's part of the address space.
@@ -83,6 +90,10 @@ pub struct Shared {
     orphans: Mutex<HashMap<String, HashMap<String, u32>>>,
     pub history: Option<Arc<dyn plccoms_core::history_source::HistorySource>>,
     pub users: Arc<crate::users::Users>,
+    /// The longest sampling interval of any monitored item made (ms, as
+    /// f64 bits): the [`View::enable`] interval of items whose own is not
+    /// known (after a new table or a reload).
+    resample_ms: std::sync::atomic::AtomicU64,
 }
 
 impl SectionNodes {
@@ -102,7 +113,7 @@ impl SectionNodes {
         let mut view = self.lock();
         for (name, count) in monitored {
             if let Some(&id) = view.by_name.get(&name) {
-                view.enable(id, shared.node(ids::variable(&self.name, &name)));
+                view.enable(id, shared.resample_ms());
             }
             *view.monitored.entry(name).or_default() += count;
         }
@@ -125,6 +136,7 @@ impl Shared {
             orphans: Default::default(),
             history,
             users,
+            resample_ms: Default::default(),
         }
     }
 
@@ -159,6 +171,20 @@ impl Shared {
             .unwrap_or_else(|p| p.into_inner())
             .remove(name)
             .unwrap_or_default()
+    }
+
+    /// See the field.
+    pub fn resample_ms(&self) -> f64 {
+        f64::from_bits(self.resample_ms.load(std::sync::atomic::Ordering::Relaxed))
+    }
+
+    /// A monitored item of sampling interval `ms` made.
+    pub fn sampled(&self, ms: f64) {
+        // Positive f64s order as their bits.
+        if ms > 0.0 && ms.is_finite() {
+            self.resample_ms
+                .fetch_max(ms.to_bits(), std::sync::atomic::Ordering::Relaxed);
+        }
     }
 
     pub fn ns(&self) -> u16 {
@@ -213,8 +239,17 @@ impl View {
     }
 
     /// Enables `id` in the poll (with its HISTORY_STAMP variable) and hands
-    /// its changes to the monitored items on `node`.
-    pub fn enable(&mut self, id: VarId, node: NodeId) {
+    /// its changes to its monitored items.
+    ///
+    /// `resample_ms`: the longest sampling interval of those items. The
+    /// stack holds back a change that comes sooner than that after the last
+    /// one reported (moving its SourceTimestamp to the interval's end), and
+    /// reports it only when it looks at the item again, which it does on
+    /// the item's next change (async-opcua 0.19 drops the item from its
+    /// list of items to look at on the publish before that end): a last
+    /// change would never arrive. The feed gives such a change again one
+    /// interval after it, which makes the stack report it.
+    pub fn enable(&mut self, id: VarId, resample_ms: f64) {
         for enabled in [Some(id), self.stamp_of.get(&id).copied()]
             .into_iter()
             .flatten()
@@ -226,9 +261,10 @@ impl View {
         self.watched.insert(
             id,
             Watched {
-                node,
                 seq: u64::MAX,
                 quality: None,
+                resample_ms: resample_ms as f32,
+                due: None,
             },
         );
     }
