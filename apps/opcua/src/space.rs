@@ -25,11 +25,11 @@ use crate::convert;
 use crate::ids;
 
 /// A variable a monitored item watches: what was last given to the stack.
-#[derive(Debug, Clone)]
 ///
 /// One per monitored variable (100,000 with a SCADA's items): kept small,
 /// its NodeId made when a change is given (a change is rarer than a
 /// variable watched).
+#[derive(Debug, Clone)]
 pub struct Watched {
     /// `changed_seq` of the value given, and its quality.
     pub seq: u64,
