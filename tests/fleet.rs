@@ -337,6 +337,9 @@ fn rabbit_cluster(dir: &Path) -> Cluster {
                 .env("RABBITMQ_MNESIA_BASE", dir.join(format!("{name}-data")))
                 .env("RABBITMQ_LOG_BASE", dir.join(format!("{name}-logs")))
                 .env("RABBITMQ_LOGS", "-")
+                // A node that fails to start writes its crash dump here, not
+                // in the working directory (the repository).
+                .env("ERL_CRASH_DUMP", dir.join(format!("{name}-erl_crash.dump")))
                 // The script then execs the VM (no shell left in between
                 // to pass on signals), and -noinput keeps it off stdin.
                 .env("RABBITMQ_ALLOW_INPUT", "1")
