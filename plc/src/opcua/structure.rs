@@ -201,7 +201,7 @@ impl Structure {
             spans: Vec::new(),
             steps: 0,
         };
-        walker.structure(self, "", 0)?;
+        walker.structure(self, &Path::Root, 0)?;
         if walker.at != body.len() {
             return Err(DecodeError {
                 field: String::new(),
@@ -223,6 +223,25 @@ pub fn replace(body: &[u8], span: Range<usize>, new: &[u8]) -> Option<Vec<u8>> {
     Some(out)
 }
 
+/// Where the walker is: named only when an error needs it, as a body is
+/// walked for every value (no string per field and value).
+enum Path<'a> {
+    Root,
+    Field(&'a Path<'a>, &'a str),
+    Element(&'a Path<'a>, &'a [u32], u64),
+}
+
+impl fmt::Display for Path<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Path::Root => Ok(()),
+            Path::Field(Path::Root, name) => f.write_str(name),
+            Path::Field(parent, name) => write!(f, "{parent}.{name}"),
+            Path::Element(parent, dims, i) => write!(f, "{parent}{}", element_suffix(dims, *i)),
+        }
+    }
+}
+
 struct Walker<'a> {
     body: &'a [u8],
     at: usize,
@@ -233,7 +252,7 @@ struct Walker<'a> {
 }
 
 impl Walker<'_> {
-    fn error(&self, field: &str, what: impl Into<String>) -> DecodeError {
+    fn error(&self, field: &Path<'_>, what: impl Into<String>) -> DecodeError {
         DecodeError {
             field: field.to_string(),
             offset: self.at,
@@ -241,7 +260,7 @@ impl Walker<'_> {
         }
     }
 
-    fn take(&mut self, field: &str, n: usize) -> Result<&[u8], DecodeError> {
+    fn take(&mut self, field: &Path<'_>, n: usize) -> Result<&[u8], DecodeError> {
         let end = self
             .at
             .checked_add(n)
@@ -257,17 +276,17 @@ impl Walker<'_> {
         Ok(bytes)
     }
 
-    fn i32(&mut self, field: &str) -> Result<i32, DecodeError> {
+    fn i32(&mut self, field: &Path<'_>) -> Result<i32, DecodeError> {
         let b = self.take(field, 4)?;
         Ok(i32::from_le_bytes([b[0], b[1], b[2], b[3]]))
     }
 
-    fn u8(&mut self, field: &str) -> Result<u8, DecodeError> {
+    fn u8(&mut self, field: &Path<'_>) -> Result<u8, DecodeError> {
         Ok(self.take(field, 1)?[0])
     }
 
     /// An Int32 length (-1: null) and that many bytes.
-    fn bytes(&mut self, field: &str) -> Result<(), DecodeError> {
+    fn bytes(&mut self, field: &Path<'_>) -> Result<(), DecodeError> {
         let at = self.at;
         let n = self.i32(field)?;
         if n < -1 {
@@ -280,16 +299,17 @@ impl Walker<'_> {
         Ok(())
     }
 
-    fn structure(&mut self, s: &Structure, prefix: &str, depth: usize) -> Result<(), DecodeError> {
+    fn structure(
+        &mut self,
+        s: &Structure,
+        prefix: &Path<'_>,
+        depth: usize,
+    ) -> Result<(), DecodeError> {
         if depth >= MAX_DEPTH {
             return Err(self.error(prefix, format!("nested deeper than {MAX_DEPTH}")));
         }
         for field in &s.fields {
-            let path = if prefix.is_empty() {
-                field.name.clone()
-            } else {
-                format!("{prefix}.{}", field.name)
-            };
+            let path = Path::Field(prefix, &field.name);
             match &field.shape {
                 Shape::Scalar => self.one(field, &path, depth, true)?,
                 Shape::Fixed(dims) if dims.len() == 1 => {
@@ -303,7 +323,7 @@ impl Walker<'_> {
                         ));
                     }
                     for i in 0..u64::from(dims[0]) {
-                        let name = format!("{path}{}", element_suffix(dims, i));
+                        let name = Path::Element(&path, dims, i);
                         self.one(field, &name, depth, true)?;
                     }
                 }
@@ -319,7 +339,7 @@ impl Walker<'_> {
                     }
                     let n = elements(dims, MAX_ELEMENTS).unwrap_or(0);
                     for i in 0..n {
-                        let name = format!("{path}{}", element_suffix(dims, i));
+                        let name = Path::Element(&path, dims, i);
                         self.one(field, &name, depth, true)?;
                     }
                 }
@@ -349,7 +369,7 @@ impl Walker<'_> {
     }
 
     /// A multi-dimensional array's dimensions: an Int32 array.
-    fn dimensions(&mut self, path: &str) -> Result<Vec<u32>, DecodeError> {
+    fn dimensions(&mut self, path: &Path<'_>) -> Result<Vec<u32>, DecodeError> {
         let at = self.at;
         let n = self.i32(path)?;
         if !(0..=32).contains(&n) {
@@ -376,7 +396,7 @@ impl Walker<'_> {
     fn one(
         &mut self,
         field: &Field,
-        path: &str,
+        path: &Path<'_>,
         depth: usize,
         leaf: bool,
     ) -> Result<(), DecodeError> {
@@ -407,7 +427,7 @@ impl Walker<'_> {
         }
     }
 
-    fn scalar(&mut self, id: u8, path: &str) -> Result<(), DecodeError> {
+    fn scalar(&mut self, id: u8, path: &Path<'_>) -> Result<(), DecodeError> {
         use builtin::*;
         let fixed = match id {
             BOOLEAN | SBYTE | BYTE => 1,
@@ -447,7 +467,7 @@ impl Walker<'_> {
     }
 
     /// A NodeId; returns its encoding byte (an ExpandedNodeId's flags).
-    fn node_id(&mut self, path: &str) -> Result<u8, DecodeError> {
+    fn node_id(&mut self, path: &Path<'_>) -> Result<u8, DecodeError> {
         let at = self.at;
         let encoding = self.u8(path)?;
         match encoding & 0x3F {
@@ -587,6 +607,19 @@ mod tests {
         body.extend(2048i32.to_le_bytes());
         body.resize(4096, 0);
         assert!(s.spans(&body).is_err());
+    }
+
+    #[test]
+    fn errors_name_elements_and_nested_fields() {
+        let b = body();
+        assert_eq!(
+            sample().spans(&b[..15]).unwrap_err().to_string(),
+            "field STEPS[1] at byte 14: needs 2 bytes, 1 left"
+        );
+        assert_eq!(
+            sample().spans(&b[..27]).unwrap_err().to_string(),
+            "field INNER.NAME at byte 25: needs 4 bytes, 2 left"
+        );
     }
 
     #[test]
