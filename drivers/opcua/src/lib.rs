@@ -776,12 +776,16 @@ impl OpcuaBackend {
             };
             let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
             let mut full = Vec::new();
+            let mut monitored = Vec::with_capacity(chunk.len());
             for (&i, result) in chunk.iter().zip(created) {
                 let status = result.result.status_code;
                 if status == StatusCode::BadTooManyMonitoredItems {
                     // Refused one by one: in the next subscription.
                     full.push(i);
-                } else if status.is_bad() {
+                    continue;
+                }
+                monitored.push(i);
+                if status.is_bad() {
                     // Its refusal stands until the next table.
                     notified.insert(
                         i as u32 + 1,
@@ -793,11 +797,9 @@ impl OpcuaBackend {
                 }
             }
             drop(notified);
-            let taken = chunk.len() - full.len();
+            let taken = monitored.len();
             if let Some(subscription) = &mut self.subscription {
-                subscription
-                    .monitored
-                    .extend(chunk.iter().copied().filter(|i| !full.contains(i)));
+                subscription.monitored.extend(monitored);
                 if let Some(last) = subscription.ids.last_mut() {
                     last.1 += taken;
                 }
