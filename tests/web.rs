@@ -1560,6 +1560,44 @@ fn start_many() -> (Web, tempfile::TempDir) {
     std::fs::write(&big, csv).unwrap();
     let small = dir.path().join("small.csv");
     std::fs::write(&small, "name,type,table,address\na,INT,holding,0\n").unwrap();
+    // 300 ports picked free can be taken by another test's server before
+    // this one binds them (the pick is a moment, the start seconds): that
+    // section does not start, and the whole start is tried again with new
+    // ports. Any other reason a section did not start fails the test.
+    for attempt in 1.. {
+        let web = start_many_on_new_ports(&big, &small);
+        wait_until("the big table is loaded", || {
+            let (status, body) = request(
+                web.http,
+                "GET",
+                "/api/sections/Big/vars?mask=T*&limit=1",
+                &[],
+                None,
+            );
+            status == 200 && json(&body)["total"] == BIG_TAGS
+        });
+        // The web app starts after every section has started or failed.
+        let running = get_paged(web.http, "/api/sections?limit=1").1;
+        if running == Some(DEAD_SECTIONS + 1) {
+            return (web, dir);
+        }
+        let log = web.server.log();
+        let port_taken = log
+            .lines()
+            .filter(|l| l.contains("section not started"))
+            .all(|l| l.contains("in use"));
+        assert!(
+            attempt < 3 && port_taken && log.contains("section not started"),
+            "{running:?} of {} sections run (try {attempt}); the log:\n{log}",
+            DEAD_SECTIONS + 1
+        );
+        eprintln!("try {attempt}: a section's port was taken meanwhile; starting again");
+    }
+    unreachable!()
+}
+
+fn start_many_on_new_ports(big: &std::path::Path, small: &std::path::Path) -> Web {
+    use std::fmt::Write as _;
     // Ports picked apart: 300 random picks may repeat one.
     let mut taken = std::collections::HashSet::new();
     let mut port = || loop {
@@ -1584,25 +1622,10 @@ fn start_many() -> (Web, tempfile::TempDir) {
             small.display()
         );
     }
-    let server = ServerProcess::with_config(&ini, big_port);
-    let web = Web {
-        server,
+    Web {
+        server: ServerProcess::with_config(&ini, big_port),
         http: SocketAddr::from(([127, 0, 0, 1], http_port)),
-    };
-    wait_until("the big table is loaded", || {
-        let (status, body) = request(
-            web.http,
-            "GET",
-            "/api/sections/Big/vars?mask=T*&limit=1",
-            &[],
-            None,
-        );
-        status == 200 && json(&body)["total"] == BIG_TAGS
-    });
-    wait_until("every section runs", || {
-        get_paged(web.http, "/api/sections?limit=1").1 == Some(DEAD_SECTIONS + 1)
-    });
-    (web, dir)
+    }
 }
 
 /// GET `path`: status, `X-Total-Count` if any, JSON body.
