@@ -25,7 +25,6 @@ pub struct Follow {
     pub shared: Arc<Shared>,
     pub manager: Arc<InMemoryNodeManager<Manager>>,
     pub subscriptions: Arc<SubscriptionCache>,
-    pub loop_delay_ms: f64,
     pub stop: CancellationToken,
 }
 
@@ -72,7 +71,6 @@ impl Follow {
                 nodes: nodes.clone(),
                 manager: self.manager.clone(),
                 subscriptions: self.subscriptions.clone(),
-                loop_delay_ms: self.loop_delay_ms,
                 stop: stop.clone(),
             }
             .run(),
@@ -130,15 +128,7 @@ impl Follow {
                 }
             }
             for nodes in &fresh {
-                let view = nodes.lock();
-                space::build_section(
-                    &mut space,
-                    &self.shared,
-                    nodes,
-                    None,
-                    &view,
-                    self.loop_delay_ms,
-                );
+                space::build_section(&mut space, &self.shared, nodes);
             }
             let list = new
                 .iter()

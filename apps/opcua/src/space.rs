@@ -1,6 +1,8 @@
-//! The address space of our namespace: Objects / plccoms / <Section> /
-//! <Variable>, built from each section's variable table and rebuilt when
-//! the table changes (a new public or tag file). Each section's [`View`]
+//! Our namespace: Objects / plccoms / <Section> / <Variable>. The root
+//! folder and section objects are built into the stack's address space;
+//! the variables are served from each section's variable table
+//! ([`crate::vars`]), so a new table (a new public or tag file) shows at
+//! once. Each section's [`View`]
 //! says which variables are shown, which may be written, which the
 //! historian records, and which monitored items watch, by name, so that a
 //! new table keeps them.
@@ -9,10 +11,10 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use opcua::nodes::{ObjectBuilder, VariableBuilder};
-use opcua::server::address_space::{AccessLevel, AddressSpace};
+use opcua::server::address_space::AddressSpace;
 use opcua::types::{
-    DataValue, DateTime, EUInformation, LocalizedText, NodeId, ObjectTypeId, QualifiedName, Range,
-    StatusCode, UAString, VariableTypeId, Variant,
+    DataValue, DateTime, LocalizedText, NodeId, ObjectTypeId, QualifiedName, StatusCode,
+    VariableTypeId, Variant,
 };
 use plccoms_core::changes::Interest;
 use plccoms_core::changes::{Quality, Snapshot};
@@ -344,167 +346,64 @@ pub fn build_root(space: &mut AddressSpace, ns: u16) {
     .insert(space);
 }
 
-/// Builds (or rebuilds, after a new table) one section's object and its
-/// variables. Old variables that the new table lacks are removed; every
-/// node of a name that stays keeps its NodeId.
-pub fn build_section(
-    space: &mut AddressSpace,
-    shared: &Shared,
-    nodes: &SectionNodes,
-    old: Option<&View>,
-    view: &View,
-    loop_delay_ms: f64,
-) {
+/// Builds one section's object and its properties (its variables are
+/// served by [`crate::vars::Vars`], from its table).
+pub fn build_section(space: &mut AddressSpace, shared: &Shared, nodes: &SectionNodes) {
     let ns = shared.ns();
     let name = &nodes.name;
     let section_id = NodeId::new(ns, name.as_str());
-    if let Some(old) = old {
-        for shown in old.by_name.keys() {
-            remove_variable(space, ns, name, shown);
-        }
-    }
-    if space.find(&section_id).is_none() {
-        ObjectBuilder::new(
-            &section_id,
-            QualifiedName::new(ns, name.as_str()),
-            LocalizedText::from(name.as_str()),
-        )
-        .description(format!("PLC section [{name}]"))
-        .organized_by(NodeId::new(ns, ids::ROOT))
-        .has_type_definition(ObjectTypeId::BaseObjectType)
-        .insert(space);
-        let protocol = nodes.section.state().config.protocol.to_string();
-        for (property, value, ty) in [
-            (
-                "LinkState",
-                Variant::from(""),
-                opcua::types::DataTypeId::String,
-            ),
-            (
-                "LastPoll",
-                Variant::Empty,
-                opcua::types::DataTypeId::DateTime,
-            ),
-            (
-                "Backend",
-                Variant::from(protocol.as_str()),
-                opcua::types::DataTypeId::String,
-            ),
-        ] {
-            let id = NodeId::new(ns, ids::property(name, property));
-            VariableBuilder::new(
-                &id,
-                QualifiedName::new(ns, property),
-                LocalizedText::from(property),
-            )
-            .data_type(ty)
-            .value(value)
-            .property_of(section_id.clone())
-            .has_type_definition(VariableTypeId::PropertyType)
-            .insert(space);
-        }
-    }
-    let table = &view.table;
-    let mut ordered: Vec<(&String, &VarId)> = view.by_name.iter().collect();
-    ordered.sort_by_key(|(_, &id)| id);
-    for (shown, &id) in ordered {
-        let var = table.var(id);
-        let node = NodeId::new(ns, ids::variable(name, shown));
-        let mut access = AccessLevel::CURRENT_READ;
-        if view.writable[id as usize] {
-            access |= AccessLevel::CURRENT_WRITE;
-        }
-        let historized = view.historized[id as usize];
-        if historized {
-            access |= AccessLevel::HISTORY_READ;
-        }
-        let info = var.info.as_deref();
-        let range = info.and_then(|i| Some((i.min?, i.max?)));
-        let mut builder = VariableBuilder::new(
-            &node,
-            QualifiedName::new(ns, shown.as_str()),
-            LocalizedText::from(shown.as_str()),
-        )
-        .data_type(convert::data_type(var.ty))
-        .access_level(access)
-        .user_access_level(access)
-        .historizing(historized)
-        .minimum_sampling_interval(loop_delay_ms)
-        .value_rank(-1)
-        .component_of(section_id.clone())
-        .has_type_definition(if range.is_some() {
-            VariableTypeId::AnalogItemType
-        } else {
-            VariableTypeId::BaseDataVariableType
-        });
-        if let Some(description) = info
-            .map(|i| i.description.as_str())
-            .filter(|d| !d.is_empty())
-        {
-            builder = builder.description(description);
-        }
-        builder.insert(space);
-        if let Some(unit) = info.map(|i| i.unit.as_str()).filter(|u| !u.is_empty()) {
-            let eu = EUInformation {
-                namespace_uri: UAString::from("http://www.opcfoundation.org/UA/units/un/cefact"),
-                unit_id: -1,
-                display_name: LocalizedText::from(unit),
-                description: LocalizedText::from(unit),
-            };
-            add_property(
-                space,
-                ns,
-                &node,
-                "EngineeringUnits",
-                Variant::from(eu),
-                opcua::types::DataTypeId::EUInformation,
-            );
-        }
-        if let Some((low, high)) = range {
-            add_property(
-                space,
-                ns,
-                &node,
-                "EURange",
-                Variant::from(Range { low, high }),
-                opcua::types::DataTypeId::Range,
-            );
-        }
-    }
-}
-
-fn add_property(
-    space: &mut AddressSpace,
-    ns: u16,
-    owner: &NodeId,
-    property: &str,
-    value: Variant,
-    ty: opcua::types::DataTypeId,
-) {
-    let opcua::types::Identifier::String(owner_text) = &owner.identifier else {
+    if space.find(&section_id).is_some() {
         return;
-    };
-    let id = NodeId::new(ns, ids::property(owner_text.as_ref(), property));
-    VariableBuilder::new(
-        &id,
-        QualifiedName::new(0, property),
-        LocalizedText::from(property),
+    }
+    ObjectBuilder::new(
+        &section_id,
+        QualifiedName::new(ns, name.as_str()),
+        LocalizedText::from(name.as_str()),
     )
-    .data_type(ty)
-    .value(value)
-    .property_of(owner.clone())
-    .has_type_definition(VariableTypeId::PropertyType)
+    .description(format!("PLC section [{name}]"))
+    .organized_by(NodeId::new(ns, ids::ROOT))
+    .has_type_definition(ObjectTypeId::BaseObjectType)
     .insert(space);
+    let protocol = nodes.section.state().config.protocol.to_string();
+    for (property, value, ty) in [
+        (
+            "LinkState",
+            Variant::from(""),
+            opcua::types::DataTypeId::String,
+        ),
+        (
+            "LastPoll",
+            Variant::Empty,
+            opcua::types::DataTypeId::DateTime,
+        ),
+        (
+            "Backend",
+            Variant::from(protocol.as_str()),
+            opcua::types::DataTypeId::String,
+        ),
+    ] {
+        let id = NodeId::new(ns, ids::property(name, property));
+        VariableBuilder::new(
+            &id,
+            QualifiedName::new(ns, property),
+            LocalizedText::from(property),
+        )
+        .data_type(ty)
+        .value(value)
+        .property_of(section_id.clone())
+        .has_type_definition(VariableTypeId::PropertyType)
+        .insert(space);
+    }
 }
 
-/// Removes a section's object, its properties and the variables of
-/// `view`; the NodeIds removed, for their monitored items.
+/// Removes a section's object and its properties; the NodeIds removed
+/// with those of the variables of `view`, for their monitored items.
 pub fn remove_section(space: &mut AddressSpace, ns: u16, name: &str, view: &View) -> Vec<NodeId> {
-    let mut gone = Vec::new();
-    for shown in view.by_name.keys() {
-        remove_variable(space, ns, name, shown);
-        gone.push(NodeId::new(ns, ids::variable(name, shown)));
-    }
+    let mut gone: Vec<NodeId> = view
+        .by_name
+        .keys()
+        .map(|shown| NodeId::new(ns, ids::variable(name, shown)))
+        .collect();
     for property in SECTION_PROPERTIES {
         let id = NodeId::new(ns, ids::property(name, property));
         space.delete(&id, true);
@@ -516,14 +415,6 @@ pub fn remove_section(space: &mut AddressSpace, ns: u16, name: &str, view: &View
 
 /// The properties of a section object.
 const SECTION_PROPERTIES: [&str; 3] = ["LinkState", "LastPoll", "Backend"];
-
-fn remove_variable(space: &mut AddressSpace, ns: u16, section: &str, shown: &str) {
-    let text = ids::variable(section, shown);
-    for property in ["EngineeringUnits", "EURange"] {
-        space.delete(&NodeId::new(ns, ids::property(&text, property)), true);
-    }
-    space.delete(&NodeId::new(ns, text), true);
-}
 
 /// The DataValue of variable `id` in `snapshot` (its value as last known,
 /// its quality as StatusCode, as SourceTimestamp the PLC's time from its
