@@ -626,7 +626,11 @@ impl NodeManager for Vars {
         let tree = context.get_type_tree_for_user();
         let tree = tree.get();
         for node in nodes_to_browse.iter_mut() {
-            match node.take_continuation_point::<Cont>().map(|c| *c) {
+            let cont = node.take_continuation_point::<Cont>().map(|c| *c);
+            if cont.is_some() {
+                node.set_status(StatusCode::Good);
+            }
+            match cont {
                 Some(Cont::Rest(rest)) => Self::add_all(node, tree, rest),
                 Some(Cont::Section { name, next }) => {
                     let list = self.shared.list();
