@@ -60,23 +60,16 @@ impl Feed {
         let shared = &self.shared;
         let nodes = &self.nodes;
         let mut view = View::new(&nodes.section, snapshot, shared.history.is_some());
-        let old = {
+        {
             let mut current = nodes.lock();
-            view.monitored = std::mem::take(&mut current.monitored);
-            let names: Vec<String> = view.monitored.keys().cloned().collect();
-            for name in names {
-                if let Some(&id) = view.by_name.get(&name) {
-                    view.enable(id, shared.resample_ms());
-                }
-            }
-            std::mem::replace(&mut *current, view)
-        };
-        drop(old);
+            view.adopt(current.take_monitored(), shared.resample_ms());
+            *current = view;
+        }
         // Served from the view: the new nodes are there now.
         info!(
             section = %nodes.name,
             "OPC UA: variables of the new variable table served ({} shown)",
-            nodes.lock().by_name.len()
+            nodes.lock().shown_ids().count()
         );
         model_changed(
             &self.shared,

@@ -183,30 +183,36 @@ pub const BOUND_LOOKBACK_MS: i64 = 24 * 3_600_000;
 /// the first enables it in the poll. The variable's id in the view's
 /// table, if it has it.
 pub fn watch(view: &mut View, name: &str, sampling_ms: f64) -> Option<VarId> {
-    let count = view.monitored.entry(name.to_string()).or_default();
-    *count += 1;
-    let first = *count == 1;
-    let &id = view.by_name.get(name)?;
-    if first {
-        view.enable(id, sampling_ms);
-    } else if let Some(watched) = view.watched.get_mut(&id) {
-        watched.resample_ms = watched.resample_ms.max(sampling_ms as f32);
+    match view.id_of(name) {
+        Some(id) => {
+            view.enable(id, sampling_ms, 1);
+            Some(id)
+        }
+        None => {
+            *view.absent.entry(name.to_string()).or_default() += 1;
+            None
+        }
     }
-    Some(id)
 }
 
 /// One monitored item fewer on `name`: the last disables it.
 pub fn unwatch(view: &mut View, name: &str) {
-    let Some(count) = view.monitored.get_mut(name) else {
+    if let Some(id) = view.id_of(name) {
+        let Some(watched) = view.watched.get_mut(&id) else {
+            return;
+        };
+        watched.count = watched.count.saturating_sub(1);
+        if watched.count == 0 {
+            view.disable(id);
+        }
+        return;
+    }
+    let Some(count) = view.absent.get_mut(name) else {
         return;
     };
     *count -= 1;
-    if *count > 0 {
-        return;
-    }
-    view.monitored.remove(name);
-    if let Some(&id) = view.by_name.get(name) {
-        view.disable(id);
+    if *count == 0 {
+        view.absent.remove(name);
     }
 }
 
@@ -218,17 +224,13 @@ mod tests {
 
     fn view() -> View {
         let table = Arc::new(table_of(&[("A", "INT"), ("B", "REAL")]));
-        let by_name = (0..table.len() as VarId)
-            .map(|id| (space::shown_name(&table, id), id))
-            .collect();
         View {
             interest: Arc::new(Interest::new(table.len())),
             shown: vec![true; table.len()],
             writable: vec![false; table.len()],
             historized: vec![false; table.len()],
             table,
-            by_name,
-            monitored: Default::default(),
+            absent: Default::default(),
             watched: Default::default(),
             link_shown: None,
             stamp_of: Default::default(),
@@ -249,12 +251,12 @@ mod tests {
         assert!(view.watched.contains_key(&a));
         unwatch(&mut view, "A");
         assert!(!view.interest.is_wanted(a));
-        assert!(view.watched.is_empty() && view.monitored.is_empty());
+        assert!(view.watched.is_empty() && view.absent.is_empty());
         // A name the table lacks is counted, and enables nothing.
         assert_eq!(watch(&mut view, "GONE", 0.0), None);
-        assert_eq!(view.monitored.get("GONE"), Some(&1));
+        assert_eq!(view.absent.get("GONE"), Some(&1));
         unwatch(&mut view, "GONE");
-        assert!(view.monitored.is_empty());
+        assert!(view.absent.is_empty());
         // More removals than items are harmless.
         unwatch(&mut view, "A");
         assert!(!view.interest.is_wanted(a));

@@ -33,6 +33,8 @@ use crate::ids;
 /// variable watched).
 #[derive(Debug, Clone)]
 pub struct Watched {
+    /// Its monitored items, over every session.
+    pub count: u32,
     /// `changed_seq` of the value given, and its quality.
     pub seq: u64,
     pub quality: Option<Quality>,
@@ -48,16 +50,15 @@ pub struct View {
     pub table: Arc<VarTable>,
     /// Its interest (what the poll reads).
     pub interest: Arc<Interest>,
-    /// Shown variables by name (as shown: UTF-8, upper case).
-    pub by_name: HashMap<String, VarId>,
     /// Per variable of `table`: shown, writable (OPCUA_WRITE), recorded.
     pub shown: Vec<bool>,
     pub writable: Vec<bool>,
     pub historized: Vec<bool>,
-    /// Monitored items per variable name, over every session.
-    pub monitored: HashMap<String, u32>,
     /// The monitored variables of `table`.
     pub watched: HashMap<VarId, Watched>,
+    /// Monitored items on names `table` lacks (a later table may have
+    /// them), over every session.
+    pub absent: HashMap<String, u32>,
     /// Last link state and poll shown on the section object.
     pub link_shown: Option<(&'static str, i64)>,
     /// HISTORY_STAMP: value variable -> the variable holding the PLC's time
@@ -112,13 +113,7 @@ impl SectionNodes {
     /// this one replaces, or one removed earlier), enabling what its
     /// table has.
     pub fn adopt(&self, shared: &Shared, monitored: HashMap<String, u32>) {
-        let mut view = self.lock();
-        for (name, count) in monitored {
-            if let Some(&id) = view.by_name.get(&name) {
-                view.enable(id, shared.resample_ms());
-            }
-            *view.monitored.entry(name).or_default() += count;
-        }
+        self.lock().adopt(monitored, shared.resample_ms());
     }
 }
 
@@ -227,17 +222,35 @@ impl View {
         let mut view = View {
             table: snapshot.table.clone(),
             interest: snapshot.interest.clone(),
-            by_name: HashMap::new(),
             shown: Vec::new(),
             writable: Vec::new(),
             historized: Vec::new(),
-            monitored: HashMap::new(),
+            absent: HashMap::new(),
             watched: HashMap::new(),
             link_shown: None,
             stamp_of: HashMap::new(),
         };
         view.classify(section, recorded);
         view
+    }
+
+    /// A shown variable by its name as shown (exactly; the table's own
+    /// index, so no map of names is kept per view).
+    pub fn id_of(&self, name: &str) -> Option<VarId> {
+        let encoded;
+        let bytes: &[u8] = if name.is_ascii() {
+            name.as_bytes()
+        } else {
+            encoded = cp1250::try_encode(name)?;
+            &encoded
+        };
+        let id = self.table.lookup(bytes)?;
+        (self.shown[id as usize] && *self.table.var(id).name == *bytes).then_some(id)
+    }
+
+    /// The shown variables, in the table's order.
+    pub fn shown_ids(&self) -> impl Iterator<Item = VarId> + '_ {
+        (0..self.table.len() as VarId).filter(|&id| self.shown[id as usize])
     }
 
     /// Enables `id` in the poll (with its HISTORY_STAMP variable) and hands
@@ -251,7 +264,14 @@ impl View {
     /// list of items to look at on the publish before that end): a last
     /// change would never arrive. The feed gives such a change again one
     /// interval after it, which makes the stack report it.
-    pub fn enable(&mut self, id: VarId, resample_ms: f64) {
+    ///
+    /// `count`: the monitored items it gains.
+    pub fn enable(&mut self, id: VarId, resample_ms: f64, count: u32) {
+        if let Some(watched) = self.watched.get_mut(&id) {
+            watched.count += count;
+            watched.resample_ms = watched.resample_ms.max(resample_ms as f32);
+            return;
+        }
         for enabled in [Some(id), self.stamp_of.get(&id).copied()]
             .into_iter()
             .flatten()
@@ -263,12 +283,34 @@ impl View {
         self.watched.insert(
             id,
             Watched {
+                count,
                 seq: u64::MAX,
                 quality: None,
                 resample_ms: resample_ms as f32,
                 due: None,
             },
         );
+    }
+
+    /// The monitored item counts by variable name, taken (for a new
+    /// table, or a section of this name added later).
+    pub fn take_monitored(&mut self) -> HashMap<String, u32> {
+        let mut names = std::mem::take(&mut self.absent);
+        for (id, watched) in std::mem::take(&mut self.watched) {
+            *names.entry(shown_name(&self.table, id)).or_default() += watched.count;
+        }
+        names
+    }
+
+    /// Takes over monitored item counts by name, enabling what the table
+    /// has.
+    pub fn adopt(&mut self, monitored: HashMap<String, u32>, resample_ms: f64) {
+        for (name, count) in monitored {
+            match self.id_of(&name) {
+                Some(id) => self.enable(id, resample_ms, count),
+                None => *self.absent.entry(name).or_default() += count,
+            }
+        }
     }
 
     /// Undoes [`View::enable`].
@@ -324,10 +366,6 @@ impl View {
                 matches!(table.var(stamp).ty, Dt | Date | Lint | Ulint | Lword)
                     .then_some((value, stamp))
             })
-            .collect();
-        self.by_name = (0..len as VarId)
-            .filter(|&id| self.shown[id as usize])
-            .map(|id| (shown_name(table, id), id))
             .collect();
     }
 }
@@ -400,9 +438,8 @@ pub fn build_section(space: &mut AddressSpace, shared: &Shared, nodes: &SectionN
 /// with those of the variables of `view`, for their monitored items.
 pub fn remove_section(space: &mut AddressSpace, ns: u16, name: &str, view: &View) -> Vec<NodeId> {
     let mut gone: Vec<NodeId> = view
-        .by_name
-        .keys()
-        .map(|shown| NodeId::new(ns, ids::variable(name, shown)))
+        .shown_ids()
+        .map(|id| NodeId::new(ns, ids::variable(name, &shown_name(&view.table, id))))
         .collect();
     for property in SECTION_PROPERTIES {
         let id = NodeId::new(ns, ids::property(name, property));

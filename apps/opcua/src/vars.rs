@@ -122,7 +122,7 @@ pub struct Facts {
 
 impl Facts {
     pub fn of(view: &View, name: &str) -> Option<Facts> {
-        let &id = view.by_name.get(name)?;
+        let id = view.id_of(name)?;
         Some(Facts::of_id(view, id))
     }
 
@@ -439,8 +439,8 @@ impl Vars {
                 let name = target.name.as_ref();
                 nodes
                     .lock()
-                    .by_name
-                    .contains_key(name)
+                    .id_of(name)
+                    .is_some()
                     .then(|| self.node(ids::variable(&nodes.name, name)))
             }
             Named::Variable(nodes, name) => {
@@ -476,8 +476,8 @@ impl Vars {
             }
             Named::Variable(nodes, name) => nodes
                 .lock()
-                .by_name
-                .contains_key(&name)
+                .id_of(&name)
+                .is_some()
                 .then(|| QualifiedName::new(self.shared.ns(), name.as_str())),
             Named::Property(nodes, name, prop) => Facts::of(&nodes.lock(), &name)
                 .filter(|f| f.has(prop))
@@ -491,7 +491,7 @@ impl Vars {
     fn read_value(&self, nodes: &SectionNodes, name: &str) -> Option<Ours> {
         let snapshot = nodes.section.latest();
         let view = nodes.lock();
-        let &id = view.by_name.get(name)?;
+        let id = view.id_of(name)?;
         if !Arc::ptr_eq(&view.table, &snapshot.table) {
             // A new table the feed has not taken yet (a moment).
             return Some(Ours::Value(bad(StatusCode::BadWaitingForInitialData)));
@@ -854,7 +854,7 @@ impl NodeManager for Vars {
                 continue;
             };
             let view = &mut *nodes.lock();
-            let Some(&id) = view.by_name.get(&name) else {
+            let Some(id) = view.id_of(&name) else {
                 continue;
             };
             if let Some(watched) = view.watched.get_mut(&id) {
@@ -986,10 +986,7 @@ impl Vars {
             _ => return Err(StatusCode::BadNodeIdUnknown),
         };
         let view = nodes.lock();
-        let &id = view
-            .by_name
-            .get(&name)
-            .ok_or(StatusCode::BadNodeIdUnknown)?;
+        let id = view.id_of(&name).ok_or(StatusCode::BadNodeIdUnknown)?;
         if value.attribute_id != AttributeId::Value || value.index_range.has_range() {
             return Err(StatusCode::BadNotWritable);
         }
