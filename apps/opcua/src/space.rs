@@ -191,25 +191,6 @@ impl Shared {
     pub fn node(&self, text: String) -> NodeId {
         NodeId::new(self.ns(), text)
     }
-
-    /// The section and variable a NodeId of ours names, if it is one of
-    /// the shown variables of a section served now.
-    pub fn variable(&self, node: &NodeId) -> Option<(Arc<SectionNodes>, String)> {
-        if node.namespace != self.ns() {
-            return None;
-        }
-        let opcua::types::Identifier::String(text) = &node.identifier else {
-            return None;
-        };
-        let list = self.list();
-        let names: Vec<&str> = list.iter().map(|s| s.name.as_str()).collect();
-        match ids::parse(text.as_ref(), &names).ok()? {
-            ids::Ours::Variable { section, variable } => {
-                Some((list[section].clone(), variable.to_string()))
-            }
-            _ => None,
-        }
-    }
 }
 
 /// A variable's name as shown (UTF-8).

@@ -80,6 +80,15 @@ pub enum Named {
 }
 
 impl Shared {
+    /// The section and variable a NodeId of ours names (a section served
+    /// now; whether its table has the variable is for the caller).
+    pub fn variable(&self, node: &NodeId) -> Option<(Arc<SectionNodes>, String)> {
+        match self.named(node)? {
+            Named::Variable(nodes, name) => Some((nodes, name)),
+            _ => None,
+        }
+    }
+
     pub fn named(&self, node: &NodeId) -> Option<Named> {
         if node.namespace != self.ns() {
             return None;
