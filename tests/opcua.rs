@@ -1240,8 +1240,27 @@ async fn every_attribute_of_a_variable_and_of_its_properties() {
     let files = tempfile::tempdir().unwrap();
     let (server, url, _port, _conf) = modbus(files.path()).await;
     until_tree(&url, "LEVEL shown", |t| names(t).contains(&"LEVEL")).await;
-    let nodes = run(args(HMI, "attrs", &url, &["M.LEVEL"])).await;
+    let lines = run(args(HMI, "attrs", &url, &["M.LEVEL"])).await;
+    let (nodes, paths): (Vec<Value>, Vec<Value>) =
+        lines.into_iter().partition(|l| l.get("node").is_some());
     assert_eq!(nodes.len(), 3, "{nodes:?}");
+    // TranslateBrowsePaths to each property and back (inverse HasProperty).
+    let mut translated: Vec<&str> = paths
+        .iter()
+        .filter_map(|p| p["translated"].as_str())
+        .collect();
+    translated.sort();
+    assert_eq!(
+        translated,
+        ["M.LEVEL#EURange", "M.LEVEL#EngineeringUnits"],
+        "{paths:?}"
+    );
+    assert!(
+        paths
+            .iter()
+            .all(|p| p["back"] == serde_json::json!(["M.LEVEL"])),
+        "{paths:?}"
+    );
     let ns = nodes[0]["attrs"]["BrowseName"]
         .as_str()
         .unwrap()

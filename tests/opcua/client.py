@@ -343,10 +343,25 @@ async def attrs(client, args):
     the references of each (both directions)."""
     ns = await client.get_namespace_index("urn:plccoms")
     node = client.get_node(ua.NodeId(args.node, ns))
-    for n in [node] + await node.get_properties():
+    properties = await node.get_properties()
+    for n in [node] + properties:
         results = await n.read_attributes(list(ua.AttributeIds))
         out({"node": n.nodeid.Identifier, "attrs": attribute_values(results),
              "refs": await node_refs(n)})
+    # TranslateBrowsePaths from the variable to each property and back.
+    for p in properties:
+        name = (await p.read_browse_name()).Name
+        there = await node.get_child([f"0:{name}"])
+        path = ua.BrowsePath()
+        path.StartingNode = there.nodeid
+        element = ua.RelativePathElement()
+        element.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasProperty)
+        element.IsInverse = True
+        element.TargetName = ua.QualifiedName(args.node.split(".", 1)[1], ns)
+        path.RelativePath.Elements = [element]
+        result = (await client.uaclient.translate_browsepaths_to_nodeids([path]))[0]
+        back = [t.TargetId.Identifier for t in result.Targets]
+        out({"translated": there.nodeid.Identifier, "back": back})
 
 
 async def hold(client, args):
