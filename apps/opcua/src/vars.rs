@@ -378,7 +378,7 @@ impl Vars {
             }
         }
         if !rest.is_empty() {
-            // Filtered already: the next page only adds them.
+            // The next page adds them (filtered again, to the same result).
             node.set_next_continuation_point(Box::new(Cont::Rest(rest)));
         }
     }
