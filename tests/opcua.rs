@@ -46,8 +46,13 @@ impl Ua {
 
     /// Starts; [`Ua::wait_table`] waits for the PLC's table.
     async fn start_with(global: &str, section: &str) -> Ua {
+        Ua::start_pub(global, section, plcsim::DEMO_PUB).await
+    }
+
+    /// Starts with `public` as the PLC's public file.
+    async fn start_pub(global: &str, section: &str, public: &[u8]) -> Ua {
         let files = tempfile::tempdir().unwrap();
-        std::fs::write(files.path().join("demo.pub"), plcsim::DEMO_PUB).unwrap();
+        std::fs::write(files.path().join("demo.pub"), public).unwrap();
         let users = users_file(files.path());
         let sim = plcsim::spawn(SimConfig {
             bind: "127.0.0.1:0".parse().unwrap(),
@@ -1182,4 +1187,178 @@ async fn sighup_adds_removes_and_restarts_sections_under_subscribed_clients() {
     })
     .await;
     drop(server);
+}
+
+/// BrowseNext pages through a section of 1,500 variables, 100 references
+/// a call: each variable once, in the table's order, every page Good and
+/// within the client's maximum; TranslateBrowsePaths finds the last one.
+#[tokio::test(flavor = "multi_thread")]
+async fn browse_next_pages_through_a_section_of_1500_variables() {
+    let ua = Ua::start_pub("", "", &plcsim::genpub::plain(1500)).await;
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let paths = loop {
+        let paths = run(args(&[], "paths", &ua.url, &["PLC", "VAR_01499", "100"])).await;
+        if paths.len() == 2 {
+            break paths;
+        }
+        assert!(Instant::now() < deadline, "no table: {paths:?}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    assert_eq!(paths[0]["translated"], "PLC.VAR_01499");
+    let page = &paths[1];
+    assert_eq!(page["statuses"], serde_json::json!(["Good"]), "{page}");
+    assert_eq!(page["most"], 100, "{page}");
+    let names: Vec<&str> = page["names"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|n| n.as_str())
+        .collect();
+    let vars: Vec<&str> = names
+        .iter()
+        .copied()
+        .filter(|n| n.starts_with("VAR_"))
+        .collect();
+    let expected: Vec<String> = (0..1500).map(|i| format!("VAR_{i:05}")).collect();
+    assert_eq!(vars, expected);
+    // The section object's own properties come after its variables.
+    for property in ["LinkState", "LastPoll", "Backend"] {
+        assert_eq!(
+            names.iter().filter(|n| **n == property).count(),
+            1,
+            "{property}"
+        );
+    }
+    assert!(page["calls"].as_u64().unwrap() >= 16, "{page}");
+    ua.server.shutdown().await;
+}
+
+/// Every attribute of a variable node and of its property nodes, as a
+/// client reads them, with their references; UserAccessLevel per user.
+#[tokio::test(flavor = "multi_thread")]
+async fn every_attribute_of_a_variable_and_of_its_properties() {
+    let files = tempfile::tempdir().unwrap();
+    let (server, url, _port, _conf) = modbus(files.path()).await;
+    until_tree(&url, "LEVEL shown", |t| names(t).contains(&"LEVEL")).await;
+    let lines = run(args(HMI, "attrs", &url, &["M.LEVEL"])).await;
+    let (nodes, paths): (Vec<Value>, Vec<Value>) =
+        lines.into_iter().partition(|l| l.get("node").is_some());
+    assert_eq!(nodes.len(), 3, "{nodes:?}");
+    // TranslateBrowsePaths to each property and back (inverse HasProperty).
+    let mut translated: Vec<&str> = paths
+        .iter()
+        .filter_map(|p| p["translated"].as_str())
+        .collect();
+    translated.sort();
+    assert_eq!(
+        translated,
+        ["M.LEVEL#EURange", "M.LEVEL#EngineeringUnits"],
+        "{paths:?}"
+    );
+    assert!(
+        paths
+            .iter()
+            .all(|p| p["back"] == serde_json::json!(["M.LEVEL"])),
+        "{paths:?}"
+    );
+    let ns = nodes[0]["attrs"]["BrowseName"]
+        .as_str()
+        .unwrap()
+        .split(':')
+        .next()
+        .unwrap()
+        .to_string();
+    let level = &nodes[0];
+    let attrs = &level["attrs"];
+    assert_eq!(level["node"], "M.LEVEL");
+    assert_eq!(attrs["NodeId"], format!("ns={ns};s=M.LEVEL"));
+    assert_eq!(attrs["NodeClass"], 2, "{attrs}");
+    assert_eq!(attrs["BrowseName"], format!("{ns}:LEVEL"));
+    assert_eq!(attrs["DisplayName"], "LEVEL");
+    assert_eq!(attrs["Description"], "tank level");
+    assert_eq!(attrs["DataType"], "i=10", "Float: {attrs}");
+    assert_eq!(attrs["ValueRank"], -1);
+    assert_eq!(attrs["ArrayDimensions"], "BadAttributeIdInvalid");
+    // CurrentRead | CurrentWrite (OPCUA_WRITE = LEVEL); hmi may write.
+    assert_eq!(attrs["AccessLevel"], 3);
+    assert_eq!(attrs["UserAccessLevel"], 3);
+    assert_eq!(attrs["MinimumSamplingInterval"], 20.0);
+    assert_eq!(attrs["Historizing"], false);
+    assert!(attrs["Value"].is_number(), "{attrs}");
+    assert_eq!(attrs["WriteMask"], 0);
+    // Object-only and type-only attributes are not a variable's.
+    for attr in ["EventNotifier", "IsAbstract", "Symmetric", "Executable"] {
+        assert_eq!(attrs[attr], "BadAttributeIdInvalid", "{attr}: {attrs}");
+    }
+    let refs = level["refs"].as_array().unwrap();
+    let has = |refs: &[Value], ty: &str, forward: bool, node: &str| {
+        refs.iter()
+            .any(|r| r["type"] == ty && r["forward"] == forward && r["node"] == node)
+    };
+    // HasComponent (i=47) from the section object, HasTypeDefinition
+    // (i=40) AnalogItemType (i=2368), HasProperty (i=46) to both.
+    assert!(
+        has(refs, "i=47", false, &format!("ns={ns};s=M")),
+        "{refs:?}"
+    );
+    assert!(has(refs, "i=40", true, "i=2368"), "{refs:?}");
+    assert!(
+        has(
+            refs,
+            "i=46",
+            true,
+            &format!("ns={ns};s=M.LEVEL#EngineeringUnits")
+        ),
+        "{refs:?}"
+    );
+    assert!(
+        has(refs, "i=46", true, &format!("ns={ns};s=M.LEVEL#EURange")),
+        "{refs:?}"
+    );
+    assert_eq!(refs.len(), 4, "{refs:?}");
+    for (property, ty) in [("EngineeringUnits", "i=887"), ("EURange", "i=884")] {
+        let node = nodes
+            .iter()
+            .find(|n| n["node"] == format!("M.LEVEL#{property}"))
+            .unwrap_or_else(|| panic!("{property}: {nodes:?}"));
+        let attrs = &node["attrs"];
+        assert_eq!(attrs["NodeClass"], 2, "{attrs}");
+        assert_eq!(attrs["BrowseName"], format!("0:{property}"));
+        assert_eq!(attrs["DisplayName"], property);
+        assert_eq!(attrs["DataType"], ty, "{attrs}");
+        assert_eq!(attrs["ValueRank"], -1);
+        assert_eq!(attrs["AccessLevel"], 1);
+        assert_eq!(attrs["UserAccessLevel"], 1);
+        assert_eq!(attrs["Historizing"], false);
+        let refs = node["refs"].as_array().unwrap();
+        assert!(
+            has(refs, "i=46", false, &format!("ns={ns};s=M.LEVEL")),
+            "{refs:?}"
+        );
+        // PropertyType (i=68).
+        assert!(has(refs, "i=40", true, "i=68"), "{refs:?}");
+        assert_eq!(refs.len(), 2, "{refs:?}");
+    }
+    let units = nodes
+        .iter()
+        .find(|n| n["node"] == "M.LEVEL#EngineeringUnits")
+        .unwrap();
+    assert_eq!(units["attrs"]["Value"]["unit"], "%");
+    let range = nodes
+        .iter()
+        .find(|n| n["node"] == "M.LEVEL#EURange")
+        .unwrap();
+    assert_eq!(range["attrs"]["Value"]["high"], 200.0);
+    // A reader's UserAccessLevel lacks CurrentWrite.
+    let nodes = run(args(SCADA, "attrs", &url, &["M.LEVEL"])).await;
+    assert_eq!(nodes[0]["attrs"]["AccessLevel"], 3);
+    assert_eq!(nodes[0]["attrs"]["UserAccessLevel"], 1);
+    // COUNT: no range, no unit: BaseDataVariableType (i=63), no property.
+    let nodes = run(args(HMI, "attrs", &url, &["M.COUNT"])).await;
+    assert_eq!(nodes.len(), 1, "{nodes:?}");
+    let refs = nodes[0]["refs"].as_array().unwrap();
+    assert!(has(refs, "i=40", true, "i=63"), "{refs:?}");
+    assert_eq!(refs.len(), 2, "{refs:?}");
+    assert_eq!(nodes[0]["attrs"]["AccessLevel"], 1);
+    server.shutdown().await;
 }

@@ -17,6 +17,8 @@ prints JSON lines on stdout; a failure to connect prints
                                              with ReturnBounds)
   client.py hold URL NODE                    subscribes and waits forever (to be killed)
   client.py paths URL SECTION VARIABLE PAGE  TranslateBrowsePaths, and Browse with BrowseNext
+  client.py attrs URL NODE                   every attribute of NODE and of its properties,
+                                             with their references
   client.py events URL SECONDS               GeneralModelChangeEvents of the Server object
   client.py --cert DIR makecert -            only makes the client's certificate
 
@@ -28,6 +30,7 @@ on first use).
 import argparse
 import asyncio
 import datetime
+import enum
 import json
 import socket
 import sys
@@ -287,6 +290,8 @@ async def paths(client, args):
     params.RequestedMaxReferencesPerNode = int(args.page)
     result = (await client.uaclient.browse(params))[0]
     names = [r.BrowseName.Name for r in result.References]
+    statuses = {status_name(result.StatusCode)}
+    most = len(result.References)
     calls = 1
     while result.ContinuationPoint:
         more = ua.BrowseNextParameters()
@@ -294,8 +299,69 @@ async def paths(client, args):
         more.ContinuationPoints = [result.ContinuationPoint]
         result = (await client.uaclient.browse_next(more))[0]
         names += [r.BrowseName.Name for r in result.References]
+        statuses.add(status_name(result.StatusCode))
+        most = max(most, len(result.References))
         calls += 1
-    out({"names": names, "calls": calls})
+    out({"names": names, "calls": calls, "statuses": sorted(statuses), "most": most})
+
+
+def attribute_values(results):
+    """Each attribute read, by name: its value, or its StatusCode's name."""
+    got = {}
+    for attr, dv in zip(ua.AttributeIds, results):
+        if dv.StatusCode.is_good():
+            got[attr.name] = plain_attr(dv.Value.Value)
+        else:
+            got[attr.name] = status_name(dv.StatusCode)
+    return got
+
+
+def plain_attr(value):
+    if isinstance(value, ua.NodeId):
+        return value.to_string()
+    if isinstance(value, ua.QualifiedName):
+        return f"{value.NamespaceIndex}:{value.Name}"
+    if isinstance(value, ua.LocalizedText):
+        return value.Text
+    if isinstance(value, enum.Enum):
+        return value.value
+    return plain(value)
+
+
+async def node_refs(node):
+    refs = await node.get_references(refs=ua.ObjectIds.References,
+                                     direction=ua.BrowseDirection.Both)
+    return sorted(
+        [{"type": r.ReferenceTypeId.to_string(), "forward": r.IsForward,
+          "node": r.NodeId.to_string(), "name": f"{r.BrowseName.NamespaceIndex}:{r.BrowseName.Name}",
+          "class": r.NodeClass.value, "type_def": r.TypeDefinition.to_string()} for r in refs],
+        key=lambda r: (r["type"], r["node"]))
+
+
+async def attrs(client, args):
+    """Every attribute (1..27) of NODE and of each of its properties, with
+    the references of each (both directions)."""
+    ns = await client.get_namespace_index("urn:plccoms")
+    node = client.get_node(ua.NodeId(args.node, ns))
+    properties = await node.get_properties()
+    for n in [node] + properties:
+        results = await n.read_attributes(list(ua.AttributeIds))
+        out({"node": n.nodeid.Identifier, "attrs": attribute_values(results),
+             "refs": await node_refs(n)})
+    # TranslateBrowsePaths from the variable to each property and back.
+    for p in properties:
+        name = (await p.read_browse_name()).Name
+        there = await node.get_child([f"0:{name}"])
+        path = ua.BrowsePath()
+        path.StartingNode = there.nodeid
+        element = ua.RelativePathElement()
+        element.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasProperty)
+        element.IsInverse = True
+        element.TargetName = ua.QualifiedName(args.node.split(".", 1)[1], ns)
+        path.RelativePath.Elements = [element]
+        result = (await client.uaclient.translate_browsepaths_to_nodeids([path]))[0]
+        back = [t.TargetId.Identifier for t in result.Targets]
+        out({"translated": there.nodeid.Identifier, "back": back})
 
 
 async def hold(client, args):
@@ -363,6 +429,7 @@ async def main():
                       "modify_ms"],
         "history": ["node", "from_ms", "to_ms", "per_page"], "hold": ["node"],
         "makecert": [], "events": ["seconds"], "watch": ["nodes"], "read": ["node"], "paths": ["section", "variable", "page"],
+        "attrs": ["node"],
     }[args.command]
     for name, value in zip(names, args.rest):
         setattr(args, name, value)

@@ -1,15 +1,15 @@
 //! One task per section: each new snapshot of the change stream gives the
 //! stack the values of the monitored variables that changed (value or
 //! quality), which it hands to every monitored item on them through its
-//! filters (deadbands) and queues; a new variable table rebuilds the
-//! section's nodes, keeping every monitored item's variable enabled.
+//! filters (deadbands) and queues; a new variable table is served at once
+//! (a new view), keeping every monitored item's variable enabled.
 
 use std::sync::Arc;
 use std::time::Duration;
 
 use opcua::server::node_manager::memory::InMemoryNodeManager;
 use opcua::server::SubscriptionCache;
-use opcua::types::{DataValue, DateTime, NodeId, Variant};
+use opcua::types::{AttributeId, DataValue, DateTime, NodeId, Variant};
 use tokio_util::sync::CancellationToken;
 use tracing::info;
 
@@ -24,7 +24,6 @@ pub struct Feed {
     pub nodes: Arc<SectionNodes>,
     pub manager: Arc<InMemoryNodeManager<Manager>>,
     pub subscriptions: Arc<SubscriptionCache>,
-    pub loop_delay_ms: f64,
     pub stop: CancellationToken,
 }
 
@@ -61,35 +60,17 @@ impl Feed {
         let shared = &self.shared;
         let nodes = &self.nodes;
         let mut view = View::new(&nodes.section, snapshot, shared.history.is_some());
-        let old = {
+        {
             let mut current = nodes.lock();
-            view.monitored = std::mem::take(&mut current.monitored);
-            let names: Vec<String> = view.monitored.keys().cloned().collect();
-            for name in names {
-                if let Some(&id) = view.by_name.get(&name) {
-                    view.enable(id, shared.resample_ms());
-                }
-            }
-            std::mem::replace(&mut *current, view)
-        };
-        // The address space before the view, as every service takes them.
-        let mut space = self.manager.address_space().write();
-        let view = nodes.lock();
-        space::build_section(
-            &mut space,
-            shared,
-            nodes,
-            Some(&old),
-            &view,
-            self.loop_delay_ms,
-        );
+            view.adopt(current.take_monitored(), shared.resample_ms());
+            *current = view;
+        }
+        // Served from the view: the new nodes are there now.
         info!(
             section = %nodes.name,
-            "OPC UA: address space rebuilt for the new variable table ({} variables shown)",
-            view.by_name.len()
+            "OPC UA: variables of the new variable table served ({} shown)",
+            nodes.lock().shown_ids().count()
         );
-        drop(view);
-        drop(space);
         model_changed(
             &self.shared,
             &self.subscriptions,
@@ -105,6 +86,7 @@ impl Feed {
         let nodes = &self.nodes;
         let opts = nodes.section.format();
         let mut updates: Vec<(NodeId, DataValue)> = Vec::new();
+        let mut link_updates: Vec<(NodeId, DataValue)> = Vec::new();
         let mut next_due = None;
         {
             let mut view = nodes.lock();
@@ -144,7 +126,7 @@ impl Feed {
                 let link_changed = view.link_shown.map(|(l, _)| l) != Some(link);
                 view.link_shown = Some((link, polled));
                 if link_changed {
-                    updates.push((
+                    link_updates.push((
                         self.shared.node(ids::property(&nodes.name, "LinkState")),
                         space::good_now(Variant::from(link)),
                     ));
@@ -152,24 +134,33 @@ impl Feed {
                 if let Some(time) =
                     chrono::DateTime::from_timestamp_millis(polled).filter(|_| polled > 0)
                 {
-                    updates.push((
+                    link_updates.push((
                         self.shared.node(ids::property(&nodes.name, "LastPoll")),
                         space::good_now(Variant::from(DateTime::from(time))),
                     ));
                 }
             }
         }
-        if updates.is_empty() {
-            return next_due;
+        // The variables straight to their monitored items (they have no
+        // node in the address space); the section object's properties
+        // through the in-memory manager, which keeps their values.
+        if !updates.is_empty() {
+            let (ids, values): (Vec<NodeId>, Vec<DataValue>) = updates.into_iter().unzip();
+            self.subscriptions.notify_data_change(
+                ids.iter()
+                    .zip(values)
+                    .map(|(node, value)| (space::notified(value), node, AttributeId::Value)),
+            );
         }
-        // Every node exists: rebuild() ran for this table first.
-        let (ids, values): (Vec<NodeId>, Vec<DataValue>) = updates.into_iter().unzip();
-        let _ = self.manager.set_values(
-            &self.subscriptions,
-            ids.iter()
-                .zip(values)
-                .map(|(node, value)| (node, None, space::notified(value))),
-        );
+        if !link_updates.is_empty() {
+            let (ids, values): (Vec<NodeId>, Vec<DataValue>) = link_updates.into_iter().unzip();
+            let _ = self.manager.set_values(
+                &self.subscriptions,
+                ids.iter()
+                    .zip(values)
+                    .map(|(node, value)| (node, None, value)),
+            );
+        }
         next_due
     }
 }

@@ -25,7 +25,6 @@ pub struct Follow {
     pub shared: Arc<Shared>,
     pub manager: Arc<InMemoryNodeManager<Manager>>,
     pub subscriptions: Arc<SubscriptionCache>,
-    pub loop_delay_ms: f64,
     pub stop: CancellationToken,
 }
 
@@ -72,7 +71,6 @@ impl Follow {
                 nodes: nodes.clone(),
                 manager: self.manager.clone(),
                 subscriptions: self.subscriptions.clone(),
-                loop_delay_ms: self.loop_delay_ms,
                 stop: stop.clone(),
             }
             .run(),
@@ -120,25 +118,16 @@ impl Follow {
                     // Values of the old section no more, none of the new
                     // one yet (its feed gives them; a variable its table
                     // lacks until the public file comes stays so).
-                    waiting.extend(
-                        view.by_name
-                            .keys()
-                            .map(|name| self.shared.node(crate::ids::variable(&old.name, name))),
-                    );
+                    waiting.extend(view.shown_ids().map(|id| {
+                        let name = space::shown_name(&view.table, id);
+                        self.shared.node(crate::ids::variable(&old.name, &name))
+                    }));
                 } else {
                     unknown.extend(ids);
                 }
             }
             for nodes in &fresh {
-                let view = nodes.lock();
-                space::build_section(
-                    &mut space,
-                    &self.shared,
-                    nodes,
-                    None,
-                    &view,
-                    self.loop_delay_ms,
-                );
+                space::build_section(&mut space, &self.shared, nodes);
             }
             let list = new
                 .iter()
@@ -157,7 +146,7 @@ impl Follow {
             // section's carry over by name, a removed one's wait for a
             // section of its name.
             for old in &gone {
-                let monitored = std::mem::take(&mut old.lock().monitored);
+                let monitored = old.lock().take_monitored();
                 match fresh.iter().find(|f| f.name == old.name) {
                     Some(new) => new.adopt(&self.shared, monitored),
                     None => self.shared.orphan(&old.name, monitored),
@@ -190,7 +179,7 @@ impl Follow {
                 section = %nodes.name,
                 "OPC UA: section {} in the address space ({} variables shown)",
                 if restarted { "restarted" } else { "added" },
-                nodes.lock().by_name.len()
+                nodes.lock().shown_ids().count()
             );
             let verb = if restarted {
                 Verb::Changed

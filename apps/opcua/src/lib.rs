@@ -11,8 +11,11 @@
 //! - `ids.rs`: our string NodeIds, made and read back;
 //! - `convert.rs`: IEC types and values as OPC UA types and Variants, and
 //!   back for writes; qualities and refusals as StatusCodes;
-//! - `space.rs`: the address space of each section's table;
-//! - `manager.rs`: the services that reach the PLC or the historian;
+//! - `space.rs`: each section's view of its table, and its object;
+//! - `manager.rs`: the root folder and section objects (in the stack's
+//!   address space);
+//! - `vars.rs`: the variables, served from the tables, and the services
+//!   that reach the PLC or the historian;
 //! - `feed.rs`: one task per section, change stream -> monitored items;
 //! - `follow.rs`: sections added, removed and restarted by a reload;
 //! - `auth.rs`, `users.rs`: who may connect and who may write.
@@ -25,6 +28,7 @@ pub mod ids;
 pub mod manager;
 pub mod space;
 pub mod users;
+pub mod vars;
 
 /// The stack, for the types our functions take.
 pub use opcua;
@@ -253,9 +257,16 @@ pub fn start(
             users: settings.users.clone(),
             anonymous: settings.anonymous,
         }))
+        // The variables' manager first: the stack gives a node to the
+        // first manager that owns it, and both serve our namespace.
+        .with_node_manager({
+            let shared = shared.clone();
+            move |_: opcua::server::node_manager::ServerContext| {
+                vars::Vars::new(shared, loop_delay_ms)
+            }
+        })
         .with_node_manager(InMemoryNodeManagerBuilder::new(manager::Builder {
             shared: shared.clone(),
-            loop_delay_ms,
         }));
     {
         let limits = builder.limits_mut();
@@ -327,7 +338,6 @@ pub fn start(
             shared: shared.clone(),
             manager,
             subscriptions: handle.subscriptions().clone(),
-            loop_delay_ms,
             stop: stop.clone(),
         }
         .run(sections, watched),

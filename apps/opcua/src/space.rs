@@ -1,6 +1,8 @@
-//! The address space of our namespace: Objects / plccoms / <Section> /
-//! <Variable>, built from each section's variable table and rebuilt when
-//! the table changes (a new public or tag file). Each section's [`View`]
+//! Our namespace: Objects / plccoms / <Section> / <Variable>. The root
+//! folder and section objects are built into the stack's address space;
+//! the variables are served from each section's variable table
+//! ([`crate::vars`]), so a new table (a new public or tag file) shows at
+//! once. Each section's [`View`]
 //! says which variables are shown, which may be written, which the
 //! historian records, and which monitored items watch, by name, so that a
 //! new table keeps them.
@@ -9,10 +11,10 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use opcua::nodes::{ObjectBuilder, VariableBuilder};
-use opcua::server::address_space::{AccessLevel, AddressSpace};
+use opcua::server::address_space::AddressSpace;
 use opcua::types::{
-    DataValue, DateTime, EUInformation, LocalizedText, NodeId, ObjectTypeId, QualifiedName, Range,
-    StatusCode, UAString, VariableTypeId, Variant,
+    DataValue, DateTime, LocalizedText, NodeId, ObjectTypeId, QualifiedName, StatusCode,
+    VariableTypeId, Variant,
 };
 use plccoms_core::changes::Interest;
 use plccoms_core::changes::{Quality, Snapshot};
@@ -31,6 +33,8 @@ use crate::ids;
 /// variable watched).
 #[derive(Debug, Clone)]
 pub struct Watched {
+    /// Its monitored items, over every session.
+    pub count: u32,
     /// `changed_seq` of the value given, and its quality.
     pub seq: u64,
     pub quality: Option<Quality>,
@@ -46,16 +50,15 @@ pub struct View {
     pub table: Arc<VarTable>,
     /// Its interest (what the poll reads).
     pub interest: Arc<Interest>,
-    /// Shown variables by name (as shown: UTF-8, upper case).
-    pub by_name: HashMap<String, VarId>,
     /// Per variable of `table`: shown, writable (OPCUA_WRITE), recorded.
     pub shown: Vec<bool>,
     pub writable: Vec<bool>,
     pub historized: Vec<bool>,
-    /// Monitored items per variable name, over every session.
-    pub monitored: HashMap<String, u32>,
     /// The monitored variables of `table`.
     pub watched: HashMap<VarId, Watched>,
+    /// Monitored items on names `table` lacks (a later table may have
+    /// them), over every session.
+    pub absent: HashMap<String, u32>,
     /// Last link state and poll shown on the section object.
     pub link_shown: Option<(&'static str, i64)>,
     /// HISTORY_STAMP: value variable -> the variable holding the PLC's time
@@ -110,13 +113,7 @@ impl SectionNodes {
     /// this one replaces, or one removed earlier), enabling what its
     /// table has.
     pub fn adopt(&self, shared: &Shared, monitored: HashMap<String, u32>) {
-        let mut view = self.lock();
-        for (name, count) in monitored {
-            if let Some(&id) = view.by_name.get(&name) {
-                view.enable(id, shared.resample_ms());
-            }
-            *view.monitored.entry(name).or_default() += count;
-        }
+        self.lock().adopt(monitored, shared.resample_ms());
     }
 }
 
@@ -194,25 +191,6 @@ impl Shared {
     pub fn node(&self, text: String) -> NodeId {
         NodeId::new(self.ns(), text)
     }
-
-    /// The section and variable a NodeId of ours names, if it is one of
-    /// the shown variables of a section served now.
-    pub fn variable(&self, node: &NodeId) -> Option<(Arc<SectionNodes>, String)> {
-        if node.namespace != self.ns() {
-            return None;
-        }
-        let opcua::types::Identifier::String(text) = &node.identifier else {
-            return None;
-        };
-        let list = self.list();
-        let names: Vec<&str> = list.iter().map(|s| s.name.as_str()).collect();
-        match ids::parse(text.as_ref(), &names).ok()? {
-            ids::Ours::Variable { section, variable } => {
-                Some((list[section].clone(), variable.to_string()))
-            }
-            _ => None,
-        }
-    }
 }
 
 /// A variable's name as shown (UTF-8).
@@ -225,17 +203,35 @@ impl View {
         let mut view = View {
             table: snapshot.table.clone(),
             interest: snapshot.interest.clone(),
-            by_name: HashMap::new(),
             shown: Vec::new(),
             writable: Vec::new(),
             historized: Vec::new(),
-            monitored: HashMap::new(),
+            absent: HashMap::new(),
             watched: HashMap::new(),
             link_shown: None,
             stamp_of: HashMap::new(),
         };
         view.classify(section, recorded);
         view
+    }
+
+    /// A shown variable by its name as shown (exactly; the table's own
+    /// index, so no map of names is kept per view).
+    pub fn id_of(&self, name: &str) -> Option<VarId> {
+        let encoded;
+        let bytes: &[u8] = if name.is_ascii() {
+            name.as_bytes()
+        } else {
+            encoded = cp1250::try_encode(name)?;
+            &encoded
+        };
+        let id = self.table.lookup(bytes)?;
+        (self.shown[id as usize] && *self.table.var(id).name == *bytes).then_some(id)
+    }
+
+    /// The shown variables, in the table's order.
+    pub fn shown_ids(&self) -> impl Iterator<Item = VarId> + '_ {
+        (0..self.table.len() as VarId).filter(|&id| self.shown[id as usize])
     }
 
     /// Enables `id` in the poll (with its HISTORY_STAMP variable) and hands
@@ -249,7 +245,14 @@ impl View {
     /// list of items to look at on the publish before that end): a last
     /// change would never arrive. The feed gives such a change again one
     /// interval after it, which makes the stack report it.
-    pub fn enable(&mut self, id: VarId, resample_ms: f64) {
+    ///
+    /// `count`: the monitored items it gains.
+    pub fn enable(&mut self, id: VarId, resample_ms: f64, count: u32) {
+        if let Some(watched) = self.watched.get_mut(&id) {
+            watched.count += count;
+            watched.resample_ms = watched.resample_ms.max(resample_ms as f32);
+            return;
+        }
         for enabled in [Some(id), self.stamp_of.get(&id).copied()]
             .into_iter()
             .flatten()
@@ -261,12 +264,34 @@ impl View {
         self.watched.insert(
             id,
             Watched {
+                count,
                 seq: u64::MAX,
                 quality: None,
                 resample_ms: resample_ms as f32,
                 due: None,
             },
         );
+    }
+
+    /// The monitored item counts by variable name, taken (for a new
+    /// table, or a section of this name added later).
+    pub fn take_monitored(&mut self) -> HashMap<String, u32> {
+        let mut names = std::mem::take(&mut self.absent);
+        for (id, watched) in std::mem::take(&mut self.watched) {
+            *names.entry(shown_name(&self.table, id)).or_default() += watched.count;
+        }
+        names
+    }
+
+    /// Takes over monitored item counts by name, enabling what the table
+    /// has.
+    pub fn adopt(&mut self, monitored: HashMap<String, u32>, resample_ms: f64) {
+        for (name, count) in monitored {
+            match self.id_of(&name) {
+                Some(id) => self.enable(id, resample_ms, count),
+                None => *self.absent.entry(name).or_default() += count,
+            }
+        }
     }
 
     /// Undoes [`View::enable`].
@@ -323,10 +348,6 @@ impl View {
                     .then_some((value, stamp))
             })
             .collect();
-        self.by_name = (0..len as VarId)
-            .filter(|&id| self.shown[id as usize])
-            .map(|id| (shown_name(table, id), id))
-            .collect();
     }
 }
 
@@ -344,167 +365,63 @@ pub fn build_root(space: &mut AddressSpace, ns: u16) {
     .insert(space);
 }
 
-/// Builds (or rebuilds, after a new table) one section's object and its
-/// variables. Old variables that the new table lacks are removed; every
-/// node of a name that stays keeps its NodeId.
-pub fn build_section(
-    space: &mut AddressSpace,
-    shared: &Shared,
-    nodes: &SectionNodes,
-    old: Option<&View>,
-    view: &View,
-    loop_delay_ms: f64,
-) {
+/// Builds one section's object and its properties (its variables are
+/// served by [`crate::vars::Vars`], from its table).
+pub fn build_section(space: &mut AddressSpace, shared: &Shared, nodes: &SectionNodes) {
     let ns = shared.ns();
     let name = &nodes.name;
     let section_id = NodeId::new(ns, name.as_str());
-    if let Some(old) = old {
-        for shown in old.by_name.keys() {
-            remove_variable(space, ns, name, shown);
-        }
-    }
-    if space.find(&section_id).is_none() {
-        ObjectBuilder::new(
-            &section_id,
-            QualifiedName::new(ns, name.as_str()),
-            LocalizedText::from(name.as_str()),
-        )
-        .description(format!("PLC section [{name}]"))
-        .organized_by(NodeId::new(ns, ids::ROOT))
-        .has_type_definition(ObjectTypeId::BaseObjectType)
-        .insert(space);
-        let protocol = nodes.section.state().config.protocol.to_string();
-        for (property, value, ty) in [
-            (
-                "LinkState",
-                Variant::from(""),
-                opcua::types::DataTypeId::String,
-            ),
-            (
-                "LastPoll",
-                Variant::Empty,
-                opcua::types::DataTypeId::DateTime,
-            ),
-            (
-                "Backend",
-                Variant::from(protocol.as_str()),
-                opcua::types::DataTypeId::String,
-            ),
-        ] {
-            let id = NodeId::new(ns, ids::property(name, property));
-            VariableBuilder::new(
-                &id,
-                QualifiedName::new(ns, property),
-                LocalizedText::from(property),
-            )
-            .data_type(ty)
-            .value(value)
-            .property_of(section_id.clone())
-            .has_type_definition(VariableTypeId::PropertyType)
-            .insert(space);
-        }
-    }
-    let table = &view.table;
-    let mut ordered: Vec<(&String, &VarId)> = view.by_name.iter().collect();
-    ordered.sort_by_key(|(_, &id)| id);
-    for (shown, &id) in ordered {
-        let var = table.var(id);
-        let node = NodeId::new(ns, ids::variable(name, shown));
-        let mut access = AccessLevel::CURRENT_READ;
-        if view.writable[id as usize] {
-            access |= AccessLevel::CURRENT_WRITE;
-        }
-        let historized = view.historized[id as usize];
-        if historized {
-            access |= AccessLevel::HISTORY_READ;
-        }
-        let info = var.info.as_deref();
-        let range = info.and_then(|i| Some((i.min?, i.max?)));
-        let mut builder = VariableBuilder::new(
-            &node,
-            QualifiedName::new(ns, shown.as_str()),
-            LocalizedText::from(shown.as_str()),
-        )
-        .data_type(convert::data_type(var.ty))
-        .access_level(access)
-        .user_access_level(access)
-        .historizing(historized)
-        .minimum_sampling_interval(loop_delay_ms)
-        .value_rank(-1)
-        .component_of(section_id.clone())
-        .has_type_definition(if range.is_some() {
-            VariableTypeId::AnalogItemType
-        } else {
-            VariableTypeId::BaseDataVariableType
-        });
-        if let Some(description) = info
-            .map(|i| i.description.as_str())
-            .filter(|d| !d.is_empty())
-        {
-            builder = builder.description(description);
-        }
-        builder.insert(space);
-        if let Some(unit) = info.map(|i| i.unit.as_str()).filter(|u| !u.is_empty()) {
-            let eu = EUInformation {
-                namespace_uri: UAString::from("http://www.opcfoundation.org/UA/units/un/cefact"),
-                unit_id: -1,
-                display_name: LocalizedText::from(unit),
-                description: LocalizedText::from(unit),
-            };
-            add_property(
-                space,
-                ns,
-                &node,
-                "EngineeringUnits",
-                Variant::from(eu),
-                opcua::types::DataTypeId::EUInformation,
-            );
-        }
-        if let Some((low, high)) = range {
-            add_property(
-                space,
-                ns,
-                &node,
-                "EURange",
-                Variant::from(Range { low, high }),
-                opcua::types::DataTypeId::Range,
-            );
-        }
-    }
-}
-
-fn add_property(
-    space: &mut AddressSpace,
-    ns: u16,
-    owner: &NodeId,
-    property: &str,
-    value: Variant,
-    ty: opcua::types::DataTypeId,
-) {
-    let opcua::types::Identifier::String(owner_text) = &owner.identifier else {
+    if space.find(&section_id).is_some() {
         return;
-    };
-    let id = NodeId::new(ns, ids::property(owner_text.as_ref(), property));
-    VariableBuilder::new(
-        &id,
-        QualifiedName::new(0, property),
-        LocalizedText::from(property),
+    }
+    ObjectBuilder::new(
+        &section_id,
+        QualifiedName::new(ns, name.as_str()),
+        LocalizedText::from(name.as_str()),
     )
-    .data_type(ty)
-    .value(value)
-    .property_of(owner.clone())
-    .has_type_definition(VariableTypeId::PropertyType)
+    .description(format!("PLC section [{name}]"))
+    .organized_by(NodeId::new(ns, ids::ROOT))
+    .has_type_definition(ObjectTypeId::BaseObjectType)
     .insert(space);
+    let protocol = nodes.section.state().config.protocol.to_string();
+    for (property, value, ty) in [
+        (
+            "LinkState",
+            Variant::from(""),
+            opcua::types::DataTypeId::String,
+        ),
+        (
+            "LastPoll",
+            Variant::Empty,
+            opcua::types::DataTypeId::DateTime,
+        ),
+        (
+            "Backend",
+            Variant::from(protocol.as_str()),
+            opcua::types::DataTypeId::String,
+        ),
+    ] {
+        let id = NodeId::new(ns, ids::property(name, property));
+        VariableBuilder::new(
+            &id,
+            QualifiedName::new(ns, property),
+            LocalizedText::from(property),
+        )
+        .data_type(ty)
+        .value(value)
+        .property_of(section_id.clone())
+        .has_type_definition(VariableTypeId::PropertyType)
+        .insert(space);
+    }
 }
 
-/// Removes a section's object, its properties and the variables of
-/// `view`; the NodeIds removed, for their monitored items.
+/// Removes a section's object and its properties; the NodeIds removed
+/// with those of the variables of `view`, for their monitored items.
 pub fn remove_section(space: &mut AddressSpace, ns: u16, name: &str, view: &View) -> Vec<NodeId> {
-    let mut gone = Vec::new();
-    for shown in view.by_name.keys() {
-        remove_variable(space, ns, name, shown);
-        gone.push(NodeId::new(ns, ids::variable(name, shown)));
-    }
+    let mut gone: Vec<NodeId> = view
+        .shown_ids()
+        .map(|id| NodeId::new(ns, ids::variable(name, &shown_name(&view.table, id))))
+        .collect();
     for property in SECTION_PROPERTIES {
         let id = NodeId::new(ns, ids::property(name, property));
         space.delete(&id, true);
@@ -516,14 +433,6 @@ pub fn remove_section(space: &mut AddressSpace, ns: u16, name: &str, view: &View
 
 /// The properties of a section object.
 const SECTION_PROPERTIES: [&str; 3] = ["LinkState", "LastPoll", "Backend"];
-
-fn remove_variable(space: &mut AddressSpace, ns: u16, section: &str, shown: &str) {
-    let text = ids::variable(section, shown);
-    for property in ["EngineeringUnits", "EURange"] {
-        space.delete(&NodeId::new(ns, ids::property(&text, property)), true);
-    }
-    space.delete(&NodeId::new(ns, text), true);
-}
 
 /// The DataValue of variable `id` in `snapshot` (its value as last known,
 /// its quality as StatusCode, as SourceTimestamp the PLC's time from its
