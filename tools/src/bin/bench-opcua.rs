@@ -59,6 +59,10 @@ struct Args {
     /// nodes takes a while.
     #[arg(long, default_value_t = 600)]
     ready_within: u64,
+    /// The client side's OPCUA_TIMEOUT (ms), where its default is too
+    /// short: a debug build, or one run under heaptrack.
+    #[arg(long)]
+    opcua_timeout: Option<u64>,
     /// Append `opcua_<n>.<metric> value` lines here (bench/run's results).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -209,6 +213,9 @@ async fn run(args: &Args, binary: &Path, n: usize) -> Row {
         ),
     );
     let started = Instant::now();
+    let timeout = args
+        .opcua_timeout
+        .map_or_else(String::new, |ms| format!("OPCUA_TIMEOUT = {ms}\n"));
     let client = Server::start(
         binary,
         dir.path(),
@@ -216,7 +223,7 @@ async fn run(args: &Args, binary: &Path, n: usize) -> Row {
         &format!(
             "[*]\nCOMM_LOOP_DELAY = {delay}\nHTTP_PORT = {http}\n\
              [Via]\nPROTOCOL = OPCUA\nOPCUA_URL = opc.tcp://127.0.0.1:{ua}/\n\
-             OPCUA_BROWSE = nsu=urn:plccoms;s=Sim\nOPCUA_USER = bench\nOPCUA_PASSWORD = bench\nSERVER_PORT = {via_port}\n"
+             OPCUA_BROWSE = nsu=urn:plccoms;s=Sim\nOPCUA_USER = bench\nOPCUA_PASSWORD = bench\nSERVER_PORT = {via_port}\n{timeout}"
         ),
     );
     let pid = client.child.id();
