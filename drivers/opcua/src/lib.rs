@@ -277,6 +277,8 @@ pub struct OpcuaBackend {
     served: List,
     /// The list as last built (served once the link fetches it).
     newest: Option<Listing>,
+    /// The CRC of the newest list, once made.
+    crc: Option<u32>,
     /// The list being fetched by the link (file_info .. last read_file).
     fetching: Option<Listing>,
     subscription: Option<Subscription>,
@@ -287,9 +289,6 @@ pub struct OpcuaBackend {
     /// The inbox's other buffer: taking swaps them, so that 100,000
     /// notifications a second do not allocate a new one each time.
     spare: Vec<(u64, u32, DataValue)>,
-    /// The last take left notifications in the inbox: the next
-    /// `wait_pushed` lets the link's queued requests (a SET) go first.
-    behind: bool,
     /// Of the current subscription: notifications of an older one (its
     /// handles meant another list) are dropped.
     generation: u64,
@@ -361,13 +360,13 @@ impl OpcuaBackend {
             run: false,
             served: List::default(),
             newest: None,
+            crc: None,
             fetching: None,
             subscription: None,
             notified: Arc::default(),
             inbox: Arc::default(),
             wake: Arc::default(),
             spare: Vec::new(),
-            behind: false,
             generation: 0,
             written: HashSet::new(),
             read_back: HashMap::new(),
@@ -449,7 +448,6 @@ impl OpcuaBackend {
         // Released, not kept at its largest while the server is away.
         *self.inbox.lock().unwrap_or_else(|e| e.into_inner()) = Vec::new();
         self.spare = Vec::new();
-        self.behind = false;
         self.notified
             .lock()
             .unwrap_or_else(|e| e.into_inner())
@@ -587,6 +585,7 @@ impl OpcuaBackend {
             // Same list: the link keeps its table; node ids are the same.
             self.served = list_of(bytes, &built.types);
             self.newest = None;
+            self.crc = None;
         } else {
             if self.newest.as_ref().is_none_or(|n| n.0 != bytes) {
                 if !self.served.bytes.is_empty() {
@@ -597,6 +596,7 @@ impl OpcuaBackend {
                 }
             }
             self.newest = Some(Arc::new((bytes, built.types)));
+            self.crc = None;
         }
     }
 
@@ -605,12 +605,22 @@ impl OpcuaBackend {
         self.newest.as_ref().map_or(&self.served.bytes, |n| &n.0)
     }
 
-    fn system(&self, offset: u32, len: u32) -> Answer<Vec<u8>> {
+    /// The CRC of [`Self::current_bytes`], made once a list (3.7 MB at
+    /// 100,000 variables, each poll cycle).
+    fn list_crc(&mut self) -> u32 {
+        if let Some(crc) = self.crc {
+            return crc;
+        }
+        let crc = plccoms_plc::pubfile::crc_of(self.current_bytes());
+        self.crc = Some(crc);
+        crc
+    }
+
+    fn system(&self, offset: u32, len: u32, crc: u32) -> Answer<Vec<u8>> {
         let mut image = [0u8; 4096];
         if self.run {
             image[PLC_RUN_BYTE as usize] |= 1 << PLC_RUN_BIT;
         }
-        let crc = plccoms_plc::pubfile::crc_of(self.current_bytes());
         let at = PF_CRC_OFFSET as usize;
         image[at..at + 4].copy_from_slice(&crc.to_le_bytes());
         let end = offset as usize + len as usize;
@@ -1147,9 +1157,15 @@ async fn create_monitored_items(
 /// well inside the 20 a server queues by default (async-opcua's).
 const NOTIFICATIONS_PER_PUBLISH: u32 = 10_000;
 
+/// Most bytes of R one read answers in subscribe mode.
+const SUBSCRIBED_READ_BLOCK: u32 = 4096;
+
 /// Most notifications the link takes at once ([`PlcBackend::take_pushed`]):
-/// between two such slices a SET queued meanwhile is served.
-const TAKE_SLICE: usize = 5_000;
+/// between two such slices a SET queued meanwhile is served. A slice is
+/// one publish of the link's state, which costs the state's chunks it
+/// touches: servers notify in no order of the variables (a slice of 2,000
+/// touched nearly all of them), so one publish a message, not more.
+const TAKE_SLICE: usize = NOTIFICATIONS_PER_PUBLISH as usize;
 
 /// Where a subscription's notifications go: the inbox, the link woken.
 struct Sink {
@@ -1471,8 +1487,16 @@ impl PlcBackend for OpcuaBackend {
         format!("OPC UA {}", self.config.url)
     }
 
+    /// Read mode: as many nodes a Read as the server takes. Subscribe
+    /// mode: reads are answered from the values notified, without a round
+    /// trip, in blocks of about 1,000 variables, so that the link serves a
+    /// SET between two (one block of 100,000 held a SET up for all).
     fn max_read_block(&self, _area: Area) -> u32 {
-        1024 * 1024
+        if self.config.subscribe {
+            SUBSCRIBED_READ_BLOCK
+        } else {
+            1024 * 1024
+        }
     }
 
     /// Only adjacent variables are read together: a gap is other nodes.
@@ -1570,6 +1594,7 @@ impl PlcBackend for OpcuaBackend {
             Some(self.read_values(&wanted, state).await?)
         };
         let mut uncertain = Vec::new();
+        let crc = self.list_crc();
         let notified = self.notified.clone();
         let notified = notified.lock().unwrap_or_else(|e| e.into_inner());
         let value_of = |s: usize| match &read {
@@ -1580,7 +1605,7 @@ impl PlcBackend for OpcuaBackend {
             .iter()
             .map(|read| match read.area {
                 Area::R => self.answer(read, value_of, &mut uncertain),
-                Area::S => self.system(read.offset, read.len),
+                Area::S => self.system(read.offset, read.len, crc),
                 _ => Err(Refusal::BAD_PARAMETERS),
             })
             .collect();
@@ -1608,17 +1633,17 @@ impl PlcBackend for OpcuaBackend {
     /// link's queued requests.
     fn take_pushed(&mut self) -> Vec<Pushed> {
         let mut inbox = std::mem::take(&mut self.spare);
-        {
+        let behind = {
             let mut shared = self.inbox.lock().unwrap_or_else(|e| e.into_inner());
             if shared.len() <= TAKE_SLICE {
                 std::mem::swap(&mut *shared, &mut inbox);
-                self.behind = false;
+                false
             } else {
                 inbox.extend(shared.drain(..TAKE_SLICE));
-                self.behind = true;
+                true
             }
-        }
-        if self.behind {
+        };
+        if behind {
             // The rest: the link comes back for it.
             self.wake.notify_one();
         }
@@ -1688,11 +1713,11 @@ impl PlcBackend for OpcuaBackend {
         if self.subscription.is_none() {
             return std::future::pending().await;
         }
-        if self.behind {
-            // Once pending: the link's requests queued meanwhile are
-            // looked at before the next slice.
-            tokio::task::yield_now().await;
-        }
+        // Once pending first: the link looks at its queued requests (a SET)
+        // before each slice. Notifications come ten times a second at
+        // 100,000 variables; each would otherwise be ready again before
+        // the link's select reached its queue.
+        tokio::task::yield_now().await;
         self.wake.notified().await;
         Ok(())
     }
@@ -1741,6 +1766,7 @@ impl PlcBackend for OpcuaBackend {
                 // Its only holder now, unless a newer list came meanwhile.
                 let (bytes, types) = Arc::unwrap_or_clone(fetched);
                 self.served = list_of(bytes, &types);
+                self.crc = None;
                 // The handles of the old list mean other variables now.
                 if let (Some(subscription), Ok(session)) =
                     (self.subscription.take(), self.session())
@@ -1902,8 +1928,7 @@ mod tests {
     }
 
     /// Notifications are taken a slice at a time, oldest first, and the
-    /// link is woken for the rest; `wait_pushed` lets it serve its queue
-    /// first while it is behind.
+    /// link is woken for the rest.
     #[tokio::test]
     async fn notifications_are_taken_in_slices() {
         let list = list_of(
@@ -1924,7 +1949,6 @@ mod tests {
         let first = backend.take_pushed();
         assert_eq!(first.len(), TAKE_SLICE);
         assert_eq!(first[0].bytes, 0i16.to_le_bytes());
-        assert!(backend.behind);
         // Woken for the rest, after one yield.
         tokio::time::timeout(Duration::from_secs(5), backend.wait_pushed())
             .await
@@ -1934,7 +1958,6 @@ mod tests {
         assert_eq!(rest.len(), 7);
         assert_eq!(&*rest[6].name, b"A");
         assert_eq!(rest[6].bytes, ((all - 1) as i16).to_le_bytes());
-        assert!(!backend.behind);
         assert!(backend.take_pushed().is_empty());
         // The value reads answer is the last taken.
         let notified = backend.notified.lock().unwrap();
