@@ -276,18 +276,19 @@ impl Values {
         self.get(handle).is_some()
     }
 
-    /// `handle` is the state's or a source's of the list served (its
-    /// callers check it): the vector grows up to the list's size.
-    fn insert(&mut self, handle: u32, value: DataValue) {
+    /// The value of `handle`, the state's or one of `of` sources' (the
+    /// list's: made that long at once, exactly; others are ignored).
+    fn insert(&mut self, handle: u32, value: DataValue, of: usize) {
         if handle == STATE_HANDLE {
             self.state = Some(value);
             return;
         }
-        let Some(at) = (handle as usize).checked_sub(1) else {
+        let Some(at) = (handle as usize).checked_sub(1).filter(|&at| at < of) else {
             return;
         };
-        if at >= self.sources.len() {
-            self.sources.resize_with(at + 1, || None);
+        if self.sources.len() < of {
+            self.sources.reserve_exact(of - self.sources.len());
+            self.sources.resize_with(of, || None);
         }
         self.sources[at] = Some(value);
     }
@@ -859,6 +860,7 @@ impl OpcuaBackend {
                             status: Some(status),
                             ..Default::default()
                         },
+                        self.served.sources.len(),
                     );
                 }
             }
@@ -1628,7 +1630,7 @@ impl PlcBackend for OpcuaBackend {
                     if let (true, Some(at)) = (self.written.contains(&i), value.source_timestamp) {
                         self.read_back.insert(i as u32 + 1, at);
                     }
-                    notified.insert(i as u32 + 1, value);
+                    notified.insert(i as u32 + 1, value, self.served.sources.len());
                 }
                 drop(notified);
                 for i in &direct {
@@ -1741,7 +1743,7 @@ impl PlcBackend for OpcuaBackend {
                     }
                 }
             }
-            notified.insert(handle, value);
+            notified.insert(handle, value, self.served.sources.len());
         }
         drop(notified);
         // Kept for the next take, at the size of a slice or two at most.
@@ -1949,6 +1951,27 @@ mod tests {
 
     fn int(n: i16) -> DataValue {
         DataValue::new_now(Variant::Int16(n))
+    }
+
+    #[test]
+    fn values_are_kept_for_the_lists_sources_only() {
+        let mut values = Values::default();
+        values.insert(3, int(3), 5);
+        values.insert(STATE_HANDLE, int(0), 5);
+        // Not a source of the list: a server's stray handle.
+        values.insert(6, int(6), 5);
+        values.insert(0, int(-1), 5);
+        assert_eq!(values.get(&3).unwrap().value, Some(Variant::Int16(3)));
+        assert_eq!(
+            values.get(&STATE_HANDLE).unwrap().value,
+            Some(Variant::Int16(0))
+        );
+        assert!(!values.contains_key(&1));
+        assert!(!values.contains_key(&6));
+        assert!(!values.contains_key(&0));
+        assert_eq!(values.sources.capacity(), 5);
+        values.clear();
+        assert!(!values.contains_key(&3));
     }
 
     #[test]
