@@ -250,7 +250,54 @@ const STATE_HANDLE: u32 = u32::MAX;
 
 /// Values notified and taken by the link, by client handle (source index
 /// + 1): what reads answer.
-type Notified = Arc<Mutex<HashMap<u32, DataValue>>>;
+type Notified = Arc<Mutex<Values>>;
+
+/// A value per source, by client handle: in a vector, not a map (100,000
+/// in a map were 10.6 MB and a hash each).
+#[derive(Default)]
+struct Values {
+    sources: Vec<Option<DataValue>>,
+    state: Option<DataValue>,
+}
+
+impl Values {
+    fn slot(&self, handle: u32) -> Option<&Option<DataValue>> {
+        match handle {
+            STATE_HANDLE => Some(&self.state),
+            _ => self.sources.get((handle as usize).checked_sub(1)?),
+        }
+    }
+
+    fn get(&self, handle: &u32) -> Option<&DataValue> {
+        self.slot(*handle)?.as_ref()
+    }
+
+    fn contains_key(&self, handle: &u32) -> bool {
+        self.get(handle).is_some()
+    }
+
+    /// The value of `handle`, the state's or one of `of` sources' (the
+    /// list's: made that long at once, exactly; others are ignored).
+    fn insert(&mut self, handle: u32, value: DataValue, of: usize) {
+        if handle == STATE_HANDLE {
+            self.state = Some(value);
+            return;
+        }
+        let Some(at) = (handle as usize).checked_sub(1).filter(|&at| at < of) else {
+            return;
+        };
+        if self.sources.len() < of {
+            self.sources.reserve_exact(of - self.sources.len());
+            self.sources.resize_with(of, || None);
+        }
+        self.sources[at] = Some(value);
+    }
+
+    /// Released: a new list or session starts anew.
+    fn clear(&mut self) {
+        *self = Values::default();
+    }
+}
 
 /// Notifications not yet taken by the link, oldest first: (subscription
 /// generation, client handle, value).
@@ -277,6 +324,8 @@ pub struct OpcuaBackend {
     served: List,
     /// The list as last built (served once the link fetches it).
     newest: Option<Listing>,
+    /// The CRC of the newest list, once made.
+    crc: Option<u32>,
     /// The list being fetched by the link (file_info .. last read_file).
     fetching: Option<Listing>,
     subscription: Option<Subscription>,
@@ -284,6 +333,9 @@ pub struct OpcuaBackend {
     inbox: Inbox,
     /// Rung by each notification (the link's `wait_pushed`).
     wake: Arc<tokio::sync::Notify>,
+    /// The inbox's other buffer: taking swaps them, so that 100,000
+    /// notifications a second do not allocate a new one each time.
+    spare: Vec<(u64, u32, DataValue)>,
     /// Of the current subscription: notifications of an older one (its
     /// handles meant another list) are dropped.
     generation: u64,
@@ -355,11 +407,13 @@ impl OpcuaBackend {
             run: false,
             served: List::default(),
             newest: None,
+            crc: None,
             fetching: None,
             subscription: None,
             notified: Arc::default(),
             inbox: Arc::default(),
             wake: Arc::default(),
+            spare: Vec::new(),
             generation: 0,
             written: HashSet::new(),
             read_back: HashMap::new(),
@@ -438,7 +492,9 @@ impl OpcuaBackend {
     fn lose(&mut self) {
         self.connection = None;
         self.subscription = None;
-        self.inbox.lock().unwrap_or_else(|e| e.into_inner()).clear();
+        // Released, not kept at its largest while the server is away.
+        *self.inbox.lock().unwrap_or_else(|e| e.into_inner()) = Vec::new();
+        self.spare = Vec::new();
         self.notified
             .lock()
             .unwrap_or_else(|e| e.into_inner())
@@ -576,6 +632,7 @@ impl OpcuaBackend {
             // Same list: the link keeps its table; node ids are the same.
             self.served = list_of(bytes, &built.types);
             self.newest = None;
+            self.crc = None;
         } else {
             if self.newest.as_ref().is_none_or(|n| n.0 != bytes) {
                 if !self.served.bytes.is_empty() {
@@ -586,6 +643,7 @@ impl OpcuaBackend {
                 }
             }
             self.newest = Some(Arc::new((bytes, built.types)));
+            self.crc = None;
         }
     }
 
@@ -594,12 +652,22 @@ impl OpcuaBackend {
         self.newest.as_ref().map_or(&self.served.bytes, |n| &n.0)
     }
 
-    fn system(&self, offset: u32, len: u32) -> Answer<Vec<u8>> {
+    /// The CRC of [`Self::current_bytes`], made once a list (3.7 MB at
+    /// 100,000 variables, each poll cycle).
+    fn list_crc(&mut self) -> u32 {
+        if let Some(crc) = self.crc {
+            return crc;
+        }
+        let crc = plccoms_plc::pubfile::crc_of(self.current_bytes());
+        self.crc = Some(crc);
+        crc
+    }
+
+    fn system(&self, offset: u32, len: u32, crc: u32) -> Answer<Vec<u8>> {
         let mut image = [0u8; 4096];
         if self.run {
             image[PLC_RUN_BYTE as usize] |= 1 << PLC_RUN_BIT;
         }
-        let crc = plccoms_plc::pubfile::crc_of(self.current_bytes());
         let at = PF_CRC_OFFSET as usize;
         image[at..at + 4].copy_from_slice(&crc.to_le_bytes());
         let end = offset as usize + len as usize;
@@ -692,7 +760,7 @@ impl OpcuaBackend {
             };
             self.call(
                 "CreateMonitoredItems",
-                session.create_monitored_items(id, TimestampsToReturn::Neither, vec![state]),
+                create_monitored_items(&session, id, TimestampsToReturn::Neither, vec![state]),
             )
             .await?;
             if let Some(subscription) = &mut self.subscription {
@@ -745,7 +813,7 @@ impl OpcuaBackend {
                     "CreateMonitoredItems",
                     // Both: ServerTimestamp stands in for a missing
                     // SourceTimestamp in the history.
-                    session.create_monitored_items(id, TimestampsToReturn::Both, items),
+                    create_monitored_items(&session, id, TimestampsToReturn::Both, items),
                 )
                 .await?;
             let created = match created {
@@ -777,8 +845,7 @@ impl OpcuaBackend {
             let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
             let mut full = Vec::new();
             let mut monitored = Vec::with_capacity(chunk.len());
-            for (&i, result) in chunk.iter().zip(created) {
-                let status = result.result.status_code;
+            for (&i, status) in chunk.iter().zip(created) {
                 if status == StatusCode::BadTooManyMonitoredItems {
                     // Refused one by one: in the next subscription.
                     full.push(i);
@@ -793,6 +860,7 @@ impl OpcuaBackend {
                             status: Some(status),
                             ..Default::default()
                         },
+                        self.served.sources.len(),
                     );
                 }
             }
@@ -830,7 +898,10 @@ impl OpcuaBackend {
             inbox: self.inbox.clone(),
             wake: self.wake.clone(),
             generation: self.generation,
-            most: (self.served.sources.len() * 4).max(4096),
+            // One value per item and a quarter more: dropping the older
+            // ones when full keeps every item of a link a cycle behind
+            // (4 times as many were 46 MB at 100,000 variables).
+            most: (self.served.sources.len() + self.served.sources.len() / 4).max(4096),
             counters: self.counters.clone(),
         };
         let id = self
@@ -842,7 +913,7 @@ impl OpcuaBackend {
                     // forgotten subscription within a minute or so.
                     60,
                     10,
-                    0,
+                    NOTIFICATIONS_PER_PUBLISH,
                     0,
                     true,
                     sink,
@@ -853,19 +924,19 @@ impl OpcuaBackend {
         Ok(id)
     }
 
-    /// The answer to a read of `read` (R) from `values`; the entries whose
-    /// value is Uncertain added to `uncertain`.
-    fn answer(
+    /// The answer to a read of `read` (R) from the values of its sources;
+    /// the entries whose value is Uncertain added to `uncertain`.
+    fn answer<'v>(
         &self,
         read: &ReadRequest,
-        values: &HashMap<usize, DataValue>,
+        value_of: impl Fn(usize) -> Option<&'v DataValue>,
         uncertain: &mut Vec<usize>,
     ) -> Answer<Vec<u8>> {
         let mut bytes = vec![0u8; read.len as usize];
         let mut fields = structure::Fields::default();
         for i in self.covered(read.offset, read.len) {
             let entry = &self.served.entries[i];
-            let Some(value) = values.get(&entry.source) else {
+            let Some(value) = value_of(entry.source) else {
                 return Err(Refusal::Opcua(StatusCode::BadWaitingForInitialData.bits()));
             };
             let own = entry_bytes(entry, value, &mut fields)?;
@@ -1099,6 +1170,51 @@ fn stamp_of(value: &DataValue) -> i64 {
         .unwrap_or_else(|| plccoms_core::changes::unix_ms(std::time::SystemTime::now()))
 }
 
+/// CreateMonitoredItems by the raw service: `Session::create_monitored_items`
+/// keeps its own copy of every item (node id, parameters, filter: 24 MB at
+/// 100,000, the largest part of the heap at rest), which only its own
+/// reconnection (disabled: subscriptions are made anew here) and callbacks
+/// that look items up (not [`Sink`]) use. Each item's StatusCode.
+async fn create_monitored_items(
+    session: &Session,
+    id: u32,
+    timestamps: TimestampsToReturn,
+    items: Vec<MonitoredItemCreateRequest>,
+) -> Result<Vec<StatusCode>, opcua::types::Error> {
+    use opcua::client::UARequest;
+    opcua::client::services::CreateMonitoredItems::new(id, session)
+        .items_to_create(items)
+        .timestamps_to_return(timestamps)
+        .send(session.channel())
+        .await
+        .map(|created| {
+            created
+                .results
+                .into_iter()
+                .map(|c| c.result.status_code)
+                .collect()
+        })
+}
+
+/// MaxNotificationsPerPublish asked of the server. Without it a server
+/// answers one Publish with every change (two of 50,000 a second at
+/// 100,000 variables from plccoms's own): one message of megabytes,
+/// decoded at once, with a Write's answer waiting behind it on the one
+/// secure channel. The client asks for the rest at once (MoreNotifications),
+/// so the throughput stays; 10 messages a cycle at 100,000 changes stay
+/// well inside the 20 a server queues by default (async-opcua's).
+const NOTIFICATIONS_PER_PUBLISH: u32 = 10_000;
+
+/// Most bytes of R one read answers in subscribe mode.
+const SUBSCRIBED_READ_BLOCK: u32 = 4096;
+
+/// Most notifications the link takes at once ([`PlcBackend::take_pushed`]):
+/// between two such slices a SET queued meanwhile is served. A slice is
+/// one publish of the link's state, which costs the state's chunks it
+/// touches: servers notify in no order of the variables (a slice of 2,000
+/// touched nearly all of them), so one publish a message, not more.
+const TAKE_SLICE: usize = NOTIFICATIONS_PER_PUBLISH as usize;
+
 /// Where a subscription's notifications go: the inbox, the link woken.
 struct Sink {
     inbox: Inbox,
@@ -1139,16 +1255,21 @@ impl OnSubscriptionNotificationCore for Sink {
     }
 }
 
-/// Keeps the newest notification of each item only, in their order.
+/// Keeps the newest notification of each item only, in their order (in
+/// place: no second inbox at the peak).
 fn keep_newest(inbox: &mut Vec<(u64, u32, DataValue)>) {
-    let mut seen = HashSet::new();
-    let mut kept: Vec<_> = inbox
-        .drain(..)
+    let mut seen = HashSet::with_capacity(inbox.len());
+    let keep: Vec<bool> = inbox
+        .iter()
         .rev()
-        .filter(|(g, h, _)| seen.insert((*g, *h)))
+        .map(|(g, h, _)| seen.insert((*g, *h)))
         .collect();
-    kept.reverse();
-    *inbox = kept;
+    drop(seen);
+    let mut at = keep.len();
+    inbox.retain(|_| {
+        at -= 1;
+        keep[at]
+    });
 }
 
 /// A session with the server: endpoint, security and identity as
@@ -1414,8 +1535,16 @@ impl PlcBackend for OpcuaBackend {
         format!("OPC UA {}", self.config.url)
     }
 
+    /// Read mode: as many nodes a Read as the server takes. Subscribe
+    /// mode: reads are answered from the values notified, without a round
+    /// trip, in blocks of about 1,000 variables, so that the link serves a
+    /// SET between two (one block of 100,000 held a SET up for all).
     fn max_read_block(&self, _area: Area) -> u32 {
-        1024 * 1024
+        if self.config.subscribe {
+            SUBSCRIBED_READ_BLOCK
+        } else {
+            1024 * 1024
+        }
     }
 
     /// Only adjacent variables are read together: a gap is other nodes.
@@ -1475,9 +1604,12 @@ impl PlcBackend for OpcuaBackend {
             .collect();
         wanted.sort_unstable();
         wanted.dedup();
-        let values = if self.config.subscribe {
+        // Subscribe mode answers from the values notified, in place: a
+        // copy of 100,000 of them each cycle was 10 MB a second.
+        let read = if self.config.subscribe {
             self.monitor(&wanted).await?;
-            let mut values: HashMap<usize, DataValue> = {
+            // Not notified yet, or just written: from the server, once.
+            let direct: Vec<usize> = {
                 let notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
                 if let Some(run) = notified.get(&STATE_HANDLE) {
                     self.run = matches!(run.value, Some(Variant::Int32(0)));
@@ -1485,15 +1617,12 @@ impl PlcBackend for OpcuaBackend {
                 }
                 wanted
                     .iter()
-                    .filter_map(|&i| notified.get(&(i as u32 + 1)).map(|v| (i, v.clone())))
+                    .copied()
+                    .filter(|i| {
+                        !notified.contains_key(&(*i as u32 + 1)) || self.written.contains(i)
+                    })
                     .collect()
             };
-            // Not notified yet, or just written: from the server, once.
-            let direct: Vec<usize> = wanted
-                .iter()
-                .copied()
-                .filter(|i| !values.contains_key(i) || self.written.contains(i))
-                .collect();
             if !direct.is_empty() || state {
                 let read = self.read_values(&direct, state).await?;
                 let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
@@ -1501,27 +1630,34 @@ impl PlcBackend for OpcuaBackend {
                     if let (true, Some(at)) = (self.written.contains(&i), value.source_timestamp) {
                         self.read_back.insert(i as u32 + 1, at);
                     }
-                    notified.insert(i as u32 + 1, value.clone());
-                    values.insert(i, value);
+                    notified.insert(i as u32 + 1, value, self.served.sources.len());
                 }
                 drop(notified);
                 for i in &direct {
                     self.written.remove(i);
                 }
             }
-            values
+            None
         } else {
-            self.read_values(&wanted, state).await?
+            Some(self.read_values(&wanted, state).await?)
         };
         let mut uncertain = Vec::new();
+        let crc = self.list_crc();
+        let notified = self.notified.clone();
+        let notified = notified.lock().unwrap_or_else(|e| e.into_inner());
+        let value_of = |s: usize| match &read {
+            Some(read) => read.get(&s),
+            None => notified.get(&(s as u32 + 1)),
+        };
         let answers = reads
             .iter()
             .map(|read| match read.area {
-                Area::R => self.answer(read, &values, &mut uncertain),
-                Area::S => self.system(read.offset, read.len),
+                Area::R => self.answer(read, value_of, &mut uncertain),
+                Area::S => self.system(read.offset, read.len, crc),
                 _ => Err(Refusal::BAD_PARAMETERS),
             })
             .collect();
+        drop(notified);
         for i in uncertain {
             self.uncertain.insert(self.served.entries[i].name.clone());
         }
@@ -1541,14 +1677,32 @@ impl PlcBackend for OpcuaBackend {
     /// Subscribe mode: the values notified since the last call, each with
     /// its SourceTimestamp; the last of each item is what reads answer
     /// from now on. A Bad one is no value: reads answer its refusal.
+    /// At most [`TAKE_SLICE`] a call: the rest at the next, after the
+    /// link's queued requests.
     fn take_pushed(&mut self) -> Vec<Pushed> {
-        let inbox = std::mem::take(&mut *self.inbox.lock().unwrap_or_else(|e| e.into_inner()));
+        let mut inbox = std::mem::take(&mut self.spare);
+        let behind = {
+            let mut shared = self.inbox.lock().unwrap_or_else(|e| e.into_inner());
+            if shared.len() <= TAKE_SLICE {
+                std::mem::swap(&mut *shared, &mut inbox);
+                false
+            } else {
+                inbox.extend(shared.drain(..TAKE_SLICE));
+                true
+            }
+        };
+        if behind {
+            // The rest: the link comes back for it.
+            self.wake.notify_one();
+        }
         if inbox.is_empty() || self.subscription.is_none() {
+            inbox.clear();
+            self.spare = inbox;
             return Vec::new();
         }
-        let mut pushed = Vec::new();
+        let mut pushed = Vec::with_capacity(inbox.len());
         let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
-        for (generation, handle, value) in inbox {
+        for (generation, handle, value) in inbox.drain(..) {
             if generation != self.generation {
                 continue;
             }
@@ -1589,8 +1743,12 @@ impl PlcBackend for OpcuaBackend {
                     }
                 }
             }
-            notified.insert(handle, value);
+            notified.insert(handle, value, self.served.sources.len());
         }
+        drop(notified);
+        // Kept for the next take, at the size of a slice or two at most.
+        inbox.shrink_to(2 * TAKE_SLICE);
+        self.spare = inbox;
         pushed
     }
 
@@ -1603,6 +1761,11 @@ impl PlcBackend for OpcuaBackend {
         if self.subscription.is_none() {
             return std::future::pending().await;
         }
+        // Once pending first: the link looks at its queued requests (a SET)
+        // before each slice. Notifications come ten times a second at
+        // 100,000 variables; each would otherwise be ready again before
+        // the link's select reached its queue.
+        tokio::task::yield_now().await;
         self.wake.notified().await;
         Ok(())
     }
@@ -1651,6 +1814,7 @@ impl PlcBackend for OpcuaBackend {
                 // Its only holder now, unless a newer list came meanwhile.
                 let (bytes, types) = Arc::unwrap_or_clone(fetched);
                 self.served = list_of(bytes, &types);
+                self.crc = None;
                 // The handles of the old list mean other variables now.
                 if let (Some(subscription), Ok(session)) =
                     (self.subscription.take(), self.session())
@@ -1766,14 +1930,9 @@ mod tests {
         assert!(parse_security("Sign").unwrap_err().contains("mode:policy"));
     }
 
-    #[test]
-    fn reads_cover_the_variables_they_touch() {
-        let list = list_of(
-            b"name,node,type\nA,i=1,BOOL\nB,i=2,INT\nC,i=3,LREAL\n".to_vec(),
-            &browse::Types::default(),
-        );
-        let backend = OpcuaBackend {
-            served: list,
+    fn backend_of(served: List) -> OpcuaBackend {
+        OpcuaBackend {
+            served,
             ..OpcuaBackend::new(OpcuaConfig {
                 url: String::new(),
                 mode: MessageSecurityMode::None,
@@ -1787,7 +1946,104 @@ mod tests {
                 rebrowse: None,
                 section: String::new(),
             })
-        };
+        }
+    }
+
+    fn int(n: i16) -> DataValue {
+        DataValue::new_now(Variant::Int16(n))
+    }
+
+    #[test]
+    fn values_are_kept_for_the_lists_sources_only() {
+        let mut values = Values::default();
+        values.insert(3, int(3), 5);
+        values.insert(STATE_HANDLE, int(0), 5);
+        // Not a source of the list: a server's stray handle.
+        values.insert(6, int(6), 5);
+        values.insert(0, int(-1), 5);
+        assert_eq!(values.get(&3).unwrap().value, Some(Variant::Int16(3)));
+        assert_eq!(
+            values.get(&STATE_HANDLE).unwrap().value,
+            Some(Variant::Int16(0))
+        );
+        assert!(!values.contains_key(&1));
+        assert!(!values.contains_key(&6));
+        assert!(!values.contains_key(&0));
+        assert_eq!(values.sources.capacity(), 5);
+        values.clear();
+        assert!(!values.contains_key(&3));
+    }
+
+    #[test]
+    fn a_full_inbox_keeps_the_newest_of_each_item_in_order() {
+        let mut inbox: Vec<(u64, u32, DataValue)> =
+            [(1, 1), (1, 2), (1, 1), (2, 1), (1, 3), (1, 2)]
+                .iter()
+                .enumerate()
+                .map(|(n, &(g, h))| (g, h, int(n as i16)))
+                .collect();
+        keep_newest(&mut inbox);
+        let kept: Vec<(u64, u32, Option<Variant>)> =
+            inbox.into_iter().map(|(g, h, v)| (g, h, v.value)).collect();
+        assert_eq!(
+            kept,
+            [
+                (1, 1, Some(Variant::Int16(2))),
+                (2, 1, Some(Variant::Int16(3))),
+                (1, 3, Some(Variant::Int16(4))),
+                (1, 2, Some(Variant::Int16(5))),
+            ]
+        );
+    }
+
+    /// Notifications are taken a slice at a time, oldest first, and the
+    /// link is woken for the rest.
+    #[tokio::test]
+    async fn notifications_are_taken_in_slices() {
+        let list = list_of(
+            b"name,node,type\nA,i=1,INT\nB,i=2,INT\n".to_vec(),
+            &browse::Types::default(),
+        );
+        let mut backend = backend_of(list);
+        backend.subscription = Some(Subscription {
+            ids: Vec::new(),
+            monitored: HashSet::new(),
+        });
+        let all = TAKE_SLICE + 7;
+        backend
+            .inbox
+            .lock()
+            .unwrap()
+            .extend((0..all).map(|n| (backend.generation, (n % 2) as u32 + 1, int(n as i16))));
+        let first = backend.take_pushed();
+        assert_eq!(first.len(), TAKE_SLICE);
+        assert_eq!(first[0].bytes, 0i16.to_le_bytes());
+        // Woken for the rest, after one yield.
+        tokio::time::timeout(Duration::from_secs(5), backend.wait_pushed())
+            .await
+            .expect("woken for the rest")
+            .unwrap();
+        let rest = backend.take_pushed();
+        assert_eq!(rest.len(), 7);
+        assert_eq!(&*rest[6].name, b"A");
+        assert_eq!(rest[6].bytes, ((all - 1) as i16).to_le_bytes());
+        assert!(backend.take_pushed().is_empty());
+        // The value reads answer is the last taken.
+        let notified = backend.notified.lock().unwrap();
+        assert_eq!(
+            notified.get(&1).unwrap().value,
+            Some(Variant::Int16((all - 1) as i16))
+        );
+        assert!(!notified.contains_key(&3));
+    }
+
+    #[test]
+    fn reads_cover_the_variables_they_touch() {
+        let list = list_of(
+            b"name,node,type\nA,i=1,BOOL\nB,i=2,INT\nC,i=3,LREAL\n".to_vec(),
+            &browse::Types::default(),
+        );
+        let backend = backend_of(list);
         assert_eq!(backend.covered(0, 1), 0..1);
         assert_eq!(backend.covered(1, 2), 1..2);
         assert_eq!(backend.covered(0, 11), 0..3);
@@ -1803,7 +2059,7 @@ mod tests {
         };
         let mut uncertain = Vec::new();
         assert_eq!(
-            backend.answer(&read, &values, &mut uncertain),
+            backend.answer(&read, |s| values.get(&s), &mut uncertain),
             Ok(vec![1, 0xFE, 0xFF])
         );
         assert!(uncertain.is_empty());
@@ -1817,7 +2073,7 @@ mod tests {
             },
         );
         assert_eq!(
-            backend.answer(&read, &values, &mut uncertain),
+            backend.answer(&read, |s| values.get(&s), &mut uncertain),
             Ok(vec![1, 0xFD, 0xFF])
         );
         assert_eq!(uncertain, [1]);
@@ -1829,7 +2085,7 @@ mod tests {
             },
         );
         assert_eq!(
-            backend.answer(&read, &values, &mut uncertain),
+            backend.answer(&read, |s| values.get(&s), &mut uncertain),
             Err(Refusal::Opcua(StatusCode::BadNotReadable.bits()))
         );
     }

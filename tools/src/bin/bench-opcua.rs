@@ -59,6 +59,12 @@ struct Args {
     /// nodes takes a while.
     #[arg(long, default_value_t = 600)]
     ready_within: u64,
+    /// A key of the client side's section, `KEY=VALUE` (repeatable): e.g.
+    /// `OPCUA_TIMEOUT=5000` for a debug build or one under heaptrack,
+    /// whose CreateMonitoredItems at 100,000 takes longer than the
+    /// default allows, or `OPCUA_REBROWSE=0` to see what the rebrowse costs.
+    #[arg(long = "client-key")]
+    client_keys: Vec<String>,
     /// Append `opcua_<n>.<metric> value` lines here (bench/run's results).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -209,6 +215,14 @@ async fn run(args: &Args, binary: &Path, n: usize) -> Row {
         ),
     );
     let started = Instant::now();
+    let keys: String = args
+        .client_keys
+        .iter()
+        .map(|key| match key.split_once('=') {
+            Some((name, value)) => format!("{} = {}\n", name.trim(), value.trim()),
+            None => panic!("--client-key {key}: expected KEY=VALUE"),
+        })
+        .collect();
     let client = Server::start(
         binary,
         dir.path(),
@@ -216,7 +230,7 @@ async fn run(args: &Args, binary: &Path, n: usize) -> Row {
         &format!(
             "[*]\nCOMM_LOOP_DELAY = {delay}\nHTTP_PORT = {http}\n\
              [Via]\nPROTOCOL = OPCUA\nOPCUA_URL = opc.tcp://127.0.0.1:{ua}/\n\
-             OPCUA_BROWSE = nsu=urn:plccoms;s=Sim\nOPCUA_USER = bench\nOPCUA_PASSWORD = bench\nSERVER_PORT = {via_port}\n"
+             OPCUA_BROWSE = nsu=urn:plccoms;s=Sim\nOPCUA_USER = bench\nOPCUA_PASSWORD = bench\nSERVER_PORT = {via_port}\n{keys}"
         ),
     );
     let pid = client.child.id();
