@@ -65,7 +65,13 @@ pub(crate) async fn list(
     Ok((print, Some(built)))
 }
 
-/// Every `every`: the list again, put in `slot` where it differs from the
+/// A look takes at most one part in this many of the time: at 100,000
+/// variables each look browses every variable (for a structure's fields)
+/// and costs seconds of both sides' CPU, more than a 10 s OPCUA_REBROWSE
+/// should spend.
+const REBROWSE_SHARE: u32 = 20;
+
+/// Every `every` (or 20 times the last look's time, if longer): the list again, put in `slot` where it differs from the
 /// last one built (`known`). Ends when aborted (with its session).
 pub(crate) fn spawn(
     link: Arc<Session>,
@@ -81,8 +87,10 @@ pub(crate) fn spawn(
         let mut failing = false;
         let mut client = None;
         let mut shared = false;
+        let mut took = Duration::ZERO;
         loop {
-            tokio::time::sleep(every).await;
+            tokio::time::sleep(every.max(took * REBROWSE_SHARE)).await;
+            let started = std::time::Instant::now();
             // The link's client settings (accepted already), but patient:
             // a keep-alive the server answers after a slow Browse must not
             // close this session.
@@ -109,6 +117,7 @@ pub(crate) fn spawn(
                     list(&link, &lister, &limits, Some(known)).await
                 }
             };
+            took = started.elapsed();
             match listed {
                 Ok((found, built)) => {
                     known = found;
