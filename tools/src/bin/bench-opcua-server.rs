@@ -14,7 +14,9 @@
 //! so each counter value measured must reach every one of them: loss is
 //! the number of (item, value) notifications missing over the window.
 //! Latency is arrival minus SourceTimestamp (the poll's time at plccoms,
-//! the time the value was set at node-opcua; both on this machine's clock).
+//! the time the value was set at node-opcua; both on this machine's clock),
+//! split at the ServerTimestamp (`to_server`: until the server made the
+//! notification's value; `from_server`: its queue, publish and delivery).
 //! With `--server-pid`, the server's RSS is sampled every second.
 //!
 //! Results are `label.metric value` lines on stdout, appended to `--out`.
@@ -121,6 +123,10 @@ struct Stats {
     overflow: u64,
     not_counter: u64,
     latencies_ms: Vec<f64>,
+    /// The same split at the DataValue's ServerTimestamp (when the server
+    /// made the notification's value): source -> server, server -> arrival.
+    to_server_ms: Vec<f64>,
+    from_server_ms: Vec<f64>,
 }
 
 impl Stats {
@@ -156,9 +162,14 @@ impl Stats {
         }
         self.last[i] = Some(v);
         if measuring {
+            let ms = |t: &opcua::types::DateTime| t.as_chrono().timestamp_micros() as f64 / 1000.0;
+            let arrival = now_ms();
             if let Some(source) = value.source_timestamp {
-                self.latencies_ms
-                    .push(now_ms() - source.as_chrono().timestamp_micros() as f64 / 1000.0);
+                self.latencies_ms.push(arrival - ms(&source));
+                if let Some(server) = value.server_timestamp {
+                    self.to_server_ms.push(ms(&server) - ms(&source));
+                    self.from_server_ms.push(arrival - ms(&server));
+                }
             }
             *self.seen.entry(v).or_insert(0) += 1;
         } else if let Some(n) = self.seen.get_mut(&v) {
@@ -412,6 +423,8 @@ async fn run(args: Args) -> Result<(), Fail> {
         overflow: 0,
         not_counter: 0,
         latencies_ms: Vec::new(),
+        to_server_ms: Vec::new(),
+        from_server_ms: Vec::new(),
     }));
     let start = Instant::now();
     let mut revised = f64::NAN;
@@ -539,6 +552,14 @@ async fn run(args: Args) -> Result<(), Fail> {
         report.metric("latency_p50_ms", percentile(&st.latencies_ms, 0.5));
         report.metric("latency_p99_ms", percentile(&st.latencies_ms, 0.99));
         report.metric("latency_max_ms", percentile(&st.latencies_ms, 1.0));
+        for (name, list) in [
+            ("to_server", &mut st.to_server_ms),
+            ("from_server", &mut st.from_server_ms),
+        ] {
+            list.sort_by(f64::total_cmp);
+            report.metric(&format!("{name}_p50_ms"), percentile(list, 0.5));
+            report.metric(&format!("{name}_p99_ms"), percentile(list, 0.99));
+        }
     }
     let rss = rss.lock().unwrap_or_else(|e| e.into_inner()).clone();
     if !rss.is_empty() {
