@@ -37,9 +37,10 @@ const CHUNK: usize = 256;
 /// it misses changes: this many publishes, or [`FOLLOW_BYTES`] of the
 /// slots its queued snapshots hold that no other snapshot shares, whichever
 /// comes first. A poll that changes a few variables costs one chunk of
-/// slots (256 of 56 bytes: 14 KiB), so the bytes allow minutes of polls or
-/// seconds of a client's rapid SETs; a poll that changes every variable of
-/// a 10,000 variable table costs about 560 KiB, so 58 of them. The queue holds
+/// slots (256 of 64 bytes: 16 KiB, their texts inline), so the bytes allow
+/// minutes of polls or seconds of a client's rapid SETs; a poll that
+/// changes every variable of a 10,000 variable table costs about 640 KiB,
+/// so 51 of them (STRINGs longer than 20 characters beyond). The queue holds
 /// snapshots only while its consumer lags.
 pub const FOLLOW_BOUND: usize = 10_000;
 /// See [`FOLLOW_BOUND`].
@@ -166,6 +167,53 @@ impl Followers {
 /// one per SETCONF or file change, so a session is never this far behind.
 const NOTICE_HISTORY: usize = 32;
 
+/// Bytes of text a slot holds in itself.
+const INLINE: usize = 22;
+
+/// A value as the protocol prints it: in the slot when it fits (every
+/// number, BOOL, date and time), shared on the heap when longer (STRINGs).
+/// An `Arc` for each was 32 bytes of malloc beside every slot, and one
+/// more per change in a poll (`tests/memory_per_var.rs`).
+#[derive(Debug, Clone, Default)]
+enum Text {
+    /// Not read yet.
+    #[default]
+    None,
+    Inline {
+        len: u8,
+        bytes: [u8; INLINE],
+    },
+    Shared(Arc<[u8]>),
+}
+
+const _: () = assert!(std::mem::size_of::<Text>() == 24);
+
+impl Text {
+    fn of(text: &[u8]) -> Text {
+        if text.len() > INLINE {
+            return Text::Shared(Arc::from(text));
+        }
+        let mut bytes = [0; INLINE];
+        bytes[..text.len()].copy_from_slice(text);
+        Text::Inline {
+            len: text.len() as u8,
+            bytes,
+        }
+    }
+
+    fn get(&self) -> Option<&[u8]> {
+        match self {
+            Text::None => None,
+            Text::Inline { len, bytes } => Some(&bytes[..usize::from(*len)]),
+            Text::Shared(text) => Some(text),
+        }
+    }
+
+    fn is_some(&self) -> bool {
+        !matches!(self, Text::None)
+    }
+}
+
 /// The last known value of one variable.
 #[derive(Debug, Clone, Default)]
 pub struct Slot {
@@ -173,7 +221,7 @@ pub struct Slot {
     /// BOOL as 0/1); unused for STRING, whose bytes are in `text`.
     raw: u64,
     /// The value as the protocol prints it; `None` until first read.
-    text: Option<Arc<[u8]>>,
+    text: Text,
     /// Snapshot sequence at which the value last changed.
     pub changed_seq: u64,
     /// Snapshot sequence at which the value was last read from the PLC.
@@ -190,11 +238,16 @@ pub struct Slot {
 
 impl Slot {
     pub fn text(&self) -> Option<&[u8]> {
-        self.text.as_deref()
+        self.text.get()
     }
 
+    /// The text to keep beyond the snapshot: shared when long, a copy of
+    /// a short one.
     pub fn shared_text(&self) -> Option<Arc<[u8]>> {
-        self.text.clone()
+        match &self.text {
+            Text::Shared(text) => Some(text.clone()),
+            text => text.get().map(Arc::from),
+        }
     }
 
     /// The device marked the value uncertain.
@@ -204,7 +257,7 @@ impl Slot {
 
     /// The value, decoded (for delta comparisons).
     pub fn value(&self, var: &Var) -> Option<Value> {
-        let text = self.text.as_ref()?;
+        let text = self.text.get()?;
         Some(if var.ty.is_string() {
             // text is `"..."`; the quotes are ours.
             Value::Str(text[1..text.len() - 1].to_vec())
@@ -613,7 +666,7 @@ impl Publisher {
         let chunk = Arc::make_mut(&mut self.chunks[index / CHUNK]);
         let slot = &mut chunk[index % CHUNK];
         slot.read_seq = seq;
-        let changed = match &slot.text {
+        let changed = match slot.text.get() {
             None => true,
             Some(old) if ty.is_string() => !string_equals(old, bytes),
             Some(_) => slot.raw != raw,
@@ -624,7 +677,7 @@ impl Publisher {
             let value = value.unwrap_or_else(|| var.decode(bytes));
             var.format(&value, &self.format, &mut self.scratch);
             slot.raw = raw;
-            slot.text = Some(Arc::from(&self.scratch[..]));
+            slot.text = Text::of(&self.scratch);
             slot.changed_seq = seq;
             slot.changed_ms = unix_ms;
             self.changed.push(id);
@@ -965,6 +1018,41 @@ mod tests {
         publisher.replace_table(table);
         poll(&mut publisher, 7);
         assert_eq!(stream.latest().quality(a), Quality::Good);
+    }
+
+    /// Texts up to INLINE bytes live in the slot, longer ones on the heap:
+    /// both read back whole, and a change across the bound is a change.
+    #[test]
+    fn short_and_long_texts_read_back_whole() {
+        let table = Arc::new(crate::vars::table_of(&[("S", "STRING[40]")]));
+        let (publisher, stream) =
+            Publisher::new(table, FormatOptions::default(), Duration::from_secs(60));
+        let mut publisher = publisher;
+        let s = publisher.table().fixed_count() as VarId;
+        // Quoted: 20 characters are 22 bytes of text, 21 are 23.
+        for value in [
+            "",
+            "a",
+            &"x".repeat(20),
+            &"y".repeat(21),
+            &"z".repeat(40),
+            "b",
+        ] {
+            let mut bytes = value.as_bytes().to_vec();
+            bytes.resize(41, 0);
+            assert!(publisher.update(s, &bytes, 1), "{value}");
+            assert!(!publisher.update(s, &bytes, 2), "{value} again");
+            publisher.publish_poll(PollStamp::now());
+            let quoted = format!("\"{value}\"").into_bytes();
+            let latest = stream.latest();
+            assert_eq!(latest.slot(s).text(), Some(&quoted[..]));
+            assert_eq!(latest.slot(s).shared_text().as_deref(), Some(&quoted[..]));
+            let table = latest.table.clone();
+            assert_eq!(
+                latest.slot(s).value(table.var(s)),
+                Some(Value::Str(value.as_bytes().to_vec()))
+            );
+        }
     }
 
     #[test]
