@@ -2,8 +2,8 @@
 //! a global allocator: the table (variables, names, index), the slots, a
 //! poll that changes every variable (how many copies of the slots live at
 //! once), a subscription to everything. Bounds per variable keep what was
-//! cut from coming back; `cargo test -p plccoms-core --test
-//! memory_per_var -- --nocapture` prints the breakdown.
+//! cut from coming back; `cargo test --test memory_per_var --
+//! --nocapture` prints the breakdown.
 //!
 //! Bytes are counted as glibc's malloc spends them (a chunk of the request
 //! plus 8, rounded up to 16, at least 32), so a small allocation per
@@ -55,42 +55,9 @@ fn live() -> isize {
 
 const VARS: usize = 100_000;
 
-/// The public file `loadgen genpub --vars 100000` writes (plcsim's
-/// generator: VAR_nnnnn of eight types in turn), without its CRC line.
+/// The public file `loadgen genpub --vars 100000` writes.
 fn public_file() -> Vec<u8> {
-    let types = [
-        "BOOL",
-        "INT",
-        "DINT",
-        "UDINT",
-        "REAL",
-        "LREAL",
-        "WORD",
-        "STRING[16]",
-    ];
-    let sizes = [0usize, 2, 4, 4, 4, 8, 2, 17];
-    let mut text = String::with_capacity(VARS * 40);
-    let (mut offset, mut bit) = (0usize, 0u8);
-    for i in 0..VARS {
-        let k = i % types.len();
-        if k == 0 {
-            let _ = writeln!(text, " VAR_{i:05} R B {offset} .{bit} BOOL PUB_INOUT");
-            bit += 1;
-            if bit == 8 {
-                bit = 0;
-                offset += 1;
-            }
-            continue;
-        }
-        if bit != 0 {
-            bit = 0;
-            offset += 1;
-        }
-        let kind = if types[k].contains("REAL") { "F" } else { "B" };
-        let _ = writeln!(text, " VAR_{i:05} R {kind} {offset} {} PUB_INOUT", types[k]);
-        offset += sizes[k];
-    }
-    text.into_bytes()
+    plcsim::genpub::plain(VARS)
 }
 
 /// The bytes of variable `id` at poll `n`: every poll changes every value.
