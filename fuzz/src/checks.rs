@@ -468,6 +468,11 @@ pub fn pubfile(data: &[u8]) {
     let lines = data.split(|&b| b == b'\n').count();
     let mut names = HashSet::new();
     assert!(parsed.vars.len() <= plccoms_plc::pubfile::MAX_VARS);
+    // What a link keeps of the file instead of its bytes (a refused file's
+    // parse stops at the bound).
+    if parsed.too_many.is_none() {
+        assert_eq!(plccoms_plc::pubfile::crc_trailer(data), parsed.crc);
+    }
     for def in &parsed.vars {
         let v = &def.var;
         assert!(!v.name.is_empty());

@@ -119,6 +119,21 @@ pub fn load(path: &Path) -> Result<PubFile, std::io::Error> {
     Ok(parse(&std::fs::read(path)?))
 }
 
+/// The CRC trailer's value as [`parse`] reads it (the last good CRC line
+/// counts), without parsing the variables: what a link keeps to check
+/// `__PF_CRC` instead of the file.
+pub fn crc_trailer(bytes: &[u8]) -> Option<u32> {
+    lines(bytes)
+        .filter_map(|(_, raw)| {
+            let line = trim_start(raw);
+            if line.first() != Some(&b';') {
+                return None;
+            }
+            parse_crc_line(line)?.ok()
+        })
+        .last()
+}
+
 /// Parses a public file. Never fails: bad lines become warnings.
 pub fn parse(bytes: &[u8]) -> PubFile {
     let mut file = PubFile::default();
@@ -679,12 +694,20 @@ mod tests {
             let file = parse(&text);
             assert!(file.warnings.is_empty(), "{trailer}: {:?}", file.warnings);
             assert_eq!(file.crc, Some(crc), "{trailer}");
+            assert_eq!(super::crc_trailer(&text), Some(crc), "{trailer}");
             assert_eq!(crc_content(&text), body, "{trailer}");
             assert_eq!(file.vars.len(), 2);
         }
         assert_eq!(crc_content(body), body);
         let file = parse(b" A R B 0 INT\n;* Crc=\"12G4\"\n");
         assert_eq!(file.crc, None);
+        assert_eq!(super::crc_trailer(b" A R B 0 INT\n;* Crc=\"12G4\"\n"), None);
+        // The last good line counts, a bad one after it changes nothing.
+        let two = b";* Crc=\"1\"\n;* Crc=\"2\"\n;* Crc=\"x\"\n";
+        assert_eq!(
+            (parse(two).crc, super::crc_trailer(two)),
+            (Some(2), Some(2))
+        );
         assert_eq!(
             file.warnings[0].to_string(),
             "line 2: bad CRC line ';* Crc=\"12G4\"' (expected ;* Crc=\"<hex>\")"
@@ -693,6 +716,26 @@ mod tests {
         let file = parse(b";* Created by Mosaic\n A R B 0 INT\n");
         assert!(file.warnings.is_empty());
         assert_eq!(file.crc, None);
+    }
+
+    proptest::proptest! {
+        /// The trailer alone reads what the whole parse reads, for lines of
+        /// CRC trailers good and bad, variables and junk in any order.
+        #[test]
+        fn crc_trailer_agrees_with_parse(
+            lines in proptest::collection::vec(
+                proptest::prop_oneof![
+                    "[ ;*]{0,3}[cC][rR][cC] ?= ?\"[0-9a-fA-FxG ]{0,10}\"?",
+                    " [A-Z]{1,4} R B [0-9]{1,3} (INT|BOOL|REAL)",
+                    "[ -~\t;]{0,20}",
+                ],
+                0..12,
+            ),
+            eol in "(\r\n|\n|\r)",
+        ) {
+            let text = lines.join(&eol);
+            proptest::prop_assert_eq!(super::crc_trailer(text.as_bytes()), parse(text.as_bytes()).crc);
+        }
     }
 
     #[test]

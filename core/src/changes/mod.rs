@@ -37,9 +37,12 @@ const CHUNK: usize = 256;
 /// it misses changes: this many publishes, or [`FOLLOW_BYTES`] of the
 /// slots its queued snapshots hold that no other snapshot shares, whichever
 /// comes first. A poll that changes a few variables costs one chunk of
-/// slots (256 of 56 bytes: 14 KiB), so the bytes allow minutes of polls or
-/// seconds of a client's rapid SETs; a poll that changes every variable of
-/// a 10,000 variable table costs about 560 KiB, so 58 of them. The queue holds
+/// slots (256 of 56 bytes: 14 KiB, their texts inline; what it read
+/// unchanged costs nothing, but 2 KiB of read stamps for a chunk it read in
+/// part), so the bytes allow minutes of polls or seconds of a client's
+/// rapid SETs; a poll that changes every variable of a 10,000 variable
+/// table costs about 560 KiB, so 58 of them (STRINGs longer than 20
+/// characters beyond). The queue holds
 /// snapshots only while its consumer lags.
 pub const FOLLOW_BOUND: usize = 10_000;
 /// See [`FOLLOW_BOUND`].
@@ -104,16 +107,58 @@ impl FollowQueue {
     }
 }
 
-/// What a snapshot of `chunks` holds that the one before (`before`) does
-/// not share: the chunks copied since, and the list of them.
-fn unshared_bytes(chunks: &[Arc<Vec<Slot>>], before: &[Arc<Vec<Slot>>]) -> usize {
+/// What `snapshot` holds that the one before (`before`) does not share:
+/// the chunks of slots and of read stamps copied since, and the lists of
+/// them.
+fn unshared_bytes(snapshot: &Snapshot, before: &Snapshot) -> usize {
+    let (chunks, reads) = (&snapshot.chunks, &snapshot.reads);
     let copied = chunks
         .iter()
-        .zip(before)
+        .zip(&before.chunks)
         .filter(|(now, before)| !Arc::ptr_eq(now, before))
         .count()
-        + chunks.len().saturating_sub(before.len());
-    copied * CHUNK * std::mem::size_of::<Slot>() + std::mem::size_of_val(chunks)
+        + chunks.len().saturating_sub(before.chunks.len());
+    let stamps: usize = reads
+        .iter()
+        .enumerate()
+        .map(|(i, now)| match (now, before.reads.get(i)) {
+            (ReadChunk::Each(now), Some(ReadChunk::Each(old))) if Arc::ptr_eq(now, old) => 0,
+            (ReadChunk::Each(now), _) => std::mem::size_of_val(&now[..]),
+            (ReadChunk::All(_), _) => 0,
+        })
+        .sum();
+    copied * CHUNK * std::mem::size_of::<Slot>()
+        + stamps
+        + std::mem::size_of_val(&chunks[..])
+        + std::mem::size_of_val(&reads[..])
+}
+
+/// When the variables of one chunk were last read from the PLC, as a
+/// snapshot holds it. Apart from the slots: a poll reads every polled
+/// variable again, changed or not, and a read stamp in the slot made every
+/// poll copy every polled chunk (64 bytes a variable per poll at rest,
+/// `tests/memory_per_var.rs`). A chunk read whole in one publish (what a
+/// poll does) is its one sequence, without an allocation.
+#[derive(Debug, Clone)]
+enum ReadChunk {
+    All(u64),
+    Each(Arc<[u64]>),
+}
+
+impl ReadChunk {
+    fn of(seqs: &[u64]) -> ReadChunk {
+        match seqs.first() {
+            Some(&first) if seqs.iter().any(|&seq| seq != first) => ReadChunk::Each(seqs.into()),
+            first => ReadChunk::All(first.copied().unwrap_or(0)),
+        }
+    }
+
+    fn get(&self, index: usize) -> u64 {
+        match self {
+            ReadChunk::All(seq) => *seq,
+            ReadChunk::Each(seqs) => seqs[index],
+        }
+    }
 }
 
 /// The queues of the subscriptions that follow every publish.
@@ -166,6 +211,53 @@ impl Followers {
 /// one per SETCONF or file change, so a session is never this far behind.
 const NOTICE_HISTORY: usize = 32;
 
+/// Bytes of text a slot holds in itself.
+const INLINE: usize = 22;
+
+/// A value as the protocol prints it: in the slot when it fits (every
+/// number, BOOL, date and time), shared on the heap when longer (STRINGs).
+/// An `Arc` for each was 32 bytes of malloc beside every slot, and one
+/// more per change in a poll (`tests/memory_per_var.rs`).
+#[derive(Debug, Clone, Default)]
+enum Text {
+    /// Not read yet.
+    #[default]
+    None,
+    Inline {
+        len: u8,
+        bytes: [u8; INLINE],
+    },
+    Shared(Arc<[u8]>),
+}
+
+const _: () = assert!(std::mem::size_of::<Text>() == 24);
+
+impl Text {
+    fn of(text: &[u8]) -> Text {
+        if text.len() > INLINE {
+            return Text::Shared(Arc::from(text));
+        }
+        let mut bytes = [0; INLINE];
+        bytes[..text.len()].copy_from_slice(text);
+        Text::Inline {
+            len: text.len() as u8,
+            bytes,
+        }
+    }
+
+    fn get(&self) -> Option<&[u8]> {
+        match self {
+            Text::None => None,
+            Text::Inline { len, bytes } => Some(&bytes[..usize::from(*len)]),
+            Text::Shared(text) => Some(text),
+        }
+    }
+
+    fn is_some(&self) -> bool {
+        !matches!(self, Text::None)
+    }
+}
+
 /// The last known value of one variable.
 #[derive(Debug, Clone, Default)]
 pub struct Slot {
@@ -173,11 +265,10 @@ pub struct Slot {
     /// BOOL as 0/1); unused for STRING, whose bytes are in `text`.
     raw: u64,
     /// The value as the protocol prints it; `None` until first read.
-    text: Option<Arc<[u8]>>,
-    /// Snapshot sequence at which the value last changed.
+    text: Text,
+    /// Snapshot sequence at which the value last changed (when it was last
+    /// read: [`Snapshot::read_seq`], [`Publisher::read_seq`]).
     pub changed_seq: u64,
-    /// Snapshot sequence at which the value was last read from the PLC.
-    pub read_seq: u64,
     /// UTC milliseconds of the poll (or SET read-back) that read the value
     /// as it is now, or of the device's last change of its quality.
     pub changed_ms: i64,
@@ -190,11 +281,16 @@ pub struct Slot {
 
 impl Slot {
     pub fn text(&self) -> Option<&[u8]> {
-        self.text.as_deref()
+        self.text.get()
     }
 
+    /// The text to keep beyond the snapshot: shared when long, a copy of
+    /// a short one.
     pub fn shared_text(&self) -> Option<Arc<[u8]>> {
-        self.text.clone()
+        match &self.text {
+            Text::Shared(text) => Some(text.clone()),
+            text => text.get().map(Arc::from),
+        }
     }
 
     /// The device marked the value uncertain.
@@ -204,7 +300,7 @@ impl Slot {
 
     /// The value, decoded (for delta comparisons).
     pub fn value(&self, var: &Var) -> Option<Value> {
-        let text = self.text.as_ref()?;
+        let text = self.text.get()?;
         Some(if var.ty.is_string() {
             // text is `"..."`; the quotes are ours.
             Value::Str(text[1..text.len() - 1].to_vec())
@@ -307,6 +403,7 @@ pub struct Snapshot {
     /// a thousand such clients copy one block instead of each picking lines.
     pub diff_block: Option<DiffBlock>,
     chunks: Vec<Arc<Vec<Slot>>>,
+    reads: Vec<ReadChunk>,
 }
 
 #[derive(Debug, Clone)]
@@ -333,11 +430,20 @@ impl Snapshot {
         &self.chunks[id / CHUNK][id % CHUNK]
     }
 
+    /// Snapshot sequence at which the value was last read from the PLC.
+    pub fn read_seq(&self, id: VarId) -> u64 {
+        let id = id as usize;
+        self.reads[id / CHUNK].get(id % CHUNK)
+    }
+
     /// The slot if its value is current: read in the last poll cycle or later,
     /// with the PLC online. What DIFF lines are made of.
     pub fn current(&self, id: VarId) -> Option<&Slot> {
         let slot = self.slot(id);
-        (self.online && slot.text.is_some() && slot.read_seq >= self.poll_seq && self.poll_seq > 0)
+        (self.online
+            && slot.text.is_some()
+            && self.read_seq(id) >= self.poll_seq
+            && self.poll_seq > 0)
             .then_some(slot)
     }
 
@@ -491,6 +597,11 @@ pub struct Publisher {
     table: Arc<VarTable>,
     interest: Arc<Interest>,
     chunks: Vec<Arc<Vec<Slot>>>,
+    /// When each variable was last read: the truth, which a publish turns
+    /// into the snapshot's `reads` for the chunks marked in `reads_dirty`.
+    read_seq: Vec<u64>,
+    reads: Vec<ReadChunk>,
+    reads_dirty: Vec<bool>,
     changed: Vec<VarId>,
     requalified: Vec<VarId>,
     format: FormatOptions,
@@ -510,6 +621,8 @@ impl Publisher {
     ) -> (Publisher, ChangeStream) {
         let interest = Arc::new(Interest::new(table.len()));
         let chunks = empty_chunks(table.len());
+        let reads = vec![ReadChunk::All(0); chunks.len()];
+        let len = table.len();
         let snapshot = Arc::new(Snapshot {
             seq: 0,
             poll_seq: 0,
@@ -523,6 +636,7 @@ impl Publisher {
             notices: Arc::new([]),
             diff_block: None,
             chunks: chunks.clone(),
+            reads: reads.clone(),
         });
         let (tx, rx) = watch::channel(snapshot);
         let followers = Arc::new(Followers::default());
@@ -536,6 +650,9 @@ impl Publisher {
             fresh_for,
             table,
             interest,
+            read_seq: vec![0; len],
+            reads_dirty: vec![false; chunks.len()],
+            reads,
             chunks,
             changed: Vec::new(),
             requalified: Vec::new(),
@@ -591,6 +708,12 @@ impl Publisher {
         &self.chunks[id / CHUNK][id % CHUNK]
     }
 
+    /// Sequence at which `id` was last read (the next one's for a read
+    /// since the last publish).
+    pub fn read_seq(&self, id: VarId) -> u64 {
+        self.read_seq[id as usize]
+    }
+
     /// Records a value read from the PLC at `unix_ms` (`bytes` as read for
     /// the variable; the bit of a BOOL is extracted here). Returns whether it
     /// changed.
@@ -610,10 +733,10 @@ impl Publisher {
             None => 0,
         };
         let index = id as usize;
-        let chunk = Arc::make_mut(&mut self.chunks[index / CHUNK]);
-        let slot = &mut chunk[index % CHUNK];
-        slot.read_seq = seq;
-        let changed = match &slot.text {
+        self.read_seq[index] = seq;
+        self.reads_dirty[index / CHUNK] = true;
+        let slot = &self.chunks[index / CHUNK][index % CHUNK];
+        let changed = match slot.text.get() {
             None => true,
             Some(old) if ty.is_string() => !string_equals(old, bytes),
             Some(_) => slot.raw != raw,
@@ -623,8 +746,10 @@ impl Publisher {
             // Through the variable: a tag file's decimals and scale count.
             let value = value.unwrap_or_else(|| var.decode(bytes));
             var.format(&value, &self.format, &mut self.scratch);
+            let chunk = Arc::make_mut(&mut self.chunks[index / CHUNK]);
+            let slot = &mut chunk[index % CHUNK];
             slot.raw = raw;
-            slot.text = Some(Arc::from(&self.scratch[..]));
+            slot.text = Text::of(&self.scratch);
             slot.changed_seq = seq;
             slot.changed_ms = unix_ms;
             self.changed.push(id);
@@ -699,6 +824,13 @@ impl Publisher {
             }
             _ => None,
         };
+        for (index, dirty) in self.reads_dirty.iter_mut().enumerate() {
+            if std::mem::take(dirty) {
+                let start = index * CHUNK;
+                let end = (start + CHUNK).min(self.read_seq.len());
+                self.reads[index] = ReadChunk::of(&self.read_seq[start..end]);
+            }
+        }
         let snapshot = Snapshot {
             seq: self.seq,
             poll_seq: self.poll_seq,
@@ -712,10 +844,11 @@ impl Publisher {
             notices: self.notices.clone(),
             diff_block,
             chunks: self.chunks.clone(),
+            reads: self.reads.clone(),
         };
         let snapshot = Arc::new(snapshot);
         if self.followers.any() {
-            let cost = unshared_bytes(&snapshot.chunks, &self.tx.borrow().chunks);
+            let cost = unshared_bytes(&snapshot, &self.tx.borrow());
             self.followers.offer(&snapshot, cost);
         }
         self.tx.send_replace(snapshot);
@@ -731,6 +864,9 @@ impl Publisher {
     pub fn replace_table(&mut self, table: Arc<VarTable>) {
         self.interest = Arc::new(Interest::new(table.len()));
         self.chunks = empty_chunks(table.len());
+        self.read_seq = vec![0; table.len()];
+        self.reads = vec![ReadChunk::All(0); self.chunks.len()];
+        self.reads_dirty = vec![false; self.chunks.len()];
         self.changed.clear();
         self.requalified.clear();
         self.table = table;
@@ -965,6 +1101,101 @@ mod tests {
         publisher.replace_table(table);
         poll(&mut publisher, 7);
         assert_eq!(stream.latest().quality(a), Quality::Good);
+    }
+
+    /// A poll that reads values unchanged copies no slots and stamps its
+    /// reads without an allocation; what a snapshot says is current stays
+    /// as it was published, whatever later polls read.
+    #[test]
+    fn reads_are_stamped_apart_from_the_slots() {
+        let names: Vec<String> = (0..CHUNK + 10).map(|i| format!("V{i}")).collect();
+        let vars: Vec<(&str, &str)> = names.iter().map(|n| (n.as_str(), "INT")).collect();
+        let table = Arc::new(crate::vars::table_of(&vars));
+        let (publisher, stream) = Publisher::new(
+            table.clone(),
+            FormatOptions::default(),
+            Duration::from_secs(60),
+        );
+        let mut publisher = publisher;
+        let all: Vec<VarId> = (0..table.len() as VarId).collect();
+        let poll = |publisher: &mut Publisher, ids: &[VarId]| {
+            let stamp = PollStamp::now();
+            for &id in ids {
+                publisher.update(id, &7i16.to_le_bytes(), stamp.unix_ms);
+            }
+            publisher.publish_poll(stamp);
+        };
+        poll(&mut publisher, &all);
+        let first = stream.latest();
+        assert!(all.iter().all(|&id| first.current(id).is_some()));
+        // The same values again: every slot shared, every chunk one stamp.
+        poll(&mut publisher, &all);
+        let second = stream.latest();
+        for (now, before) in second.chunks.iter().zip(&first.chunks) {
+            assert!(Arc::ptr_eq(now, before), "a slot chunk copied");
+        }
+        assert!(second
+            .reads
+            .iter()
+            .all(|r| matches!(r, ReadChunk::All(seq) if *seq == second.seq)));
+        assert!(all.iter().all(|&id| second.current(id).is_some()));
+        // A poll that reads all but one: that one is not current now, and
+        // still is in the snapshot before.
+        let (left_out, rest) = all.split_last().unwrap();
+        poll(&mut publisher, rest);
+        let third = stream.latest();
+        assert!(third.current(*left_out).is_none());
+        assert!(rest.iter().all(|&id| third.current(id).is_some()));
+        assert!(
+            second.current(*left_out).is_some(),
+            "an old snapshot changed"
+        );
+        assert!(matches!(third.reads.last(), Some(ReadChunk::Each(_))));
+        // A SET's read-back after the poll makes it current until the next
+        // poll that does not read it.
+        publisher.update(*left_out, &7i16.to_le_bytes(), 1);
+        assert_eq!(publisher.read_seq(*left_out), publisher.next_seq());
+        publisher.publish();
+        let fourth = stream.latest();
+        assert_eq!(fourth.read_seq(*left_out), fourth.seq);
+        assert!(fourth.current(*left_out).is_some());
+        poll(&mut publisher, rest);
+        assert!(stream.latest().current(*left_out).is_none());
+    }
+
+    /// Texts up to INLINE bytes live in the slot, longer ones on the heap:
+    /// both read back whole, and a change across the bound is a change.
+    #[test]
+    fn short_and_long_texts_read_back_whole() {
+        let table = Arc::new(crate::vars::table_of(&[("S", "STRING[40]")]));
+        let (publisher, stream) =
+            Publisher::new(table, FormatOptions::default(), Duration::from_secs(60));
+        let mut publisher = publisher;
+        let s = publisher.table().fixed_count() as VarId;
+        // Quoted: 20 characters are 22 bytes of text, 21 are 23.
+        for value in [
+            "",
+            "a",
+            &"x".repeat(20),
+            &"y".repeat(21),
+            &"z".repeat(40),
+            "b",
+        ] {
+            let mut bytes = value.as_bytes().to_vec();
+            bytes.resize(41, 0);
+            assert!(publisher.update(s, &bytes, 1), "{value}");
+            assert!(!publisher.update(s, &bytes, 2), "{value} again");
+            publisher.publish_poll(PollStamp::now());
+            let quoted = format!("\"{value}\"").into_bytes();
+            let latest = stream.latest();
+            assert_eq!(latest.slot(s).text(), Some(&quoted[..]));
+            assert_eq!(latest.slot(s).shared_text().as_deref(), Some(&quoted[..]));
+            let table = latest.table.clone();
+            assert_eq!(
+                latest.slot(s).value(table.var(s)),
+                Some(Value::Str(value.as_bytes().to_vec()))
+            );
+        }
     }
 
     #[test]

@@ -59,8 +59,9 @@ pub struct Subscription {
     /// Subscribed variables of `table`, ascending.
     wanted: Vec<VarId>,
     /// Per entry of `wanted`: change sequence of the value last delivered,
-    /// and whether it was uncertain.
-    delivered: Vec<(u64, bool)>,
+    /// shifted left, and whether it was uncertain in the low bit (8 bytes
+    /// a variable, not 16: a sequence never reaches 2^63).
+    delivered: Vec<u64>,
     seen_seq: u64,
     online: Option<bool>,
     /// Also a batch for every poll cycle, changes or not.
@@ -148,7 +149,7 @@ impl Subscription {
                 self.interest.add(id);
             }
         }
-        self.delivered = vec![(0, false); self.wanted.len()];
+        self.delivered = vec![0; self.wanted.len()];
     }
 
     fn release(&mut self) {
@@ -275,13 +276,13 @@ impl Subscription {
     fn offer(&mut self, snapshot: &Snapshot, index: usize, changes: &mut Vec<VarId>) {
         let id = self.wanted[index];
         let slot = snapshot.slot(id);
-        let (seq, uncertain) = self.delivered[index];
+        let (seq, uncertain) = (self.delivered[index] >> 1, self.delivered[index] & 1 == 1);
         let news =
             slot.changed_seq > seq || (slot.changed_seq == seq && slot.uncertain() != uncertain);
         if slot.text().is_none() || !news {
             return;
         }
-        self.delivered[index] = (slot.changed_seq, slot.uncertain());
+        self.delivered[index] = slot.changed_seq << 1 | u64::from(slot.uncertain());
         changes.push(id);
     }
 }
@@ -452,8 +453,12 @@ mod tests {
         let (mut publisher, stream) = setup();
         // FOLLOW_BYTES's doc and README count 14 KiB a chunk.
         assert_eq!(CHUNK_BYTES, 14 * 1024);
-        // Each poll here copies one chunk of slots.
-        let one = CHUNK_BYTES + std::mem::size_of::<Arc<Vec<crate::changes::Slot>>>();
+        // Each poll here copies one chunk of slots, and the read stamps of
+        // the table's one chunk, read in part (5 variables).
+        let one = CHUNK_BYTES
+            + std::mem::size_of::<Arc<Vec<crate::changes::Slot>>>()
+            + 5 * 8
+            + std::mem::size_of::<super::super::ReadChunk>();
         let a = publisher.table().fixed_count() as VarId;
         poll(&mut publisher, &[(a, 0)]);
         let mut sub = stream

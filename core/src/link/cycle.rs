@@ -207,8 +207,7 @@ impl Cycle {
         let stamp = PollStamp::now();
         let (data, refused) = self.plan.assemble_answers(round.answers);
         let table = publisher.table().clone();
-        let newer =
-            |publisher: &Publisher, id: VarId| publisher.slot(id).read_seq >= round.first_seq;
+        let newer = |publisher: &Publisher, id: VarId| publisher.read_seq(id) >= round.first_seq;
         let mut suspects = Vec::new();
         for (index, &id) in self.poll_vars.iter().enumerate() {
             let alone = self.refusals.alone.contains(&id);
@@ -263,7 +262,7 @@ impl Cycle {
             // read-back meanwhile was published already).
             let seq = publisher.next_seq();
             for &id in &self.poll_vars {
-                if publisher.slot(id).read_seq == seq {
+                if publisher.read_seq(id) == seq {
                     publisher.set_uncertain(id, uncertain.contains(&id), stamp.unix_ms);
                 }
             }

@@ -50,7 +50,7 @@ use health::{Connected, Failure, Health, SharedState};
 pub use jobs::SetItem;
 pub use reconf::ConfChange;
 use state::{LinkStatus, SectionState};
-use tables::{LoadError, NamedBy, PubSource, UserFile, UserKind};
+use tables::{LoadError, Loaded, NamedBy, PubSource, UserFile, UserKind};
 
 /// Why the link could not serve a request.
 #[derive(Debug, thiserror::Error)]
@@ -231,7 +231,8 @@ fn next_deadline(previous: Instant, period: Duration, now: Instant) -> (Instant,
 /// The public-file side of a section: where the files are, what was loaded.
 pub struct Tables {
     pub source: PubSource,
-    pub user: Option<UserFile>,
+    /// The user file loaded, without its bytes.
+    pub user: Option<Loaded>,
     /// The user file must still be fetched from the PLC.
     pub pending_fetch: bool,
     /// The user file's CRC was compared with `__PF_CRC`.
@@ -241,8 +242,8 @@ pub struct Tables {
 impl Tables {
     pub fn new(source: PubSource, user: Option<UserFile>, pending_fetch: bool) -> Tables {
         Tables {
+            user: user.map(|user| Loaded::of(source.kind, &user)),
             source,
-            user,
             pending_fetch,
             crc_checked: false,
         }
@@ -705,7 +706,7 @@ impl Link {
         if !check {
             return;
         }
-        match tables::expected_crc(tables.source.kind, user) {
+        match user.crc {
             Some(crc) if u64::from(crc) == pf_crc => {
                 debug!(section = %self.name, "public file {} matches __PF_CRC {crc:08X}", user.name)
             }
@@ -802,6 +803,7 @@ impl Link {
         let name = user
             .as_ref()
             .map_or_else(|| tables.source.fixed_name.clone(), |u| u.name.clone());
+        let user = user.map(|user| Loaded::of(source.kind, &user));
         let changed = user != tables.user;
         let what = tables.source.kind.what();
         if changed {

@@ -28,6 +28,40 @@ pub struct UserFile {
     pub bytes: Vec<u8>,
 }
 
+/// What the link keeps of a loaded user file: its name, what tells a
+/// reload whether the content changed, and the CRC to check against
+/// `__PF_CRC`. Not the bytes: a 100,000-variable public file's text is
+/// 38 bytes a variable (`tests/memory_per_var.rs`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Loaded {
+    pub name: String,
+    len: usize,
+    /// Two SipHash-1-3 digests of the bytes (128 bits): a different file
+    /// read as unchanged is a 2^-128 chance. Compared within this process
+    /// only, so std's unspecified but fixed hasher is enough.
+    digest: (u64, u64),
+    /// [`expected_crc`] of the bytes.
+    pub crc: Option<u32>,
+}
+
+impl Loaded {
+    pub fn of(kind: UserKind, user: &UserFile) -> Loaded {
+        use std::hash::{Hash, Hasher};
+        let digest = |salt: u8| {
+            let mut hasher = std::collections::hash_map::DefaultHasher::new();
+            salt.hash(&mut hasher);
+            user.bytes.hash(&mut hasher);
+            hasher.finish()
+        };
+        Loaded {
+            name: user.name.clone(),
+            len: user.bytes.len(),
+            digest: (digest(0), digest(1)),
+            crc: expected_crc(kind, user),
+        }
+    }
+}
+
 /// What describes the user's variables.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum UserKind {
@@ -402,7 +436,7 @@ fn read_bounded(path: &Path) -> std::io::Result<Vec<u8>> {
 /// file's trailer; a tag file's content (the Modbus backend's `__PF_CRC`).
 pub fn expected_crc(kind: UserKind, user: &UserFile) -> Option<u32> {
     match kind {
-        UserKind::PubFile | UserKind::DeviceSymbols => pubfile::parse(&user.bytes).crc,
+        UserKind::PubFile | UserKind::DeviceSymbols => pubfile::crc_trailer(&user.bytes),
         UserKind::ModbusTags | UserKind::S7Tags | UserKind::Opcua => {
             Some(pubfile::crc_of(&user.bytes))
         }
