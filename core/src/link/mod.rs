@@ -741,7 +741,9 @@ impl Link {
                 let table = source
                     .build(&name, user.as_ref())
                     .map_err(LoadError::Failed)?;
-                Ok((user, table))
+                // Digesting a 60 MB file takes as long as parsing it: off
+                // the link's thread too.
+                Ok((user.map(|user| Loaded::of(source.kind, &user)), table))
             }))
             .await
             .unwrap_or_else(|e| Err(LoadError::Failed(format!("loading failed: {e}"))))
@@ -762,7 +764,7 @@ impl Link {
                         let source = source.clone();
                         self.poll_while(tokio::task::spawn_blocking(move || {
                             let table = source.build(&name, user.as_ref())?;
-                            Ok((user, table))
+                            Ok((user.map(|user| Loaded::of(source.kind, &user)), table))
                         }))
                         .await
                         .unwrap_or_else(|e| Err(format!("loading failed: {e}")))
@@ -776,10 +778,7 @@ impl Link {
         let (user, table) = loaded?;
         if by == NamedBy::Client && config.pubfile_crc && source.kind == UserKind::PubFile {
             let file = user.as_ref().map_or("", |u| u.name.as_str());
-            let Some(crc) = user
-                .as_ref()
-                .and_then(|user| tables::expected_crc(source.kind, user))
-            else {
+            let Some(crc) = user.as_ref().and_then(|user| user.crc) else {
                 return Err(format!(
                     "PUBFILE_CRC = Yes and public file {file} has no CRC line"
                 ));
@@ -803,7 +802,6 @@ impl Link {
         let name = user
             .as_ref()
             .map_or_else(|| tables.source.fixed_name.clone(), |u| u.name.clone());
-        let user = user.map(|user| Loaded::of(source.kind, &user));
         let changed = user != tables.user;
         let what = tables.source.kind.what();
         if changed {
