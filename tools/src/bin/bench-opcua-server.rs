@@ -387,10 +387,16 @@ async fn run(args: Args) -> Result<(), Fail> {
         reads.push(start.elapsed().as_secs_f64() * 1000.0);
         let bad = values.iter().filter(|v| !v.status().is_good()).count();
         if values.len() != to_read.len() || bad > 0 {
+            let statuses: std::collections::BTreeSet<String> = values
+                .iter()
+                .filter(|v| !v.status().is_good())
+                .map(|v| format!("{}", v.status()))
+                .collect();
             return Err(format!(
-                "Read of {}: {} values, {bad} not Good",
+                "Read of {}: {} values, {bad} not Good ({})",
                 to_read.len(),
-                values.len()
+                values.len(),
+                statuses.into_iter().collect::<Vec<_>>().join(", ")
             )
             .into());
         }
