@@ -89,7 +89,7 @@ pub(crate) fn spawn(
         let mut shared = false;
         let mut took = Duration::ZERO;
         loop {
-            tokio::time::sleep(every.max(took * REBROWSE_SHARE)).await;
+            tokio::time::sleep(every.max(took.saturating_mul(REBROWSE_SHARE))).await;
             let started = std::time::Instant::now();
             // The link's client settings (accepted already), but patient:
             // a keep-alive the server answers after a slow Browse must not
