@@ -61,8 +61,20 @@ pub(crate) struct FollowQueue {
 struct Queued {
     snapshots: std::collections::VecDeque<(Arc<Snapshot>, usize)>,
     bytes: usize,
+    /// The newest publish the bounds made it drop (0: none); the consumer
+    /// takes it from the watch once the queue is drained.
+    dropped_up_to: u64,
     /// The publisher is gone.
     closed: bool,
+}
+
+/// What a following subscription takes from its queue.
+pub(crate) enum Popped {
+    Snapshot(Arc<Snapshot>),
+    /// Nothing queued; the newest publish dropped meanwhile (0: none).
+    Drained {
+        dropped_up_to: u64,
+    },
 }
 
 impl FollowQueue {
@@ -70,17 +82,19 @@ impl FollowQueue {
         self.state.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// The oldest queued snapshot, if any; `Err` once the publisher is gone
-    /// and the queue is empty.
-    pub(crate) fn pop(&self) -> Result<Option<Arc<Snapshot>>, ()> {
+    /// The oldest queued snapshot, or word that none is queued; `Err` once
+    /// the publisher is gone and the queue is empty.
+    pub(crate) fn pop(&self) -> Result<Popped, ()> {
         let mut queued = self.lock();
         match queued.snapshots.pop_front() {
             Some((snapshot, cost)) => {
                 queued.bytes -= cost;
-                Ok(Some(snapshot))
+                Ok(Popped::Snapshot(snapshot))
             }
             None if queued.closed => Err(()),
-            None => Ok(None),
+            None => Ok(Popped::Drained {
+                dropped_up_to: queued.dropped_up_to,
+            }),
         }
     }
 
@@ -96,6 +110,8 @@ impl FollowQueue {
         if queued.snapshots.len() < self.max && queued.bytes + cost <= self.max_bytes {
             queued.snapshots.push_back((snapshot.clone(), cost));
             queued.bytes += cost;
+        } else {
+            queued.dropped_up_to = snapshot.seq;
         }
         drop(queued);
         self.ready.notify_one();

@@ -18,7 +18,7 @@ use std::sync::Arc;
 
 use tokio::sync::watch;
 
-use super::{FollowQueue, Followers, Interest, Snapshot};
+use super::{FollowQueue, Followers, Interest, Popped, Snapshot};
 use crate::vars::{VarId, VarTable};
 
 /// The link to the PLC changed state between two batches.
@@ -190,14 +190,23 @@ impl Subscription {
         }
         loop {
             let follow = self.follow.clone()?;
-            let queued = follow.pop().ok()?;
-            let snapshot = match queued {
-                Some(snapshot) => snapshot,
-                // The queue is drained: anything newer on the watch is a
-                // publish the full queue could not take (a snapshot is
-                // queued before the watch shows it).
-                None if self.rx.borrow().seq > self.seen_seq => self.rx.borrow_and_update().clone(),
-                None => {
+            let snapshot = match follow.pop().ok()? {
+                Popped::Snapshot(snapshot) => snapshot,
+                // Drained, and the newest publishes were dropped: the watch
+                // has them (or will: a publish is offered to the queue
+                // before the watch shows it). Only then: while the link
+                // publishes, the watch runs ahead of a queue that holds
+                // every publish, and taking it would skip them.
+                Popped::Drained { dropped_up_to } if dropped_up_to > self.seen_seq => {
+                    let latest = self.rx.borrow_and_update().clone();
+                    if latest.seq >= dropped_up_to {
+                        latest
+                    } else {
+                        self.rx.changed().await.ok()?;
+                        continue;
+                    }
+                }
+                Popped::Drained { .. } => {
                     // Seen (its seq is ours already): wait for a newer one.
                     self.rx.borrow_and_update();
                     // A gone publisher closed the queue before its watch:
@@ -210,7 +219,8 @@ impl Subscription {
                     continue;
                 }
             };
-            // Queued before the first batch read the latest: seen already.
+            // Queued before the first batch read the latest, or taken from
+            // the watch already: seen.
             if snapshot.seq <= self.seen_seq {
                 continue;
             }
@@ -446,6 +456,73 @@ mod tests {
         // The link gone: the follower sees the end.
         drop(publisher);
         assert!(sub.next().await.is_none());
+    }
+
+    /// The link publishes on its own thread while the follower reads: a
+    /// follower that drained its queue must not take the watch, which runs
+    /// ahead of the queue while publishes go on (CI lost 8 of 20 ADS
+    /// notifications in the historian so).
+    #[test]
+    fn a_follower_keeps_up_with_a_publisher_on_another_thread() {
+        // The race is narrow: several rounds make it likely in each run.
+        for _ in 0..8 {
+            follow_a_publisher_on_another_thread(30_000);
+        }
+    }
+
+    fn follow_a_publisher_on_another_thread(last: i16) {
+        let (mut publisher, stream) = setup();
+        let a = publisher.table().fixed_count() as VarId;
+        poll(&mut publisher, &[(a, 0)]);
+        let mut sub = stream.subscribe(&["A"]).every_change_within(64, usize::MAX);
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(1)
+            .enable_all()
+            .build()
+            .unwrap();
+        // The first batch: what is known when it subscribed.
+        let first = runtime.block_on(sub.next()).unwrap();
+        assert_eq!(first.snapshot.slot(a).text(), Some(&b"0"[..]));
+        let seen = Arc::new(std::sync::atomic::AtomicI16::new(0));
+        let link = std::thread::spawn({
+            let seen = seen.clone();
+            move || {
+                let mut value = 0;
+                while value < last {
+                    // Within the queue's bound: nothing may be missed.
+                    while value - seen.load(std::sync::atomic::Ordering::Acquire) >= 32 {
+                        std::thread::yield_now();
+                    }
+                    value += 1;
+                    publisher.update(a, &value.to_le_bytes(), i64::from(value));
+                    publisher.publish();
+                }
+                publisher
+            }
+        });
+        let (values, missed) = runtime.block_on(async {
+            let (mut values, mut missed) = (Vec::new(), 0);
+            while values.last() != Some(&last) {
+                let batch = sub.next().await.unwrap();
+                missed += batch.missed;
+                for &id in &batch.changes {
+                    let text = batch.snapshot.slot(id).text().unwrap();
+                    let value = std::str::from_utf8(text).unwrap().parse::<i16>().unwrap();
+                    values.push(value);
+                    seen.store(value, std::sync::atomic::Ordering::Release);
+                }
+            }
+            (values, missed)
+        });
+        drop(link.join().unwrap());
+        assert_eq!(missed, 0);
+        let skipped: Vec<_> = values
+            .windows(2)
+            .filter(|w| w[1] != w[0] + 1)
+            .take(5)
+            .collect();
+        assert!(skipped.is_empty(), "skipped after: {skipped:?}");
+        assert_eq!((values.first(), values.len()), (Some(&1), last as usize));
     }
 
     #[tokio::test]
