@@ -192,7 +192,8 @@ async fn rtu_over_tcp_several_sections_share_one_connection() {
 enum Fault {
     /// Held back this long.
     Delay(Duration),
-    /// Every other answer has a byte flipped, and noise before it.
+    /// Every other answer of the unit has a byte flipped, and noise
+    /// before it.
     Corrupt,
     /// Never passed on.
     Drop,
@@ -236,7 +237,9 @@ fn pump(
     faults: Option<Arc<Mutex<HashMap<u8, Fault>>>>,
 ) {
     std::thread::spawn(move || {
-        let mut flip = false;
+        // Per unit: the sections on the line poll in any order, and a
+        // retry must meet the other half of its own unit's alternation.
+        let mut flips: HashMap<u8, bool> = HashMap::new();
         loop {
             let Ok(mut reader) = std::fs::OpenOptions::new()
                 .read(true)
@@ -273,8 +276,9 @@ fn pump(
                         });
                     }
                     Some(Fault::Corrupt) => {
-                        flip = !flip;
-                        if flip {
+                        let flip = flips.entry(bytes[0]).or_default();
+                        *flip = !*flip;
+                        if *flip {
                             let last = bytes.len() - 1;
                             bytes[last / 2] ^= 0x5A;
                             let mut noisy = vec![0xFF, 0x00, 0x42];
