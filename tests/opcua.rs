@@ -446,7 +446,7 @@ async fn subscriptions_get_every_change_once_and_deadbands() {
         &ua.url,
         &[],
         "subscribe",
-        &["PLC.COUNTER", "absolute", "0", "6"],
+        &["PLC.COUNTER", "absolute", "0", "6", "10"],
     )
     .await;
     // Sampling interval 0 (the fastest practical): every poll's change,
@@ -455,6 +455,9 @@ async fn subscriptions_get_every_change_once_and_deadbands() {
     assert_eq!(ready["status"], "Good");
     assert_eq!(ready["revised_sampling"], 0.0, "{ready}");
     assert_eq!(ready["revised_queue"], 1000);
+    // Publishing as asked (10 ms), below COMM_LOOP_DELAY (20): a change
+    // need not wait a whole poll interval after its poll.
+    assert_eq!(ready["revised_publishing"], 10.0, "{ready}");
     let (mut absolute, _) = Subscription::start(
         &ua.url,
         &[],

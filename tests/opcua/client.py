@@ -211,6 +211,8 @@ async def subscribe(client, args):
             result.MonitoredItemId, float(args.modify_ms), params.QueueSize)
         revised_sampling = modified[0].RevisedSamplingInterval
     out({"ready": True, "status": status_name(result.StatusCode),
+         # asyncua keeps the server's revised interval in its parameters.
+         "revised_publishing": sub.parameters.RequestedPublishingInterval,
          "revised_sampling": revised_sampling,
          "revised_queue": result.RevisedQueueSize})
     await drain(handler.values, float(args.seconds))

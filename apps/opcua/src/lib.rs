@@ -290,11 +290,13 @@ pub fn start(
         // the next (bench/opcua/run: 1 % lost at 100 ms). Interval 0 (the
         // fastest practical) is revised to 0: every poll's change.
         subs.min_sampling_interval_ms = 0.0;
-        // Publishing as often as the poll changes values (the stack's floor
-        // is 100 ms): a client that wants changes sooner after the poll than
-        // a 100 ms interval's wait allows can ask for a shorter one. (At
-        // 20 ms a held-back change used to stall: see View::enable.)
-        subs.min_publishing_interval_ms = loop_delay_ms.max(SUBSCRIPTION_TIMER_MS as f64);
+        // Publishing down to the stack's timer (its own floor is 100 ms),
+        // not to the poll's: a change waits for the next publish after
+        // its poll, up to a whole interval; a client that wants it sooner
+        // (poll -> client within 50 ms) asks for 10 or 20 ms, and an
+        // interval without a change costs a counter. (At 20 ms a held-back
+        // change used to stall: see View::enable.)
+        subs.min_publishing_interval_ms = SUBSCRIPTION_TIMER_MS as f64;
         // Room for every item of a subscription to change in one publish.
         subs.max_queued_notifications = settings.max_monitored_items.saturating_mul(4);
         subs.max_notifications_per_publish = 50_000;
