@@ -4,7 +4,8 @@
 //! Against the folder `--folder` (a STRING NodeId in namespace `--ns`):
 //! - browse: every Variable below it (1,000 references a call, then
 //!   BrowseNext), timed until `--browse` references have arrived;
-//! - read: one Read of the Value of the first `--read` of them, three times;
+//! - read: one Read of the Value of the first `--read` of them, three times,
+//!   once every value is Good (`values_ready_s`: how long that took);
 //! - subscribe: `--subscriptions` subscriptions of `--per-subscription`
 //!   monitored items (no filter, sampling 0: the server's fastest, queue
 //!   `--queue`, publishing every `--publish-ms`), in one session.
@@ -16,7 +17,9 @@
 //! Latency is arrival minus SourceTimestamp (the poll's time at plccoms,
 //! the time the value was set at node-opcua; both on this machine's clock),
 //! split at the ServerTimestamp (`to_server`: until the server made the
-//! notification's value; `from_server`: its queue, publish and delivery).
+//! notification's value; `from_server`: its queue, publish and delivery),
+//! and that again at the message's PublishTime (`queued`: the stack's
+//! queue and publishing interval; `wire`: encoding, socket, decoding).
 //! With `--server-pid`, the server's RSS is sampled every second.
 //!
 //! Results are `label.metric value` lines on stdout, appended to `--out`.
@@ -31,12 +34,14 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use clap::Parser;
-use opcua::client::{ClientBuilder, DataChangeCallback, IdentityToken, Session};
+use opcua::client::{
+    ClientBuilder, IdentityToken, MonitoredItemMap, OnSubscriptionNotificationCore, Session,
+};
 use opcua::types::{
-    AttributeId, BrowseDescription, BrowseDirection, BrowseResultMask, DataValue,
-    EndpointDescription, MessageSecurityMode, MonitoredItemCreateRequest, MonitoringMode,
-    MonitoringParameters, NodeClassMask, NodeId, ReadValueId, ReferenceTypeId, TimestampsToReturn,
-    UserTokenPolicy, VariableId, Variant,
+    AttributeId, BrowseDescription, BrowseDirection, BrowseResultMask, DataChangeNotification,
+    DataValue, EndpointDescription, MessageSecurityMode, MonitoredItemCreateRequest,
+    MonitoringMode, MonitoringParameters, NodeClassMask, NodeId, NotificationMessage, ReadValueId,
+    ReferenceTypeId, TimestampsToReturn, UserTokenPolicy, VariableId, Variant,
 };
 
 #[derive(Debug, Parser)]
@@ -127,10 +132,17 @@ struct Stats {
     /// made the notification's value): source -> server, server -> arrival.
     to_server_ms: Vec<f64>,
     from_server_ms: Vec<f64>,
+    /// ServerTimestamp -> the message's PublishTime (the stack's queue and
+    /// publishing interval), and PublishTime -> the message's arrival
+    /// (encoding, the socket, decoding).
+    queued_ms: Vec<f64>,
+    wire_ms: Vec<f64>,
 }
 
 impl Stats {
-    fn on_value(&mut self, handle: u32, value: &DataValue) {
+    /// `message`: the notification message's PublishTime and when it
+    /// arrived (ms since the epoch).
+    fn on_value(&mut self, handle: u32, value: &DataValue, message: Option<(f64, f64)>) {
         let Some(i) = (handle as usize)
             .checked_sub(1)
             .filter(|&i| i < self.changing.len())
@@ -169,12 +181,42 @@ impl Stats {
                 if let Some(server) = value.server_timestamp {
                     self.to_server_ms.push(ms(&server) - ms(&source));
                     self.from_server_ms.push(arrival - ms(&server));
+                    if let Some((published, received)) = message {
+                        self.queued_ms.push(published - ms(&server));
+                        self.wire_ms.push(received - published);
+                    }
                 }
             }
             *self.seen.entry(v).or_insert(0) += 1;
         } else if let Some(n) = self.seen.get_mut(&v) {
             // Late arrivals of a value first seen while measuring.
             *n += 1;
+        }
+    }
+}
+
+/// The subscriptions' callback: each data change with its message's
+/// PublishTime and arrival.
+struct Notified(Arc<Mutex<Stats>>);
+
+impl OnSubscriptionNotificationCore for Notified {
+    fn on_subscription_notification(
+        &mut self,
+        notification: NotificationMessage,
+        items: MonitoredItemMap<'_>,
+    ) {
+        let received = now_ms();
+        let published = notification.publish_time.as_chrono().timestamp_micros() as f64 / 1000.0;
+        let mut stats = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        for object in notification.notification_data.into_iter().flatten() {
+            let Some(change) = object.into_inner_as::<DataChangeNotification>() else {
+                continue;
+            };
+            for n in change.monitored_items.into_iter().flatten() {
+                if items.get(n.client_handle).is_some() {
+                    stats.on_value(n.client_handle, &n.value, Some((published, received)));
+                }
+            }
         }
     }
 }
@@ -378,6 +420,24 @@ async fn run(args: Args) -> Result<(), Fail> {
     if to_read.len() < args.read {
         return Err(format!("{} variables browsed, {} to read", nodes.len(), args.read).into());
     }
+    // A server up is not yet a server with values: plccoms answers
+    // BadNoCommunication until its link's first poll of the PLC (seconds
+    // for 100,000 variables on a busy machine). Timed reads start once
+    // every value is Good, within 60 s.
+    let ready = Instant::now();
+    loop {
+        let values = session
+            .read(&to_read, TimestampsToReturn::Both, 0.0)
+            .await?;
+        if values.len() == to_read.len() && values.iter().all(|v| v.status().is_good()) {
+            break;
+        }
+        if ready.elapsed() > Duration::from_secs(60) {
+            break; // the timed reads below say what is not Good
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    report.metric("values_ready_s", ready.elapsed().as_secs_f64());
     let mut reads = Vec::new();
     for _ in 0..3 {
         let start = Instant::now();
@@ -431,6 +491,8 @@ async fn run(args: Args) -> Result<(), Fail> {
         latencies_ms: Vec::new(),
         to_server_ms: Vec::new(),
         from_server_ms: Vec::new(),
+        queued_ms: Vec::new(),
+        wire_ms: Vec::new(),
     }));
     let start = Instant::now();
     let mut revised = f64::NAN;
@@ -444,12 +506,7 @@ async fn run(args: Args) -> Result<(), Fail> {
                 0,
                 0,
                 true,
-                DataChangeCallback::new(move |value, item| {
-                    stats
-                        .lock()
-                        .unwrap_or_else(|e| e.into_inner())
-                        .on_value(item.client_handle(), &value);
-                }),
+                Notified(stats),
             )
             .await?;
         let first = s * args.per_subscription;
@@ -561,6 +618,8 @@ async fn run(args: Args) -> Result<(), Fail> {
         for (name, list) in [
             ("to_server", &mut st.to_server_ms),
             ("from_server", &mut st.from_server_ms),
+            ("queued", &mut st.queued_ms),
+            ("wire", &mut st.wire_ms),
         ] {
             list.sort_by(f64::total_cmp);
             report.metric(&format!("{name}_p50_ms"), percentile(list, 0.5));
