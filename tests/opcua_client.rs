@@ -414,6 +414,18 @@ async fn server_restart_mid_subscription_and_nodes_added() {
         "GET:DB_LINE1.MOTOR.TORQUE,1.5000000000\r\n",
     )
     .await;
+    // And removed: the rebrowse that only compares sees it go.
+    server.command("remove TORQUE");
+    c.wait_for_line(
+        b"WARNING:250 Changed public file: 'OPCUA_VARS.csv'\r\n",
+        Duration::from_secs(10),
+    )
+    .await;
+    c.ask(
+        "GET:db_line1.motor.torque\r\n",
+        "ERROR:33 Unknown variable name in request: 'GET:db_line1.motor.torque'\r\n",
+    )
+    .await;
 
     // The server goes away: no value is served as live.
     drop(server);

@@ -542,6 +542,7 @@ impl OpcuaBackend {
         if let Some(built) = built {
             self.take_list(built);
         }
+        trim_heap();
         if let (Some(every), Some(connection)) = (self.config.rebrowse, &mut self.connection) {
             connection.rebrowse = Some(rebrowse::spawn(
                 session,
@@ -630,7 +631,7 @@ impl OpcuaBackend {
         let bytes = tags::write(&built.tags);
         if bytes == self.served.bytes && !self.served.bytes.is_empty() {
             // Same list: the link keeps its table; node ids are the same.
-            self.served = list_of(bytes, &built.types);
+            self.served = list_of(bytes, built.types);
             self.newest = None;
             self.crc = None;
         } else {
@@ -1447,8 +1448,19 @@ pub(crate) fn read_tag_file(section: &str, path: &std::path::Path) -> Vec<Tag> {
     }
 }
 
+/// Gives freed heap back to the system after a big transient (a list
+/// built, a rebrowse): glibc keeps the top of each arena a peak grew, and
+/// the RSS stayed at the peak's.
+pub(crate) fn trim_heap() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only walks the allocator's own free lists.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}
+
 /// The entries of a list's bytes, placed as the link's table places them.
-fn list_of(bytes: Vec<u8>, types: &browse::Types) -> List {
+fn list_of(bytes: Vec<u8>, types: browse::Types) -> List {
     let file = tags::parse(&bytes);
     let placed = tags::vars(&file.tags);
     let mut sources: Vec<NodeId> = Vec::new();
@@ -1506,7 +1518,7 @@ fn list_of(bytes: Vec<u8>, types: &browse::Types) -> List {
         sources,
         starts,
         members,
-        types: types.clone(),
+        types,
     }
 }
 
@@ -1813,7 +1825,7 @@ impl PlcBackend for OpcuaBackend {
                 }
                 // Its only holder now, unless a newer list came meanwhile.
                 let (bytes, types) = Arc::unwrap_or_clone(fetched);
-                self.served = list_of(bytes, &types);
+                self.served = list_of(bytes, types);
                 self.crc = None;
                 // The handles of the old list mean other variables now.
                 if let (Some(subscription), Ok(session)) =
@@ -2002,7 +2014,7 @@ mod tests {
     async fn notifications_are_taken_in_slices() {
         let list = list_of(
             b"name,node,type\nA,i=1,INT\nB,i=2,INT\n".to_vec(),
-            &browse::Types::default(),
+            browse::Types::default(),
         );
         let mut backend = backend_of(list);
         backend.subscription = Some(Subscription {
@@ -2041,7 +2053,7 @@ mod tests {
     fn reads_cover_the_variables_they_touch() {
         let list = list_of(
             b"name,node,type\nA,i=1,BOOL\nB,i=2,INT\nC,i=3,LREAL\n".to_vec(),
-            &browse::Types::default(),
+            browse::Types::default(),
         );
         let backend = backend_of(list);
         assert_eq!(backend.covered(0, 1), 0..1);
