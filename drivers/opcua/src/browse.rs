@@ -170,9 +170,10 @@ impl Print {
     }
 }
 
-/// A node's key in a walk's visited set: 16 bytes, not a NodeId and its
-/// string (at 100,000 variables 4 MB against 11).
-fn visit_key(node: &NodeId) -> u128 {
+/// A node's key in a walk's visited set (and a list's map of sources):
+/// 16 bytes, not a NodeId and its string (at 100,000 variables 4 MB
+/// against 11).
+pub(crate) fn visit_key(node: &NodeId) -> u128 {
     use std::hash::{Hash, Hasher};
     let half = |seed: u8| {
         let mut h = std::hash::DefaultHasher::new();
