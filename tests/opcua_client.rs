@@ -393,6 +393,15 @@ async fn tag_file_user_and_refusals() {
     );
 }
 
+/// The rebrowse found the server's variables changed: the table reloaded.
+async fn reloaded(c: &mut Client) {
+    c.wait_for_line(
+        b"WARNING:250 Changed public file: 'OPCUA_VARS.csv'\r\n",
+        Duration::from_secs(10),
+    )
+    .await;
+}
+
 #[tokio::test]
 async fn server_restart_mid_subscription_and_nodes_added() {
     let port = free_port();
@@ -404,14 +413,18 @@ async fn server_restart_mid_subscription_and_nodes_added() {
 
     // Nodes added while running: the table is reloaded.
     server.command("add TORQUE");
-    c.wait_for_line(
-        b"WARNING:250 Changed public file: 'OPCUA_VARS.csv'\r\n",
-        Duration::from_secs(10),
-    )
-    .await;
+    reloaded(&mut c).await;
     c.ask(
         "GET:db_line1.motor.torque\r\n",
         "GET:DB_LINE1.MOTOR.TORQUE,1.5000000000\r\n",
+    )
+    .await;
+    // And removed: the rebrowse that only compares sees it go.
+    server.command("remove TORQUE");
+    reloaded(&mut c).await;
+    c.ask(
+        "GET:db_line1.motor.torque\r\n",
+        "ERROR:33 Unknown variable name in request: 'GET:db_line1.motor.torque'\r\n",
     )
     .await;
 

@@ -19,6 +19,7 @@ Objects/
 Prints "ready" once it listens; stops when stdin closes. Commands on
 stdin, one a line:
   add NAME   adds a Double variable NAME (= 1.5) to DB_LINE1/MOTOR
+  remove NAME  deletes variable NAME (one added or MOTOR's)
   set NAME V sets TYPES or MOTOR variable NAME to the number V
   slow MS    answers every Read MS milliseconds late (0: at once again)
   slowbrowse MS  answers every Browse MS milliseconds late (0: at once again)
@@ -198,6 +199,9 @@ async def main():
             words = line.split()
             if words[:1] == ["add"]:
                 await var(motor, "DB_LINE1.MOTOR", words[1], 1.5, ua.VariantType.Double)
+            elif words[:1] == ["remove"]:
+                node, _ = nodes.pop(words[1])
+                await server.delete_nodes([node])
             elif words[:1] == ["slow"]:
                 READ_DELAY[0] = int(words[1]) / 1000
             elif words[:1] == ["slowbrowse"]:

@@ -11,7 +11,7 @@ use std::sync::Arc;
 use opcua::client::Session;
 use opcua::types::{
     BrowseDescription, BrowseDirection, BrowseResultMask, ByteString, Guid, NodeClass,
-    NodeClassMask, NodeId, ReadValueId, Variant,
+    NodeClassMask, NodeId, ReadValueId, ReferenceDescription, Variant,
 };
 use tracing::warn;
 
@@ -63,6 +63,8 @@ pub const MAX_ELEMENTS: u32 = 1024;
 /// node's built-in type, or the layout of its structure type.
 #[derive(Clone, Default)]
 pub struct Types {
+    /// Those not of their IEC type's ([`Builtin::of_iec`]) only: a map of
+    /// 100,000 node ids was 7 MB of a list that needs none of them.
     pub builtins: HashMap<String, Builtin>,
     pub layouts: HashMap<String, Arc<Layout>>,
 }
@@ -128,52 +130,122 @@ pub struct Found {
     tag: Option<Box<Tag>>,
 }
 
-/// What [`find`] found, in 128 bits: the rebrowse keeps this, not the list,
-/// to tell whether the server's variables changed.
-pub fn fingerprint(found: &[Found]) -> u128 {
+/// What [`find`] found, in 128 bits, fed a variable at a time: the
+/// rebrowse keeps this, not the list, to tell whether the server's
+/// variables changed. Fed the names as browsed (before collisions are
+/// resolved, which depends on nothing else), so that a rebrowse needs no
+/// list of what it found.
+pub(crate) struct Print([std::hash::DefaultHasher; 2], usize);
+
+impl Print {
+    fn new() -> Print {
+        use std::hash::Hash;
+        let mut halves = [
+            std::hash::DefaultHasher::new(),
+            std::hash::DefaultHasher::new(),
+        ];
+        for (seed, h) in halves.iter_mut().enumerate() {
+            (seed as u8).hash(h);
+        }
+        Print(halves, 0)
+    }
+
+    fn add(&mut self, name: &str, node: &NodeId, tag: Option<&Tag>) {
+        use std::hash::Hash;
+        let tag = tag.map(|t| format!("{t:?}"));
+        for h in &mut self.0 {
+            name.hash(h);
+            node.hash(h);
+            tag.hash(h);
+        }
+        self.1 += 1;
+    }
+
+    fn finish(self) -> u128 {
+        use std::hash::{Hash, Hasher};
+        let [mut a, mut b] = self.0;
+        self.1.hash(&mut a);
+        self.1.hash(&mut b);
+        (u128::from(a.finish()) << 64) | u128::from(b.finish())
+    }
+}
+
+/// A node's key in a walk's visited set (and a list's map of sources):
+/// 16 bytes, not a NodeId and its string (at 100,000 variables 4 MB
+/// against 11).
+pub(crate) fn visit_key(node: &NodeId) -> u128 {
     use std::hash::{Hash, Hasher};
     let half = |seed: u8| {
         let mut h = std::hash::DefaultHasher::new();
         seed.hash(&mut h);
-        found.len().hash(&mut h);
-        for f in found {
-            f.name.hash(&mut h);
-            f.node.hash(&mut h);
-            if let Some(tag) = &f.tag {
-                format!("{tag:?}").hash(&mut h);
-            }
-        }
+        node.hash(&mut h);
         h.finish()
     };
     (u128::from(half(0)) << 64) | u128::from(half(1))
 }
 
 /// The variables: the tag file's tags, or those found by browsing
-/// `starts`; [`build`] reads their attributes.
+/// `starts`, and their [`Print`]; [`build`] reads their attributes. With
+/// `keep` false a browse only hashes what it finds (a rebrowse that
+/// compares): no list of 100,000 names and node ids is held.
 pub async fn find(
     section: &str,
     session: &Session,
     limits: &Limits,
     tags: Option<Vec<Tag>>,
     starts: &[NodeRef],
-) -> Result<Vec<Found>, PlcError> {
+    keep: bool,
+) -> Result<(u128, Option<Vec<Found>>), PlcError> {
     Ok(match tags {
         Some(tags) => {
+            let mut print = Print::new();
             let mut found = Vec::with_capacity(tags.len());
             for tag in tags {
                 match node_id(session, &tag.node).await {
-                    Ok(node) => found.push(Found {
-                        name: cp1250::decode(&tag.name).into_owned(),
-                        node,
-                        tag: Some(Box::new(tag)),
-                    }),
+                    Ok(node) => {
+                        let name = cp1250::decode(&tag.name).into_owned();
+                        print.add(&name, &node, Some(&tag));
+                        found.push(Found {
+                            name,
+                            node,
+                            tag: Some(Box::new(tag)),
+                        });
+                    }
                     Err(e) => warn!(section, "tag file line {}: {e}; skipped", tag.line),
                 }
             }
-            found
+            (print.finish(), Some(found))
         }
-        None => browse(section, session, limits, starts).await?,
+        None => {
+            let mut sink = Sink {
+                print: Print::new(),
+                found: keep.then(Vec::new),
+            };
+            browse(section, session, limits, starts, &mut sink).await?;
+            let found = sink.found.map(|found| named(section, found));
+            (sink.print.finish(), found)
+        }
     })
+}
+
+/// Where a browse puts the variables it finds.
+struct Sink {
+    print: Print,
+    /// Kept for [`build`], or only hashed.
+    found: Option<Vec<Found>>,
+}
+
+impl Sink {
+    fn add(&mut self, name: String, node: &NodeId) {
+        self.print.add(&name, node, None);
+        if let Some(found) = &mut self.found {
+            found.push(Found {
+                name,
+                node: node.clone(),
+                tag: None,
+            });
+        }
+    }
 }
 
 /// Most variables one node is served as (an array's elements times its
@@ -271,7 +343,9 @@ pub async fn build(
             tag.node = node;
             tag.ty = tag.ty.or(Some(builtin.iec()));
             tag.writable = tag.writable.or(Some(attrs.writable(builtin)));
-            types.builtins.insert(text, builtin);
+            if tag.ty.map(Builtin::of_iec) != Some(builtin) {
+                types.builtins.insert(text, builtin);
+            }
             tags.push(tag);
             continue;
         }
@@ -311,7 +385,9 @@ pub async fn build(
             line: 0,
         };
         if let Some(builtin) = builtin {
-            types.builtins.insert(text, builtin);
+            if Builtin::of_iec(builtin.iec()) != builtin {
+                types.builtins.insert(text, builtin);
+            }
             for i in 0..count.min((most - tags.len()) as u64) {
                 tags.push(tag(&name_of(i), index_of(i), None, builtin));
             }
@@ -455,70 +531,111 @@ async fn layouts(
         .collect())
 }
 
+/// A node waiting to be browsed: its browse path, whether a variable, and
+/// a variable's children when [`prefetch`] browsed them already.
+struct Queued {
+    node: NodeId,
+    path: Vec<String>,
+    variable: bool,
+    children: Option<Vec<ReferenceDescription>>,
+}
+
+impl Queued {
+    fn new(node: NodeId, path: Vec<String>, variable: bool) -> Queued {
+        Queued {
+            node,
+            path,
+            variable,
+            children: None,
+        }
+    }
+}
+
+/// The Browse of a node's children: hierarchical references to objects
+/// and variables.
+fn describe(node: &NodeId) -> BrowseDescription {
+    BrowseDescription {
+        node_id: node.clone(),
+        browse_direction: BrowseDirection::Forward,
+        reference_type_id: NodeId::new(0, HIERARCHICAL),
+        include_subtypes: true,
+        node_class_mask: (NodeClassMask::OBJECT | NodeClassMask::VARIABLE).bits(),
+        // What is used only: a DisplayName and a TypeDefinition are a
+        // third of each reference, 100,000 times.
+        result_mask: (BrowseResultMask::ReferenceTypeId as u32)
+            | (BrowseResultMask::NodeClass as u32)
+            | (BrowseResultMask::BrowseName as u32),
+    }
+}
+
 /// Browses from `starts` down hierarchical references (not properties),
 /// breadth first: every Variable with a served type becomes a variable
-/// named by its browse path below its start node.
+/// named by its browse path below its start node, given to `sink`.
 async fn browse(
     section: &str,
     session: &Session,
     limits: &Limits,
     starts: &[NodeRef],
-) -> Result<Vec<Found>, PlcError> {
-    // (node, browse path, whether a variable)
-    let mut queue: VecDeque<(NodeId, Vec<String>, bool)> = VecDeque::new();
-    let mut visited: HashSet<NodeId> = HashSet::new();
+    sink: &mut Sink,
+) -> Result<(), PlcError> {
+    let mut queue: VecDeque<Queued> = VecDeque::new();
+    let mut visited: HashSet<u128> = HashSet::new();
     for start in starts {
         match node_id(session, start).await {
             Ok(node) => {
-                visited.insert(node.clone());
-                queue.push_back((node, Vec::new(), false));
+                visited.insert(visit_key(&node));
+                queue.push_back(Queued::new(node, Vec::new(), false));
             }
             Err(e) => warn!(section, "OPCUA_BROWSE {start}: {e}"),
         }
     }
-    let mut found = Vec::new();
+    let mut variables = 0usize;
+    let most = limits.per_browse.clamp(1, VARIABLE_BATCH);
     while !queue.is_empty() {
         // In queue order (the names' order): up to BROWSE_BATCH objects,
         // whose answers may be long, and variables up to VARIABLE_BATCH.
-        let most = limits.per_browse.clamp(1, VARIABLE_BATCH);
         let mut objects = 0;
         let take = queue
             .iter()
             .take(most)
-            .take_while(|(_, _, variable)| {
-                objects += usize::from(!variable);
+            .take_while(|q| {
+                objects += usize::from(!q.variable);
                 objects <= BROWSE_BATCH.min(most)
             })
             .count()
             .max(1);
-        let batch: Vec<(NodeId, Vec<String>, bool)> = queue.drain(..take).collect();
+        let batch: Vec<Queued> = queue.drain(..take).collect();
         let descriptions: Vec<BrowseDescription> = batch
             .iter()
-            .map(|(node, _, _)| BrowseDescription {
-                node_id: node.clone(),
-                browse_direction: BrowseDirection::Forward,
-                reference_type_id: NodeId::new(0, HIERARCHICAL),
-                include_subtypes: true,
-                node_class_mask: (NodeClassMask::OBJECT | NodeClassMask::VARIABLE).bits(),
-                // What is used only: a DisplayName and a TypeDefinition
-                // are a third of each reference, 100,000 times.
-                result_mask: (BrowseResultMask::ReferenceTypeId as u32)
-                    | (BrowseResultMask::NodeClass as u32)
-                    | (BrowseResultMask::BrowseName as u32),
-            })
+            .filter(|q| q.children.is_none())
+            .map(|q| describe(&q.node))
             .collect();
-        let mut results =
+        let mut results = if descriptions.is_empty() {
+            Vec::new()
+        } else {
             crate::rebrowse::browse_nodes(session, limits, descriptions, REFERENCES_PER_NODE)
-                .await?;
-        for ((_, path, _), result) in batch.iter().zip(results.iter_mut()) {
-            let mut references = result.references.take().unwrap_or_default();
-            let mut point = std::mem::take(&mut result.continuation_point);
+                .await?
+        }
+        .into_iter();
+        for item in batch {
+            let (mut references, mut point) = match item.children {
+                Some(children) => (children, ByteString::null()),
+                None => match results.next() {
+                    Some(mut result) => (
+                        result.references.take().unwrap_or_default(),
+                        std::mem::take(&mut result.continuation_point),
+                    ),
+                    None => continue,
+                },
+            };
+            let path = item.path;
             // Continuation points bring the rest of a long list: each page
             // taken as it comes (a folder of 100,000 variables held at
             // once was the largest peak of a rebrowse).
             let (mut pages, mut seen) = (0, 0);
             loop {
                 seen += references.len();
+                let mut fresh = Vec::new();
                 for reference in references.drain(..) {
                     // Properties, and nodes on other servers, are not served.
                     if reference.reference_type_id == NodeId::new(0, HAS_PROPERTY)
@@ -526,8 +643,8 @@ async fn browse(
                     {
                         continue;
                     }
-                    let node = reference.node_id.node_id.clone();
-                    if node == NodeId::new(0, SERVER_OBJECT) || !visited.insert(node.clone()) {
+                    let node = reference.node_id.node_id;
+                    if node == NodeId::new(0, SERVER_OBJECT) || !visited.insert(visit_key(&node)) {
                         continue;
                     }
                     if visited.len() > MAX_NODES {
@@ -535,7 +652,7 @@ async fn browse(
                             section,
                             "more than {MAX_NODES} nodes below OPCUA_BROWSE: the rest is left out"
                         );
-                        return Ok(named(section, found));
+                        return Ok(());
                     }
                     let mut child = path.clone();
                     child.push(
@@ -546,14 +663,15 @@ async fn browse(
                             .clone()
                             .unwrap_or_default(),
                     );
-                    if reference.node_class == NodeClass::Variable {
-                        if found.len() == plccoms_plc::pubfile::MAX_VARS {
+                    let variable = reference.node_class == NodeClass::Variable;
+                    if variable {
+                        if variables == plccoms_plc::pubfile::MAX_VARS {
                             warn!(
                                 section,
                                 "more than {} variables found by browsing: the rest is left out",
                                 plccoms_plc::pubfile::MAX_VARS
                             );
-                            return Ok(named(section, found));
+                            return Ok(());
                         }
                         let name = path_name(&child);
                         // Another plccoms's section (loopback) shows the fixed
@@ -561,17 +679,16 @@ async fn browse(
                         if FIXED_NAMES.iter().any(|f| f.eq_ignore_ascii_case(&name)) {
                             continue;
                         }
-                        found.push(Found {
-                            name,
-                            node: node.clone(),
-                            tag: None,
-                        });
+                        variables += 1;
+                        sink.add(name, &node);
                     }
                     // Variables have fields (a structure's) as components too.
                     if child.len() < MAX_DEPTH {
-                        queue.push_back((node, child, reference.node_class == NodeClass::Variable));
+                        fresh.push(Queued::new(node, child, variable));
                     }
                 }
+                prefetch(session, limits, &mut fresh).await?;
+                queue.extend(fresh);
                 if point.is_null() || pages >= 10_000 || seen >= MAX_NODES {
                     break;
                 }
@@ -585,7 +702,49 @@ async fn browse(
             }
         }
     }
-    Ok(named(section, found))
+    Ok(())
+}
+
+/// Browses the variables among `fresh` (a page's) for their children, a
+/// structure's fields, now rather than at their turn: most have none and
+/// are dropped, so the queue never holds the 100,000 variables of a
+/// folder with their paths and node ids (a rebrowse's largest peak).
+/// Those with children keep them for their turn (the names' order
+/// stays); those whose answer was not plain (a refusal, more than a
+/// page: its continuation point given back) are browsed at their turn.
+async fn prefetch(
+    session: &Session,
+    limits: &Limits,
+    fresh: &mut Vec<Queued>,
+) -> Result<(), PlcError> {
+    let variables: Vec<usize> = (0..fresh.len()).filter(|&i| fresh[i].variable).collect();
+    let mut childless = vec![false; fresh.len()];
+    for chunk in variables.chunks(limits.per_browse.clamp(1, VARIABLE_BATCH)) {
+        let descriptions = chunk.iter().map(|&i| describe(&fresh[i].node)).collect();
+        let results =
+            crate::rebrowse::browse_nodes(session, limits, descriptions, REFERENCES_PER_NODE)
+                .await?;
+        let mut points = Vec::new();
+        for (&i, result) in chunk.iter().zip(results) {
+            if !result.continuation_point.is_null() {
+                points.push(result.continuation_point);
+            } else if result.status_code.is_good() {
+                match result.references {
+                    Some(children) if !children.is_empty() => fresh[i].children = Some(children),
+                    _ => childless[i] = true,
+                }
+            }
+        }
+        if !points.is_empty() {
+            crate::rebrowse::release_points(session, limits, points).await?;
+        }
+    }
+    let mut i = 0;
+    fresh.retain(|_| {
+        i += 1;
+        !childless[i - 1]
+    });
+    Ok(())
 }
 
 /// Resolves name collisions (logged).
@@ -728,4 +887,55 @@ async fn read_attributes(
         }
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn print(found: &[(&str, u32)]) -> u128 {
+        let mut print = Print::new();
+        for (name, node) in found {
+            print.add(name, &NodeId::new(2, *node), None);
+        }
+        print.finish()
+    }
+
+    /// The rebrowse keeps only this: a node added, removed, renamed or
+    /// moved to another node id must change it.
+    #[test]
+    fn the_print_sees_a_node_added_removed_or_renamed() {
+        let list = [("A", 1), ("B", 2), ("C", 3)];
+        assert_eq!(print(&list), print(&list));
+        for other in [
+            &[("A", 1), ("B", 2), ("C", 3), ("D", 4)][..],
+            &[("A", 1), ("C", 3)],
+            &[("A", 1), ("B", 2)],
+            &[("A", 1), ("X", 2), ("C", 3)],
+            &[("A", 1), ("B", 5), ("C", 3)],
+            &[("B", 2), ("A", 1), ("C", 3)],
+            &[],
+        ] {
+            assert_ne!(print(&list), print(other), "{other:?}");
+        }
+    }
+
+    #[test]
+    fn visit_keys_tell_node_ids_apart() {
+        let keys: HashSet<u128> = [
+            NodeId::new(2, 1),
+            NodeId::new(3, 1),
+            NodeId::new(2, "1"),
+            NodeId::new(2, "Sim.V1"),
+            NodeId::new(2, "Sim.V10"),
+        ]
+        .iter()
+        .map(visit_key)
+        .collect();
+        assert_eq!(keys.len(), 5);
+        assert_eq!(
+            visit_key(&NodeId::new(2, "a")),
+            visit_key(&NodeId::new(2, "a"))
+        );
+    }
 }

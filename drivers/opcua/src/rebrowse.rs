@@ -44,23 +44,35 @@ pub(crate) type Slot = Arc<Mutex<Option<Built>>>;
 
 /// Finds the variables and builds their list; `None` for the list where
 /// the same nodes by the same names as last time were found (`known`, their
-/// [`browse::fingerprint`]): their attributes are not read again (at
-/// 100,000 variables that is 400,000 of them every OPCUA_REBROWSE).
+/// [`browse::Print`]): their attributes are not read again (at 100,000
+/// variables that is 400,000 of them every OPCUA_REBROWSE), and the browse
+/// only hashes what it finds. Where they differ, it browses again keeping
+/// them (a change is rare; a list of 100,000 held each OPCUA_REBROWSE was
+/// most of a rebrowse's memory).
 pub(crate) async fn list(
     session: &Session,
     lister: &Lister,
     limits: &Limits,
     known: Option<u128>,
 ) -> Result<(u128, Option<Built>), PlcError> {
-    let file_tags = lister
-        .tags
-        .as_ref()
-        .map(|path| crate::read_tag_file(&lister.section, path));
-    let found = browse::find(&lister.section, session, limits, file_tags, &lister.starts).await?;
-    let print = browse::fingerprint(&found);
+    let find = |keep: bool| {
+        let tags = lister
+            .tags
+            .as_ref()
+            .map(|path| crate::read_tag_file(&lister.section, path));
+        browse::find(&lister.section, session, limits, tags, &lister.starts, keep)
+    };
+    let (print, found) = find(known.is_none()).await?;
     if known == Some(print) {
         return Ok((print, None));
     }
+    let (print, found) = match found {
+        Some(found) => (print, found),
+        None => {
+            let (print, found) = find(true).await?;
+            (print, found.unwrap_or_default())
+        }
+    };
     let built = browse::build(&lister.section, session, limits, found).await?;
     Ok((print, Some(built)))
 }
@@ -118,6 +130,7 @@ pub(crate) fn spawn(
                 }
             };
             took = started.elapsed();
+            crate::trim_heap();
             match listed {
                 Ok((found, built)) => {
                     known = found;
@@ -170,6 +183,23 @@ pub(crate) async fn browse_next(
         .send(session.channel())
         .await
         .map(|r| r.results.unwrap_or_default())
+        .map_err(|e| service_error("BrowseNext", e))
+}
+
+/// Gives continuation points back unused (BrowseNext releasing them):
+/// servers keep only a few per session.
+pub(crate) async fn release_points(
+    session: &Session,
+    limits: &Limits,
+    points: Vec<ByteString>,
+) -> Result<(), PlcError> {
+    BrowseNext::new(session)
+        .continuation_points(points)
+        .release_continuation_points(true)
+        .timeout(limits.browse_timeout)
+        .send(session.channel())
+        .await
+        .map(|_| ())
         .map_err(|e| service_error("BrowseNext", e))
 }
 
