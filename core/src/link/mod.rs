@@ -591,10 +591,13 @@ impl Link {
         let Some(backend) = self.backend.as_deref_mut() else {
             return;
         };
+        let started = Instant::now();
         let pushed = backend.take_pushed();
         if pushed.is_empty() {
             return;
         }
+        let taken = Instant::now();
+        let count = pushed.len();
         let table = self.publisher.table().clone();
         let mut pending = std::collections::HashSet::new();
         for value in pushed {
@@ -611,6 +614,14 @@ impl Link {
                 .set_uncertain(id, value.uncertain, value.unix_ms);
         }
         self.publisher.publish();
+        debug!(
+            target: jobs::SET_TIMING,
+            section = %self.name,
+            count,
+            take_us = jobs::micros(taken - started),
+            apply_us = jobs::micros(taken.elapsed()),
+            "pushed"
+        );
     }
 
     async fn poll(&mut self) {
@@ -622,18 +633,22 @@ impl Link {
         let mut round = self.cycle.begin(backend, &self.publisher);
         loop {
             let backend = self.backend.as_deref_mut().expect("polling it");
+            let slice = Instant::now();
             match self.cycle.read_slice(backend, &mut round).await {
                 Ok(true) => {}
                 Ok(false) => break,
                 Err(err) => return self.failed(&err),
             }
+            debug!(target: jobs::SET_TIMING, section = %self.name, slice_us = jobs::micros(slice.elapsed()), "poll slice");
             self.sets_meanwhile().await;
             if self.health.state() != LinkState::Online {
                 return;
             }
         }
         let backend = self.backend.as_deref_mut().expect("polling it");
+        let finishing = Instant::now();
         let polled = self.cycle.finish(backend, &mut self.publisher, round).await;
+        debug!(target: jobs::SET_TIMING, section = %self.name, finish_us = jobs::micros(finishing.elapsed()), "poll finish");
         self.metrics.poll_cycle.observe(started.elapsed());
         if let Err(err) = polled {
             return self.failed(&err);
@@ -1046,17 +1061,19 @@ impl Link {
         let backend = self.backend.as_deref_mut().expect("online");
         let limit = backend.answer_timeout();
         let mut timely = Vec::with_capacity(group.len());
+        let mut oldest = taken;
         for (item, arrived, reply) in group {
             if taken.saturating_duration_since(arrived) > limit {
                 let _ = reply.send(Err(LinkError::Late));
             } else {
+                oldest = oldest.min(arrived);
                 timely.push((item, reply));
             }
         }
         if timely.is_empty() {
             return;
         }
-        if let Err(err) = jobs::serve_sets(backend, &mut self.publisher, timely).await {
+        if let Err(err) = jobs::serve_sets(backend, &mut self.publisher, timely, oldest).await {
             self.judge(&err);
         }
     }
