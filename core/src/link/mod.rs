@@ -214,6 +214,8 @@ pub fn fresh_for(loop_delay: Duration, answer_timeout: Duration) -> Duration {
 const TIMER_SLACK: Duration = Duration::from_micros(1500);
 /// Jobs taken into one batch at most.
 const MAX_BATCH: usize = 1024;
+/// Pushed values applied between two looks at the queue for a SET.
+const PUSHED_PIECE: usize = 1000;
 
 /// The first deadline of the schedule `previous + k * period` after `now`
 /// (cycles that are already late are skipped, not bunched), and how many
@@ -426,7 +428,14 @@ impl Link {
                 }
                 pushed = wait_pushed(self.backend.as_deref_mut()), if self.health.state() == LinkState::Online => {
                     match pushed {
-                        Ok(()) => self.deliver_pushed(),
+                        Ok(()) => {
+                            self.deliver_pushed().await;
+                            // Jobs queued behind a SET it served meanwhile.
+                            if !self.held.is_empty() {
+                                let held: Vec<Job> = self.held.drain(..).collect();
+                                self.serve(held).await;
+                            }
+                        }
                         Err(err) => self.judge(&err),
                     }
                 }
@@ -586,8 +595,10 @@ impl Link {
 
     /// Publishes what the device pushed, each value with its own time: one
     /// publish per run of distinct variables, so a follower (the historian)
-    /// sees every sample of a variable that changed twice.
-    fn deliver_pushed(&mut self) {
+    /// sees every sample of a variable that changed twice. A SET queued
+    /// meanwhile waits for [`PUSHED_PIECE`] values at most, not the whole
+    /// take: what is applied so far is published and the SET served.
+    async fn deliver_pushed(&mut self) {
         let Some(backend) = self.backend.as_deref_mut() else {
             return;
         };
@@ -600,10 +611,26 @@ impl Link {
         let count = pushed.len();
         let table = self.publisher.table().clone();
         let mut pending = std::collections::HashSet::new();
-        for value in pushed {
+        // Variables SET during this take: its values of them were sampled
+        // before the Write (taken before it was sent), and would undo it.
+        let mut set = std::collections::HashSet::new();
+        for (n, value) in pushed.into_iter().enumerate() {
+            if n % PUSHED_PIECE == PUSHED_PIECE - 1 && !self.jobs.is_empty() {
+                self.publisher.publish();
+                pending.clear();
+                set.extend(self.sets_meanwhile().await);
+                if self.health.state() != LinkState::Online
+                    || !Arc::ptr_eq(&table, self.publisher.table())
+                {
+                    return;
+                }
+            }
             let Some(id) = table.lookup(&value.name) else {
                 continue;
             };
+            if set.contains(&id) {
+                continue;
+            }
             if !pending.insert(id) {
                 self.publisher.publish();
                 pending.clear();
@@ -625,7 +652,7 @@ impl Link {
     }
 
     async fn poll(&mut self) {
-        self.deliver_pushed();
+        self.deliver_pushed().await;
         let Some(backend) = self.backend.as_deref_mut() else {
             return;
         };
@@ -679,10 +706,11 @@ impl Link {
         }
     }
 
-    /// Serves the SETs that came in during a poll, between its slices; the
-    /// jobs queued after the first that is not a SET wait for the poll's
-    /// end, in order.
-    async fn sets_meanwhile(&mut self) {
+    /// Serves the SETs that came in during a poll (between its slices) or
+    /// a take of pushed values; the jobs queued after the first that is
+    /// not a SET wait for the poll's or the take's end, in order. Returns
+    /// the table variables the SETs were for.
+    async fn sets_meanwhile(&mut self) -> Vec<crate::vars::VarId> {
         while let Ok(job) = self.jobs.try_recv() {
             self.held.push_back(job);
         }
@@ -690,9 +718,22 @@ impl Link {
         while matches!(self.held.front(), Some(Job::Set { .. })) {
             sets.extend(self.held.pop_front());
         }
+        let table = self.publisher.table();
+        let ids = sets
+            .iter()
+            .filter_map(|job| match job {
+                Job::Set { item, .. } => item
+                    .var
+                    .as_ref()
+                    .filter(|(of, _)| Arc::ptr_eq(of, table))
+                    .map(|(_, id)| *id),
+                _ => None,
+            })
+            .collect();
         if !sets.is_empty() {
             self.serve(sets).await;
         }
+        ids
     }
 
     /// What describes this section's variables: a public file, or a tag
