@@ -155,15 +155,15 @@ impl Server {
                     script.display()
                 )
             });
-        let out = child.stdout.take().expect("stdout");
-        let ready = BufReader::new(out)
-            .lines()
-            .any(|l| l.is_ok_and(|l| l == "ready"));
+        let mut out = BufReader::new(child.stdout.take().expect("stdout")).lines();
+        let ready = out.any(|l| l.is_ok_and(|l| l == "ready"));
         assert!(
             ready,
             "node-opcua's server did not start; see {}",
             dir.join("node.log").display()
         );
+        // Read on: a closed pipe would end it at its next line (EPIPE).
+        std::thread::spawn(move || out.for_each(drop));
         Server { child }
     }
 
