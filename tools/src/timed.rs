@@ -200,7 +200,13 @@ pub type Arrivals = Arc<Mutex<std::collections::HashMap<String, Instant>>>;
 /// A watcher on the section at `addr`: every tag enabled, the arrival of
 /// each `DIFF:T...` line noted (the rest read and dropped).
 pub async fn watch(addr: std::net::SocketAddr) -> Arrivals {
+    watch_of(addr, "T").await
+}
+
+/// [`watch`] of the `DIFF` lines of the variables named `prefix...`.
+pub async fn watch_of(addr: std::net::SocketAddr, prefix: &str) -> Arrivals {
     use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+    let prefix = format!("DIFF:{prefix}");
     let watcher = tokio::net::TcpStream::connect(addr).await.expect("watcher");
     let (read, mut write) = watcher.into_split();
     write.write_all(b"EN:*\r\n").await.unwrap();
@@ -211,7 +217,7 @@ pub async fn watch(addr: std::net::SocketAddr) -> Arrivals {
         let _write = write;
         let mut lines = BufReader::new(read).lines();
         while let Ok(Some(line)) = lines.next_line().await {
-            if line.starts_with("DIFF:T") && line.len() < 24 {
+            if line.starts_with(&prefix) && line.len() < prefix.len() + 20 {
                 // The first arrival: a value that comes again later (set
                 // back and forth) is not late.
                 seen.lock()
@@ -234,6 +240,19 @@ pub async fn time_sets(
     sets: usize,
     set_tags: usize,
 ) -> (Vec<f64>, Vec<f64>) {
+    let names = (0..set_tags).map(|tag| format!("T{tag}")).collect();
+    time_sets_of(addr, arrivals, delay, sets, names).await
+}
+
+/// [`time_sets`] of the variables `names` (upper case, as DIFF lines
+/// name them), in turn.
+pub async fn time_sets_of(
+    addr: std::net::SocketAddr,
+    arrivals: Arrivals,
+    delay: u64,
+    sets: usize,
+    names: Vec<String>,
+) -> (Vec<f64>, Vec<f64>) {
     use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
     let writer = tokio::net::TcpStream::connect(addr).await.expect("writer");
     let (read, mut write) = writer.into_split();
@@ -241,16 +260,16 @@ pub async fn time_sets(
     let mut sent = Vec::new();
     let mut confirm_ms = Vec::new();
     for i in 0..sets {
-        let tag = i % set_tags;
+        let name = &names[i % names.len()];
         let value = 1000 + i;
         let started = Instant::now();
         write
-            .write_all(format!("SET:t{tag},{value}\r\n").as_bytes())
+            .write_all(format!("SET:{name},{value}\r\n").as_bytes())
             .await
             .unwrap();
         let answer = answers.next_line().await.unwrap().unwrap_or_default();
         confirm_ms.push(ms(started.elapsed()));
-        assert_eq!(answer, format!("DIFF:T{tag},{value}"), "SET answer");
+        assert_eq!(answer, format!("DIFF:{name},{value}"), "SET answer");
         sent.push((answer, started));
         // Spread over the poll cycle.
         tokio::time::sleep(Duration::from_millis(7)).await;

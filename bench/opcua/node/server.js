@@ -54,6 +54,9 @@ async function main() {
             browseName: name,
             dataType: "UInt32",
             value: { dataType: DataType.UInt32, value: 0 },
+            // Written by bench-opcua's SETs (`--against node`).
+            accessLevel: "CurrentRead | CurrentWrite",
+            userAccessLevel: "CurrentRead | CurrentWrite",
         });
         if (i < animated) changing.push(v);
     }

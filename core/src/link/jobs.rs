@@ -13,6 +13,8 @@ use std::ops::Range as Span;
 use std::sync::Arc;
 
 use tokio::sync::oneshot;
+use tokio::time::Instant;
+use tracing::debug;
 
 use super::plan::{Limits, Range, ReadPlan};
 use super::{LinkError, ReadReply, SetOutcome, SetReply};
@@ -145,17 +147,22 @@ fn write_len(write: &WriteRequest) -> u64 {
 /// before the SET is answered, so a client that asks again at once finds it.
 /// Returns the first link error (the remaining SETs are answered with it and
 /// never sent).
+///
+/// `arrived` is when the oldest SET of the group arrived: the time it
+/// waited is logged with the round's parts at debug level, target
+/// [`SET_TIMING`].
 pub async fn serve_sets(
     backend: &mut dyn PlcBackend,
     publisher: &mut Publisher,
     group: Vec<(SetItem, oneshot::Sender<SetReply>)>,
+    arrived: Instant,
 ) -> Result<(), PlcError> {
     let writes: Vec<&WriteRequest> = group.iter().map(|(item, _)| &item.write).collect();
     let rounds = set_rounds(&writes);
     let mut group = group.into_iter();
     for round in rounds {
         let members: Vec<_> = group.by_ref().take(round.len()).collect();
-        if let Err(err) = set_round(backend, publisher, members).await {
+        if let Err(err) = set_round(backend, publisher, members, arrived).await {
             // What was not sent never will be.
             fail_all(group.map(|(_, reply)| reply), &err);
             return Err(err);
@@ -168,8 +175,10 @@ async fn set_round(
     backend: &mut dyn PlcBackend,
     publisher: &mut Publisher,
     round: Vec<(SetItem, oneshot::Sender<SetReply>)>,
+    arrived: Instant,
 ) -> Result<(), PlcError> {
     let writes: Vec<WriteRequest> = round.iter().map(|(item, _)| item.write.clone()).collect();
+    let sent = Instant::now();
     let written = match backend.write(&writes).await {
         Ok(written) if written.len() == writes.len() => Ok(written),
         Ok(_) => Err(PlcError::Protocol("write answer count mismatch".into())),
@@ -183,6 +192,7 @@ async fn set_round(
         }
     };
     let readbacks: Vec<ReadRequest> = round.iter().map(|(item, _)| item.readback).collect();
+    let confirming = Instant::now();
     let read = match read_ranges(backend, &readbacks).await {
         Ok(read) => read,
         Err(err) => {
@@ -190,6 +200,7 @@ async fn set_round(
             return Err(err);
         }
     };
+    let publishing = Instant::now();
     let seq = publisher.next_seq();
     let now = unix_ms(std::time::SystemTime::now());
     let mut outcomes = Vec::with_capacity(round.len());
@@ -211,7 +222,26 @@ async fn set_round(
     for (reply, outcome) in outcomes {
         let _ = reply.send(Ok(outcome));
     }
+    let done = Instant::now();
+    debug!(
+        target: SET_TIMING,
+        sets = writes.len(),
+        queued_us = micros(sent - arrived),
+        write_us = micros(confirming - sent),
+        confirm_us = micros(publishing - confirming),
+        publish_us = micros(done - publishing),
+        "set round"
+    );
     Ok(())
+}
+
+/// The tracing target of the SET's parts and of what a SET may wait
+/// behind (`RUST_LOG=info,plccoms::set_timing=debug`; bench-opcua
+/// `--split`): a disabled debug event costs one load and a branch.
+pub const SET_TIMING: &str = "plccoms::set_timing";
+
+pub(crate) fn micros(d: std::time::Duration) -> u64 {
+    u64::try_from(d.as_micros()).unwrap_or(u64::MAX)
 }
 
 /// Answers every reply with the link error `err`.

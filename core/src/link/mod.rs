@@ -214,6 +214,8 @@ pub fn fresh_for(loop_delay: Duration, answer_timeout: Duration) -> Duration {
 const TIMER_SLACK: Duration = Duration::from_micros(1500);
 /// Jobs taken into one batch at most.
 const MAX_BATCH: usize = 1024;
+/// Pushed values applied between two looks at the queue for a SET.
+const PUSHED_PIECE: usize = 1000;
 
 /// The first deadline of the schedule `previous + k * period` after `now`
 /// (cycles that are already late are skipped, not bunched), and how many
@@ -426,7 +428,14 @@ impl Link {
                 }
                 pushed = wait_pushed(self.backend.as_deref_mut()), if self.health.state() == LinkState::Online => {
                     match pushed {
-                        Ok(()) => self.deliver_pushed(),
+                        Ok(()) => {
+                            self.deliver_pushed().await;
+                            // Jobs queued behind a SET it served meanwhile.
+                            if !self.held.is_empty() {
+                                let held: Vec<Job> = self.held.drain(..).collect();
+                                self.serve(held).await;
+                            }
+                        }
                         Err(err) => self.judge(&err),
                     }
                 }
@@ -586,21 +595,42 @@ impl Link {
 
     /// Publishes what the device pushed, each value with its own time: one
     /// publish per run of distinct variables, so a follower (the historian)
-    /// sees every sample of a variable that changed twice.
-    fn deliver_pushed(&mut self) {
+    /// sees every sample of a variable that changed twice. A SET queued
+    /// meanwhile waits for [`PUSHED_PIECE`] values at most, not the whole
+    /// take: what is applied so far is published and the SET served.
+    async fn deliver_pushed(&mut self) {
         let Some(backend) = self.backend.as_deref_mut() else {
             return;
         };
+        let started = Instant::now();
         let pushed = backend.take_pushed();
         if pushed.is_empty() {
             return;
         }
+        let taken = Instant::now();
+        let count = pushed.len();
         let table = self.publisher.table().clone();
         let mut pending = std::collections::HashSet::new();
-        for value in pushed {
+        // Variables SET during this take: its values of them were sampled
+        // before the Write (taken before it was sent), and would undo it.
+        let mut set = std::collections::HashSet::new();
+        for (n, value) in pushed.into_iter().enumerate() {
+            if n % PUSHED_PIECE == PUSHED_PIECE - 1 && !self.jobs.is_empty() {
+                self.publisher.publish();
+                pending.clear();
+                set.extend(self.sets_meanwhile().await);
+                if self.health.state() != LinkState::Online
+                    || !Arc::ptr_eq(&table, self.publisher.table())
+                {
+                    return;
+                }
+            }
             let Some(id) = table.lookup(&value.name) else {
                 continue;
             };
+            if set.contains(&id) {
+                continue;
+            }
             if !pending.insert(id) {
                 self.publisher.publish();
                 pending.clear();
@@ -611,10 +641,18 @@ impl Link {
                 .set_uncertain(id, value.uncertain, value.unix_ms);
         }
         self.publisher.publish();
+        debug!(
+            target: jobs::SET_TIMING,
+            section = %self.name,
+            count,
+            take_us = jobs::micros(taken - started),
+            apply_us = jobs::micros(taken.elapsed()),
+            "pushed"
+        );
     }
 
     async fn poll(&mut self) {
-        self.deliver_pushed();
+        self.deliver_pushed().await;
         let Some(backend) = self.backend.as_deref_mut() else {
             return;
         };
@@ -622,18 +660,22 @@ impl Link {
         let mut round = self.cycle.begin(backend, &self.publisher);
         loop {
             let backend = self.backend.as_deref_mut().expect("polling it");
+            let slice = Instant::now();
             match self.cycle.read_slice(backend, &mut round).await {
                 Ok(true) => {}
                 Ok(false) => break,
                 Err(err) => return self.failed(&err),
             }
+            debug!(target: jobs::SET_TIMING, section = %self.name, slice_us = jobs::micros(slice.elapsed()), "poll slice");
             self.sets_meanwhile().await;
             if self.health.state() != LinkState::Online {
                 return;
             }
         }
         let backend = self.backend.as_deref_mut().expect("polling it");
+        let finishing = Instant::now();
         let polled = self.cycle.finish(backend, &mut self.publisher, round).await;
+        debug!(target: jobs::SET_TIMING, section = %self.name, finish_us = jobs::micros(finishing.elapsed()), "poll finish");
         self.metrics.poll_cycle.observe(started.elapsed());
         if let Err(err) = polled {
             return self.failed(&err);
@@ -664,10 +706,11 @@ impl Link {
         }
     }
 
-    /// Serves the SETs that came in during a poll, between its slices; the
-    /// jobs queued after the first that is not a SET wait for the poll's
-    /// end, in order.
-    async fn sets_meanwhile(&mut self) {
+    /// Serves the SETs that came in during a poll (between its slices) or
+    /// a take of pushed values; the jobs queued after the first that is
+    /// not a SET wait for the poll's or the take's end, in order. Returns
+    /// the table variables the SETs were for.
+    async fn sets_meanwhile(&mut self) -> Vec<crate::vars::VarId> {
         while let Ok(job) = self.jobs.try_recv() {
             self.held.push_back(job);
         }
@@ -675,9 +718,22 @@ impl Link {
         while matches!(self.held.front(), Some(Job::Set { .. })) {
             sets.extend(self.held.pop_front());
         }
+        let table = self.publisher.table();
+        let ids = sets
+            .iter()
+            .filter_map(|job| match job {
+                Job::Set { item, .. } => item
+                    .var
+                    .as_ref()
+                    .filter(|(of, _)| Arc::ptr_eq(of, table))
+                    .map(|(_, id)| *id),
+                _ => None,
+            })
+            .collect();
         if !sets.is_empty() {
             self.serve(sets).await;
         }
+        ids
     }
 
     /// What describes this section's variables: a public file, or a tag
@@ -1046,17 +1102,19 @@ impl Link {
         let backend = self.backend.as_deref_mut().expect("online");
         let limit = backend.answer_timeout();
         let mut timely = Vec::with_capacity(group.len());
+        let mut oldest = taken;
         for (item, arrived, reply) in group {
             if taken.saturating_duration_since(arrived) > limit {
                 let _ = reply.send(Err(LinkError::Late));
             } else {
+                oldest = oldest.min(arrived);
                 timely.push((item, reply));
             }
         }
         if timely.is_empty() {
             return;
         }
-        if let Err(err) = jobs::serve_sets(backend, &mut self.publisher, timely).await {
+        if let Err(err) = jobs::serve_sets(backend, &mut self.publisher, timely, oldest).await {
             self.judge(&err);
         }
     }

@@ -10,6 +10,12 @@
 //!   section browsing `Sim`'s node (OPCUA_MODE = subscribe, default
 //!   OPCUA_REBROWSE), one client with EN:* taking the DIFFs.
 //!
+//! With `--against node` the server is node-opcua's instead
+//! (bench/opcua/node/server.js, `npm ci` there first): it answers a Write
+//! at once, so that row shows the client side's own SET latency apart
+//! from a serving plccoms's link. `--split` splits each SET's time into
+//! its parts on both sides (the `plccoms::set_timing` debug lines).
+//!
 //! Measured on the client side: its CPU (utime + stime from /proc over a
 //! steady window, in cores), its peak and current RSS, OPC UA requests per
 //! 1 s cycle (its `/metrics` `plccoms_backend_requests_total`), and SET ->
@@ -68,6 +74,24 @@ struct Args {
     /// Append `opcua_<n>.<metric> value` lines here (bench/run's results).
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Split each SET's time into its parts on both sides (both logs at
+    /// `plccoms::set_timing=debug`): queued in the link before the Write,
+    /// the Write, the confirmation, the publish; and what a SET may wait
+    /// behind (a take of pushed values, a poll slice, a poll's end).
+    #[arg(long)]
+    split: bool,
+    /// The servers measured against (one row each): `plccoms` (a second
+    /// plccoms over plcsim: its own link and write path are part of what
+    /// is measured) and `node` (node-opcua's server, bench/opcua/node,
+    /// answering a Write at once: the client side's own latency).
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "plccoms")]
+    against: Vec<Against>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Against {
+    Plccoms,
+    Node,
 }
 
 const SET_TAGS: usize = 16;
@@ -107,10 +131,50 @@ struct Server {
 }
 
 impl Server {
-    fn start(binary: &Path, dir: &Path, name: &str, ini: &str) -> Server {
+    /// node-opcua's server of `n` variables, all but the SET targets
+    /// (`VAR_00000`..) changing each `delay` ms; once it listens.
+    fn node(dir: &Path, port: u16, n: usize, delay: u64) -> Server {
+        use std::io::{BufRead, BufReader};
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../bench/opcua/node/server.js");
+        let log = std::fs::File::create(dir.join("node.log")).expect("log");
+        let mut child = Command::new("node")
+            .arg(&script)
+            .args([
+                port.to_string(),
+                n.to_string(),
+                (n - SET_TAGS).to_string(),
+                delay.to_string(),
+            ])
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(log)
+            .spawn()
+            .unwrap_or_else(|e| {
+                panic!(
+                    "node {}: {e} (npm ci --prefix bench/opcua/node)",
+                    script.display()
+                )
+            });
+        let mut out = BufReader::new(child.stdout.take().expect("stdout")).lines();
+        let ready = out.any(|l| l.is_ok_and(|l| l == "ready"));
+        assert!(
+            ready,
+            "node-opcua's server did not start; see {}",
+            dir.join("node.log").display()
+        );
+        // Read on: a closed pipe would end it at its next line (EPIPE).
+        std::thread::spawn(move || out.for_each(drop));
+        Server { child }
+    }
+
+    fn start(binary: &Path, dir: &Path, name: &str, ini: &str, split: bool) -> Server {
         std::fs::write(dir.join(format!("{name}.ini")), ini).expect("ini");
         let log = std::fs::File::create(dir.join(format!("{name}.log"))).expect("log");
-        let child = Command::new(binary)
+        let mut command = Command::new(binary);
+        if split {
+            command.env("RUST_LOG", "info,plccoms::set_timing=debug");
+        }
+        let child = command
             .args(["-c", &format!("{name}.ini")])
             .current_dir(dir)
             .stdin(Stdio::null())
@@ -170,6 +234,9 @@ fn ask(port: u16, line: &str) -> String {
 }
 
 struct Row {
+    against: Against,
+    /// The SET's parts, a table (`--split`).
+    split: String,
     vars: usize,
     ready_s: f64,
     cpu_cores: f64,
@@ -180,40 +247,64 @@ struct Row {
     diff: Vec<f64>,
 }
 
-async fn run(args: &Args, binary: &Path, n: usize) -> Row {
+async fn run(args: &Args, binary: &Path, n: usize, against: Against) -> Row {
     let dir = tempfile::tempdir().expect("tempdir");
-    let pubfile = public_file(n);
-    std::fs::write(dir.path().join("bench.pub"), &pubfile).expect("pub");
-    let plc = plcsim::spawn(SimConfig {
-        bind: SocketAddr::from(([127, 0, 0, 1], 0)),
-        pubfile: SimPub::Bytes(pubfile.into_bytes()),
-        program: ProgramKind::Idle,
-        animate: vec!["V*".into()],
-        cycle: Duration::from_millis(args.delay),
-        ..SimConfig::default()
-    })
-    .await
-    .expect("plcsim");
     let (ua, sim_port, via_port, http) = (free_port(), free_port(), free_port(), free_port());
     let delay = args.delay;
-    // A user of role write, so that the client side's SETs reach the PLC.
-    let users = plccoms_opcua::users::hash_line("bench", "write", "bench", b"bench-salt", 1000);
-    std::fs::write(dir.path().join("opcua-users"), users).expect("users");
-    let _serving = Server::start(
-        binary,
-        dir.path(),
-        "serving",
-        &format!(
-            "[*]\nCOMM_LOOP_DELAY = {delay}\nOPCUA_PORT = {ua}\nOPCUA_USERS = opcua-users\n\
-             OPCUA_MAX_MONITORED_ITEMS = {}\n\
-             [Sim]\nIPADDR = 127.0.0.1\nIPADDR_LOCAL = 127.0.0.1\nEPSPORT = {}\n\
-             SERVER_PORT = {sim_port}\nPUBFILE = //bench.pub\nPUBFILE_CRC = No\nPUBFILE_WRITE = No\nOPCUA_WRITE = T*\n",
-            // Its default, 100,000 a subscription, is one short of N
-            // variables and ServerStatus.State (the client makes one).
-            n + 1000,
-            plc.local_addr().port()
+    // The server: (process, its plcsim, the client's browse and identity
+    // keys, the last variable, the SET targets, their DIFF prefix).
+    let (_serving, _plc, browse, last, targets, prefix) = match against {
+        Against::Plccoms => {
+            let pubfile = public_file(n);
+            std::fs::write(dir.path().join("bench.pub"), &pubfile).expect("pub");
+            let plc = plcsim::spawn(SimConfig {
+                bind: SocketAddr::from(([127, 0, 0, 1], 0)),
+                pubfile: SimPub::Bytes(pubfile.into_bytes()),
+                program: ProgramKind::Idle,
+                animate: vec!["V*".into()],
+                cycle: Duration::from_millis(args.delay),
+                ..SimConfig::default()
+            })
+            .await
+            .expect("plcsim");
+            // A user of role write, so that the client side's SETs reach the PLC.
+            let users =
+                plccoms_opcua::users::hash_line("bench", "write", "bench", b"bench-salt", 1000);
+            std::fs::write(dir.path().join("opcua-users"), users).expect("users");
+            let serving = Server::start(
+                binary,
+                dir.path(),
+                "serving",
+                &format!(
+                    "[*]\nCOMM_LOOP_DELAY = {delay}\nOPCUA_PORT = {ua}\nOPCUA_USERS = opcua-users\n\
+                     OPCUA_MAX_MONITORED_ITEMS = {}\n\
+                     [Sim]\nIPADDR = 127.0.0.1\nIPADDR_LOCAL = 127.0.0.1\nEPSPORT = {}\n\
+                     SERVER_PORT = {sim_port}\nPUBFILE = //bench.pub\nPUBFILE_CRC = No\nPUBFILE_WRITE = No\nOPCUA_WRITE = T*\n",
+                    // Its default, 100,000 a subscription, is one short of N
+                    // variables and ServerStatus.State (the client makes one).
+                    n + 1000,
+                    plc.local_addr().port()
+                ),
+                args.split,
+            );
+            (
+                serving,
+                Some(plc),
+                "OPCUA_BROWSE = nsu=urn:plccoms;s=Sim\nOPCUA_USER = bench\nOPCUA_PASSWORD = bench\n",
+                format!("V{}", n - 1),
+                (0..SET_TAGS).map(|i| format!("T{i}")).collect::<Vec<_>>(),
+                "T",
+            )
+        }
+        Against::Node => (
+            Server::node(dir.path(), ua, n, delay),
+            None,
+            "OPCUA_BROWSE = nsu=urn:node-opcua-bench;s=Bench\n",
+            format!("ANIM_{:05}", n - SET_TAGS - 1),
+            (0..SET_TAGS).map(|i| format!("VAR_{i:05}")).collect(),
+            "VAR_",
         ),
-    );
+    };
     let started = Instant::now();
     let keys: String = args
         .client_keys
@@ -230,11 +321,11 @@ async fn run(args: &Args, binary: &Path, n: usize) -> Row {
         &format!(
             "[*]\nCOMM_LOOP_DELAY = {delay}\nHTTP_PORT = {http}\n\
              [Via]\nPROTOCOL = OPCUA\nOPCUA_URL = opc.tcp://127.0.0.1:{ua}/\n\
-             OPCUA_BROWSE = nsu=urn:plccoms;s=Sim\nOPCUA_USER = bench\nOPCUA_PASSWORD = bench\nSERVER_PORT = {via_port}\n{keys}"
+             {browse}SERVER_PORT = {via_port}\n{keys}"
         ),
+        args.split,
     );
     let pid = client.child.id();
-    let last = format!("V{}", n - 1);
     loop {
         if ask(via_port, &format!("GET:{last}")).starts_with("GET:") {
             break;
@@ -249,7 +340,7 @@ async fn run(args: &Args, binary: &Path, n: usize) -> Row {
     }
     let ready_s = started.elapsed().as_secs_f64();
     let addr = SocketAddr::from(([127, 0, 0, 1], via_port));
-    let arrivals = timed::watch(addr).await;
+    let arrivals = timed::watch_of(addr, prefix).await;
     // The subscription made (three poll periods), its first values in.
     tokio::time::sleep(Duration::from_millis(10 * delay)).await;
     let (c0, r0, t0) = (procfs::cpu_seconds(pid), requests(http), Instant::now());
@@ -262,12 +353,15 @@ async fn run(args: &Args, binary: &Path, n: usize) -> Row {
         _ => f64::NAN,
     };
     let log = dir.path().join("client.log");
-    let sets = tokio::spawn(timed::time_sets(
+    let serving_log = dir.path().join("serving.log");
+    let log_from = |path: &Path| std::fs::metadata(path).map_or(0, |m| m.len());
+    let (client_from, serving_from) = (log_from(&log), log_from(&serving_log));
+    let sets = tokio::spawn(timed::time_sets_of(
         addr,
         arrivals.clone(),
         delay,
         args.sets,
-        SET_TAGS,
+        targets,
     ));
     let Ok((confirm, diff)) = sets.await else {
         let log = std::fs::read_to_string(&log).unwrap_or_default();
@@ -277,7 +371,16 @@ async fn run(args: &Args, binary: &Path, n: usize) -> Row {
             tail.into_iter().rev().collect::<Vec<_>>().join("\n")
         );
     };
+    let split = match args.split {
+        true => split_table(&[
+            ("client", &log, client_from),
+            ("serving", &serving_log, serving_from),
+        ]),
+        false => String::new(),
+    };
     Row {
+        against,
+        split,
         vars: n,
         ready_s,
         cpu_cores: (c1 - c0) / seconds,
@@ -288,6 +391,57 @@ async fn run(args: &Args, binary: &Path, n: usize) -> Row {
         confirm,
         diff,
     }
+}
+
+/// The `plccoms::set_timing` lines of each side's log written during the
+/// SETs, as p50 / p99 / max of each part (ms); `sides`: each side's
+/// (name, log, where its SETs' lines begin).
+fn split_table(sides: &[(&str, &Path, u64)]) -> String {
+    // (event message, its fields in µs) that make a row.
+    const PARTS: [(&str, &[&str]); 4] = [
+        (
+            "set round",
+            &["queued_us", "write_us", "confirm_us", "publish_us"],
+        ),
+        ("pushed", &["take_us", "apply_us"]),
+        ("poll slice", &["slice_us"]),
+        ("poll finish", &["finish_us"]),
+    ];
+    let mut out = String::from(
+        "| side | part | count | p50 | p99 | max |\n| --- | --- | --- | --- | --- | --- |\n",
+    );
+    for (side, path, from) in sides {
+        let text = std::fs::read(path).unwrap_or_default();
+        let text = String::from_utf8_lossy(text.get(*from as usize..).unwrap_or_default());
+        for (event, fields) in PARTS {
+            let lines: Vec<&str> = text.lines().filter(|l| l.contains(event)).collect();
+            for field in fields {
+                let mut ms: Vec<f64> = lines
+                    .iter()
+                    .filter_map(|l| {
+                        let value = l
+                            .split_whitespace()
+                            .find_map(|w| w.strip_prefix(*field)?.strip_prefix('='))?;
+                        Some(value.parse::<f64>().ok()? / 1000.0)
+                    })
+                    .collect();
+                if ms.is_empty() {
+                    continue;
+                }
+                ms.sort_by(f64::total_cmp);
+                let _ = writeln!(
+                    out,
+                    "| {side} | {event}: {} | {} | {:.2} ms | {:.2} ms | {:.2} ms |",
+                    field.trim_end_matches("_us"),
+                    ms.len(),
+                    percentile(&ms, 0.5),
+                    percentile(&ms, 0.99),
+                    ms[ms.len() - 1]
+                );
+            }
+        }
+    }
+    out
 }
 
 fn summary(values: &[f64]) -> (f64, f64, f64, f64) {
@@ -314,21 +468,39 @@ async fn main() {
     let mut results = String::new();
     let _ = writeln!(
         out,
-        "## bench-opcua\n\nOPC UA client section (subscribe) reading plccoms's own OPC UA server, every variable changing each {} ms cycle, on 127.0.0.1; client side's process measured over {} s\n",
+        "## bench-opcua\n\nOPC UA client section (subscribe) reading a local OPC UA server (plccoms: a second plccoms over plcsim; node: node-opcua's), every variable changing each {} ms cycle, on 127.0.0.1; client side's process measured over {} s\n",
         args.delay, args.window
     );
     let _ = writeln!(
         out,
-        "| variables | ready after | client CPU | client RSS peak / now | requests per cycle | SET confirmed min / avg / max / p99 | SET -> DIFF min / avg / max / p99 | DIFFs seen |"
+        "| server | variables | ready after | client CPU | client RSS peak / now | requests per cycle | SET confirmed min / avg / max / p99 | SET -> DIFF min / avg / max / p99 | DIFFs seen |"
     );
-    let _ = writeln!(out, "| --- | --- | --- | --- | --- | --- | --- | --- |");
-    for &n in &args.vars {
-        let r = run(&args, &binary, n.max(SET_TAGS + 1)).await;
+    let _ = writeln!(
+        out,
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"
+    );
+    let mut splits = Vec::new();
+    for (&n, &against) in args
+        .vars
+        .iter()
+        .flat_map(|n| args.against.iter().map(move |a| (n, a)))
+    {
+        let r = run(&args, &binary, n.max(SET_TAGS + 1), against).await;
+        let server = match r.against {
+            Against::Plccoms => "plccoms",
+            Against::Node => "node",
+        };
+        if args.split {
+            splits.push(format!(
+                "SET's parts at {} variables against {server}:\n\n{}",
+                r.vars, r.split
+            ));
+        }
         let (c_min, c_avg, c_max, c_p99) = summary(&r.confirm);
         let (d_min, d_avg, d_max, d_p99) = summary(&r.diff);
         let _ = writeln!(
             out,
-            "| {} | {:.1} s | {:.3} cores | {:.1} / {:.1} MiB | {:.2} | {c_min:.2} / {c_avg:.2} / {c_max:.2} / {c_p99:.2} ms | {d_min:.2} / {d_avg:.2} / {d_max:.2} / {d_p99:.2} ms | {} of {} |",
+            "| {server} | {} | {:.1} s | {:.3} cores | {:.1} / {:.1} MiB | {:.2} | {c_min:.2} / {c_avg:.2} / {c_max:.2} / {c_p99:.2} ms | {d_min:.2} / {d_avg:.2} / {d_max:.2} / {d_p99:.2} ms | {} of {} |",
             r.vars,
             r.ready_s,
             r.cpu_cores,
@@ -353,10 +525,18 @@ async fn main() {
             ("set_diff_max_ms", d_max),
             ("set_diff_p99_ms", d_p99),
         ] {
-            let _ = writeln!(results, "opcua_{}.{metric} {value:.3}", r.vars);
+            // bench/run's names for plccoms, as before.
+            let label = match r.against {
+                Against::Plccoms => format!("opcua_{}", r.vars),
+                Against::Node => format!("opcua_node_{}", r.vars),
+            };
+            let _ = writeln!(results, "{label}.{metric} {value:.3}");
         }
     }
     print!("{out}");
+    for split in &splits {
+        print!("\n{split}");
+    }
     if let Some(path) = &args.out {
         timed::append(path, &results);
     }
