@@ -42,6 +42,7 @@
 
 pub mod browse;
 pub mod convert;
+pub mod nodelay;
 mod rebrowse;
 pub mod structure;
 
@@ -1312,7 +1313,7 @@ pub(crate) async fn connect_session(
     let pki = config.pki.clone();
     let (session, event_loop) = match tokio::time::timeout(
         timeout,
-        client.connect_to_matching_endpoint(endpoint, identity),
+        nodelay::connect_to_matching_endpoint(client, endpoint, identity),
     )
     .await
     {

@@ -285,9 +285,14 @@ async fn connect(args: &Args, pki: &std::path::Path) -> Result<Arc<Session>, Fai
         UserTokenPolicy::anonymous(),
     )
         .into();
-    let (session, event_loop) = client
-        .connect_to_matching_endpoint(endpoint, IdentityToken::Anonymous)
-        .await?;
+    // Nagle off, as plccoms's own client: the generator's Publish
+    // requests are not held for the server's delayed ACK.
+    let (session, event_loop) = plccoms_driver_opcua::nodelay::connect_to_matching_endpoint(
+        &mut client,
+        endpoint,
+        IdentityToken::Anonymous,
+    )
+    .await?;
     session.disable_reconnects();
     tokio::spawn(async move {
         let ended = event_loop.run().await;
