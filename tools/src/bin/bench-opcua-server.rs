@@ -206,7 +206,12 @@ impl OnSubscriptionNotificationCore for Notified {
         items: MonitoredItemMap<'_>,
     ) {
         let received = now_ms();
-        let published = notification.publish_time.as_chrono().timestamp_micros() as f64 / 1000.0;
+        // node-opcua's messages carry no PublishTime: no split there.
+        let message = (!notification.publish_time.is_null()).then(|| {
+            let published =
+                notification.publish_time.as_chrono().timestamp_micros() as f64 / 1000.0;
+            (published, received)
+        });
         let mut stats = self.0.lock().unwrap_or_else(|e| e.into_inner());
         for object in notification.notification_data.into_iter().flatten() {
             let Some(change) = object.into_inner_as::<DataChangeNotification>() else {
@@ -214,7 +219,7 @@ impl OnSubscriptionNotificationCore for Notified {
             };
             for n in change.monitored_items.into_iter().flatten() {
                 if items.get(n.client_handle).is_some() {
-                    stats.on_value(n.client_handle, &n.value, Some((published, received)));
+                    stats.on_value(n.client_handle, &n.value, message);
                 }
             }
         }
