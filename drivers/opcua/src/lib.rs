@@ -352,13 +352,13 @@ pub struct OpcuaBackend {
     /// Variables whose values reads answered with an Uncertain status since
     /// the link last took them (bounded by the variables' names).
     uncertain: HashSet<Box<[u8]>>,
-    /// When freed heap was last given back ([`TRIM_EVERY`]).
-    trimmed: Instant,
 }
 
-/// How often a read gives freed heap back: 100,000 notifications a second
-/// leave freed pages resident, 15-30 MB in 10 s (measured), with no
-/// OPCUA_REBROWSE to trim after.
+/// How often reads give freed heap back, in the whole process (every
+/// OPC UA section's reads together: a thousand sections must not trim a
+/// thousand times as often): 100,000 notifications a second leave freed
+/// pages resident, 15-30 MB in 10 s (measured), with no OPCUA_REBROWSE
+/// to trim after.
 const TRIM_EVERY: Duration = Duration::from_secs(5);
 /// Values read directly, or items monitored, by one read that trims after.
 const BIG_READ: usize = 10_000;
@@ -430,7 +430,6 @@ impl OpcuaBackend {
             last_read: None,
             poll_gaps: [None; 3],
             uncertain: HashSet::new(),
-            trimmed: Instant::now(),
         }
     }
 
@@ -1463,10 +1462,36 @@ pub(crate) fn read_tag_file(section: &str, path: &std::path::Path) -> Vec<Tag> {
 /// built, a rebrowse): glibc keeps the top of each arena a peak grew, and
 /// the RSS stayed at the peak's.
 pub(crate) fn trim_heap() {
+    LAST_TRIM_MS.store(process_ms(), std::sync::atomic::Ordering::Relaxed);
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: malloc_trim only walks the allocator's own free lists.
     unsafe {
         libc::malloc_trim(0);
+    }
+}
+
+/// When the process last gave freed heap back ([`process_ms`]).
+static LAST_TRIM_MS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// Milliseconds since the first call (a monotonic clock for atomics).
+fn process_ms() -> u64 {
+    static START: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
+    u64::try_from(START.get_or_init(Instant::now).elapsed().as_millis()).unwrap_or(u64::MAX)
+}
+
+/// [`trim_heap`], if no section of the process did for [`TRIM_EVERY`].
+fn trim_heap_when_due() {
+    use std::sync::atomic::Ordering::Relaxed;
+    let now = process_ms();
+    let last = LAST_TRIM_MS.load(Relaxed);
+    let every = TRIM_EVERY.as_millis() as u64;
+    // One reader wins the turn; the others see it taken.
+    if now.saturating_sub(last) >= every
+        && LAST_TRIM_MS
+            .compare_exchange(last, now, Relaxed, Relaxed)
+            .is_ok()
+    {
+        trim_heap();
     }
 }
 
@@ -1604,10 +1629,7 @@ impl PlcBackend for OpcuaBackend {
         if let Some(built) = rebuilt {
             self.take_list(built);
         }
-        if self.trimmed.elapsed() >= TRIM_EVERY {
-            self.trimmed = Instant::now();
-            trim_heap();
-        }
+        trim_heap_when_due();
         let mut wanted: Vec<usize> = Vec::new();
         let mut state = false;
         for read in reads {
@@ -1674,7 +1696,6 @@ impl PlcBackend for OpcuaBackend {
             // once (the start-up's RSS peak: 126-141 MiB at 100,000
             // variables with the 10 s trim only).
             if direct.len() + monitored(self).saturating_sub(before) >= BIG_READ {
-                self.trimmed = Instant::now();
                 trim_heap();
             }
             None
