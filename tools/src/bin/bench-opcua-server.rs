@@ -121,6 +121,10 @@ struct Stats {
     last: Vec<Option<u64>>,
     /// Counter value first seen while measuring -> items that reported it.
     seen: HashMap<u64, u32>,
+    /// The newest counter value seen before measuring: its notifications
+    /// straddle the window's start (those of some subscriptions before,
+    /// of others after), so it is not counted.
+    before: Option<u64>,
     notifications: u64,
     duplicates: u64,
     unexpected: u64,
@@ -187,7 +191,11 @@ impl Stats {
                     }
                 }
             }
-            *self.seen.entry(v).or_insert(0) += 1;
+            if self.before.is_none_or(|b| v > b) {
+                *self.seen.entry(v).or_insert(0) += 1;
+            }
+        } else if self.phase == Phase::Warmup {
+            self.before = self.before.max(Some(v));
         } else if let Some(n) = self.seen.get_mut(&v) {
             // Late arrivals of a value first seen while measuring.
             *n += 1;
@@ -492,6 +500,7 @@ async fn run(args: Args) -> Result<(), Fail> {
         changing_count,
         last: vec![None; items],
         seen: HashMap::new(),
+        before: None,
         notifications: 0,
         duplicates: 0,
         unexpected: 0,
