@@ -193,3 +193,126 @@ async fn a_set_is_served_within_a_take_of_pushed_values_and_not_undone_by_it() {
     assert!(seen.iter().all(|line| line != b"DIFF:V_DINT,7\r\n"));
     writer.ask("GET:V_DINT\r\n", "GET:V_DINT,5\r\n").await;
 }
+
+/// A device that pushes without a pause, from when `on` until `until`.
+struct Flooding {
+    inner: MemoryBackend,
+    flood: Arc<Flood>,
+}
+
+#[derive(Default)]
+struct Flood {
+    on: AtomicBool,
+    until: Mutex<Option<std::time::Instant>>,
+    wake: tokio::sync::Notify,
+    /// Per write: whether the device was still flooding.
+    writes: Mutex<Vec<bool>>,
+    taken: std::sync::atomic::AtomicU16,
+}
+
+impl Flood {
+    fn flooding(&self) -> bool {
+        self.on.load(Ordering::SeqCst)
+            && self
+                .until
+                .lock()
+                .unwrap()
+                .is_some_and(|until| std::time::Instant::now() < until)
+    }
+}
+
+#[async_trait]
+impl PlcBackend for Flooding {
+    fn describe(&self) -> String {
+        "in-process memory, flooding".into()
+    }
+
+    fn max_read_block(&self, _area: plccoms_protocol::Area) -> u32 {
+        MAX_READ_BLOCK
+    }
+
+    fn max_file_block(&self) -> u32 {
+        MAX_FILE_BLOCK
+    }
+
+    /// Longer than the flood: a SET it held up is served late, not refused.
+    fn answer_timeout(&self) -> Duration {
+        Duration::from_secs(20)
+    }
+
+    async fn connect(&mut self) -> Result<String, PlcError> {
+        self.inner.connect().await
+    }
+
+    async fn read(&mut self, requests: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
+        self.inner.read(requests).await
+    }
+
+    async fn write(&mut self, requests: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {
+        let flooding = self.flood.flooding();
+        self.flood.writes.lock().unwrap().push(flooding);
+        self.flood.on.store(false, Ordering::SeqCst);
+        self.inner.write(requests).await
+    }
+
+    async fn status(&mut self) -> Result<PlcStatus, PlcError> {
+        self.inner.status().await
+    }
+
+    fn take_pushed(&mut self) -> Vec<Pushed> {
+        if !self.flood.flooding() {
+            return Vec::new();
+        }
+        let n = self.flood.taken.fetch_add(1, Ordering::SeqCst);
+        vec![pushed("V_UINT", n.to_le_bytes().to_vec())]
+    }
+
+    /// Ready at once, without ever pending, while it floods.
+    async fn wait_pushed(&mut self) -> Result<(), PlcError> {
+        loop {
+            if self.flood.flooding() {
+                return Ok(());
+            }
+            self.flood.wake.notified().await;
+        }
+    }
+}
+
+/// A device whose pushed values never pause (a wait for them is ready at
+/// once, every time) does not keep a SET waiting for the flood's end or
+/// the next poll: it is served between two takes.
+#[tokio::test]
+async fn a_device_that_pushes_without_a_pause_does_not_hold_up_a_set() {
+    let device = Arc::new(Mutex::new(plcsim::Device::new(
+        plccoms_plc::MemoryMap::FOXTROT,
+    )));
+    let flood = Arc::new(Flood::default());
+    let backend = Flooding {
+        inner: MemoryBackend::new(device),
+        flood: flood.clone(),
+    };
+    let server = common::start_on(
+        "COMM_LOOP_DELAY = 1000\n",
+        &common::user_pub(),
+        Some(Box::new(backend)),
+    )
+    .await;
+    let mut writer = server.client().await;
+    writer.ask("GET:V_DINT\r\n", "GET:V_DINT,0\r\n").await;
+    *flood.until.lock().unwrap() = Some(std::time::Instant::now() + Duration::from_secs(5));
+    flood.on.store(true, Ordering::SeqCst);
+    flood.wake.notify_one();
+    // Flooding: some takes applied before the SET is sent.
+    while flood.taken.load(Ordering::SeqCst) < 100 {
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    writer.send(b"SET:V_DINT,5\r\n").await;
+    writer
+        .wait_for_line(b"DIFF:V_DINT,5\r\n", Duration::from_secs(15))
+        .await;
+    assert_eq!(
+        *flood.writes.lock().unwrap(),
+        [true],
+        "the SET was written while the device still flooded"
+    );
+}

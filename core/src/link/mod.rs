@@ -430,10 +430,12 @@ impl Link {
                     match pushed {
                         Ok(()) => {
                             self.deliver_pushed().await;
-                            // Jobs queued behind a SET it served meanwhile.
-                            if !self.held.is_empty() {
-                                let held: Vec<Job> = self.held.drain(..).collect();
-                                self.serve(held).await;
+                            // What was queued meanwhile, before the next
+                            // take: a device that pushes without a pause
+                            // must not keep clients waiting for the poll.
+                            let batch = self.queued_batch(None);
+                            if !batch.is_empty() {
+                                self.serve(batch).await;
                             }
                         }
                         Err(err) => self.judge(&err),
@@ -441,19 +443,26 @@ impl Link {
                 }
                 job = self.jobs.recv() => {
                     let Some(job) = job else { break };
-                    let mut batch: Vec<Job> = self.held.drain(..).collect();
-                    batch.push(job);
-                    while batch.len() < MAX_BATCH {
-                        match self.jobs.try_recv() {
-                            Ok(job) => batch.push(job),
-                            Err(_) => break,
-                        }
-                    }
+                    let batch = self.queued_batch(Some(job));
                     self.serve(batch).await;
                 }
             }
         }
         debug!(section = %self.name, "link stopped");
+    }
+
+    /// The jobs held back, then `first`, then what is queued, up to
+    /// [`MAX_BATCH`], in order.
+    fn queued_batch(&mut self, first: Option<Job>) -> Vec<Job> {
+        let mut batch: Vec<Job> = self.held.drain(..).collect();
+        batch.extend(first);
+        while batch.len() < MAX_BATCH {
+            match self.jobs.try_recv() {
+                Ok(job) => batch.push(job),
+                Err(_) => break,
+            }
+        }
+        batch
     }
 
     /// One cycle: connect or probe when due, else poll.

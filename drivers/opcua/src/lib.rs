@@ -1822,11 +1822,6 @@ impl PlcBackend for OpcuaBackend {
         if self.subscription.is_none() {
             return std::future::pending().await;
         }
-        // Once pending first: the link looks at its queued requests (a SET)
-        // before each slice. Notifications come ten times a second at
-        // 100,000 variables; each would otherwise be ready again before
-        // the link's select reached its queue.
-        tokio::task::yield_now().await;
         self.wake.notified().await;
         Ok(())
     }
@@ -2082,7 +2077,7 @@ mod tests {
         let first = backend.take_pushed();
         assert_eq!(first.len(), TAKE_SLICE);
         assert_eq!(first[0].bytes, 0i16.to_le_bytes());
-        // Woken for the rest, after one yield.
+        // Woken for the rest.
         tokio::time::timeout(Duration::from_secs(5), backend.wait_pushed())
             .await
             .expect("woken for the rest")
