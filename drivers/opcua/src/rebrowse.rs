@@ -83,8 +83,9 @@ pub(crate) async fn list(
 /// should spend.
 const REBROWSE_SHARE: u32 = 20;
 
-/// Every `every` (or 20 times the last look's time, if longer): the list again, put in `slot` where it differs from the
-/// last one built (`known`). Ends when aborted (with its session).
+/// Every `every` (or [`REBROWSE_SHARE`] times the last look's time, if
+/// longer): the list again, put in `slot` where it differs from the last
+/// one built (`known`). Ends when aborted (with its session).
 pub(crate) fn spawn(
     link: Arc<Session>,
     config: OpcuaConfig,

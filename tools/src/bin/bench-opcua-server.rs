@@ -96,6 +96,11 @@ struct Args {
     out: Option<std::path::PathBuf>,
 }
 
+/// An OPC UA time in ms since the epoch, as [`now_ms`].
+fn epoch_ms(t: &opcua::types::DateTime) -> f64 {
+    t.as_chrono().timestamp_micros() as f64 / 1000.0
+}
+
 fn now_ms() -> f64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
@@ -178,7 +183,7 @@ impl Stats {
         }
         self.last[i] = Some(v);
         if measuring {
-            let ms = |t: &opcua::types::DateTime| t.as_chrono().timestamp_micros() as f64 / 1000.0;
+            let ms = epoch_ms;
             let arrival = now_ms();
             if let Some(source) = value.source_timestamp {
                 self.latencies_ms.push(arrival - ms(&source));
@@ -215,11 +220,8 @@ impl OnSubscriptionNotificationCore for Notified {
     ) {
         let received = now_ms();
         // node-opcua's messages carry no PublishTime: no split there.
-        let message = (!notification.publish_time.is_null()).then(|| {
-            let published =
-                notification.publish_time.as_chrono().timestamp_micros() as f64 / 1000.0;
-            (published, received)
-        });
+        let message = (!notification.publish_time.is_null())
+            .then(|| (epoch_ms(&notification.publish_time), received));
         let mut stats = self.0.lock().unwrap_or_else(|e| e.into_inner());
         for object in notification.notification_data.into_iter().flatten() {
             let Some(change) = object.into_inner_as::<DataChangeNotification>() else {
