@@ -6,7 +6,7 @@ mod common;
 
 use std::time::Duration;
 
-use common::process::free_port;
+use common::process::{free_port, free_ports};
 use plccoms_core::driver::{PlcBackend, ReadRequest, WriteRequest};
 use plccoms_driver_epsnet::{EpsnetBackend, EpsnetConfig};
 use plccoms_plc::epsnet::codec::encode_packet;
@@ -493,22 +493,6 @@ async fn epsnet_plcs_have_their_own_memory_on_their_own_udp_port() {
         assert_eq!(read[0].as_ref().unwrap(), &vec![i as u8 + 1; 4]);
         assert!(plc.status().await.unwrap().run);
     }
-}
-
-/// `n` consecutive TCP ports on 127.0.0.1 that were free a moment ago, in
-/// the tests' range (23000..32000; see `free_port`).
-fn free_ports(n: u16) -> u16 {
-    let mut seed = u64::from(free_port()) << 16 | u64::from(std::process::id() as u16);
-    for _ in 0..5000 {
-        seed = seed
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        let base = 23_000 + ((seed >> 33) % u64::from(9_000 - n)) as u16;
-        if (base..base + n).all(|p| std::net::TcpListener::bind(("127.0.0.1", p)).is_ok()) {
-            return base;
-        }
-    }
-    panic!("no {n} consecutive free ports");
 }
 
 fn changes(status: &str) -> u64 {

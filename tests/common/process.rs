@@ -175,35 +175,54 @@ impl Capture {
     }
 }
 
-/// A TCP port on 127.0.0.1 that was free a moment ago.
+/// A TCP port that was free a moment ago on every interface (servers
+/// bind 0.0.0.0, which a listener on any one address blocks).
 pub fn free_port() -> u16 {
-    unused_port(|port| TcpListener::bind((Ipv4Addr::LOCALHOST, port)).is_ok())
+    free_ports(1)
+}
+
+/// `n` consecutive TCP ports that were free a moment ago; the first.
+pub fn free_ports(n: u16) -> u16 {
+    unused_ports(n, |port| {
+        TcpListener::bind((Ipv4Addr::UNSPECIFIED, port)).is_ok()
+            && TcpListener::bind((Ipv4Addr::LOCALHOST, port)).is_ok()
+    })
 }
 
 /// A UDP port on 127.0.0.1 that was free a moment ago.
 pub fn free_udp_port() -> u16 {
-    unused_port(|port| std::net::UdpSocket::bind((Ipv4Addr::LOCALHOST, port)).is_ok())
+    unused_ports(1, |port| {
+        std::net::UdpSocket::bind((Ipv4Addr::LOCALHOST, port)).is_ok()
+    })
 }
 
-/// A random port below Linux's ephemeral range (32768-60999) that `free`
-/// accepts. The tests' own connections and `:0` binds draw from the
+/// The first of `n` random consecutive ports below Linux's ephemeral range
+/// (32768-60999) that `free` accepts and that this process has not handed
+/// out before. The tests' own connections and `:0` binds draw from the
 /// ephemeral range, so a port found free there could be taken before the
-/// server binds it; down here only another test's pick can, and picks are
-/// random.
-fn unused_port(free: impl Fn(u16) -> bool) -> u16 {
+/// server binds it. Down here only another pick can take it, and a pick is
+/// never repeated: a test that restarts its server or broker on the same
+/// port leaves it free for a while, and another test must not pick it then
+/// (a CI failure: a Sparkplug test's server found its port taken).
+fn unused_ports(n: u16, free: impl Fn(u16) -> bool) -> u16 {
     use std::hash::{BuildHasher, Hasher};
     static PICKS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-    for _ in 0..1000 {
+    static HANDED_OUT: Mutex<std::collections::BTreeSet<u16>> =
+        Mutex::new(std::collections::BTreeSet::new());
+    for _ in 0..5000 {
         let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
         hasher.write_u64(PICKS.fetch_add(1, std::sync::atomic::Ordering::Relaxed));
         hasher.write_u32(std::process::id());
         // 23000..32000: clear of bench/run's and the soak's default ports.
-        let port = 23_000 + (hasher.finish() % 9_000) as u16;
-        if free(port) {
-            return port;
+        let first = 23_000 + (hasher.finish() % u64::from(9_000 - n)) as u16;
+        let ports = first..first + n;
+        let mut handed_out = HANDED_OUT.lock().unwrap_or_else(|e| e.into_inner());
+        if ports.clone().all(|p| !handed_out.contains(&p) && free(p)) {
+            handed_out.extend(ports);
+            return first;
         }
     }
-    panic!("no free port in 23000..32000");
+    panic!("no {n} free ports in 23000..32000");
 }
 
 /// Whether a server could listen on `port` on all interfaces now.
