@@ -51,6 +51,18 @@ impl Ua {
 
     /// Starts with `public` as the PLC's public file.
     async fn start_pub(global: &str, section: &str, public: &[u8]) -> Ua {
+        Ua::start_animated(global, section, public, &[], SimConfig::default().cycle).await
+    }
+
+    /// [`Ua::start_pub`] with the variables matching `animate` counting
+    /// the PLC's cycles of `cycle`.
+    async fn start_animated(
+        global: &str,
+        section: &str,
+        public: &[u8],
+        animate: &[&str],
+        cycle: Duration,
+    ) -> Ua {
         let files = tempfile::tempdir().unwrap();
         std::fs::write(files.path().join("demo.pub"), public).unwrap();
         let users = users_file(files.path());
@@ -58,6 +70,13 @@ impl Ua {
             bind: "127.0.0.1:0".parse().unwrap(),
             files: Some(files.path().to_path_buf()),
             program: "idle".parse().unwrap(),
+            // What it animates is its own project's.
+            pubfile: match animate.is_empty() {
+                true => SimConfig::default().pubfile,
+                false => plcsim::PubSource::Bytes(public.to_vec()),
+            },
+            animate: animate.iter().map(|m| m.to_string()).collect(),
+            cycle,
             ..SimConfig::default()
         })
         .await
@@ -492,6 +511,68 @@ async fn subscriptions_get_every_change_once_and_deadbands() {
         .collect();
     // |change| > 2 from the last value reported.
     assert_eq!(got, [0, 4, 8]);
+    ua.server.shutdown().await;
+}
+
+/// The server gives a section's changes to the stack a slice of variables
+/// at a time (a Read or Write waits for one slice, not for 100,000): with
+/// 5,000 monitored variables, several slices, each still gets every change
+/// once and in order.
+#[tokio::test(flavor = "multi_thread")]
+async fn every_change_of_5000_monitored_variables_arrives_once_in_order() {
+    const N: usize = 5_000;
+    let public = plcsim::genpub::generate(&plcsim::genpub::Layout {
+        vars: N,
+        animated: N,
+        setvars: 0,
+    });
+    let ua = Ua::start_animated("", "", &public, &["ANIM_*"], Duration::from_millis(400)).await;
+    let nodes: Vec<String> = (0..N).map(|i| format!("PLC.ANIM_{i:05}")).collect();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let (mut watch, ready) = loop {
+        let (watch, ready) = Subscription::start(&ua.url, &[], "watch", &[&nodes.join(",")]).await;
+        // Created once the PLC's table is served.
+        if ready["created"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|c| c == true)
+        {
+            break (watch, ready);
+        }
+        assert!(Instant::now() < deadline, "items not created: {ready}");
+        tokio::time::sleep(Duration::from_millis(300)).await;
+    };
+    assert_eq!(ready["created"].as_array().unwrap().len(), N);
+    // Each variable holds the PLC's cycle counter: six cycles of it.
+    let mut values: std::collections::HashMap<String, Vec<u64>> = Default::default();
+    let mut complete = 0;
+    let mut lines = 0;
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while complete < N {
+        assert!(
+            Instant::now() < deadline,
+            "{complete} of {N} variables with 6 values after {lines} lines ({} seen at all); one: {:?}",
+            values.len(),
+            values.iter().find(|(_, got)| got.len() < 6)
+        );
+        let v = watch.next().await.expect("the client ended");
+        lines += 1;
+        if v["status"] == "Good" {
+            let got = values
+                .entry(v["node"].as_str().unwrap().to_string())
+                .or_default();
+            got.push(v["value"].as_u64().unwrap());
+            if got.len() == 6 {
+                complete += 1;
+            }
+        }
+    }
+    assert_eq!(values.len(), N);
+    for (node, got) in &values {
+        let expected: Vec<u64> = (got[0]..got[0] + got.len() as u64).collect();
+        assert_eq!(got, &expected, "{node}: every cycle's value once, in order");
+    }
     ua.server.shutdown().await;
 }
 

@@ -13,7 +13,8 @@ use opcua::types::{AttributeId, DataValue, DateTime, NodeId, Variant};
 use tokio_util::sync::CancellationToken;
 use tracing::info;
 
-use plccoms_core::changes::Snapshot;
+use plccoms_core::changes::{Snapshot, Snapshots};
+use plccoms_core::vars::VarId;
 
 use crate::ids;
 use crate::manager::Manager;
@@ -37,7 +38,7 @@ impl Feed {
             if stale_table {
                 self.rebuild(&snapshot);
             }
-            let due = self.push(&snapshot);
+            let due = self.push(&rx).await;
             // A change to give again (see View::enable) wakes it without a
             // new snapshot (none comes while the link is lost).
             let resample = async {
@@ -82,44 +83,94 @@ impl Feed {
     /// Gives the stack what changed for the monitored variables, and the
     /// section object's link state and last poll. When a change is next to
     /// be given again.
-    fn push(&self, snapshot: &Snapshot) -> Option<std::time::Instant> {
+    ///
+    /// The walk goes a slice at a time ([`SLICE`]), the view's lock let go
+    /// and the task yielding between slices: a Read or Write of the
+    /// section's nodes (which take the lock too) and the stack's publishes
+    /// wait for one slice, not for 100,000 variables. Each slice is of the
+    /// newest snapshot (not marked seen: the next push walks it whole): a
+    /// value that changed again meanwhile, by a SET say, is not given the
+    /// older value after the client has read the new one.
+    async fn push(&self, rx: &Snapshots) -> Option<std::time::Instant> {
         let nodes = &self.nodes;
         let opts = nodes.section.format();
-        let mut updates: Vec<(NodeId, DataValue)> = Vec::new();
-        let mut link_updates: Vec<(NodeId, DataValue)> = Vec::new();
-        let mut next_due = None;
-        {
-            let mut view = nodes.lock();
+        let mut snapshot = rx.borrow().clone();
+        let watched_ids: Vec<VarId> = {
+            let view = nodes.lock();
             if !Arc::ptr_eq(&view.table, &snapshot.table) {
                 return None;
             }
-            let view = &mut *view;
-            let now = std::time::Instant::now();
-            for (&id, watched) in view.watched.iter_mut() {
-                let slot = snapshot.slot(id);
-                let quality = snapshot.quality(id);
-                let changed = slot.changed_seq != watched.seq || Some(quality) != watched.quality;
-                // Given again one sampling interval after its change: see
-                // View::enable.
-                if !changed && watched.due.is_none_or(|due| due > now) {
-                    next_due = earliest(next_due, watched.due);
-                    continue;
-                }
-                watched.due = (changed && watched.resample_ms > 0.0).then(|| {
-                    now + Duration::from_secs_f64(
-                        f64::from(watched.resample_ms.min(3.6e6)) / 1000.0,
-                    )
-                });
-                next_due = earliest(next_due, watched.due);
-                watched.seq = slot.changed_seq;
-                watched.quality = Some(quality);
-                let stamp = view.stamp_of.get(&id).copied();
-                let node = ids::variable(&nodes.name, &space::shown_name(&view.table, id));
-                updates.push((
-                    self.shared.node(node),
-                    space::data_value(snapshot, id, stamp, opts),
-                ));
+            view.watched.keys().copied().collect()
+        };
+        let now = std::time::Instant::now();
+        let mut next_due = None;
+        for (at, slice) in watched_ids.chunks(SLICE).enumerate() {
+            if at > 0 {
+                tokio::task::yield_now().await;
+                snapshot = rx.borrow().clone();
             }
+            let mut updates: Vec<(NodeId, DataValue)> = Vec::new();
+            {
+                let mut view = nodes.lock();
+                // A new table meanwhile: the run loop rebuilds and gives
+                // every monitored variable again.
+                if !Arc::ptr_eq(&view.table, &snapshot.table) {
+                    return None;
+                }
+                let view = &mut *view;
+                for id in slice {
+                    // Unwatched since the walk began.
+                    let Some(watched) = view.watched.get_mut(id) else {
+                        continue;
+                    };
+                    let slot = snapshot.slot(*id);
+                    let quality = snapshot.quality(*id);
+                    let changed =
+                        slot.changed_seq != watched.seq || Some(quality) != watched.quality;
+                    // Given again one sampling interval after its change:
+                    // see View::enable.
+                    if !changed && watched.due.is_none_or(|due| due > now) {
+                        next_due = earliest(next_due, watched.due);
+                        continue;
+                    }
+                    watched.due = (changed && watched.resample_ms > 0.0).then(|| {
+                        now + Duration::from_secs_f64(
+                            f64::from(watched.resample_ms.min(3.6e6)) / 1000.0,
+                        )
+                    });
+                    next_due = earliest(next_due, watched.due);
+                    watched.seq = slot.changed_seq;
+                    watched.quality = Some(quality);
+                    let stamp = view.stamp_of.get(id).copied();
+                    let node = ids::variable(&nodes.name, &space::shown_name(&view.table, *id));
+                    updates.push((
+                        self.shared.node(node),
+                        space::data_value(&snapshot, *id, stamp, opts),
+                    ));
+                }
+            }
+            // The variables straight to their monitored items (they have
+            // no node in the address space).
+            if !updates.is_empty() {
+                let (ids, values): (Vec<NodeId>, Vec<DataValue>) = updates.into_iter().unzip();
+                self.subscriptions.notify_data_change(
+                    ids.iter()
+                        .zip(values)
+                        .map(|(node, value)| (space::notified(value), node, AttributeId::Value)),
+                );
+            }
+        }
+        self.push_link_state(&snapshot);
+        next_due
+    }
+
+    /// The section object's link state and last poll, through the
+    /// in-memory manager, which keeps their values.
+    fn push_link_state(&self, snapshot: &Snapshot) {
+        let nodes = &self.nodes;
+        let mut link_updates: Vec<(NodeId, DataValue)> = Vec::new();
+        {
+            let mut view = nodes.lock();
             let link = nodes.section.link_state().as_str();
             let polled = snapshot.polled.map_or(0, |p| p.unix_ms);
             if view.link_shown != Some((link, polled)) {
@@ -141,17 +192,6 @@ impl Feed {
                 }
             }
         }
-        // The variables straight to their monitored items (they have no
-        // node in the address space); the section object's properties
-        // through the in-memory manager, which keeps their values.
-        if !updates.is_empty() {
-            let (ids, values): (Vec<NodeId>, Vec<DataValue>) = updates.into_iter().unzip();
-            self.subscriptions.notify_data_change(
-                ids.iter()
-                    .zip(values)
-                    .map(|(node, value)| (space::notified(value), node, AttributeId::Value)),
-            );
-        }
         if !link_updates.is_empty() {
             let (ids, values): (Vec<NodeId>, Vec<DataValue>) = link_updates.into_iter().unzip();
             let _ = self.manager.set_values(
@@ -161,9 +201,11 @@ impl Feed {
                     .map(|(node, value)| (node, None, value)),
             );
         }
-        next_due
     }
 }
+
+/// Monitored variables the feed walks under the view's lock at a time.
+const SLICE: usize = 2_000;
 
 /// The earlier of two times, if any.
 fn earliest(
