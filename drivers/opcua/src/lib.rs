@@ -340,9 +340,11 @@ pub struct OpcuaBackend {
     /// Of the current subscription: notifications of an older one (its
     /// handles meant another list) are dropped.
     generation: u64,
-    /// SourceTimestamp of each SET's read-back, by client handle, until
-    /// the next notification of its item.
-    read_back: HashMap<u32, opcua::types::DateTime>,
+    /// SourceTimestamp of each SET's read-back, by client handle, and
+    /// when it was read: notifications of its item sampled before it are
+    /// dropped until one at or after it comes (or [`READ_BACK_FLOOR`]
+    /// passes).
+    read_back: HashMap<u32, (opcua::types::DateTime, Instant)>,
     /// Sources written since their last notification: read from the server.
     written: HashSet<usize>,
     /// When the link's last read started, and the gap before it.
@@ -1226,6 +1228,11 @@ const SUBSCRIBED_READ_BLOCK: u32 = 4096;
 /// touched nearly all of them), so one publish a message, not more.
 const TAKE_SLICE: usize = NOTIFICATIONS_PER_PUBLISH as usize;
 
+/// How long after a SET's read-back notifications sampled before it are
+/// dropped, at most: one whose server stamps reads and notifications from
+/// different clocks is taken again after this.
+const READ_BACK_FLOOR: Duration = Duration::from_secs(5);
+
 /// Where a subscription's notifications go: the inbox, the link woken.
 struct Sink {
     inbox: Inbox,
@@ -1682,7 +1689,7 @@ impl PlcBackend for OpcuaBackend {
                 let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
                 for (i, value) in read {
                     if let (true, Some(at)) = (self.written.contains(&i), value.source_timestamp) {
-                        self.read_back.insert(i as u32 + 1, at);
+                        self.read_back.insert(i as u32 + 1, (at, Instant::now()));
                     }
                     notified.insert(i as u32 + 1, value, self.served.sources.len());
                 }
@@ -1773,14 +1780,17 @@ impl PlcBackend for OpcuaBackend {
             if value.status == Some(StatusCode::BadWaitingForInitialData) {
                 continue;
             }
-            // The first notification after a SET's read-back, sampled
-            // before it (older): it would undo the SET. Only that one: the
-            // server's later ones are newer (one value per item a publish).
-            if let (Some(shown), Some(new)) =
-                (self.read_back.remove(&handle), value.source_timestamp)
-            {
-                if new < shown {
-                    continue;
+            // A notification sampled before a SET's read-back (older)
+            // would undo the SET. More than one can be on the way: a
+            // plccoms serving the PLC notifies the value the SET left, then
+            // the same value polled (Uncertain, then Good), each in its
+            // own publish. The first at or after the read-back ends it.
+            if let Some(&(shown, read_at)) = self.read_back.get(&handle) {
+                match value.source_timestamp {
+                    Some(new) if new < shown && read_at.elapsed() < READ_BACK_FLOOR => continue,
+                    _ => {
+                        self.read_back.remove(&handle);
+                    }
                 }
             }
             if handle != STATE_HANDLE {
@@ -2094,6 +2104,52 @@ mod tests {
             Some(Variant::Int16((all - 1) as i16))
         );
         assert!(!notified.contains_key(&3));
+    }
+
+    /// Every notification sampled before a SET's read-back is dropped,
+    /// not only the first (a plccoms serving the PLC sends the value the
+    /// SET left Uncertain, then polled Good); the first at or after it ends
+    /// that, and other items are untouched.
+    #[test]
+    fn notifications_older_than_a_sets_read_back_are_dropped() {
+        let list = list_of(
+            b"name,node,type\nA,i=1,INT\nB,i=2,INT\n".to_vec(),
+            browse::Types::default(),
+        );
+        let mut backend = backend_of(list);
+        backend.subscription = Some(Subscription {
+            ids: Vec::new(),
+            monitored: HashSet::new(),
+        });
+        let read_at = opcua::types::DateTime::now();
+        let at = |ms: i64, n: i16, uncertain: bool| DataValue {
+            source_timestamp: Some(read_at + chrono::Duration::milliseconds(ms)),
+            status: uncertain.then_some(StatusCode::UncertainLastUsableValue),
+            ..int(n)
+        };
+        backend.read_back.insert(1, (read_at, Instant::now()));
+        let generation = backend.generation;
+        backend.inbox.lock().unwrap().extend([
+            (generation, 1, at(-20, 1, true)),
+            (generation, 2, at(-10, 7, false)),
+            (generation, 1, at(-5, 1, false)),
+            (generation, 1, at(0, 2, false)),
+            (generation, 1, at(-30, 3, false)),
+        ]);
+        let taken: Vec<(Box<[u8]>, i16)> = backend
+            .take_pushed()
+            .into_iter()
+            .map(|p| (p.name, i16::from_le_bytes([p.bytes[0], p.bytes[1]])))
+            .collect();
+        assert_eq!(
+            taken,
+            [
+                (b"B".to_vec().into_boxed_slice(), 7),
+                (b"A".to_vec().into_boxed_slice(), 2),
+                (b"A".to_vec().into_boxed_slice(), 3),
+            ]
+        );
+        assert!(backend.read_back.is_empty());
     }
 
     #[test]
