@@ -280,6 +280,25 @@ pub async fn time_sets_of(
         .iter()
         .filter_map(|(line, started)| arrivals.get(line).map(|at| ms(at.duration_since(*started))))
         .collect();
+    // What the watcher saw of a variable whose SET's DIFF it never got
+    // (ms from that SET's answer): a loss, or a value that came back.
+    for (line, started) in sent.iter().filter(|(line, _)| !arrivals.contains_key(line)) {
+        let name = line.split(',').next().unwrap_or_default();
+        let mut seen: Vec<(f64, &str)> = arrivals
+            .iter()
+            .filter(|(other, _)| other.split(',').next() == Some(name))
+            .map(|(other, at)| {
+                let ms = match at.checked_duration_since(*started) {
+                    Some(after) => ms(after),
+                    None => -ms(started.duration_since(*at)),
+                };
+                (ms, other.as_str())
+            })
+            .filter(|(ms, _)| ms.abs() < 5_000.0)
+            .collect();
+        seen.sort_by(|a, b| a.0.total_cmp(&b.0));
+        eprintln!("no watcher DIFF for the SET answered {line}; it saw, within 5 s (ms from the SET): {seen:?}");
+    }
     (confirm_ms, diff_ms)
 }
 
