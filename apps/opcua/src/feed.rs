@@ -13,7 +13,7 @@ use opcua::types::{AttributeId, DataValue, DateTime, NodeId, Variant};
 use tokio_util::sync::CancellationToken;
 use tracing::info;
 
-use plccoms_core::changes::{Snapshot, Snapshots};
+use plccoms_core::changes::Snapshot;
 use plccoms_core::vars::VarId;
 
 use crate::ids;
@@ -38,7 +38,7 @@ impl Feed {
             if stale_table {
                 self.rebuild(&snapshot);
             }
-            let due = self.push(&rx).await;
+            let due = self.push(&snapshot);
             // A change to give again (see View::enable) wakes it without a
             // new snapshot (none comes while the link is lost).
             let resample = async {
@@ -84,83 +84,71 @@ impl Feed {
     /// section object's link state and last poll. When a change is next to
     /// be given again.
     ///
-    /// The walk goes a slice at a time ([`SLICE`]), the view's lock let go
-    /// and the task yielding between slices: a Read or Write of the
-    /// section's nodes (which take the lock too) and the stack's publishes
-    /// wait for one slice, not for 100,000 variables. Each slice is of the
-    /// newest snapshot (not marked seen: the next push walks it whole): a
-    /// value that changed again meanwhile, by a SET say, is not given the
-    /// older value after the client has read the new one.
-    async fn push(&self, rx: &Snapshots) -> Option<std::time::Instant> {
+    /// The view's lock is taken a slice of [`SLICE`] variables at a time: a
+    /// Read or Write of the section's nodes (which take it too, on another
+    /// thread) waits for one slice, not for a walk of 100,000. The walk is
+    /// all of one snapshot and does not yield: a subscriber gets every
+    /// polled value of a variable, in order, as long as the feed keeps up
+    /// with the polls.
+    fn push(&self, snapshot: &Snapshot) -> Option<std::time::Instant> {
         let nodes = &self.nodes;
         let opts = nodes.section.format();
-        let mut snapshot = rx.borrow().clone();
-        let watched_ids: Vec<VarId> = {
-            let view = nodes.lock();
+        let now = std::time::Instant::now();
+        let mut next_due = None;
+        let mut updates: Vec<(NodeId, DataValue)> = Vec::new();
+        // The first variable of the next slice (`watched` is ordered).
+        let mut from: Option<VarId> = Some(0);
+        while let Some(first) = from.take() {
+            let mut view = nodes.lock();
+            // A new table (before the walk or meanwhile): the run loop
+            // rebuilds and gives every monitored variable again.
             if !Arc::ptr_eq(&view.table, &snapshot.table) {
                 return None;
             }
-            view.watched.keys().copied().collect()
-        };
-        let now = std::time::Instant::now();
-        let mut next_due = None;
-        for (at, slice) in watched_ids.chunks(SLICE).enumerate() {
-            if at > 0 {
-                tokio::task::yield_now().await;
-                snapshot = rx.borrow().clone();
-            }
-            let mut updates: Vec<(NodeId, DataValue)> = Vec::new();
-            {
-                let mut view = nodes.lock();
-                // A new table meanwhile: the run loop rebuilds and gives
-                // every monitored variable again.
-                if !Arc::ptr_eq(&view.table, &snapshot.table) {
-                    return None;
+            let view = &mut *view;
+            for (n, (&id, watched)) in view.watched.range_mut(first..).enumerate() {
+                if n == SLICE {
+                    from = Some(id);
+                    break;
                 }
-                let view = &mut *view;
-                for id in slice {
-                    // Unwatched since the walk began.
-                    let Some(watched) = view.watched.get_mut(id) else {
-                        continue;
-                    };
-                    let slot = snapshot.slot(*id);
-                    let quality = snapshot.quality(*id);
-                    let changed =
-                        slot.changed_seq != watched.seq || Some(quality) != watched.quality;
-                    // Given again one sampling interval after its change:
-                    // see View::enable.
-                    if !changed && watched.due.is_none_or(|due| due > now) {
-                        next_due = earliest(next_due, watched.due);
-                        continue;
-                    }
-                    watched.due = (changed && watched.resample_ms > 0.0).then(|| {
-                        now + Duration::from_secs_f64(
-                            f64::from(watched.resample_ms.min(3.6e6)) / 1000.0,
-                        )
-                    });
+                let slot = snapshot.slot(id);
+                let quality = snapshot.quality(id);
+                let changed = slot.changed_seq != watched.seq || Some(quality) != watched.quality;
+                // Given again one sampling interval after its change:
+                // see View::enable.
+                if !changed && watched.due.is_none_or(|due| due > now) {
                     next_due = earliest(next_due, watched.due);
-                    watched.seq = slot.changed_seq;
-                    watched.quality = Some(quality);
-                    let stamp = view.stamp_of.get(id).copied();
-                    let node = ids::variable(&nodes.name, &space::shown_name(&view.table, *id));
-                    updates.push((
-                        self.shared.node(node),
-                        space::data_value(&snapshot, *id, stamp, opts),
-                    ));
+                    continue;
                 }
-            }
-            // The variables straight to their monitored items (they have
-            // no node in the address space).
-            if !updates.is_empty() {
-                let (ids, values): (Vec<NodeId>, Vec<DataValue>) = updates.into_iter().unzip();
-                self.subscriptions.notify_data_change(
-                    ids.iter()
-                        .zip(values)
-                        .map(|(node, value)| (space::notified(value), node, AttributeId::Value)),
-                );
+                watched.due = (changed && watched.resample_ms > 0.0).then(|| {
+                    now + Duration::from_secs_f64(
+                        f64::from(watched.resample_ms.min(3.6e6)) / 1000.0,
+                    )
+                });
+                next_due = earliest(next_due, watched.due);
+                watched.seq = slot.changed_seq;
+                watched.quality = Some(quality);
+                let stamp = view.stamp_of.get(&id).copied();
+                let node = ids::variable(&nodes.name, &space::shown_name(&view.table, id));
+                updates.push((
+                    self.shared.node(node),
+                    space::data_value(snapshot, id, stamp, opts),
+                ));
             }
         }
-        self.push_link_state(&snapshot);
+        // The variables straight to their monitored items (they have no
+        // node in the address space), in one call: each call takes every
+        // subscribed session's lock, which its publishes hold while they
+        // are built (a call a slice made the poll -> stack p50 6 -> 17 ms).
+        if !updates.is_empty() {
+            let (ids, values): (Vec<NodeId>, Vec<DataValue>) = updates.into_iter().unzip();
+            self.subscriptions.notify_data_change(
+                ids.iter()
+                    .zip(values)
+                    .map(|(node, value)| (space::notified(value), node, AttributeId::Value)),
+            );
+        }
+        self.push_link_state(snapshot);
         next_due
     }
 

@@ -7,7 +7,7 @@
 //! historian records, and which monitored items watch, by name, so that a
 //! new table keeps them.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use opcua::nodes::{ObjectBuilder, VariableBuilder};
@@ -54,8 +54,9 @@ pub struct View {
     pub shown: Vec<bool>,
     pub writable: Vec<bool>,
     pub historized: Vec<bool>,
-    /// The monitored variables of `table`.
-    pub watched: HashMap<VarId, Watched>,
+    /// The monitored variables of `table`, in order (the feed walks them a
+    /// slice at a time).
+    pub watched: BTreeMap<VarId, Watched>,
     /// Monitored items on names `table` lacks (a later table may have
     /// them), over every session.
     pub absent: HashMap<String, u32>,
@@ -207,7 +208,7 @@ impl View {
             writable: Vec::new(),
             historized: Vec::new(),
             absent: HashMap::new(),
-            watched: HashMap::new(),
+            watched: BTreeMap::new(),
             link_shown: None,
             stamp_of: HashMap::new(),
         };
