@@ -2018,6 +2018,21 @@ mod tests {
         }
     }
 
+    /// A backend of the INT variables `A` (handle 1) and `B` (2), with a
+    /// subscription.
+    fn subscribed_to_a_and_b() -> OpcuaBackend {
+        let list = list_of(
+            b"name,node,type\nA,i=1,INT\nB,i=2,INT\n".to_vec(),
+            browse::Types::default(),
+        );
+        let mut backend = backend_of(list);
+        backend.subscription = Some(Subscription {
+            ids: Vec::new(),
+            monitored: HashSet::new(),
+        });
+        backend
+    }
+
     fn int(n: i16) -> DataValue {
         DataValue::new_now(Variant::Int16(n))
     }
@@ -2069,15 +2084,7 @@ mod tests {
     /// link is woken for the rest.
     #[tokio::test]
     async fn notifications_are_taken_in_slices() {
-        let list = list_of(
-            b"name,node,type\nA,i=1,INT\nB,i=2,INT\n".to_vec(),
-            browse::Types::default(),
-        );
-        let mut backend = backend_of(list);
-        backend.subscription = Some(Subscription {
-            ids: Vec::new(),
-            monitored: HashSet::new(),
-        });
+        let mut backend = subscribed_to_a_and_b();
         let all = TAKE_SLICE + 7;
         backend
             .inbox
@@ -2112,15 +2119,7 @@ mod tests {
     /// that, and other items are untouched.
     #[test]
     fn notifications_older_than_a_sets_read_back_are_dropped() {
-        let list = list_of(
-            b"name,node,type\nA,i=1,INT\nB,i=2,INT\n".to_vec(),
-            browse::Types::default(),
-        );
-        let mut backend = backend_of(list);
-        backend.subscription = Some(Subscription {
-            ids: Vec::new(),
-            monitored: HashSet::new(),
-        });
+        let mut backend = subscribed_to_a_and_b();
         let read_at = opcua::types::DateTime::now();
         let at = |ms: i64, n: i16, uncertain: bool| DataValue {
             source_timestamp: Some(read_at + chrono::Duration::milliseconds(ms)),
