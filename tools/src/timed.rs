@@ -267,7 +267,13 @@ pub async fn time_sets_of(
             .write_all(format!("SET:{name},{value}\r\n").as_bytes())
             .await
             .unwrap();
-        let answer = answers.next_line().await.unwrap().unwrap_or_default();
+        // A SET is answered or refused within the link's timeouts: one
+        // that is not is a fault to name, not a benchmark that hangs.
+        let answer = tokio::time::timeout(Duration::from_secs(30), answers.next_line())
+            .await
+            .unwrap_or_else(|_| panic!("SET:{name},{value} unanswered after 30 s"))
+            .unwrap()
+            .unwrap_or_default();
         confirm_ms.push(ms(started.elapsed()));
         assert_eq!(answer, format!("DIFF:{name},{value}"), "SET answer");
         sent.push((answer, started));
