@@ -1782,9 +1782,10 @@ impl PlcBackend for OpcuaBackend {
             }
             // A notification sampled before a SET's read-back (older)
             // would undo the SET. More than one can be on the way: a
-            // plccoms serving the PLC notifies the value the SET left, then
-            // the same value polled (Uncertain, then Good), each in its
-            // own publish. The first at or after the read-back ends it.
+            // plccoms serving the PLC notifies a change a SET made twice
+            // (the value it left, Uncertain, then polled, Good), each in
+            // its own publish, and both of an earlier SET's can still come.
+            // The first at or after the read-back ends it.
             if let Some(&(shown, read_at)) = self.read_back.get(&handle) {
                 match value.source_timestamp {
                     Some(new) if new < shown && read_at.elapsed() < READ_BACK_FLOOR => continue,
