@@ -183,10 +183,9 @@ pub fn free_port() -> u16 {
 
 /// `n` consecutive TCP ports that were free a moment ago; the first.
 pub fn free_ports(n: u16) -> u16 {
-    unused_ports(n, |port| {
-        TcpListener::bind((Ipv4Addr::UNSPECIFIED, port)).is_ok()
-            && TcpListener::bind((Ipv4Addr::LOCALHOST, port)).is_ok()
-    })
+    // A listener on 127.0.0.1 (or any address) blocks a bind of 0.0.0.0
+    // too: one bind tells both.
+    unused_ports(n, port_is_free)
 }
 
 /// A UDP port on 127.0.0.1 that was free a moment ago.
