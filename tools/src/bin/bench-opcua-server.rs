@@ -183,15 +183,15 @@ impl Stats {
         }
         self.last[i] = Some(v);
         if measuring {
-            let ms = epoch_ms;
             let arrival = now_ms();
             if let Some(source) = value.source_timestamp {
-                self.latencies_ms.push(arrival - ms(&source));
+                self.latencies_ms.push(arrival - epoch_ms(&source));
                 if let Some(server) = value.server_timestamp {
-                    self.to_server_ms.push(ms(&server) - ms(&source));
-                    self.from_server_ms.push(arrival - ms(&server));
+                    self.to_server_ms
+                        .push(epoch_ms(&server) - epoch_ms(&source));
+                    self.from_server_ms.push(arrival - epoch_ms(&server));
                     if let Some((published, received)) = message {
-                        self.queued_ms.push(published - ms(&server));
+                        self.queued_ms.push(published - epoch_ms(&server));
                         self.wire_ms.push(received - published);
                     }
                 }
