@@ -70,11 +70,9 @@ impl Ua {
             bind: "127.0.0.1:0".parse().unwrap(),
             files: Some(files.path().to_path_buf()),
             program: "idle".parse().unwrap(),
-            // What it animates is its own project's.
-            pubfile: match animate.is_empty() {
-                true => SimConfig::default().pubfile,
-                false => plcsim::PubSource::Bytes(public.to_vec()),
-            },
+            // Its memory and what it animates are laid out by the same
+            // project it serves.
+            pubfile: plcsim::PubSource::Bytes(public.to_vec()),
             animate: animate.iter().map(|m| m.to_string()).collect(),
             cycle,
             ..SimConfig::default()
