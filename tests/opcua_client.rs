@@ -37,6 +37,16 @@ impl OpcServer {
     /// With `secure`: SignAndEncrypt only, certificates made in that folder
     /// (see server.py).
     fn start_with(port: u16, user: Option<&str>, secure: Option<&std::path::Path>) -> OpcServer {
+        OpcServer::start_args(port, user, secure, None)
+    }
+
+    /// With `max_sessions`: more sessions than that are refused.
+    fn start_args(
+        port: u16,
+        user: Option<&str>,
+        secure: Option<&std::path::Path>,
+        max_sessions: Option<usize>,
+    ) -> OpcServer {
         let python = which("python3")
             .unwrap_or_else(|| panic!("python3 is not installed: this test runs asyncua's server"));
         let probe = Command::new(&python)
@@ -56,6 +66,9 @@ impl OpcServer {
         }
         if let Some(dir) = secure {
             command.arg("--secure").arg(dir);
+        }
+        if let Some(n) = max_sessions {
+            command.args(["--max-sessions", &n.to_string()]);
         }
         let mut child = ChildGuard::spawn(
             "asyncua",
@@ -100,6 +113,17 @@ impl OpcServer {
     fn command(&mut self, line: &str) {
         writeln!(self.stdin, "{line}").expect("command to asyncua");
         self.wait_for("done", Duration::from_secs(10));
+    }
+
+    /// A command's one line of answer (`wrote`).
+    fn answer(&mut self, line: &str) -> String {
+        writeln!(self.stdin, "{line}").expect("command to asyncua");
+        let answer = self
+            .lines
+            .recv_timeout(Duration::from_secs(10))
+            .unwrap_or_else(|_| panic!("asyncua: no answer to '{line}'"));
+        self.wait_for("done", Duration::from_secs(10));
+        answer
     }
 
     fn url(&self) -> String {
@@ -752,4 +776,56 @@ async fn uncertain_is_stale_subscribed() {
 #[tokio::test]
 async fn uncertain_is_stale_read() {
     uncertain_is_stale("read").await;
+}
+
+/// SETs of the subscribed variable, their DIFFs, and which of the server's
+/// sessions their Writes came on.
+async fn sets_wrote(server: &mut OpcServer, extra: &str) -> (ServerProcess, String) {
+    let plc = plccoms(&server.url(), extra);
+    let mut c = Client::connect(plc.addr).await;
+    listed(&mut c, "db_line1.motor.speed").await;
+    enable_speed(&mut c).await;
+    for (set, diff) in [
+        (
+            "SET:db_line1.motor.speed,3.5\r\n",
+            "DIFF:DB_LINE1.MOTOR.SPEED,3.5000000000\r\n",
+        ),
+        (
+            "SET:db_line1.motor.speed,-1\r\n",
+            "DIFF:DB_LINE1.MOTOR.SPEED,-1.0000000000\r\n",
+        ),
+    ] {
+        c.send(set.as_bytes()).await;
+        c.wait_for_line(diff.as_bytes(), Duration::from_secs(5))
+            .await;
+    }
+    let wrote = server.answer("wrote");
+    (plc, wrote)
+}
+
+/// SETs go on a session of their own (OPCUA_WRITE_SESSION, default Yes),
+/// not the one whose publishes carry the subscription's notifications; on
+/// that one with `No`, or where the server refuses a second session (one
+/// log line), and they are confirmed all the same.
+#[tokio::test]
+async fn sets_on_a_session_of_their_own() {
+    let mut server = OpcServer::start(free_port(), None);
+    let (_plc, wrote) = sets_wrote(&mut server, "OPCUA_REBROWSE = 0").await;
+    assert_eq!(wrote, "wrote apart");
+
+    let mut server = OpcServer::start(free_port(), None);
+    let (_plc, wrote) =
+        sets_wrote(&mut server, "OPCUA_REBROWSE = 0\nOPCUA_WRITE_SESSION = No").await;
+    assert_eq!(wrote, "wrote together");
+
+    let mut server = OpcServer::start_args(free_port(), None, None, Some(1));
+    let (plc, wrote) = sets_wrote(&mut server, "OPCUA_REBROWSE = 0").await;
+    assert_eq!(wrote, "wrote together");
+    let log = plc.log();
+    assert_eq!(
+        log.matches("no session of its own for SETs").count(),
+        1,
+        "{log}"
+    );
+    assert!(log.contains("BadMaxConnectionsReached"), "{log}");
 }

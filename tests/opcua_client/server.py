@@ -1,12 +1,13 @@
 """An OPC UA server modelled on a small S7-1500 (asyncua, a third-party
 stack), for tests/opcua_client.rs.
 
-    python3 server.py PORT [--user USER:PASSWORD] [--secure DIR]
+    python3 server.py PORT [--user USER:PASSWORD] [--secure DIR] [--max-sessions N]
 
 --secure: SignAndEncrypt with Basic256Sha256 only, the server's certificate
 made in DIR/server, and a client certificate for plccoms made in
 DIR/client-pki (own/cert.der, private/private.pem), so the test need not
-wait for a key pair made by a debug build.
+wait for a key pair made by a debug build. --max-sessions: more sessions
+than N are refused (BadMaxConnectionsReached at ActivateSession).
 
 Objects/
   DB_LINE1/MOTOR/  SPEED (Double, rw), RUNNING (Boolean, rw), COUNT (UInt32, ro)
@@ -26,6 +27,9 @@ stdin, one a line:
   stamp NAME V MS  sets NAME to V with SourceTimestamp MS (Unix ms)
   status NAME uncertain|good [V]  sets NAME's StatusCode (UncertainLastUsableValue
                    or Good), its value to V if given, SourceTimestamp now
+  wrote      answers `wrote apart` when every Write so far came on a session
+             without subscriptions, `wrote together` when every one came on
+             a session with one, else `wrote mixed` (or `wrote nothing`)
 """
 
 import asyncio
@@ -66,6 +70,27 @@ async def _slow_browse(self, params):
 
 
 InternalSession.browse = _slow_browse
+
+# The sessions Writes came on, and those subscriptions were made on.
+WRITE_SESSIONS = []
+SUBSCRIPTION_SESSIONS = set()
+_write = InternalSession.write
+_create_subscription = InternalSession.create_subscription
+
+
+async def _recorded_write(self, params):
+    if self.external:  # a client's, not the server's own (`set`)
+        WRITE_SESSIONS.append(self.session_id)
+    return await _write(self, params)
+
+
+async def _recorded_create_subscription(self, params, *args, **kwargs):
+    SUBSCRIPTION_SESSIONS.add(self.session_id)
+    return await _create_subscription(self, params, *args, **kwargs)
+
+
+InternalSession.write = _recorded_write
+InternalSession.create_subscription = _recorded_create_subscription
 
 
 class Users(UserManager):
@@ -112,6 +137,8 @@ async def main():
     port = int(sys.argv[1])
     user = option("--user")
     secure = option("--secure")
+    if option("--max-sessions"):
+        InternalSession.max_connections = int(option("--max-sessions"))
     server = Server(user_manager=Users(*user.split(":", 1)) if user else None)
     await server.init()
     server.set_endpoint(f"opc.tcp://127.0.0.1:{port}/plc")
@@ -223,6 +250,16 @@ async def main():
                     ua.Variant(value, vtype), StatusCode=ua.StatusCode(code),
                     SourceTimestamp=datetime.datetime.now(datetime.timezone.utc),
                 ))
+            elif words[:1] == ["wrote"]:
+                shared = [s in SUBSCRIPTION_SESSIONS for s in WRITE_SESSIONS]
+                if not shared:
+                    print("wrote nothing", flush=True)
+                elif not any(shared):
+                    print("wrote apart", flush=True)
+                elif all(shared):
+                    print("wrote together", flush=True)
+                else:
+                    print("wrote mixed", flush=True)
             elif words[:1] == ["set"]:
                 node, vtype = nodes[words[1]]
                 await node.write_value(ua.Variant(type(await node.read_value())(words[2]) if vtype != ua.VariantType.Boolean else words[2] == "1", vtype))

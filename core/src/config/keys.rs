@@ -942,6 +942,9 @@ static KEYS: &[Key] = &[
     row("OPCUA_REBROWSE", Some("10"), number(0, 86400, "s"),
         "the variables are browsed (or the tag file's types read) again this often; a change reloads the table (0 = never)",
         Setter::Section(|s, v| s.opcua_client.rebrowse = v.secs())),
+    row("OPCUA_WRITE_SESSION", Some("Yes"), Kind::Bool,
+        "SETs on a second session, not queued behind the subscription's publishes (No: one session, for a server short of sessions)",
+        Setter::Section(|s, v| s.opcua_client.write_session = v.bool())),
     // Accepted in a PLC section for symmetry with [*]: no effect there.
     row("SERIAL_DEVICE_CFG", None, Kind::Text, "no effect in a PLC section (a [*] key)",
         Setter::Section(|_, _| {})),

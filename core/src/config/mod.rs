@@ -530,6 +530,8 @@ pub struct OpcuaClient {
     pub timeout: Duration,
     /// `OPCUA_REBROWSE`: how often the variables are looked for again.
     pub rebrowse: Duration,
+    /// `OPCUA_WRITE_SESSION`: SETs on a session of their own.
+    pub write_session: bool,
 }
 
 /// `OPCUA_MODE` choices.

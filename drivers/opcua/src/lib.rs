@@ -23,6 +23,9 @@
 //!   history carry the PLC's time; the link's reads are answered from the
 //!   last values taken, without a round trip. A variable just written is
 //!   read from the server once, so the value confirmed is the server's.
+//! - SETs (the Write and that read) go on a second session where the
+//!   server grants one (`OPCUA_WRITE_SESSION`): on the subscription's,
+//!   a Write's answer queues behind its publishes.
 //! - Quality: Good is a value; Uncertain is a value marked uncertain
 //!   ([`Pushed::uncertain`], [`PlcBackend::take_uncertain`]), which the
 //!   faces that show quality show as stale (the line protocol has no
@@ -99,6 +102,8 @@ pub struct OpcuaConfig {
     pub timeout: Duration,
     /// OPCUA_REBROWSE; `None`: never.
     pub rebrowse: Option<Duration>,
+    /// OPCUA_WRITE_SESSION: SETs on a second session.
+    pub write_session: bool,
     /// The section, for the log.
     pub section: String,
 }
@@ -230,6 +235,12 @@ impl List {
 struct Connection {
     session: Arc<Session>,
     event_loop: JoinHandle<StatusCode>,
+    /// SETs' Writes and read-backs, on a session of their own where the
+    /// server grants a second: servers answer one session's requests in
+    /// turn (asyncua's, many PLCs') and one connection's answers in order,
+    /// so on the link's session a Write's answer waits behind publishes of
+    /// up to 10,000 notifications each.
+    writer: Option<(Arc<Session>, JoinHandle<StatusCode>)>,
     /// Looking for the variables again (OPCUA_REBROWSE), on this session.
     rebrowse: Option<JoinHandle<()>>,
     /// The list it built last, for the link's next read.
@@ -239,6 +250,9 @@ struct Connection {
 impl Drop for Connection {
     fn drop(&mut self) {
         self.event_loop.abort();
+        if let Some((_, event_loop)) = &self.writer {
+            event_loop.abort();
+        }
         if let Some(task) = &self.rebrowse {
             task.abort();
         }
@@ -442,6 +456,17 @@ impl OpcuaBackend {
         }
     }
 
+    /// The session for SETs: the writer's while it lasts, else the link's.
+    fn write_session(&self) -> Result<Arc<Session>, PlcError> {
+        match &self.connection {
+            Some(Connection {
+                writer: Some((session, event_loop)),
+                ..
+            }) if !event_loop.is_finished() => Ok(session.clone()),
+            _ => self.session(),
+        }
+    }
+
     /// Runs `f` on the session within the timeout; a link failure gives
     /// the session up.
     async fn call<T, F>(&mut self, what: &str, f: F) -> Result<T, PlcError>
@@ -528,6 +553,7 @@ impl OpcuaBackend {
         self.connection = Some(Connection {
             session: session.clone(),
             event_loop,
+            writer: None,
             rebrowse: None,
             rebuilt: rebrowse::Slot::default(),
         });
@@ -555,6 +581,19 @@ impl OpcuaBackend {
             self.take_list(built);
         }
         trim_heap();
+        if self.config.write_session {
+            let client = self.client.as_mut().expect("made above");
+            match connect_session(client, &self.config).await {
+                Ok(writer) => {
+                    if let Some(connection) = &mut self.connection {
+                        connection.writer = Some(writer);
+                    }
+                }
+                Err(e) => {
+                    info!(section = %self.config.section, "no session of its own for SETs ({e}): on the link's session")
+                }
+            }
+        }
         if let (Some(every), Some(connection)) = (self.config.rebrowse, &mut self.connection) {
             connection.rebrowse = Some(rebrowse::spawn(
                 session,
@@ -703,6 +742,7 @@ impl OpcuaBackend {
     /// as MaxNodesPerRead allows; also ServerStatus.State when `state`.
     async fn read_values(
         &mut self,
+        session: Arc<Session>,
         indexes: &[usize],
         state: bool,
     ) -> Result<HashMap<usize, DataValue>, PlcError> {
@@ -713,7 +753,6 @@ impl OpcuaBackend {
         if state {
             reads.push(NodeId::from(opcua::types::VariableId::Server_ServerStatus_State).into());
         }
-        let session = self.session()?;
         let mut values = Vec::with_capacity(reads.len());
         for chunk in reads.chunks(self.limits.per_read.max(1)) {
             let answer = self
@@ -1012,7 +1051,7 @@ impl OpcuaBackend {
                     nodes.push(node.clone());
                 }
             }
-            let session = self.session()?;
+            let session = self.write_session()?;
             let reads: Vec<ReadValueId> = nodes.iter().map(|n| n.clone().into()).collect();
             let mut current = Vec::with_capacity(reads.len());
             for chunk in reads.chunks(self.limits.per_read.max(1)) {
@@ -1062,7 +1101,7 @@ impl OpcuaBackend {
         if values.is_empty() {
             return Ok(answers);
         }
-        let session = self.session()?;
+        let session = self.write_session()?;
         let mut results = Vec::with_capacity(values.len());
         for chunk in values.chunks(self.limits.per_write.max(1)) {
             let answer = self.call("Write", session.write(chunk)).await?;
@@ -1685,7 +1724,12 @@ impl PlcBackend for OpcuaBackend {
                     .collect()
             };
             if !direct.is_empty() || state {
-                let read = self.read_values(&direct, state).await?;
+                // A SET's read-back on the session of its Write.
+                let session = match direct.iter().all(|i| self.written.contains(i)) {
+                    true => self.write_session()?,
+                    false => self.session()?,
+                };
+                let read = self.read_values(session, &direct, state).await?;
                 let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
                 for (i, value) in read {
                     if let (true, Some(at)) = (self.written.contains(&i), value.source_timestamp) {
@@ -1707,7 +1751,8 @@ impl PlcBackend for OpcuaBackend {
             }
             None
         } else {
-            Some(self.read_values(&wanted, state).await?)
+            let session = self.session()?;
+            Some(self.read_values(session, &wanted, state).await?)
         };
         let mut uncertain = Vec::new();
         let crc = self.list_crc();
@@ -1970,6 +2015,7 @@ pub fn config_of(
         subscribe: keys.subscribe,
         timeout: keys.timeout,
         rebrowse: (!keys.rebrowse.is_zero()).then_some(keys.rebrowse),
+        write_session: keys.write_session,
         section: section.name.clone(),
     }))
 }
@@ -2014,6 +2060,7 @@ mod tests {
                 subscribe: false,
                 timeout: Duration::from_secs(1),
                 rebrowse: None,
+                write_session: true,
                 section: String::new(),
             })
         }
