@@ -13,7 +13,10 @@
 //! With `--against node` the server is node-opcua's instead
 //! (bench/opcua/node/server.js, `npm ci` there first): it answers a Write
 //! at once, so that row shows the client side's own SET latency apart
-//! from a serving plccoms's link. `--split` splits each SET's time into
+//! from a serving plccoms's link. With `--against ua` it is
+//! `bench-opcua-plc` (async-opcua's in-memory server, as a PLC's own
+//! server: a Write is set in memory at once, and its variables change
+//! without a second link behind them). `--split` splits each SET's time into
 //! its parts on both sides (the `plccoms::set_timing` debug lines).
 //!
 //! Measured on the client side: its CPU (utime + stime from /proc over a
@@ -83,7 +86,8 @@ struct Args {
     /// The servers measured against (one row each): `plccoms` (a second
     /// plccoms over plcsim: its own link and write path are part of what
     /// is measured) and `node` (node-opcua's server, bench/opcua/node,
-    /// answering a Write at once: the client side's own latency).
+    /// answering a Write at once: the client side's own latency) and `ua`
+    /// (`bench-opcua-plc`: async-opcua's in-memory server, likewise).
     #[arg(long, value_enum, value_delimiter = ',', default_value = "plccoms")]
     against: Vec<Against>,
 }
@@ -92,6 +96,7 @@ struct Args {
 enum Against {
     Plccoms,
     Node,
+    Ua,
 }
 
 const SET_TAGS: usize = 16;
@@ -164,6 +169,38 @@ impl Server {
         );
         // Read on: a closed pipe would end it at its next line (EPIPE).
         std::thread::spawn(move || out.for_each(drop));
+        Server { child }
+    }
+
+    /// `bench-opcua-plc` (next to this binary) of `n` variables, the
+    /// `V*` changing each `delay` ms; once it listens.
+    fn ua(dir: &Path, port: u16, n: usize, delay: u64) -> Server {
+        use std::io::{BufRead, BufReader};
+        let binary = std::env::current_exe()
+            .expect("this binary's path")
+            .with_file_name("bench-opcua-plc");
+        let log = std::fs::File::create(dir.join("ua.log")).expect("log");
+        let mut child = Command::new(&binary)
+            .args([
+                "--port",
+                &port.to_string(),
+                "--vars",
+                &n.to_string(),
+                "--delay",
+                &delay.to_string(),
+            ])
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(log)
+            .spawn()
+            .unwrap_or_else(|e| panic!("{}: {e}", binary.display()));
+        let mut out = BufReader::new(child.stdout.take().expect("stdout")).lines();
+        let ready = out.any(|l| l.is_ok_and(|l| l == "ready"));
+        assert!(
+            ready,
+            "bench-opcua-plc did not start; see {}",
+            dir.join("ua.log").display()
+        );
         Server { child }
     }
 
@@ -303,6 +340,14 @@ async fn run(args: &Args, binary: &Path, n: usize, against: Against) -> Row {
             format!("ANIM_{:05}", n - SET_TAGS - 1),
             (0..SET_TAGS).map(|i| format!("VAR_{i:05}")).collect(),
             "VAR_",
+        ),
+        Against::Ua => (
+            Server::ua(dir.path(), ua, n, delay),
+            None,
+            "OPCUA_BROWSE = nsu=urn:bench-plc;s=Bench\n",
+            format!("V{}", n - 1),
+            (0..SET_TAGS).map(|i| format!("T{i}")).collect(),
+            "T",
         ),
     };
     let started = Instant::now();
@@ -489,6 +534,7 @@ async fn main() {
         let server = match r.against {
             Against::Plccoms => "plccoms",
             Against::Node => "node",
+            Against::Ua => "ua",
         };
         if args.split {
             splits.push(format!(
@@ -529,6 +575,7 @@ async fn main() {
             let label = match r.against {
                 Against::Plccoms => format!("opcua_{}", r.vars),
                 Against::Node => format!("opcua_node_{}", r.vars),
+                Against::Ua => format!("opcua_ua_{}", r.vars),
             };
             let _ = writeln!(results, "{label}.{metric} {value:.3}");
         }

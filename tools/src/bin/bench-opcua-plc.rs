@@ -1,0 +1,167 @@
+//! bench-opcua-plc: an OPC UA server of N variables for `bench-opcua
+//! --against ua`, standing in for a PLC's own server: async-opcua's
+//! in-memory node manager, the folder `Bench` (`nsu=urn:bench-plc;s=Bench`)
+//! holding `T0`..`T15` (Int16, writable, written in memory at once) and
+//! `V16`.. (Int32, Float, Double, UInt16 in turn), every `V*` set to a
+//! rising counter each `--delay` ms with that moment as SourceTimestamp.
+//! No security, anonymous. Prints `ready` on stdout once it listens.
+//!
+//! Run: `bench-opcua-plc --port 4840 --vars 100000 --delay 1000`.
+
+use std::time::Duration;
+
+use clap::Parser;
+use opcua::crypto::SecurityPolicy;
+use opcua::nodes::VariableBuilder;
+use opcua::server::diagnostics::NamespaceMetadata;
+use opcua::server::node_manager::memory::{simple_node_manager, SimpleNodeManager};
+use opcua::server::{ServerBuilder, ServerEndpoint};
+use opcua::types::{DataTypeId, DataValue, DateTime, MessageSecurityMode, NodeId, Variant};
+
+#[derive(Debug, Parser)]
+#[command(name = "bench-opcua-plc")]
+struct Args {
+    /// The port to listen on (127.0.0.1).
+    #[arg(long)]
+    port: u16,
+    /// Variables in all, the 16 SET targets included.
+    #[arg(long, default_value_t = 100_000)]
+    vars: usize,
+    /// How often every `V*` changes (ms).
+    #[arg(long, default_value_t = 1000)]
+    delay: u64,
+}
+
+const NAMESPACE: &str = "urn:bench-plc";
+const SET_TAGS: usize = 16;
+/// Values set under one hold of the address space's lock.
+const SLICE: usize = 2_000;
+
+/// The name, type and value of variable `i` at counter `n`.
+fn variable(i: usize, n: u32) -> (String, DataTypeId, Variant) {
+    if i < SET_TAGS {
+        return (format!("T{i}"), DataTypeId::Int16, Variant::Int16(0));
+    }
+    let name = format!("V{i}");
+    match i % 4 {
+        0 => (name, DataTypeId::Int32, Variant::Int32(n as i32)),
+        1 => (name, DataTypeId::Float, Variant::Float(n as f32)),
+        2 => (name, DataTypeId::Double, Variant::Double(n as f64)),
+        _ => (name, DataTypeId::UInt16, Variant::UInt16(n as u16)),
+    }
+}
+
+#[tokio::main(flavor = "multi_thread")]
+async fn main() {
+    let args = Args::parse();
+    let pki = tempfile::tempdir().expect("a PKI folder");
+    let mut builder = ServerBuilder::new()
+        .application_name("bench-opcua-plc")
+        .application_uri("urn:bench-opcua-plc")
+        .product_uri("urn:bench-opcua-plc")
+        .host("127.0.0.1".to_string())
+        .port(args.port)
+        .discovery_urls(vec![format!("opc.tcp://127.0.0.1:{}/", args.port)])
+        .pki_dir(pki.path())
+        .create_sample_keypair(true)
+        .trust_client_certs(true)
+        .with_node_manager(simple_node_manager(
+            NamespaceMetadata {
+                namespace_uri: NAMESPACE.to_owned(),
+                ..Default::default()
+            },
+            "bench",
+        ))
+        .add_endpoint(
+            "none",
+            ServerEndpoint::new(
+                "/",
+                SecurityPolicy::None,
+                MessageSecurityMode::None,
+                &[opcua::server::ANONYMOUS_USER_TOKEN_ID.to_string()],
+            ),
+        );
+    {
+        // Room for every variable in one subscription, in few calls.
+        let limits = builder.limits_mut();
+        let op = &mut limits.operational;
+        op.max_nodes_per_read = 10_000;
+        op.max_nodes_per_write = 10_000;
+        op.max_nodes_per_browse = 10_000;
+        op.max_monitored_items_per_call = 10_000;
+        op.max_references_per_browse_node = 10_000;
+        let subs = &mut limits.subscriptions;
+        subs.max_monitored_items_per_sub = args.vars + 1000;
+        subs.max_queued_notifications = (args.vars + 1000) * 4;
+        subs.max_notifications_per_publish = 50_000;
+        subs.min_sampling_interval_ms = 0.0;
+        limits.max_message_size = 64 << 20;
+        limits.max_chunk_count = 8192;
+        limits.max_array_length = 1 << 20;
+    }
+    let (server, handle) = builder.build().expect("the server");
+    let manager = handle
+        .node_managers()
+        .get_of_type::<SimpleNodeManager>()
+        .expect("the simple node manager");
+    let ns = handle
+        .get_namespace_index(NAMESPACE)
+        .expect("its namespace");
+    let folder = NodeId::new(ns, "Bench");
+    let ids: Vec<NodeId> = (0..args.vars)
+        .map(|i| NodeId::new(ns, format!("Bench.{}", variable(i, 0).0)))
+        .collect();
+    {
+        let mut space = manager.address_space().write();
+        space.add_folder(&folder, "Bench", "Bench", &NodeId::objects_folder_id());
+        for (i, id) in ids.iter().enumerate() {
+            let (name, ty, value) = variable(i, 0);
+            let mut var = VariableBuilder::new(id, name.as_str(), name.as_str())
+                .data_type(ty)
+                .value(value)
+                .organized_by(folder.clone());
+            if i < SET_TAGS {
+                var = var.writable();
+            }
+            var.insert(&mut *space);
+        }
+    }
+    let subscriptions = handle.subscriptions().clone();
+    let every = Duration::from_millis(args.delay);
+    tokio::spawn(async move {
+        let mut tick = tokio::time::interval(every);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let mut n = 0u32;
+        loop {
+            tick.tick().await;
+            n = n.wrapping_add(1);
+            let now = DateTime::now();
+            // In slices: `set_values` holds the address space's lock, and a
+            // Write waits for it (100,000 at once: 300 ms, a PLC's server
+            // does not keep a Write that long).
+            for (at, slice) in ids.chunks(SLICE).enumerate() {
+                let values = slice.iter().enumerate().filter_map(|(k, id)| {
+                    let i = at * SLICE + k;
+                    let mut value = DataValue::new_at(variable(i, n).2, now);
+                    value.server_timestamp = Some(now);
+                    (i >= SET_TAGS).then_some((id, None, value))
+                });
+                if let Err(e) = manager.set_values(&subscriptions, values) {
+                    eprintln!("bench-opcua-plc: values not set: {e}");
+                }
+                tokio::task::yield_now().await;
+            }
+        }
+    });
+    let serving = tokio::spawn(server.run());
+    // The listener is bound by `run`: wait until it accepts.
+    let addr = std::net::SocketAddr::from(([127, 0, 0, 1], args.port));
+    while tokio::net::TcpStream::connect(addr).await.is_err() {
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    println!("ready");
+    if let Ok(Err(e)) = serving.await {
+        eprintln!("bench-opcua-plc: {e}");
+        std::process::exit(1);
+    }
+}
