@@ -111,6 +111,7 @@ fn pushed(name: &str, bytes: Vec<u8>) -> Pushed {
         bytes,
         unix_ms: 1_700_000_000_000,
         uncertain: false,
+        key: None,
     }
 }
 

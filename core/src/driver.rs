@@ -7,6 +7,7 @@
 
 use async_trait::async_trait;
 use plccoms_protocol::Area;
+use std::sync::Arc;
 
 pub use plccoms_plc::files::{
     DirEntry, FileInfo, FILE_ATTRIBUTE_ARCHIVE, FILE_ATTRIBUTE_DIRECTORY, FILE_ATTRIBUTE_HIDDEN,
@@ -77,8 +78,9 @@ pub type Answer<T> = Result<T, Refusal>;
 /// carry the device's time rather than the poll's.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Pushed {
-    /// The variable, as the backend's variable file names it.
-    pub name: Box<[u8]>,
+    /// The variable, as the backend's variable file names it (shared: a
+    /// backend pushing 100,000 values a second copies no name).
+    pub name: Arc<[u8]>,
     /// Its bytes, as a read of it answers them.
     pub bytes: Vec<u8>,
     /// The device's time stamp: UTC milliseconds since 1970.
@@ -86,6 +88,19 @@ pub struct Pushed {
     /// The device marked the value uncertain (OPC UA's Uncertain status):
     /// served as stale; `false` is good.
     pub uncertain: bool,
+    /// `(list, index)`: the backend's variable list, numbered by
+    /// [`next_list_version`], and the variable's place in it. The link
+    /// then looks the name up once per list, not once per value (at
+    /// 100,000 values a second those lookups were a fifth of the CPU).
+    /// `None`: by name each time.
+    pub key: Option<(u32, u32)>,
+}
+
+/// A number for a backend's new variable list, unique in the process (a
+/// new backend's lists too): the `list` of [`Pushed::key`].
+pub fn next_list_version() -> u32 {
+    static VERSION: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    VERSION.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
 }
 
 /// PLC run state.

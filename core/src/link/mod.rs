@@ -293,6 +293,56 @@ pub struct Link {
     /// The link has a thread of its own, so it may sleep the last stretch
     /// before a cycle precisely; on the shared pool it must not block.
     own_thread: bool,
+    pushed_ids: PushedIds,
+}
+
+/// The ids of pushed values by their [`crate::driver::Pushed::key`], for
+/// the table and the backend's list they were found in.
+#[derive(Default)]
+struct PushedIds {
+    /// Held weakly: a table reloaded since is freed, and its address is
+    /// not taken by another while this is held.
+    table: std::sync::Weak<crate::vars::VarTable>,
+    list: u32,
+    /// By index in the list; [`PushedIds::UNKNOWN`] where not looked up.
+    ids: Vec<crate::vars::VarId>,
+}
+
+impl PushedIds {
+    const UNKNOWN: crate::vars::VarId = crate::vars::VarId::MAX;
+
+    /// The id of `key`'s variable in `table`, looked up by `name` once.
+    fn id(
+        &mut self,
+        table: &Arc<crate::vars::VarTable>,
+        key: Option<(u32, u32)>,
+        name: &[u8],
+    ) -> Option<crate::vars::VarId> {
+        let Some((list, index)) = key else {
+            return table.lookup(name);
+        };
+        let index = index as usize;
+        // Bounded by the table: a list as long (arrays: their elements).
+        if index >= table.len().saturating_mul(2) {
+            return table.lookup(name);
+        }
+        if self.list != list || !std::ptr::eq(self.table.as_ptr(), Arc::as_ptr(table)) {
+            self.table = Arc::downgrade(table);
+            self.list = list;
+            self.ids.clear();
+        }
+        if index >= self.ids.len() {
+            self.ids.resize(index + 1, Self::UNKNOWN);
+        }
+        match self.ids[index] {
+            Self::UNKNOWN => {
+                let id = table.lookup(name)?;
+                self.ids[index] = id;
+                Some(id)
+            }
+            id => Some(id),
+        }
+    }
 }
 
 impl Link {
@@ -339,6 +389,7 @@ impl Link {
             deadline: Instant::now(),
             held: std::collections::VecDeque::new(),
             own_thread: false,
+            pushed_ids: PushedIds::default(),
         };
         link.update_freshness();
         link.count_backend();
@@ -619,14 +670,12 @@ impl Link {
         let taken = Instant::now();
         let count = pushed.len();
         let table = self.publisher.table().clone();
-        let mut pending = std::collections::HashSet::new();
         // Variables SET during this take: its values of them were sampled
         // before the Write (taken before it was sent), and would undo it.
         let mut set = std::collections::HashSet::new();
         for (n, value) in pushed.into_iter().enumerate() {
             if n % PUSHED_PIECE == PUSHED_PIECE - 1 && !self.jobs.is_empty() {
                 self.publisher.publish();
-                pending.clear();
                 set.extend(self.sets_meanwhile().await);
                 if self.health.state() != LinkState::Online
                     || !Arc::ptr_eq(&table, self.publisher.table())
@@ -634,16 +683,15 @@ impl Link {
                     return;
                 }
             }
-            let Some(id) = table.lookup(&value.name) else {
+            let Some(id) = self.pushed_ids.id(&table, value.key, &value.name) else {
                 continue;
             };
-            if set.contains(&id) {
+            if !set.is_empty() && set.contains(&id) {
                 continue;
             }
-            if !pending.insert(id) {
+            // Its second value since the last publish: that one first.
+            if self.publisher.read_seq(id) == self.publisher.next_seq() {
                 self.publisher.publish();
-                pending.clear();
-                pending.insert(id);
             }
             self.publisher.update(id, &value.bytes, value.unix_ms);
             self.publisher
@@ -1288,6 +1336,35 @@ async fn wait_pushed(backend: Option<&mut (dyn PlcBackend + 'static)>) -> Result
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A pushed value's key finds its variable by name once per table and
+    /// list: a reloaded table, or a new list whose places mean other
+    /// variables, is looked up anew.
+    #[test]
+    fn pushed_keys_are_looked_up_once_per_table_and_list() {
+        use crate::vars::table_of;
+        let a_b = Arc::new(table_of(&[("A", "INT"), ("B", "INT")]));
+        let mut ids = PushedIds::default();
+        let list = crate::driver::next_list_version();
+        let a = a_b.lookup(b"A").unwrap();
+        let b = a_b.lookup(b"B").unwrap();
+        assert_eq!(ids.id(&a_b, Some((list, 0)), b"A"), Some(a));
+        // Kept by key: the name is not looked at again.
+        assert_eq!(ids.id(&a_b, Some((list, 0)), b"NOT_THERE"), Some(a));
+        assert_eq!(ids.id(&a_b, Some((list, 1)), b"B"), Some(b));
+        // A new list: place 0 is B now.
+        let next = crate::driver::next_list_version();
+        assert_eq!(ids.id(&a_b, Some((next, 0)), b"B"), Some(b));
+        // A new table (B first), the same list number.
+        let b_a = Arc::new(table_of(&[("B", "INT"), ("C", "INT"), ("A", "INT")]));
+        assert_eq!(ids.id(&b_a, Some((next, 0)), b"A"), b_a.lookup(b"A"));
+        assert_ne!(b_a.lookup(b"A"), Some(a));
+        // Without a key, or one far beyond the table: by name.
+        assert_eq!(ids.id(&b_a, None, b"C"), b_a.lookup(b"C"));
+        assert_eq!(ids.id(&b_a, Some((next, u32::MAX)), b"B"), b_a.lookup(b"B"));
+        assert!(ids.ids.len() <= 2 * b_a.len());
+        assert_eq!(ids.id(&b_a, Some((next, 7)), b"NOT_THERE"), None);
+    }
 
     #[test]
     fn deadlines_stay_on_the_schedule_and_skip_missed_cycles() {

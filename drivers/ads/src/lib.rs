@@ -955,6 +955,7 @@ impl PlcBackend for AdsBackend {
                     unix_ms,
                     // ADS has no per-value quality.
                     uncertain: false,
+                    key: None,
                 });
                 self.notes.last.insert(i, Some(sample.data));
             }

@@ -183,7 +183,7 @@ impl Default for Limits {
 #[derive(Debug, Clone)]
 struct Entry {
     /// As the list names it (the link's table looks pushed values up by it).
-    name: Box<[u8]>,
+    name: Arc<[u8]>,
     offset: u32,
     ty: IecType,
     builtin: Builtin,
@@ -337,6 +337,8 @@ pub struct OpcuaBackend {
     run: bool,
     /// The list the link's table was built from.
     served: List,
+    /// Its number (`Pushed::key`): a new one with each list served.
+    served_version: u32,
     /// The list as last built (served once the link fetches it).
     newest: Option<Listing>,
     /// The CRC of the newest list, once made.
@@ -432,6 +434,7 @@ impl OpcuaBackend {
             limits: Limits::default(),
             run: false,
             served: List::default(),
+            served_version: plccoms_core::driver::next_list_version(),
             newest: None,
             crc: None,
             fetching: None,
@@ -1571,7 +1574,7 @@ fn list_of(bytes: Vec<u8>, types: browse::Types) -> List {
             None => types.builtins.get(&text).copied(),
         };
         entries.push(Entry {
-            name: var.name,
+            name: var.name.into(),
             offset: var.offset,
             ty: var.ty,
             builtin: builtin.unwrap_or_else(|| Builtin::of_iec(var.ty)),
@@ -1719,7 +1722,8 @@ impl PlcBackend for OpcuaBackend {
                     .iter()
                     .copied()
                     .filter(|i| {
-                        !notified.contains_key(&(*i as u32 + 1)) || self.written.contains(i)
+                        !notified.contains_key(&(*i as u32 + 1))
+                            || (!self.written.is_empty() && self.written.contains(i))
                     })
                     .collect()
             };
@@ -1772,7 +1776,8 @@ impl PlcBackend for OpcuaBackend {
             .collect();
         drop(notified);
         for i in uncertain {
-            self.uncertain.insert(self.served.entries[i].name.clone());
+            self.uncertain
+                .insert(self.served.entries[i].name[..].into());
         }
         Ok(answers)
     }
@@ -1856,6 +1861,7 @@ impl PlcBackend for OpcuaBackend {
                             bytes,
                             unix_ms,
                             uncertain: is_uncertain(&value),
+                            key: Some((self.served_version, i)),
                         });
                     }
                 }
@@ -1926,6 +1932,7 @@ impl PlcBackend for OpcuaBackend {
                 // Its only holder now, unless a newer list came meanwhile.
                 let (bytes, types) = Arc::unwrap_or_clone(fetched);
                 self.served = list_of(bytes, types);
+                self.served_version = plccoms_core::driver::next_list_version();
                 self.crc = None;
                 // The old list and this one's making gone: 30 MB at
                 // 100,000 variables, kept resident otherwise.
@@ -2183,18 +2190,19 @@ mod tests {
             (generation, 1, at(0, 2, false)),
             (generation, 1, at(-30, 3, false)),
         ]);
-        let taken: Vec<(Box<[u8]>, i16)> = backend
+        let taken: Vec<(Vec<u8>, i16)> = backend
             .take_pushed()
             .into_iter()
-            .map(|p| (p.name, i16::from_le_bytes([p.bytes[0], p.bytes[1]])))
+            .map(|p| {
+                (
+                    p.name.to_vec(),
+                    i16::from_le_bytes([p.bytes[0], p.bytes[1]]),
+                )
+            })
             .collect();
         assert_eq!(
             taken,
-            [
-                (b"B".to_vec().into_boxed_slice(), 7),
-                (b"A".to_vec().into_boxed_slice(), 2),
-                (b"A".to_vec().into_boxed_slice(), 3),
-            ]
+            [(b"B".to_vec(), 7), (b"A".to_vec(), 2), (b"A".to_vec(), 3)]
         );
         assert!(backend.read_back.is_empty());
     }
