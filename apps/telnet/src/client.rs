@@ -229,7 +229,7 @@ impl ClientTable {
         }
         let mut lines = 0;
         if consecutive && self.takes_block(snapshot, eol) {
-            if let Some(block) = &snapshot.diff_block {
+            if let Some(block) = snapshot.diff_block() {
                 out.extend_from_slice(&block.bytes);
                 lines += block.lines;
             }
@@ -275,7 +275,7 @@ impl ClientTable {
             && self.enabled_count == self.table.len() - fixed
             && self.last_mark < snapshot.seq
             && self.sent[..fixed].iter().all(|&s| s != BASELINE)
-            && snapshot.diff_block.as_ref().is_none_or(|b| b.eol == eol)
+            && snapshot.diff_block_eol().is_none_or(|b| b == eol)
     }
 
     fn offer(
