@@ -130,7 +130,8 @@ fn free_port() -> u16 {
         .port()
 }
 
-/// A plccoms process; killed when dropped.
+/// A server process (plccoms, node-opcua's, bench-opcua-plc); killed when
+/// dropped.
 struct Server {
     child: Child,
 }
@@ -139,10 +140,9 @@ impl Server {
     /// node-opcua's server of `n` variables, all but the SET targets
     /// (`VAR_00000`..) changing each `delay` ms; once it listens.
     fn node(dir: &Path, port: u16, n: usize, delay: u64) -> Server {
-        use std::io::{BufRead, BufReader};
         let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../bench/opcua/node/server.js");
         let log = std::fs::File::create(dir.join("node.log")).expect("log");
-        let mut child = Command::new("node")
+        let child = Command::new("node")
             .arg(&script)
             .args([
                 port.to_string(),
@@ -160,13 +160,15 @@ impl Server {
                     script.display()
                 )
             });
+        Server::once_ready(child, "node-opcua's server", &dir.join("node.log"))
+    }
+
+    /// The server `child` once it printed `ready` on its stdout.
+    fn once_ready(mut child: Child, what: &str, log: &Path) -> Server {
+        use std::io::{BufRead, BufReader};
         let mut out = BufReader::new(child.stdout.take().expect("stdout")).lines();
         let ready = out.any(|l| l.is_ok_and(|l| l == "ready"));
-        assert!(
-            ready,
-            "node-opcua's server did not start; see {}",
-            dir.join("node.log").display()
-        );
+        assert!(ready, "{what} did not start; see {}", log.display());
         // Read on: a closed pipe would end it at its next line (EPIPE).
         std::thread::spawn(move || out.for_each(drop));
         Server { child }
@@ -175,12 +177,11 @@ impl Server {
     /// `bench-opcua-plc` (next to this binary) of `n` variables, the
     /// `V*` changing each `delay` ms; once it listens.
     fn ua(dir: &Path, port: u16, n: usize, delay: u64) -> Server {
-        use std::io::{BufRead, BufReader};
         let binary = std::env::current_exe()
             .expect("this binary's path")
             .with_file_name("bench-opcua-plc");
         let log = std::fs::File::create(dir.join("ua.log")).expect("log");
-        let mut child = Command::new(&binary)
+        let child = Command::new(&binary)
             .args([
                 "--port",
                 &port.to_string(),
@@ -194,14 +195,7 @@ impl Server {
             .stderr(log)
             .spawn()
             .unwrap_or_else(|e| panic!("{}: {e}", binary.display()));
-        let mut out = BufReader::new(child.stdout.take().expect("stdout")).lines();
-        let ready = out.any(|l| l.is_ok_and(|l| l == "ready"));
-        assert!(
-            ready,
-            "bench-opcua-plc did not start; see {}",
-            dir.join("ua.log").display()
-        );
-        Server { child }
+        Server::once_ready(child, "bench-opcua-plc", &dir.join("ua.log"))
     }
 
     fn start(binary: &Path, dir: &Path, name: &str, ini: &str, split: bool) -> Server {
