@@ -686,7 +686,7 @@ impl Link {
             let Some(id) = self.pushed_ids.id(&table, value.key, &value.name) else {
                 continue;
             };
-            if !set.is_empty() && set.contains(&id) {
+            if set.contains(&id) {
                 continue;
             }
             // Its second value since the last publish: that one first.

@@ -1722,14 +1722,16 @@ impl PlcBackend for OpcuaBackend {
                     .iter()
                     .copied()
                     .filter(|i| {
-                        !notified.contains_key(&(*i as u32 + 1))
-                            || (!self.written.is_empty() && self.written.contains(i))
+                        !notified.contains_key(&(*i as u32 + 1)) || self.written.contains(i)
                     })
                     .collect()
             };
             if !direct.is_empty() || state {
-                // A SET's read-back on the session of its Write.
-                let session = match direct.iter().all(|i| self.written.contains(i)) {
+                // A SET's read-back on the session of its Write; the
+                // poll's own reads on the link's.
+                let read_back =
+                    !direct.is_empty() && direct.iter().all(|i| self.written.contains(i));
+                let session = match read_back {
                     true => self.write_session()?,
                     false => self.session()?,
                 };
