@@ -37,17 +37,30 @@ const SET_TAGS: usize = 16;
 /// Values set under one hold of the address space's lock.
 const SLICE: usize = 2_000;
 
-/// The name, type and value of variable `i` at counter `n`.
-fn variable(i: usize, n: u32) -> (String, DataTypeId, Variant) {
+/// The name and type of variable `i`.
+fn variable(i: usize) -> (String, DataTypeId) {
     if i < SET_TAGS {
-        return (format!("T{i}"), DataTypeId::Int16, Variant::Int16(0));
+        return (format!("T{i}"), DataTypeId::Int16);
     }
-    let name = format!("V{i}");
+    let ty = match i % 4 {
+        0 => DataTypeId::Int32,
+        1 => DataTypeId::Float,
+        2 => DataTypeId::Double,
+        _ => DataTypeId::UInt16,
+    };
+    (format!("V{i}"), ty)
+}
+
+/// The value of variable `i` at counter `n` (each cycle: no name made).
+fn value(i: usize, n: u32) -> Variant {
+    if i < SET_TAGS {
+        return Variant::Int16(0);
+    }
     match i % 4 {
-        0 => (name, DataTypeId::Int32, Variant::Int32(n as i32)),
-        1 => (name, DataTypeId::Float, Variant::Float(n as f32)),
-        2 => (name, DataTypeId::Double, Variant::Double(n as f64)),
-        _ => (name, DataTypeId::UInt16, Variant::UInt16(n as u16)),
+        0 => Variant::Int32(n as i32),
+        1 => Variant::Float(n as f32),
+        2 => Variant::Double(n as f64),
+        _ => Variant::UInt16(n as u16),
     }
 }
 
@@ -109,16 +122,16 @@ async fn main() {
         .expect("its namespace");
     let folder = NodeId::new(ns, "Bench");
     let ids: Vec<NodeId> = (0..args.vars)
-        .map(|i| NodeId::new(ns, format!("Bench.{}", variable(i, 0).0)))
+        .map(|i| NodeId::new(ns, format!("Bench.{}", variable(i).0)))
         .collect();
     {
         let mut space = manager.address_space().write();
         space.add_folder(&folder, "Bench", "Bench", &NodeId::objects_folder_id());
         for (i, id) in ids.iter().enumerate() {
-            let (name, ty, value) = variable(i, 0);
+            let (name, ty) = variable(i);
             let mut var = VariableBuilder::new(id, name.as_str(), name.as_str())
                 .data_type(ty)
-                .value(value)
+                .value(value(i, 0))
                 .organized_by(folder.clone());
             if i < SET_TAGS {
                 var = var.writable();
@@ -142,9 +155,11 @@ async fn main() {
             for (at, slice) in ids.chunks(SLICE).enumerate() {
                 let values = slice.iter().enumerate().filter_map(|(k, id)| {
                     let i = at * SLICE + k;
-                    let mut value = DataValue::new_at(variable(i, n).2, now);
-                    value.server_timestamp = Some(now);
-                    (i >= SET_TAGS).then_some((id, None, value))
+                    (i >= SET_TAGS).then(|| {
+                        let mut sample = DataValue::new_at(value(i, n), now);
+                        sample.server_timestamp = Some(now);
+                        (id, None, sample)
+                    })
                 });
                 if let Err(e) = manager.set_values(&subscriptions, values) {
                     eprintln!("bench-opcua-plc: values not set: {e}");
