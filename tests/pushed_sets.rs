@@ -13,7 +13,8 @@ use async_trait::async_trait;
 
 use common::memory::{MemoryBackend, MAX_FILE_BLOCK, MAX_READ_BLOCK};
 use plccoms_core::driver::{
-    Answer, PlcBackend, PlcError, PlcStatus, Pushed, ReadRequest, WriteData, WriteRequest,
+    Answer, PlcBackend, PlcError, PlcStatus, Pushed, PushedVar, ReadRequest, WriteData,
+    WriteRequest,
 };
 use plccoms_protocol::Area;
 
@@ -107,11 +108,10 @@ impl PlcBackend for Pushing {
 
 fn pushed(name: &str, bytes: Vec<u8>) -> Pushed {
     Pushed {
-        name: name.as_bytes().into(),
+        var: PushedVar::Named(name.as_bytes().into()),
         bytes,
         unix_ms: 1_700_000_000_000,
         uncertain: false,
-        key: None,
     }
 }
 

@@ -78,9 +78,8 @@ pub type Answer<T> = Result<T, Refusal>;
 /// carry the device's time rather than the poll's.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Pushed {
-    /// The variable, as the backend's variable file names it (shared: a
-    /// backend pushing 100,000 values a second copies no name).
-    pub name: Arc<[u8]>,
+    /// The variable.
+    pub var: PushedVar,
     /// Its bytes, as a read of it answers them.
     pub bytes: Vec<u8>,
     /// The device's time stamp: UTC milliseconds since 1970.
@@ -88,16 +87,23 @@ pub struct Pushed {
     /// The device marked the value uncertain (OPC UA's Uncertain status):
     /// served as stale; `false` is good.
     pub uncertain: bool,
-    /// `(list, index)`: the backend's variable list, numbered by
-    /// [`next_list_version`], and the variable's place in it. The link
-    /// then looks the name up once per list, not once per value (at
-    /// 100,000 values a second those lookups were a fifth of the CPU).
-    /// `None`: by name each time.
-    pub key: Option<(u32, u32)>,
+}
+
+/// Which variable a [`Pushed`] value is of.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum PushedVar {
+    /// Its place in the backend's variable list, numbered by
+    /// [`next_list_version`]: the link asks its name
+    /// ([`PlcBackend::pushed_name`]) and looks it up once per list, not
+    /// once per value (at 100,000 values a second the lookups were a fifth
+    /// of the CPU, and sharing each value's name a tenth).
+    Listed { list: u32, index: u32 },
+    /// Its name, as the backend's variable file has it: looked up each time.
+    Named(Arc<[u8]>),
 }
 
 /// A number for a backend's new variable list, unique in the process (a
-/// new backend's lists too): the `list` of [`Pushed::key`].
+/// new backend's lists too): the `list` of [`PushedVar::Listed`].
 pub fn next_list_version() -> u32 {
     static VERSION: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
     VERSION.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
@@ -201,6 +207,12 @@ pub trait PlcBackend: Send {
     /// poll never publishes a pushed change before its own stamp does.
     fn take_pushed(&mut self) -> Vec<Pushed> {
         Vec::new()
+    }
+
+    /// The name of the variable at `index` of the backend's list `list`
+    /// ([`PushedVar::Listed`]); `None` for a list it no longer serves.
+    fn pushed_name(&self, _list: u32, _index: u32) -> Option<Arc<[u8]>> {
+        None
     }
 
     /// The variables (named as in [`Pushed`]) whose values the reads

@@ -41,7 +41,7 @@ use tracing::{debug, info, warn};
 
 use crate::changes::{unix_ms, Notice, Publisher};
 use crate::config;
-use crate::driver::{Answer, Drivers, PlcBackend, PlcError, ReadRequest};
+use crate::driver::{Answer, Drivers, PlcBackend, PlcError, PushedVar, ReadRequest};
 use crate::metrics::SectionMetrics;
 use cycle::Cycle;
 use files::{FileJob, FileReply, Files};
@@ -296,8 +296,8 @@ pub struct Link {
     pushed_ids: PushedIds,
 }
 
-/// The ids of pushed values by their [`crate::driver::Pushed::key`], for
-/// the table and the backend's list they were found in.
+/// The ids of pushed values of [`PushedVar::Listed`] variables, for the
+/// table and the backend's list they were found in.
 #[derive(Default)]
 struct PushedIds {
     /// Held weakly: a table reloaded since is freed, and its address is
@@ -311,33 +311,35 @@ struct PushedIds {
 impl PushedIds {
     const UNKNOWN: crate::vars::VarId = crate::vars::VarId::MAX;
 
-    /// The id of `key`'s variable in `table`, looked up by `name` once.
+    /// The id of `var` in `table`; a listed one looked up once, by the
+    /// name `name_of` gives for its list and index.
     fn id(
         &mut self,
         table: &Arc<crate::vars::VarTable>,
-        key: Option<(u32, u32)>,
-        name: &[u8],
+        var: &PushedVar,
+        name_of: impl FnOnce(u32, u32) -> Option<Arc<[u8]>>,
     ) -> Option<crate::vars::VarId> {
-        let Some((list, index)) = key else {
-            return table.lookup(name);
+        let (list, index) = match var {
+            PushedVar::Named(name) => return table.lookup(name),
+            &PushedVar::Listed { list, index } => (list, index),
         };
-        let index = index as usize;
+        let at = index as usize;
         // Bounded by the table: a list as long (arrays: their elements).
-        if index >= table.len().saturating_mul(2) {
-            return table.lookup(name);
+        if at >= table.len().saturating_mul(2) {
+            return table.lookup(&name_of(list, index)?);
         }
         if self.list != list || !std::ptr::eq(self.table.as_ptr(), Arc::as_ptr(table)) {
             self.table = Arc::downgrade(table);
             self.list = list;
             self.ids.clear();
         }
-        if index >= self.ids.len() {
-            self.ids.resize(index + 1, Self::UNKNOWN);
+        if at >= self.ids.len() {
+            self.ids.resize(at + 1, Self::UNKNOWN);
         }
-        match self.ids[index] {
+        match self.ids[at] {
             Self::UNKNOWN => {
-                let id = table.lookup(name)?;
-                self.ids[index] = id;
+                let id = table.lookup(&name_of(list, index)?)?;
+                self.ids[at] = id;
                 Some(id)
             }
             id => Some(id),
@@ -683,7 +685,8 @@ impl Link {
                     return;
                 }
             }
-            let Some(id) = self.pushed_ids.id(&table, value.key, &value.name) else {
+            let name_of = |list, index| self.backend.as_deref()?.pushed_name(list, index);
+            let Some(id) = self.pushed_ids.id(&table, &value.var, name_of) else {
                 continue;
             };
             if set.contains(&id) {
@@ -1337,33 +1340,68 @@ async fn wait_pushed(backend: Option<&mut (dyn PlcBackend + 'static)>) -> Result
 mod tests {
     use super::*;
 
-    /// A pushed value's key finds its variable by name once per table and
-    /// list: a reloaded table, or a new list whose places mean other
-    /// variables, is looked up anew.
+    /// A listed pushed value finds its variable by the name the backend
+    /// gives once per table and list: a reloaded table, or a new list whose
+    /// places mean other variables, is looked up anew.
     #[test]
     fn pushed_keys_are_looked_up_once_per_table_and_list() {
         use crate::vars::table_of;
         let a_b = Arc::new(table_of(&[("A", "INT"), ("B", "INT")]));
         let mut ids = PushedIds::default();
+        let asked = std::cell::Cell::new(0);
+        // The backend's names: its list `names_of` numbered `list`.
+        let names = |list: u32, names: &'static [&'static str]| {
+            let asked = &asked;
+            move |l: u32, i: u32| {
+                asked.set(asked.get() + 1);
+                assert_eq!(l, list, "asked for the list of the value");
+                names.get(i as usize).map(|n| Arc::from(n.as_bytes()))
+            }
+        };
+        let listed = |list, index| PushedVar::Listed { list, index };
         let list = crate::driver::next_list_version();
         let a = a_b.lookup(b"A").unwrap();
         let b = a_b.lookup(b"B").unwrap();
-        assert_eq!(ids.id(&a_b, Some((list, 0)), b"A"), Some(a));
-        // Kept by key: the name is not looked at again.
-        assert_eq!(ids.id(&a_b, Some((list, 0)), b"NOT_THERE"), Some(a));
-        assert_eq!(ids.id(&a_b, Some((list, 1)), b"B"), Some(b));
+        assert_eq!(
+            ids.id(&a_b, &listed(list, 0), names(list, &["A", "B"])),
+            Some(a)
+        );
+        // Kept by place: the name is not asked again.
+        assert_eq!(ids.id(&a_b, &listed(list, 0), names(list, &[])), Some(a));
+        assert_eq!(asked.get(), 1);
+        assert_eq!(
+            ids.id(&a_b, &listed(list, 1), names(list, &["A", "B"])),
+            Some(b)
+        );
         // A new list: place 0 is B now.
         let next = crate::driver::next_list_version();
-        assert_eq!(ids.id(&a_b, Some((next, 0)), b"B"), Some(b));
+        assert_eq!(ids.id(&a_b, &listed(next, 0), names(next, &["B"])), Some(b));
         // A new table (B first), the same list number.
         let b_a = Arc::new(table_of(&[("B", "INT"), ("C", "INT"), ("A", "INT")]));
-        assert_eq!(ids.id(&b_a, Some((next, 0)), b"A"), b_a.lookup(b"A"));
+        assert_eq!(
+            ids.id(&b_a, &listed(next, 0), names(next, &["A"])),
+            b_a.lookup(b"A")
+        );
         assert_ne!(b_a.lookup(b"A"), Some(a));
-        // Without a key, or one far beyond the table: by name.
-        assert_eq!(ids.id(&b_a, None, b"C"), b_a.lookup(b"C"));
-        assert_eq!(ids.id(&b_a, Some((next, u32::MAX)), b"B"), b_a.lookup(b"B"));
+        // Named, or listed far beyond the table: by name each time.
+        let c = PushedVar::Named(Arc::from(&b"C"[..]));
+        assert_eq!(ids.id(&b_a, &c, names(next, &[])), b_a.lookup(b"C"));
+        let far = listed(next, u32::MAX);
+        let asked_before = asked.get();
+        for _ in 0..2 {
+            let name = |_, _| Some(Arc::from(&b"B"[..]));
+            assert_eq!(ids.id(&b_a, &far, name), b_a.lookup(b"B"));
+        }
+        assert_eq!(asked.get(), asked_before);
         assert!(ids.ids.len() <= 2 * b_a.len());
-        assert_eq!(ids.id(&b_a, Some((next, 7)), b"NOT_THERE"), None);
+        // A name the table lacks, or a list the backend no longer serves.
+        assert_eq!(
+            ids.id(&b_a, &listed(next, 7), |_, _| Some(Arc::from(
+                &b"NOT_THERE"[..]
+            ))),
+            None
+        );
+        assert_eq!(ids.id(&b_a, &listed(next, 6), |_, _| None), None);
     }
 
     #[test]

@@ -11,8 +11,8 @@ use async_trait::async_trait;
 use plccoms_protocol::Area;
 
 use crate::driver::{
-    Answer, DirEntry, FileInfo, PlcBackend, PlcError, PlcStatus, Pushed, ReadRequest, WriteData,
-    WriteRequest,
+    Answer, DirEntry, FileInfo, PlcBackend, PlcError, PlcStatus, Pushed, PushedVar, ReadRequest,
+    WriteData, WriteRequest,
 };
 use crate::trace::{hex, FrameTrace};
 
@@ -190,11 +190,15 @@ impl PlcBackend for Traced {
         let pushed = self.inner.take_pushed();
         if self.trace.on() {
             for value in &pushed {
+                let name = match &value.var {
+                    PushedVar::Named(name) => Some(name.clone()),
+                    &PushedVar::Listed { list, index } => self.inner.pushed_name(list, index),
+                };
                 self.trace.plc(
                     "<-",
                     format_args!(
                         "pushed {} at {} ms: {}{}",
-                        String::from_utf8_lossy(&value.name),
+                        String::from_utf8_lossy(name.as_deref().unwrap_or(b"?")),
                         value.unix_ms,
                         hex(&value.bytes),
                         if value.uncertain { " (uncertain)" } else { "" }
@@ -203,6 +207,10 @@ impl PlcBackend for Traced {
             }
         }
         pushed
+    }
+
+    fn pushed_name(&self, list: u32, index: u32) -> Option<std::sync::Arc<[u8]>> {
+        self.inner.pushed_name(list, index)
     }
 
     async fn wait_pushed(&mut self) -> Result<(), PlcError> {
