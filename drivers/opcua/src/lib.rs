@@ -385,6 +385,8 @@ pub struct OpcuaBackend {
     /// The inbox's other buffer: taking swaps them, so that 100,000
     /// notifications a second do not allocate a new one each time.
     spare: Vec<(u64, u32, DataValue)>,
+    /// A take's (handle, place in the inbox), sorted: kept for the next.
+    order: Vec<(u32, u32)>,
     /// Of the current subscription: notifications of an older one (its
     /// handles meant another list) are dropped.
     generation: u64,
@@ -475,6 +477,7 @@ impl OpcuaBackend {
             inbox: Arc::default(),
             wake: Arc::default(),
             spare: Vec::new(),
+            order: Vec::new(),
             generation: 0,
             written: HashSet::new(),
             read_back: HashMap::new(),
@@ -1855,8 +1858,23 @@ impl PlcBackend for OpcuaBackend {
             return Vec::new();
         }
         let mut pushed = Vec::with_capacity(inbox.len());
+        // In the order of the handles, which is the list's and the table's:
+        // servers notify in any order (async-opcua's in its hashes'), and
+        // the values kept here, the link's slots and the chunks a publish
+        // copies are then walked in order, not at random. The same item's
+        // values stay in the order they came.
+        let mut order = std::mem::take(&mut self.order);
+        order.clear();
+        order.extend(
+            inbox
+                .iter()
+                .enumerate()
+                .map(|(at, (_, handle, _))| (*handle, at as u32)),
+        );
+        order.sort_unstable();
         let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
-        for (generation, handle, value) in inbox.drain(..) {
+        for &(_, at) in &order {
+            let (generation, handle, value) = std::mem::take(&mut inbox[at as usize]);
             if generation != self.generation {
                 continue;
             }
@@ -1908,8 +1926,11 @@ impl PlcBackend for OpcuaBackend {
         }
         drop(notified);
         // Kept for the next take, at the size of a slice or two at most.
+        inbox.clear();
         inbox.shrink_to(2 * TAKE_SLICE);
         self.spare = inbox;
+        order.shrink_to(2 * TAKE_SLICE);
+        self.order = order;
         pushed
     }
 
@@ -2217,13 +2238,20 @@ mod tests {
             .await
             .expect("woken for the rest")
             .unwrap();
+        // In the order of the items, each one's values as they came.
         let rest = backend.take_pushed();
-        assert_eq!(rest.len(), 7);
-        assert_eq!(name_of(&backend, &rest[6]), b"A");
+        let names: Vec<Vec<u8>> = rest.iter().map(|p| name_of(&backend, p)).collect();
+        assert_eq!(names, [&b"A"[..], b"A", b"A", b"A", b"B", b"B", b"B"]);
+        let values: Vec<i16> = rest
+            .iter()
+            .map(|p| i16::from_le_bytes([p.bytes[0], p.bytes[1]]))
+            .collect();
+        let slice = TAKE_SLICE as i16;
+        assert_eq!(values, [0, 2, 4, 6, 1, 3, 5].map(|n| slice + n));
         // A list no longer served names nothing.
         let other = backend.served_version.wrapping_add(1);
         assert_eq!(backend.pushed_name(other, 0), None);
-        assert_eq!(rest[6].bytes, ((all - 1) as i16).to_le_bytes());
+        assert_eq!(rest[3].bytes, ((all - 1) as i16).to_le_bytes());
         assert!(backend.take_pushed().is_empty());
         // The value reads answer is the last taken.
         let notified = backend.notified.lock().unwrap();
@@ -2268,7 +2296,7 @@ mod tests {
             .collect();
         assert_eq!(
             taken,
-            [(b"B".to_vec(), 7), (b"A".to_vec(), 2), (b"A".to_vec(), 3)]
+            [(b"A".to_vec(), 2), (b"A".to_vec(), 3), (b"B".to_vec(), 7)]
         );
         assert!(backend.read_back.is_empty());
     }
