@@ -92,7 +92,7 @@ impl PlcBackend for Pushing {
         // Reads answer what was pushed last, as a pushing device's do.
         let mut device = self.inner.device().lock().unwrap();
         for (offset, value) in [(V_UINT_AT, &take[TAKE - 1]), (V_DINT_AT, &take[STALE_AT])] {
-            let data = WriteData::Bytes(value.bytes.clone());
+            let data = WriteData::Bytes(value.bytes.to_vec());
             device.write(Area::R, offset, &data).unwrap();
         }
         drop(device);
@@ -109,7 +109,7 @@ impl PlcBackend for Pushing {
 fn pushed(name: &str, bytes: Vec<u8>) -> Pushed {
     Pushed {
         var: PushedVar::Named(name.as_bytes().into()),
-        bytes,
+        bytes: bytes.into(),
         unix_ms: 1_700_000_000_000,
         uncertain: false,
     }

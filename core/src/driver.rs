@@ -81,13 +81,17 @@ pub struct Pushed {
     /// The variable.
     pub var: PushedVar,
     /// Its bytes, as a read of it answers them.
-    pub bytes: Vec<u8>,
+    pub bytes: PushedBytes,
     /// The device's time stamp: UTC milliseconds since 1970.
     pub unix_ms: i64,
     /// The device marked the value uncertain (OPC UA's Uncertain status):
     /// served as stale; `false` is good.
     pub uncertain: bool,
 }
+
+/// A pushed value's bytes: inline up to 16 (every type but STRING), so
+/// that 100,000 values a second take no allocation each.
+pub type PushedBytes = smallvec::SmallVec<[u8; 16]>;
 
 /// Which variable a [`Pushed`] value is of.
 #[derive(Debug, Clone, PartialEq, Eq)]

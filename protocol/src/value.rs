@@ -342,35 +342,46 @@ impl Value {
     /// Appends exactly `ty.size()` little-endian bytes. STRING: the bytes (at
     /// most the capacity), then NULs up to `n + 1`. BOOL: one byte, 0 or 1.
     pub fn encode(&self, ty: IecType, out: &mut Vec<u8>) {
+        self.encode_with(ty, |bytes| out.extend_from_slice(bytes));
+    }
+
+    /// [`Value::encode`], the bytes handed to `put` in pieces: into a
+    /// buffer of any kind (an inline one takes no allocation).
+    pub fn encode_with(&self, ty: IecType, mut put: impl FnMut(&[u8])) {
         match ty {
             IecType::Real => {
                 let f = match self {
                     Value::Real(f) => *f,
                     other => other.as_f64() as f32,
                 };
-                out.extend_from_slice(&f.to_le_bytes());
+                put(&f.to_le_bytes());
             }
             IecType::Lreal | IecType::Date | IecType::Dt => {
-                out.extend_from_slice(&self.as_f64().to_le_bytes());
+                put(&self.as_f64().to_le_bytes());
             }
             IecType::String(cap) => {
-                let size = ty.size();
-                let start = out.len();
+                let mut padding = ty.size();
                 if let Value::Str(bytes) = self {
                     let bytes = &bytes[..min(bytes.len(), usize::from(cap))];
                     let end = bytes.iter().position(|&b| b == 0).unwrap_or(bytes.len());
-                    out.extend_from_slice(&bytes[..end]);
+                    put(&bytes[..end]);
+                    padding -= end;
                 }
-                out.resize(start + size, 0);
+                const ZEROS: [u8; 64] = [0; 64];
+                while padding > 0 {
+                    let n = padding.min(ZEROS.len());
+                    put(&ZEROS[..n]);
+                    padding -= n;
+                }
             }
-            IecType::Bool => out.push(u8::from(self.as_u64() != 0)),
+            IecType::Bool => put(&[u8::from(self.as_u64() != 0)]),
             _ => {
                 let bits = if is_signed(ty) {
                     self.as_i64() as u64
                 } else {
                     self.as_u64()
                 };
-                out.extend_from_slice(&bits.to_le_bytes()[..ty.size()]);
+                put(&bits.to_le_bytes()[..ty.size()]);
             }
         }
     }

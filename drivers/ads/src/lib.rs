@@ -39,8 +39,8 @@ use tracing::{info, warn};
 use client::Connection;
 use plccoms_core::config::{Protocol, ADS_SYMBOLS};
 use plccoms_core::driver::{
-    Answer, Driver, FileInfo, Opened, PlcBackend, PlcError, PlcStatus, Pushed, PushedVar,
-    ReadRequest, Refusal, WriteData, WriteRequest, FILE_ATTRIBUTE_READONLY,
+    Answer, Driver, FileInfo, Opened, PlcBackend, PlcError, PlcStatus, Pushed, PushedBytes,
+    PushedVar, ReadRequest, Refusal, WriteData, WriteRequest, FILE_ATTRIBUTE_READONLY,
 };
 use plccoms_core::metrics::BackendCounters;
 use plccoms_plc::ads::command::{
@@ -951,7 +951,7 @@ impl PlcBackend for AdsBackend {
                 }
                 pushed.push(Pushed {
                     var: PushedVar::Named(leaf.name.as_bytes().into()),
-                    bytes: sample.data.to_vec(),
+                    bytes: PushedBytes::from_slice(&sample.data),
                     unix_ms,
                     // ADS has no per-value quality.
                     uncertain: false,

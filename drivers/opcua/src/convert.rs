@@ -4,6 +4,7 @@
 //! and those bytes back as the Variant the node takes.
 
 use opcua::types::{DateTime, NodeId, UAString, Variant};
+use plccoms_core::driver::PushedBytes;
 use plccoms_protocol::value::Value;
 use plccoms_protocol::{cp1250, IecType};
 
@@ -172,10 +173,10 @@ fn is_signed(ty: IecType) -> bool {
 }
 
 /// The bytes a variable of type `ty` holds for `variant`.
-pub fn bytes_of(variant: &Variant, ty: IecType) -> Option<Vec<u8>> {
+pub fn bytes_of(variant: &Variant, ty: IecType) -> Option<PushedBytes> {
     let value = value_of(variant, ty)?;
-    let mut out = Vec::with_capacity(ty.size());
-    value.encode(ty, &mut out);
+    let mut out = PushedBytes::new();
+    value.encode_with(ty, |bytes| out.extend_from_slice(bytes));
     Some(out)
 }
 

@@ -70,8 +70,8 @@ use tracing::{info, warn};
 use convert::Builtin;
 use plccoms_core::config::Protocol;
 use plccoms_core::driver::{
-    Answer, Driver, FileInfo, Opened, PlcBackend, PlcError, PlcStatus, Pushed, PushedVar,
-    ReadRequest, Refusal, WriteData, WriteRequest,
+    Answer, Driver, FileInfo, Opened, PlcBackend, PlcError, PlcStatus, Pushed, PushedBytes,
+    PushedVar, ReadRequest, Refusal, WriteData, WriteRequest,
 };
 use plccoms_core::metrics::BackendCounters;
 use plccoms_plc::memory::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
@@ -1219,7 +1219,7 @@ fn entry_bytes(
     entry: &Entry,
     value: &DataValue,
     fields: &mut structure::Fields,
-) -> Answer<Vec<u8>> {
+) -> Answer<PushedBytes> {
     let status = value.status.unwrap_or(StatusCode::Good);
     if status.is_bad() {
         return Err(refusal(status));
@@ -2232,7 +2232,7 @@ mod tests {
             .extend((0..all).map(|n| (backend.generation, (n % 2) as u32 + 1, int(n as i16))));
         let first = backend.take_pushed();
         assert_eq!(first.len(), TAKE_SLICE);
-        assert_eq!(first[0].bytes, 0i16.to_le_bytes());
+        assert_eq!(first[0].bytes[..], 0i16.to_le_bytes());
         // Woken for the rest.
         tokio::time::timeout(Duration::from_secs(5), backend.wait_pushed())
             .await
@@ -2251,7 +2251,7 @@ mod tests {
         // A list no longer served names nothing.
         let other = backend.served_version.wrapping_add(1);
         assert_eq!(backend.pushed_name(other, 0), None);
-        assert_eq!(rest[3].bytes, ((all - 1) as i16).to_le_bytes());
+        assert_eq!(rest[3].bytes[..], ((all - 1) as i16).to_le_bytes());
         assert!(backend.take_pushed().is_empty());
         // The value reads answer is the last taken.
         let notified = backend.notified.lock().unwrap();
