@@ -94,6 +94,7 @@ impl Feed {
         let nodes = &self.nodes;
         let opts = nodes.section.format();
         let now = std::time::Instant::now();
+        let stamp_now = DateTime::now();
         let mut next_due = None;
         let mut updates: Vec<(NodeId, DataValue)> = Vec::new();
         // The first variable of the next slice (`watched` is ordered).
@@ -129,10 +130,12 @@ impl Feed {
                 watched.seq = slot.changed_seq;
                 watched.quality = Some(quality);
                 let stamp = view.stamp_of.get(&id).copied();
-                let node = ids::variable(&nodes.name, &space::shown_name(&view.table, id));
+                // The name borrowed where it is ASCII (no copy to make it UTF-8).
+                let name = plccoms_protocol::cp1250::decode(&view.table.var(id).name);
+                let node = ids::variable(&nodes.name, &name);
                 updates.push((
                     self.shared.node(node),
-                    space::data_value(snapshot, id, stamp, opts),
+                    space::data_value_at(snapshot, id, stamp, opts, stamp_now),
                 ));
             }
         }

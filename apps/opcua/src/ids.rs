@@ -54,7 +54,12 @@ pub enum IdError {
 pub const MAX: usize = 1024;
 
 pub fn variable(section: &str, variable: &str) -> String {
-    format!("{section}.{variable}")
+    // Made for every change the feed gives: one allocation, no formatter.
+    let mut id = String::with_capacity(section.len() + 1 + variable.len());
+    id.push_str(section);
+    id.push('.');
+    id.push_str(variable);
+    id
 }
 
 pub fn property(owner: &str, property: &str) -> String {

@@ -444,9 +444,21 @@ pub fn data_value(
     stamp: Option<VarId>,
     opts: &plccoms_protocol::value::FormatOptions,
 ) -> DataValue {
+    data_value_at(snapshot, id, stamp, opts, DateTime::now())
+}
+
+/// [`data_value`] with `now` as its ServerTimestamp: the feed's changes of
+/// one walk share one (the clock read and converted for each of 100,000
+/// was 3.5 % of the serving side's CPU).
+pub fn data_value_at(
+    snapshot: &Snapshot,
+    id: VarId,
+    stamp: Option<VarId>,
+    opts: &plccoms_protocol::value::FormatOptions,
+    now: DateTime,
+) -> DataValue {
     let slot = snapshot.slot(id);
     let var = snapshot.table.var(id);
-    let now = DateTime::now();
     let Some(text) = slot.text() else {
         return DataValue {
             value: None,
