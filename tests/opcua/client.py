@@ -82,7 +82,11 @@ async def make_cert(folder):
 
 
 async def connect(args):
-    client = Client(url=args.url, timeout=10)
+    # The liveness probe every 10 s, not asyncua's 1 s: a Read of
+    # ServerState that waits over 1 s behind thousands of notifications a
+    # second in this Python process (two busy cores) dropped the connection
+    # and every change after it.
+    client = Client(url=args.url, timeout=10, watchdog_intervall=10)
     if args.user:
         client.set_user(args.user)
         client.set_password(args.password or "")
