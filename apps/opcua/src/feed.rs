@@ -130,9 +130,7 @@ impl Feed {
                 watched.seq = slot.changed_seq;
                 watched.quality = Some(quality);
                 let stamp = view.stamp_of.get(&id).copied();
-                // The name borrowed where it is ASCII (no copy to make it UTF-8).
-                let name = plccoms_protocol::cp1250::decode(&view.table.var(id).name);
-                let node = ids::variable(&nodes.name, &name);
+                let node = ids::variable(&nodes.name, &space::shown_name(&view.table, id));
                 updates.push((
                     self.shared.node(node),
                     space::data_value_at(snapshot, id, stamp, opts, stamp_now),

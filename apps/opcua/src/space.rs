@@ -194,9 +194,10 @@ impl Shared {
     }
 }
 
-/// A variable's name as shown (UTF-8).
-pub fn shown_name(table: &VarTable, id: VarId) -> String {
-    cp1250::decode(&table.var(id).name).into_owned()
+/// A variable's name as shown (UTF-8): borrowed where it is ASCII (the
+/// feed makes one for every change it gives).
+pub fn shown_name(table: &VarTable, id: VarId) -> std::borrow::Cow<'_, str> {
+    cp1250::decode(&table.var(id).name)
 }
 
 impl View {
@@ -279,7 +280,9 @@ impl View {
     pub fn take_monitored(&mut self) -> HashMap<String, u32> {
         let mut names = std::mem::take(&mut self.absent);
         for (id, watched) in std::mem::take(&mut self.watched) {
-            *names.entry(shown_name(&self.table, id)).or_default() += watched.count;
+            *names
+                .entry(shown_name(&self.table, id).into_owned())
+                .or_default() += watched.count;
         }
         names
     }
