@@ -350,6 +350,8 @@ async fn run(args: &Args, binary: &Path, n: usize, against: Against) -> Row {
             "T",
         ),
     };
+    // For bench/opcua/wire, which captures both ports on the loopback.
+    eprintln!("bench-opcua: ports: server {ua} section {via_port}");
     let started = Instant::now();
     let keys: String = args
         .client_keys
