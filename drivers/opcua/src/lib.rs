@@ -381,11 +381,10 @@ pub struct OpcuaBackend {
     inbox: Inbox,
     /// Rung by each notification (the link's `wait_pushed`).
     wake: Arc<tokio::sync::Notify>,
-    /// The notifications being taken ([`TAKE_BATCH`] at most), the
-    /// inbox's other buffer: taking swaps them, so that 100,000
+    /// The inbox's other buffer: taking swaps them, so that 100,000
     /// notifications a second do not allocate a new one each time.
-    batch: Vec<(u64, u32, DataValue)>,
-    /// The (handle, place in `batch`) not yet taken, sorted.
+    spare: Vec<(u64, u32, DataValue)>,
+    /// A take's (handle, place in the inbox), sorted: kept for the next.
     order: Vec<(u32, u32)>,
     /// Of the current subscription: notifications of an older one (its
     /// handles meant another list) are dropped.
@@ -476,7 +475,7 @@ impl OpcuaBackend {
             notified: Arc::default(),
             inbox: Arc::default(),
             wake: Arc::default(),
-            batch: Vec::new(),
+            spare: Vec::new(),
             order: Vec::new(),
             generation: 0,
             written: HashSet::new(),
@@ -569,8 +568,7 @@ impl OpcuaBackend {
         self.subscription = None;
         // Released, not kept at its largest while the server is away.
         *self.inbox.lock().unwrap_or_else(|e| e.into_inner()) = Vec::new();
-        self.batch = Vec::new();
-        self.order = Vec::new();
+        self.spare = Vec::new();
         self.notified
             .lock()
             .unwrap_or_else(|e| e.into_inner())
@@ -766,29 +764,6 @@ impl OpcuaBackend {
             .get(offset as usize..end)
             .map(<[u8]>::to_vec)
             .ok_or(Refusal::BAD_PARAMETERS)
-    }
-
-    /// The next [`TAKE_BATCH`] notifications at most from the inbox into
-    /// `batch`, and `order`: their (handle, place in `batch`), sorted, so
-    /// that each item's values stay in the order they came.
-    fn next_batch(&mut self) {
-        self.batch.clear();
-        {
-            let mut shared = self.inbox.lock().unwrap_or_else(|e| e.into_inner());
-            if shared.len() <= TAKE_BATCH {
-                std::mem::swap(&mut *shared, &mut self.batch);
-            } else {
-                self.batch.extend(shared.drain(..TAKE_BATCH));
-            }
-        }
-        self.order.clear();
-        self.order.extend(
-            self.batch
-                .iter()
-                .enumerate()
-                .map(|(at, (_, handle, _))| (*handle, at as u32)),
-        );
-        self.order.sort_unstable();
     }
 
     /// The entries a read of R covers, by index.
@@ -1324,19 +1299,12 @@ const NOTIFICATIONS_PER_PUBLISH: u32 = 10_000;
 /// Most bytes of R one read answers in subscribe mode.
 const SUBSCRIBED_READ_BLOCK: u32 = 4096;
 
-/// Most notifications sorted at once: a publish's worth. Servers notify in
-/// no order of the variables (async-opcua's in its hashes'); sorted by
-/// handle, the list's and the table's order, the values kept here, the
-/// link's slots and the chunks a publish of the link's state copies are
-/// walked in order, and a slice of them touches only its share of the
-/// chunks.
-const TAKE_BATCH: usize = NOTIFICATIONS_PER_PUBLISH as usize;
-
-/// Most notifications the link takes at once ([`PlcBackend::take_pushed`]),
-/// in a batch's order: between two slices a SET queued meanwhile is
-/// served. A take is not interrupted: 10,000 at once held a SET for 6 ms
-/// (p50) to 13 ms (p99) on 2 cores at 100,000 changes a second.
-const TAKE_SLICE: usize = 2_000;
+/// Most notifications the link takes at once ([`PlcBackend::take_pushed`]):
+/// between two such slices a SET queued meanwhile is served. A slice is
+/// one publish of the link's state, which costs the state's chunks it
+/// touches: servers notify in no order of the variables (a slice of 2,000
+/// touched nearly all of them), so one publish a message, not more.
+const TAKE_SLICE: usize = NOTIFICATIONS_PER_PUBLISH as usize;
 
 /// How long after a SET's read-back notifications sampled before it are
 /// dropped, at most: one whose server stamps reads and notifications from
@@ -1868,22 +1836,44 @@ impl PlcBackend for OpcuaBackend {
     /// At most [`TAKE_SLICE`] a call: the rest at the next, after the
     /// link's queued requests.
     fn take_pushed(&mut self) -> Vec<Pushed> {
-        if self.subscription.is_none() {
-            self.batch.clear();
-            self.order.clear();
-            self.inbox.lock().unwrap_or_else(|e| e.into_inner()).clear();
+        let mut inbox = std::mem::take(&mut self.spare);
+        let behind = {
+            let mut shared = self.inbox.lock().unwrap_or_else(|e| e.into_inner());
+            if shared.len() <= TAKE_SLICE {
+                std::mem::swap(&mut *shared, &mut inbox);
+                false
+            } else {
+                inbox.extend(shared.drain(..TAKE_SLICE));
+                true
+            }
+        };
+        if behind {
+            // The rest: the link comes back for it.
+            self.wake.notify_one();
+        }
+        if inbox.is_empty() || self.subscription.is_none() {
+            inbox.clear();
+            self.spare = inbox;
             return Vec::new();
         }
-        if self.order.is_empty() {
-            self.next_batch();
-        }
-        let mut batch = std::mem::take(&mut self.batch);
+        let mut pushed = Vec::with_capacity(inbox.len());
+        // In the order of the handles, which is the list's and the table's:
+        // servers notify in any order (async-opcua's in its hashes'), and
+        // the values kept here, the link's slots and the chunks a publish
+        // copies are then walked in order, not at random. The same item's
+        // values stay in the order they came.
         let mut order = std::mem::take(&mut self.order);
-        let slice = order.len().min(TAKE_SLICE);
-        let mut pushed = Vec::with_capacity(slice);
+        order.clear();
+        order.extend(
+            inbox
+                .iter()
+                .enumerate()
+                .map(|(at, (_, handle, _))| (*handle, at as u32)),
+        );
+        order.sort_unstable();
         let mut notified = self.notified.lock().unwrap_or_else(|e| e.into_inner());
-        for (_, at) in order.drain(..slice) {
-            let (generation, handle, value) = std::mem::take(&mut batch[at as usize]);
+        for &(_, at) in &order {
+            let (generation, handle, value) = std::mem::take(&mut inbox[at as usize]);
             if generation != self.generation {
                 continue;
             }
@@ -1934,23 +1924,11 @@ impl PlcBackend for OpcuaBackend {
             notified.insert(handle, value, self.served.sources.len());
         }
         drop(notified);
-        if order.is_empty() {
-            // Kept for the next batch, at the size of a batch or two at most.
-            batch.clear();
-            batch.shrink_to(2 * TAKE_BATCH);
-            order.shrink_to(2 * TAKE_BATCH);
-        }
-        if !order.is_empty()
-            || !self
-                .inbox
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .is_empty()
-        {
-            // The rest: the link comes back for it.
-            self.wake.notify_one();
-        }
-        self.batch = batch;
+        // Kept for the next take, at the size of a slice or two at most.
+        inbox.clear();
+        inbox.shrink_to(2 * TAKE_SLICE);
+        self.spare = inbox;
+        order.shrink_to(2 * TAKE_SLICE);
         self.order = order;
         pushed
     }
@@ -2245,44 +2223,30 @@ mod tests {
     #[tokio::test]
     async fn notifications_are_taken_in_slices() {
         let mut backend = subscribed_to_a_and_b();
-        let all = TAKE_BATCH + 7;
+        let all = TAKE_SLICE + 7;
         backend
             .inbox
             .lock()
             .unwrap()
             .extend((0..all).map(|n| (backend.generation, (n % 2) as u32 + 1, int(n as i16))));
-        let value = |p: &Pushed| i16::from_le_bytes([p.bytes[0], p.bytes[1]]);
-        let mut takes = Vec::new();
-        loop {
-            let take = backend.take_pushed();
-            assert!(take.len() <= TAKE_SLICE, "{} taken at once", take.len());
-            takes.push(take);
-            // Woken for the rest, if any.
-            let woken = tokio::time::timeout(Duration::from_millis(100), backend.wait_pushed());
-            if woken.await.is_err() {
-                break;
-            }
-        }
-        assert_eq!(takes.len(), TAKE_BATCH / TAKE_SLICE + 1);
-        // A batch in the order of the items, each one's values as they came.
-        let batch: Vec<(Vec<u8>, i16)> = takes[..takes.len() - 1]
-            .iter()
-            .flatten()
-            .map(|p| (name_of(&backend, p), value(p)))
-            .collect();
-        let half = TAKE_BATCH as i16 / 2;
-        let expected: Vec<(Vec<u8>, i16)> = (0..half)
-            .map(|n| (b"A".to_vec(), 2 * n))
-            .chain((0..half).map(|n| (b"B".to_vec(), 2 * n + 1)))
-            .collect();
-        assert!(batch == expected, "the first batch out of order");
-        // Then the next batch likewise.
-        let rest = takes.pop().unwrap();
+        let first = backend.take_pushed();
+        assert_eq!(first.len(), TAKE_SLICE);
+        assert_eq!(first[0].bytes[..], 0i16.to_le_bytes());
+        // Woken for the rest.
+        tokio::time::timeout(Duration::from_secs(5), backend.wait_pushed())
+            .await
+            .expect("woken for the rest")
+            .unwrap();
+        // In the order of the items, each one's values as they came.
+        let rest = backend.take_pushed();
         let names: Vec<Vec<u8>> = rest.iter().map(|p| name_of(&backend, p)).collect();
         assert_eq!(names, [&b"A"[..], b"A", b"A", b"A", b"B", b"B", b"B"]);
-        let values: Vec<i16> = rest.iter().map(value).collect();
-        let batch = TAKE_BATCH as i16;
-        assert_eq!(values, [0, 2, 4, 6, 1, 3, 5].map(|n| batch + n));
+        let values: Vec<i16> = rest
+            .iter()
+            .map(|p| i16::from_le_bytes([p.bytes[0], p.bytes[1]]))
+            .collect();
+        let slice = TAKE_SLICE as i16;
+        assert_eq!(values, [0, 2, 4, 6, 1, 3, 5].map(|n| slice + n));
         // A list no longer served names nothing.
         let other = backend.served_version.wrapping_add(1);
         assert_eq!(backend.pushed_name(other, 0), None);
