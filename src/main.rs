@@ -29,8 +29,9 @@ const DEFAULT_CONFIG: &str = "PLCComS.ini";
 ///   far, so that a burst's big buffers (an OPC UA publish of 100,000
 ///   notifications, its decoded lists) are reused from the heap and their
 ///   pages stay resident between bursts. `bench-opcua --vars 100000
-///   --against ua`, client RSS peak over three alternating runs each:
-///   100-108 -> 93-96 MiB, CPU the same (0.24-0.27 core).
+///   --window 20 --against ua --plccoms BIN`, the binary before and after
+///   alternating, 3 runs each: client RSS peak 104.8-107.2 -> 95.1-95.9
+///   MiB, CPU the same (0.24-0.27 core).
 fn tune_malloc() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
