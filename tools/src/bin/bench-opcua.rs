@@ -229,8 +229,9 @@ impl Drop for Server {
     }
 }
 
-/// The section's OPC UA requests so far, from the client side's /metrics.
-fn requests(http: u16) -> Option<f64> {
+/// The section's OPC UA requests and DIFF lines so far, from the client
+/// side's /metrics.
+fn requests(http: u16) -> Option<(f64, f64)> {
     use std::io::{Read, Write};
     let mut stream = TcpStream::connect(("127.0.0.1", http)).ok()?;
     stream
@@ -243,9 +244,16 @@ fn requests(http: u16) -> Option<f64> {
     .ok()?;
     let mut text = String::new();
     stream.read_to_string(&mut text).ok()?;
-    text.lines()
-        .find(|l| l.starts_with("plccoms_backend_requests_total{section=\"Via\"}"))
-        .and_then(|l| l.rsplit(' ').next()?.parse().ok())
+    let value = |name: &str| -> Option<f64> {
+        let prefix = format!("{name}{{section=\"Via\"}} ");
+        text.lines()
+            .find_map(|l| l.strip_prefix(prefix.as_str()))
+            .and_then(|v| v.trim().parse().ok())
+    };
+    Some((
+        value("plccoms_backend_requests_total")?,
+        value("plccoms_diff_lines_total")?,
+    ))
 }
 
 /// The answer to one line asked of the section at `port`.
@@ -279,6 +287,9 @@ struct Row {
     rss_peak_mib: f64,
     rss_mib: f64,
     requests_per_cycle: f64,
+    /// DIFF lines a second to the clients (the watcher's EN:*): every
+    /// value changing once a cycle comes as one.
+    diffs_per_s: f64,
     confirm: Vec<f64>,
     diff: Vec<f64>,
 }
@@ -395,9 +406,9 @@ async fn run(args: &Args, binary: &Path, n: usize, against: Against) -> Row {
     let (c1, r1, t1) = (procfs::cpu_seconds(pid), requests(http), Instant::now());
     let seconds = (t1 - t0).as_secs_f64();
     let cycles = seconds * 1000.0 / delay as f64;
-    let requests_per_cycle = match (r0, r1) {
-        (Some(a), Some(b)) => (b - a) / cycles,
-        _ => f64::NAN,
+    let (requests_per_cycle, diffs_per_s) = match (r0, r1) {
+        (Some(a), Some(b)) => ((b.0 - a.0) / cycles, (b.1 - a.1) / seconds),
+        _ => (f64::NAN, f64::NAN),
     };
     let log = dir.path().join("client.log");
     let serving_log = dir.path().join("serving.log");
@@ -435,6 +446,7 @@ async fn run(args: &Args, binary: &Path, n: usize, against: Against) -> Row {
             .map_or(f64::NAN, |kib| kib as f64 / 1024.0),
         rss_mib: procfs::status_field(pid, "VmRSS").map_or(f64::NAN, |kib| kib as f64 / 1024.0),
         requests_per_cycle,
+        diffs_per_s,
         confirm,
         diff,
     }
@@ -522,11 +534,11 @@ async fn main() {
     );
     let _ = writeln!(
         out,
-        "| server | variables | ready after | client CPU | client RSS peak / now | requests per cycle | SET confirmed min / avg / max / p99 | SET -> DIFF min / avg / max / p99 | DIFFs seen |"
+        "| server | variables | ready after | client CPU | client RSS peak / now | requests per cycle | DIFF lines/s | SET confirmed min / avg / max / p99 | SET -> DIFF min / avg / max / p99 | DIFFs seen |"
     );
     let _ = writeln!(
         out,
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"
     );
     let mut splits = Vec::new();
     for (&n, &against) in args
@@ -550,13 +562,14 @@ async fn main() {
         let (d_min, d_avg, d_max, d_p99) = summary(&r.diff);
         let _ = writeln!(
             out,
-            "| {server} | {} | {:.1} s | {:.3} cores | {:.1} / {:.1} MiB | {:.2} | {c_min:.2} / {c_avg:.2} / {c_max:.2} / {c_p99:.2} ms | {d_min:.2} / {d_avg:.2} / {d_max:.2} / {d_p99:.2} ms | {} of {} |",
+            "| {server} | {} | {:.1} s | {:.3} cores | {:.1} / {:.1} MiB | {:.2} | {:.0} | {c_min:.2} / {c_avg:.2} / {c_max:.2} / {c_p99:.2} ms | {d_min:.2} / {d_avg:.2} / {d_max:.2} / {d_p99:.2} ms | {} of {} |",
             r.vars,
             r.ready_s,
             r.cpu_cores,
             r.rss_peak_mib,
             r.rss_mib,
             r.requests_per_cycle,
+            r.diffs_per_s,
             r.diff.len(),
             r.confirm.len()
         );
@@ -566,6 +579,7 @@ async fn main() {
             ("rss_peak_mib", r.rss_peak_mib),
             ("rss_mib", r.rss_mib),
             ("requests_per_cycle", r.requests_per_cycle),
+            ("diffs_per_s", r.diffs_per_s),
             ("set_confirm_min_ms", c_min),
             ("set_confirm_avg_ms", c_avg),
             ("set_confirm_max_ms", c_max),
