@@ -838,3 +838,84 @@ async fn sets_on_a_session_of_their_own() {
     assert!(log.contains("no session of its own for SETs"), "{log}");
     assert!(log.contains("BadMaxConnectionsReached"), "{log}");
 }
+
+/// The monitored items each session of the section made, from the server
+/// (`items N1 N2 ...`), once `total` are made (asked again for up to 10 s:
+/// the link subscribes at its next polls).
+async fn items_by_session(server: &mut OpcServer, total: usize, plc: &ServerProcess) -> Vec<usize> {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let answer = server.answer("items");
+        let items: Vec<usize> = answer
+            .split_whitespace()
+            .skip(1)
+            .map(|n| n.parse().expect("a count"))
+            .collect();
+        if items.iter().sum::<usize>() == total {
+            return items;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{answer}, not {total} in all; the log:\n{}",
+            plc.log()
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+/// EN:* and the server's own changes of variables monitored on the first
+/// session and on the last, as DIFFs; a SET confirmed.
+async fn every_session_notifies(server: &mut OpcServer, plc: &ServerProcess) {
+    let mut c = Client::connect(plc.addr).await;
+    listed(&mut c, "db_line1.motor.speed").await;
+    c.send(b"EN:*\r\n").await;
+    c.wait_for_line(
+        b"DIFF:DB_LINE1.MOTOR.SPEED,1450.5000000000\r\n",
+        Duration::from_secs(10),
+    )
+    .await;
+    // 20 nodes (the array and the structure's fields each one) and the
+    // server's state.
+    let items = items_by_session(server, 21, plc).await;
+    for (set, diff) in [
+        ("set INT16_V 77", "DIFF:TYPES.INT16_V,77\r\n"),
+        (
+            "set SPEED 12.25",
+            "DIFF:DB_LINE1.MOTOR.SPEED,12.2500000000\r\n",
+        ),
+    ] {
+        server.command(set);
+        c.wait_for_line(diff.as_bytes(), Duration::from_secs(5))
+            .await;
+    }
+    c.send(b"SET:types.int32_v,-42\r\n").await;
+    c.wait_for_line(b"DIFF:TYPES.INT32_V,-42\r\n", Duration::from_secs(5))
+        .await;
+    assert!(items.len() > 1, "{items:?}");
+}
+
+/// OPCUA_SESSION_ITEMS: the monitored items are spread over sessions of
+/// at most that many, each notifying its own; where the server grants no
+/// more sessions, the rest go on the sessions there are (said in the log).
+#[tokio::test]
+async fn monitored_items_spread_over_sessions() {
+    let keys = "OPCUA_REBROWSE = 0\nOPCUA_TIMEOUT = 5000\nOPCUA_SESSION_ITEMS = 4";
+    let mut server = OpcServer::start(free_port(), None);
+    let plc = plccoms(&server.url(), keys);
+    every_session_notifies(&mut server, &plc).await;
+    let items = items_by_session(&mut server, 21, &plc).await;
+    assert_eq!(items, [4, 4, 4, 4, 4, 1], "{}", plc.log());
+
+    // The link's session, the SETs' and one more.
+    let mut server = OpcServer::start_args(free_port(), None, None, Some(3));
+    let plc = plccoms(&server.url(), keys);
+    every_session_notifies(&mut server, &plc).await;
+    let items = items_by_session(&mut server, 21, &plc).await;
+    assert_eq!(items, [4, 17], "{}", plc.log());
+    let log = plc.log();
+    assert!(
+        log.contains("no further session for monitored items"),
+        "{log}"
+    );
+    assert!(log.contains("BadMaxConnectionsReached"), "{log}");
+}

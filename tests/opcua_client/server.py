@@ -30,6 +30,9 @@ stdin, one a line:
   wrote      answers `wrote apart` when every Write so far came on a session
              without subscriptions, `wrote together` when every one came on
              a session with one, else `wrote mixed` (or `wrote nothing`)
+  items      answers `items N1 N2 ...`: the monitored items created on each
+             session that made any (of its client's, in the order the
+             sessions began), or `items` when none
 """
 
 import asyncio
@@ -76,6 +79,9 @@ WRITE_SESSIONS = []
 SUBSCRIPTION_SESSIONS = set()
 _write = InternalSession.write
 _create_subscription = InternalSession.create_subscription
+_create_monitored_items = InternalSession.create_monitored_items
+# Monitored items created (Good) by session, in the order sessions made any.
+ITEMS = {}
 
 
 async def _recorded_write(self, params):
@@ -89,7 +95,16 @@ async def _recorded_create_subscription(self, params, *args, **kwargs):
     return await _create_subscription(self, params, *args, **kwargs)
 
 
+async def _recorded_create_monitored_items(self, params):
+    results = await _create_monitored_items(self, params)
+    if self.external:
+        made = sum(1 for r in results if r.StatusCode.is_good())
+        ITEMS[self.session_id] = ITEMS.get(self.session_id, 0) + made
+    return results
+
+
 InternalSession.write = _recorded_write
+InternalSession.create_monitored_items = _recorded_create_monitored_items
 InternalSession.create_subscription = _recorded_create_subscription
 
 
@@ -260,6 +275,8 @@ async def main():
                     print("wrote together", flush=True)
                 else:
                     print("wrote mixed", flush=True)
+            elif words[:1] == ["items"]:
+                print(" ".join(["items"] + [str(n) for n in ITEMS.values()]), flush=True)
             elif words[:1] == ["set"]:
                 node, vtype = nodes[words[1]]
                 await node.write_value(ua.Variant(type(await node.read_value())(words[2]) if vtype != ua.VariantType.Boolean else words[2] == "1", vtype))

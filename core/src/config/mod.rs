@@ -532,6 +532,9 @@ pub struct OpcuaClient {
     pub rebrowse: Duration,
     /// `OPCUA_WRITE_SESSION`: SETs on a session of their own.
     pub write_session: bool,
+    /// `OPCUA_SESSION_ITEMS`: monitored items one session holds; more go
+    /// on further sessions (0: no limit).
+    pub session_items: usize,
 }
 
 /// `OPCUA_MODE` choices.

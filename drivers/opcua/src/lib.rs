@@ -104,6 +104,9 @@ pub struct OpcuaConfig {
     pub rebrowse: Option<Duration>,
     /// OPCUA_WRITE_SESSION: SETs on a second session.
     pub write_session: bool,
+    /// OPCUA_SESSION_ITEMS: monitored items a session holds, more on
+    /// further sessions; `usize::MAX`: all on the link's.
+    pub session_items: usize,
     /// The section, for the log.
     pub section: String,
 }
@@ -241,6 +244,13 @@ struct Connection {
     /// so on the link's session a Write's answer waits behind publishes of
     /// up to 10,000 notifications each.
     writer: Option<(Arc<Session>, JoinHandle<StatusCode>)>,
+    /// Sessions holding subscriptions beyond the link's own
+    /// (OPCUA_SESSION_ITEMS): a server builds a session's notifications
+    /// under one lock (async-opcua's), and a Write of one of its items
+    /// waits for that; on more sessions, for a part of them.
+    readers: Vec<(Arc<Session>, JoinHandle<StatusCode>)>,
+    /// The server granted no further one: the rest on those there are.
+    readers_refused: bool,
     /// Looking for the variables again (OPCUA_REBROWSE), on this session.
     rebrowse: Option<JoinHandle<()>>,
     /// The list it built last, for the link's next read.
@@ -251,6 +261,9 @@ impl Drop for Connection {
     fn drop(&mut self) {
         self.event_loop.abort();
         if let Some((_, event_loop)) = &self.writer {
+            event_loop.abort();
+        }
+        for (_, event_loop) in &self.readers {
             event_loop.abort();
         }
         if let Some(task) = &self.rebrowse {
@@ -319,12 +332,33 @@ impl Values {
 type Inbox = Arc<Mutex<Vec<(u64, u32, DataValue)>>>;
 
 /// The subscriptions of the enabled variables: more than one where the
-/// server limits the monitored items of one.
+/// server limits the monitored items of one, or OPCUA_SESSION_ITEMS those
+/// of a session.
 struct Subscription {
-    /// Each subscription's id and its monitored items; the last one is
-    /// filled next.
-    ids: Vec<(u32, usize)>,
+    /// Each subscription; the last one is filled next.
+    parts: Vec<Part>,
     monitored: Monitored,
+}
+
+/// One subscription of [`Subscription`].
+#[derive(Debug, Clone, Copy)]
+struct Part {
+    /// Its session: 0 the link's, n the n-th of [`Connection::readers`].
+    session: usize,
+    id: u32,
+    /// Its monitored items.
+    items: usize,
+}
+
+impl Subscription {
+    /// The monitored items on session `session`.
+    fn on_session(&self, session: usize) -> usize {
+        self.parts
+            .iter()
+            .filter(|p| p.session == session)
+            .map(|p| p.items)
+            .sum()
+    }
 }
 
 /// The sources monitored, by index: a bit each (each poll asks for all
@@ -486,10 +520,64 @@ impl OpcuaBackend {
         }
     }
 
+    /// The link's session, while it and every session holding a
+    /// subscription last: one lost, the link makes them all anew.
     fn session(&self) -> Result<Arc<Session>, PlcError> {
         match &self.connection {
-            Some(c) if !c.event_loop.is_finished() => Ok(c.session.clone()),
+            Some(c)
+                if !c.event_loop.is_finished()
+                    && c.readers.iter().all(|(_, r)| !r.is_finished()) =>
+            {
+                Ok(c.session.clone())
+            }
             _ => Err(not_connected()),
+        }
+    }
+
+    /// Session `n` of a [`Part`].
+    fn subscription_session(&self, n: usize) -> Result<Arc<Session>, PlcError> {
+        let link = self.session()?;
+        match n {
+            0 => Ok(link),
+            n => self
+                .connection
+                .as_ref()
+                .and_then(|c| c.readers.get(n - 1))
+                .map(|(session, _)| session.clone())
+                .ok_or_else(not_connected),
+        }
+    }
+
+    /// A further session for subscriptions: its number, or `None` where
+    /// the server grants no more while the link's session goes on (one
+    /// log line; the items go on the sessions there are, until the next
+    /// connection).
+    async fn open_reader(&mut self) -> Result<Option<usize>, PlcError> {
+        let Some(client) = self.client.as_mut() else {
+            return Err(not_connected());
+        };
+        self.counters.requests.inc();
+        let opened = connect_session(client, &self.config).await;
+        self.session()?;
+        let connection = self.connection.as_mut().ok_or_else(not_connected)?;
+        match opened {
+            Ok(reader) => {
+                connection.readers.push(reader);
+                Ok(Some(connection.readers.len()))
+            }
+            Err(e) => {
+                connection.readers_refused = true;
+                info!(section = %self.config.section, "no further session for monitored items ({e}): the rest on the sessions there are");
+                Ok(None)
+            }
+        }
+    }
+
+    /// The monitored items one session takes now.
+    fn session_items(&self) -> usize {
+        match &self.connection {
+            Some(c) if !c.readers_refused => self.config.session_items.max(1),
+            _ => usize::MAX,
         }
     }
 
@@ -591,6 +679,8 @@ impl OpcuaBackend {
             session: session.clone(),
             event_loop,
             writer: None,
+            readers: Vec::new(),
+            readers_refused: false,
             rebrowse: None,
             rebuilt: rebrowse::Slot::default(),
         });
@@ -831,7 +921,11 @@ impl OpcuaBackend {
             self.generation += 1;
             let id = self.new_subscription(&session, interval).await?;
             self.subscription = Some(Subscription {
-                ids: vec![(id, 0)],
+                parts: vec![Part {
+                    session: 0,
+                    id,
+                    items: 0,
+                }],
                 monitored: Monitored::default(),
             });
             // ServerStatus.State too: `__PLC_RUN` without a round trip.
@@ -853,7 +947,7 @@ impl OpcuaBackend {
             )
             .await?;
             if let Some(subscription) = &mut self.subscription {
-                subscription.ids[0].1 = 1;
+                subscription.parts[0].items = 1;
             }
         }
         let Some(subscription) = &self.subscription else {
@@ -867,20 +961,45 @@ impl OpcuaBackend {
         // Within the server's limits: MaxMonitoredItemsPerCall (halved
         // while it answers BadTooManyOperations) and the items one
         // subscription takes (its capability, else learnt from its
-        // BadTooManyMonitoredItems): more subscriptions, not a failure.
+        // BadTooManyMonitoredItems): more subscriptions, not a failure;
+        // and within OPCUA_SESSION_ITEMS: more sessions.
         let mut most = self.limits.per_call.max(1);
         while !pending.is_empty() {
-            let Some(&(id, count)) = self.subscription.as_ref().and_then(|s| s.ids.last()) else {
+            let Some((last, on_session)) = self
+                .subscription
+                .as_ref()
+                .and_then(|s| Some((*s.parts.last()?, s.on_session(s.parts.last()?.session))))
+            else {
                 return Ok(());
             };
-            let room = self.limits.per_subscription.saturating_sub(count);
+            let (id, count) = (last.id, last.items);
+            let session_room = self.session_items().saturating_sub(on_session);
+            let room = self
+                .limits
+                .per_subscription
+                .saturating_sub(count)
+                .min(session_room);
             if room == 0 {
-                let id = self.new_subscription(&session, interval).await?;
+                let at = match session_room {
+                    0 => match self.open_reader().await? {
+                        Some(n) => n,
+                        // Refused: room again on this one.
+                        None => continue,
+                    },
+                    _ => last.session,
+                };
+                let on = self.subscription_session(at)?;
+                let id = self.new_subscription(&on, interval).await?;
                 if let Some(subscription) = &mut self.subscription {
-                    subscription.ids.push((id, 0));
+                    subscription.parts.push(Part {
+                        session: at,
+                        id,
+                        items: 0,
+                    });
                 }
                 continue;
             }
+            let session = self.subscription_session(last.session)?;
             let n = pending.len().min(most).min(room);
             let chunk: Vec<usize> = pending.drain(..n).collect();
             let items: Vec<MonitoredItemCreateRequest> = chunk
@@ -959,8 +1078,8 @@ impl OpcuaBackend {
                 for i in monitored {
                     subscription.monitored.insert(i);
                 }
-                if let Some(last) = subscription.ids.last_mut() {
-                    last.1 += taken;
+                if let Some(last) = subscription.parts.last_mut() {
+                    last.items += taken;
                 }
             }
             if !full.is_empty() {
@@ -2001,17 +2120,24 @@ impl PlcBackend for OpcuaBackend {
                 // 100,000 variables, kept resident otherwise.
                 trim_heap();
                 // The handles of the old list mean other variables now.
-                if let (Some(subscription), Ok(session)) =
-                    (self.subscription.take(), self.session())
-                {
-                    let _ = self
-                        .call(
-                            "DeleteSubscriptions",
-                            session.delete_subscriptions(
-                                &subscription.ids.iter().map(|s| s.0).collect::<Vec<_>>(),
-                            ),
-                        )
-                        .await;
+                if let Some(subscription) = self.subscription.take() {
+                    let mut sessions: Vec<usize> =
+                        subscription.parts.iter().map(|p| p.session).collect();
+                    sessions.dedup();
+                    for n in sessions {
+                        let Ok(session) = self.subscription_session(n) else {
+                            break;
+                        };
+                        let ids: Vec<u32> = subscription
+                            .parts
+                            .iter()
+                            .filter(|p| p.session == n)
+                            .map(|p| p.id)
+                            .collect();
+                        let _ = self
+                            .call("DeleteSubscriptions", session.delete_subscriptions(&ids))
+                            .await;
+                    }
                 }
                 self.notified
                     .lock()
@@ -2086,6 +2212,10 @@ pub fn config_of(
         timeout: keys.timeout,
         rebrowse: (!keys.rebrowse.is_zero()).then_some(keys.rebrowse),
         write_session: keys.write_session,
+        session_items: match keys.session_items {
+            0 => usize::MAX,
+            n => n,
+        },
         section: section.name.clone(),
     }))
 }
@@ -2131,6 +2261,7 @@ mod tests {
                 timeout: Duration::from_secs(1),
                 rebrowse: None,
                 write_session: true,
+                session_items: usize::MAX,
                 section: String::new(),
             })
         }
@@ -2145,7 +2276,7 @@ mod tests {
         );
         let mut backend = backend_of(list);
         backend.subscription = Some(Subscription {
-            ids: Vec::new(),
+            parts: Vec::new(),
             monitored: Monitored::default(),
         });
         backend
