@@ -12,11 +12,13 @@ use std::time::Duration;
 
 use clap::Parser;
 use opcua::crypto::SecurityPolicy;
-use opcua::nodes::VariableBuilder;
+use opcua::nodes::{NodeType, VariableBuilder};
 use opcua::server::diagnostics::NamespaceMetadata;
 use opcua::server::node_manager::memory::{simple_node_manager, SimpleNodeManager};
 use opcua::server::{ServerBuilder, ServerEndpoint};
-use opcua::types::{DataTypeId, DataValue, DateTime, MessageSecurityMode, NodeId, Variant};
+use opcua::types::{
+    AttributeId, DataTypeId, DataValue, DateTime, MessageSecurityMode, NodeId, Variant,
+};
 
 #[derive(Debug, Parser)]
 #[command(name = "bench-opcua-plc")]
@@ -149,21 +151,38 @@ async fn main() {
             tick.tick().await;
             n = n.wrapping_add(1);
             let now = DateTime::now();
-            // In slices: `set_values` holds the address space's lock, and a
-            // Write waits for it (100,000 at once: 300 ms, a PLC's server
-            // does not keep a Write that long).
+            // In slices, stored under the address space's lock and then
+            // notified without it, as a PLC's runtime hands its values to
+            // its server: `set_values` notifies holding that lock, and the
+            // notification waits for the subscriptions' lock, which the
+            // server holds while it builds a session's publish; a Read or
+            // a Write waited for both (100,000 at once: 300 ms).
             for (at, slice) in ids.chunks(SLICE).enumerate() {
-                let values = slice.iter().enumerate().filter_map(|(k, id)| {
-                    let i = at * SLICE + k;
-                    (i >= SET_TAGS).then(|| {
-                        let mut sample = DataValue::new_at(value(i, n), now);
-                        sample.server_timestamp = Some(now);
-                        (id, None, sample)
+                let samples: Vec<(&NodeId, DataValue)> = slice
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(k, id)| {
+                        let i = at * SLICE + k;
+                        (i >= SET_TAGS).then(|| {
+                            let mut sample = DataValue::new_at(value(i, n), now);
+                            sample.server_timestamp = Some(now);
+                            (id, sample)
+                        })
                     })
-                });
-                if let Err(e) = manager.set_values(&subscriptions, values) {
-                    eprintln!("bench-opcua-plc: values not set: {e}");
+                    .collect();
+                {
+                    let mut space = manager.address_space().write();
+                    for (id, sample) in &samples {
+                        if let Some(NodeType::Variable(v)) = space.find_mut(*id) {
+                            v.set_data_value(sample.clone());
+                        }
+                    }
                 }
+                subscriptions.notify_data_change(
+                    samples
+                        .into_iter()
+                        .map(|(id, sample)| (sample, id, AttributeId::Value)),
+                );
                 tokio::task::yield_now().await;
             }
         }
