@@ -37,11 +37,31 @@ try {
   // The historian records SINUS: ticked, its trend starts minutes back.
   const ticked = Date.now() / 1000;
   await page.locator('#vars tr[data-name="SINUS"] td.chart input').check();
+  // Room for a loaded machine (the suite's other tests beside it: this
+  // wait once passed 15 s there); if it never comes, what the page and
+  // the history API held then says why.
   await page.waitForFunction((t) => {
     const live = window.plccoms.live;
     const series = live.ys.get("SINUS");
     return series && live.t.some((x, i) => x < t - 1 && series.data[i] != null);
-  }, ticked);
+  }, ticked, { timeout: 60000 }).catch(async (err) => {
+    result.seed_state = await page.evaluate(async (t) => {
+      const live = window.plccoms.live;
+      const series = live.ys.get("SINUS");
+      const answer = await fetch("/api/history?section=Demo&vars=SINUS&from=-1h&format=json");
+      const rows = answer.ok ? await answer.json() : null;
+      return {
+        ticked: t,
+        points: live.t.length,
+        first: live.t[0] ?? null,
+        series: series ? series.data.filter((y) => y != null).length : null,
+        history_status: answer.status,
+        history_rows: Array.isArray(rows) ? rows.length : null,
+        history_first: Array.isArray(rows) && rows.length ? rows[0].time : null,
+      };
+    }, ticked).catch((e) => String(e));
+    throw err;
+  });
   result.seeded_before_tick = await page.evaluate((t) => {
     const live = window.plccoms.live;
     const series = live.ys.get("SINUS");
