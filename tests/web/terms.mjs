@@ -58,6 +58,7 @@ try {
         history_status: answer.status,
         history_rows: Array.isArray(rows) ? rows.length : null,
         history_first: Array.isArray(rows) && rows.length ? rows[0].time : null,
+        seeds: window.plccoms.seeds || [],
       };
     }, ticked).catch((e) => String(e));
     throw err;

@@ -639,19 +639,30 @@
   // The live trend of variables the historian records starts with the
   // last minutes it recorded. Rows: {time: ISO, name, value: number} (or
   // the older {t: ms, name, value: text}).
-  async function seedTrend(names) {
+  // A failed ask is tried again twice, a second apart (a busy server);
+  // what each try found is kept in st.seeds (the last 10), for tests.
+  async function seedTrend(names, tries = 3) {
     if (!st.session.historian || names.length === 0) return;
     const s = st.section;
     const to = Date.now();
     const from = to - Number($("window").value) * 1000;
     const q = new URLSearchParams({ section: s.name, vars: names.join(","), from: String(from), to: String(to), format: "json" });
+    const seen = (what) => {
+      st.seeds = (st.seeds || []).concat([`${new Date().toISOString()} ${names.join(",")}: ${what}`]).slice(-10);
+    };
     let body;
     try {
       body = await api(`/api/history?${q}`);
     } catch (e) {
-      return; // Not recorded, or the historian is busy: the trend starts live.
+      // Not recorded, or the historian is busy: the trend starts live.
+      seen(`failed: ${e.message}`);
+      if (tries > 1 && e.status !== 503) setTimeout(() => seedTrend(names, tries - 1), 1000);
+      return;
     }
-    if (st.section !== s || !body) return;
+    if (st.section !== s || !body) {
+      seen(st.section !== s ? "another section now" : "no body");
+      return;
+    }
     const rows = Array.isArray(body) ? body : body.rows || body.samples || [];
     const points = new Map(); // name -> [[x, y], ..] ascending
     for (const r of rows) {
@@ -665,6 +676,7 @@
       if (list.length && ms / 1000 <= list[list.length - 1][0]) continue;
       list.push([ms / 1000, y]);
     }
+    seen(`${rows.length} rows, ${points.size} series`);
     if (points.size === 0) return;
     mergeSeed(points);
     if (st.mode === "live") drawLive();
