@@ -126,6 +126,30 @@ impl OpcServer {
         answer
     }
 
+    /// `line`'s answer once `done` accepts it, asked again every 200 ms
+    /// for up to 10 s (the link acts at its next polls); `plc`'s log in
+    /// the failure.
+    async fn answer_until(
+        &mut self,
+        line: &str,
+        plc: &ServerProcess,
+        done: impl Fn(&str) -> bool,
+    ) -> String {
+        let deadline = Instant::now() + Duration::from_secs(10);
+        loop {
+            let answer = self.answer(line);
+            if done(&answer) {
+                return answer;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "'{line}' answered {answer}; the log:\n{}",
+                plc.log()
+            );
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    }
+
     fn url(&self) -> String {
         format!("opc.tcp://127.0.0.1:{}/plc", self.port)
     }
@@ -805,19 +829,10 @@ async fn sets_wrote(server: &mut OpcServer, extra: &str, want: &str) -> ServerPr
         c.wait_for_line(diff.as_bytes(), Duration::from_secs(5))
             .await;
     }
-    let deadline = Instant::now() + Duration::from_secs(10);
-    loop {
-        let wrote = server.answer("wrote");
-        if wrote == want {
-            return plc;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "{wrote}, not {want}; the log:\n{}",
-            plc.log()
-        );
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    }
+    server
+        .answer_until("wrote", &plc, |wrote| wrote == want)
+        .await;
+    plc
 }
 
 /// SETs go on a session of their own (OPCUA_WRITE_SESSION, default Yes),
@@ -843,24 +858,17 @@ async fn sets_on_a_session_of_their_own() {
 /// (`items N1 N2 ...`), once `total` are made (asked again for up to 10 s:
 /// the link subscribes at its next polls).
 async fn items_by_session(server: &mut OpcServer, total: usize, plc: &ServerProcess) -> Vec<usize> {
-    let deadline = Instant::now() + Duration::from_secs(10);
-    loop {
-        let answer = server.answer("items");
-        let items: Vec<usize> = answer
+    let counts = |answer: &str| -> Vec<usize> {
+        answer
             .split_whitespace()
             .skip(1)
             .map(|n| n.parse().expect("a count"))
-            .collect();
-        if items.iter().sum::<usize>() == total {
-            return items;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "{answer}, not {total} in all; the log:\n{}",
-            plc.log()
-        );
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    }
+            .collect()
+    };
+    let answer = server
+        .answer_until("items", plc, |a| counts(a).iter().sum::<usize>() == total)
+        .await;
+    counts(&answer)
 }
 
 /// EN:* and the server's own changes of variables monitored on the first

@@ -656,7 +656,8 @@
     } catch (e) {
       // Not recorded, or the historian is busy: the trend starts live.
       seen(`failed: ${e.message}`);
-      if (tries > 1 && e.status !== 503) setTimeout(() => seedTrend(names, tries - 1), 1000);
+      // Again only while the same section is shown.
+      if (tries > 1 && e.status !== 503) setTimeout(() => st.section === s && seedTrend(names, tries - 1), 1000);
       return;
     }
     if (st.section !== s || !body) {
