@@ -9,6 +9,9 @@ DIR/client-pki (own/cert.der, private/private.pem), so the test need not
 wait for a key pair made by a debug build. --max-sessions: more sessions
 than N are refused (BadMaxConnectionsReached at ActivateSession).
 
+As an S7-1500's server does, it refuses a client's write of a value with a
+SourceTimestamp or ServerTimestamp (BadWriteNotSupported).
+
 Objects/
   DB_LINE1/MOTOR/  SPEED (Double, rw), RUNNING (Boolean, rw), COUNT (UInt32, ro)
   TYPES/           one writable variable of every scalar type plccoms serves
@@ -85,9 +88,16 @@ ITEMS = {}
 
 
 async def _recorded_write(self, params):
-    if self.external:  # a client's, not the server's own (`set`)
-        WRITE_SESSIONS.append(self.session_id)
-    return await _write(self, params)
+    if not self.external:  # the server's own (`set`)
+        return await _write(self, params)
+    WRITE_SESSIONS.append(self.session_id)
+    # As an S7-1500 does: a value written with a timestamp is refused
+    # (BadWriteNotSupported); asyncua would take the client's.
+    stamped = [bool(w.Value.SourceTimestamp or w.Value.ServerTimestamp) for w in params.NodesToWrite]
+    params.NodesToWrite = [w for w, s in zip(params.NodesToWrite, stamped) if not s]
+    written = iter(await _write(self, params) if params.NodesToWrite else [])
+    refused = ua.StatusCode(ua.StatusCodes.BadWriteNotSupported)
+    return [refused if s else next(written) for s in stamped]
 
 
 async def _recorded_create_subscription(self, params, *args, **kwargs):

@@ -1196,7 +1196,14 @@ impl OpcuaBackend {
             values.push(WriteValue {
                 node_id: self.served.node(i).clone(),
                 attribute_id: 13,
-                value: DataValue::new_now(value),
+                // The value alone: a server that cannot take the
+                // timestamps a client gives must refuse the whole write
+                // (BadWriteNotSupported, Part 4 5.10.4.2), as S7-1200/1500,
+                // Kepware and servers on the OPC Foundation's .NET stack
+                // do. The server stamps it with the clock its
+                // notifications carry, which a SET's read-back is
+                // compared with.
+                value: DataValue::value_only(value),
                 ..Default::default()
             });
             serves.push(vec![(n, i)]);
@@ -1249,7 +1256,7 @@ impl OpcuaBackend {
                     values.push(WriteValue {
                         node_id: node,
                         attribute_id: 13,
-                        value: DataValue::new_now(whole),
+                        value: DataValue::value_only(whole),
                         ..Default::default()
                     });
                     serves.push(served);
