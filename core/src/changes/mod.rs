@@ -770,6 +770,18 @@ impl Publisher {
         self.read_seq[id as usize]
     }
 
+    /// Counts `id` as read by the poll published next, its value as it is:
+    /// it was read since that poll began (a SET's read-back between its
+    /// slices), newer than what the poll read. A variable not counted so
+    /// is not current after the poll ([`Snapshot::current`]): not served
+    /// as live, and its change not sent to a session that takes the
+    /// poll's snapshot without the one before.
+    pub fn read_meanwhile(&mut self, id: VarId) {
+        let index = id as usize;
+        self.read_seq[index] = self.seq + 1;
+        self.reads_dirty[index / CHUNK] = true;
+    }
+
     /// Records a value read from the PLC at `unix_ms` (`bytes` as read for
     /// the variable; the bit of a BOOL is extracted here). Returns whether it
     /// changed.

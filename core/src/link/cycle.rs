@@ -208,12 +208,17 @@ impl Cycle {
         let (data, refused) = self.plan.assemble_answers(round.answers);
         let table = publisher.table().clone();
         let newer = |publisher: &Publisher, id: VarId| publisher.read_seq(id) >= round.first_seq;
+        // Read back since the poll began (a SET between its slices): kept,
+        // and read by this poll as much as what it read itself.
+        let mut kept = Vec::new();
         let mut suspects = Vec::new();
         for (index, &id) in self.poll_vars.iter().enumerate() {
             let alone = self.refusals.alone.contains(&id);
             match self.plan.range_answer(&data, index) {
                 Ok(bytes) => {
-                    if !newer(publisher, id) {
+                    if newer(publisher, id) {
+                        kept.push(id);
+                    } else {
                         publisher.update(id, bytes, stamp.unix_ms);
                     }
                     if alone {
@@ -249,7 +254,9 @@ impl Cycle {
                 )
                 .await?;
             for (id, bytes) in found {
-                if !newer(publisher, id) {
+                if newer(publisher, id) {
+                    kept.push(id);
+                } else {
                     publisher.update(id, &bytes, stamp.unix_ms);
                 }
             }
@@ -266,6 +273,10 @@ impl Cycle {
                     publisher.set_uncertain(id, uncertain.contains(&id), stamp.unix_ms);
                 }
             }
+        }
+        // After the uncertain marks: those are of what the poll read.
+        for id in kept {
+            publisher.read_meanwhile(id);
         }
         publisher.publish_poll(stamp);
         self.system_events(publisher);
