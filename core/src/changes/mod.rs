@@ -770,13 +770,12 @@ impl Publisher {
         self.read_seq[id as usize]
     }
 
-    /// Counts `id` as read by the poll published next, its value as it is:
-    /// it was read since that poll began (a SET's read-back between its
-    /// slices), newer than what the poll read. A variable not counted so
-    /// is not current after the poll ([`Snapshot::current`]): not served
-    /// as live, and its change not sent to a session that takes the
-    /// poll's snapshot without the one before.
-    pub fn read_meanwhile(&mut self, id: VarId) {
+    /// Counts `id` as read for the next publish, its value as it is: after
+    /// a poll's publish, only a variable read since that poll began is
+    /// current ([`Snapshot::current`]). [`Publisher::update`] marks what it
+    /// records; a poll marks so a value read back between its slices (a
+    /// SET's), newer than what it read itself.
+    pub fn mark_read(&mut self, id: VarId) {
         let index = id as usize;
         self.read_seq[index] = self.seq + 1;
         self.reads_dirty[index / CHUNK] = true;
@@ -786,6 +785,7 @@ impl Publisher {
     /// the variable; the bit of a BOOL is extracted here). Returns whether it
     /// changed.
     pub fn update(&mut self, id: VarId, bytes: &[u8], unix_ms: i64) -> bool {
+        self.mark_read(id);
         let var = self.table.var(id);
         let seq = self.seq + 1;
         let ty = var.ty;
@@ -801,8 +801,6 @@ impl Publisher {
             None => 0,
         };
         let index = id as usize;
-        self.read_seq[index] = seq;
-        self.reads_dirty[index / CHUNK] = true;
         let slot = &self.chunks[index / CHUNK][index % CHUNK];
         let changed = match slot.text.get() {
             None => true,

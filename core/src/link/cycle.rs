@@ -274,9 +274,10 @@ impl Cycle {
                 }
             }
         }
-        // After the uncertain marks: those are of what the poll read.
+        // Not current after this publish unless counted as read by it;
+        // after the uncertain marks, which are of what the poll read.
         for id in kept {
-            publisher.read_meanwhile(id);
+            publisher.mark_read(id);
         }
         publisher.publish_poll(stamp);
         self.system_events(publisher);
