@@ -557,7 +557,7 @@ impl OpcuaBackend {
             return Err(not_connected());
         };
         self.counters.requests.inc();
-        let opened = connect_session(client, &self.config).await;
+        let opened = connect_session(client, &self.config, Carries::Values).await;
         self.session()?;
         let connection = self.connection.as_mut().ok_or_else(not_connected)?;
         match opened {
@@ -674,7 +674,7 @@ impl OpcuaBackend {
         }
         let client = self.client.as_mut().expect("made above");
         self.counters.requests.inc();
-        let (session, event_loop) = connect_session(client, &self.config).await?;
+        let (session, event_loop) = connect_session(client, &self.config, Carries::Values).await?;
         self.connection = Some(Connection {
             session: session.clone(),
             event_loop,
@@ -710,7 +710,7 @@ impl OpcuaBackend {
         trim_heap();
         if self.config.write_session {
             let client = self.client.as_mut().expect("made above");
-            match connect_session(client, &self.config).await {
+            match connect_session(client, &self.config, Carries::Sets).await {
                 Ok(writer) => {
                     if let Some(connection) = &mut self.connection {
                         connection.writer = Some(writer);
@@ -1494,11 +1494,42 @@ fn keep_newest(inbox: &mut Vec<(u64, u32, DataValue)>) {
     });
 }
 
+/// What a session carries, which decides where its event loop runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Carries {
+    /// Values in bulk: subscriptions' publishes, the poll's reads, browses.
+    /// On [`bulk_threads`].
+    Values,
+    /// SETs and their read-backs: on the link's runtime.
+    Sets,
+}
+
+/// The threads that run the event loops of the sessions carrying values in
+/// bulk, shared by every OPC UA section. Decoding a publish of 10,000
+/// notifications takes milliseconds in one poll of a session's task, and
+/// tokio does not preempt a task: on the link's runtime, a SET's Write, its
+/// answer and the DIFF would wait for it. The kernel preempts a thread, so
+/// here they wait for a time slice at most. Half the cores, at least one.
+fn bulk_threads() -> &'static tokio::runtime::Handle {
+    static BULK: std::sync::OnceLock<tokio::runtime::Runtime> = std::sync::OnceLock::new();
+    BULK.get_or_init(|| {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        tokio::runtime::Builder::new_multi_thread()
+            .worker_threads((cores / 2).max(1))
+            .thread_name("opcua-values")
+            .enable_all()
+            .build()
+            .expect("the OPC UA sessions' threads start")
+    })
+    .handle()
+}
+
 /// A session with the server: endpoint, security and identity as
-/// configured; its event loop spawned.
+/// configured; its event loop spawned where what it carries runs.
 pub(crate) async fn connect_session(
     client: &mut opcua::client::Client,
     config: &OpcuaConfig,
+    carries: Carries,
 ) -> Result<(Arc<Session>, JoinHandle<StatusCode>), PlcError> {
     let token_policy = match &config.user {
         Some(_) => UserTokenPolicy {
@@ -1537,7 +1568,10 @@ pub(crate) async fn connect_session(
         }
     };
     session.disable_reconnects();
-    let mut event_loop = event_loop.spawn();
+    let mut event_loop = match carries {
+        Carries::Values => bulk_threads().spawn(event_loop.run()),
+        Carries::Sets => event_loop.spawn(),
+    };
     // Secure channel, CreateSession, ActivateSession: a few round trips.
     let connected = tokio::select! {
         connected = session.wait_for_connection() => Ok(connected),

@@ -27,7 +27,7 @@ use plccoms_core::driver::PlcError;
 use plccoms_plc::opcua::nodeid::NodeRef;
 
 use crate::browse::{self, Built};
-use crate::{connect_session, new_client, service_error, Limits, OpcuaConfig};
+use crate::{connect_session, new_client, service_error, Carries, Limits, OpcuaConfig};
 
 /// What to look for.
 #[derive(Debug, Clone)]
@@ -111,7 +111,7 @@ pub(crate) fn spawn(
                 client = new_client(&config, limits.browse_timeout).ok();
             }
             let own = match client.as_mut() {
-                Some(client) => connect_session(client, &config).await,
+                Some(client) => connect_session(client, &config, Carries::Values).await,
                 None => Err(PlcError::Protocol("no client".into())),
             };
             let listed = match own {
