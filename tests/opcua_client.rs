@@ -903,7 +903,7 @@ async fn every_session_notifies(server: &mut OpcServer, plc: &ServerProcess) {
 }
 
 /// OPCUA_SESSION_ITEMS: the monitored items are spread over sessions of
-/// at most that many, each notifying its own; where the server grants no
+/// at most that many (and a small rest), each notifying its own; where the server grants no
 /// more sessions, the rest go on the sessions there are (said in the log).
 #[tokio::test]
 async fn monitored_items_spread_over_sessions() {
@@ -913,6 +913,15 @@ async fn monitored_items_spread_over_sessions() {
     every_session_notifies(&mut server, &plc).await;
     let items = items_by_session(&mut server, 21, &plc).await;
     assert_eq!(items, [4, 4, 4, 4, 4, 1], "{}", plc.log());
+
+    // A rest of no more than a tenth of OPCUA_SESSION_ITEMS goes on the
+    // last session, not on a session of its own.
+    let keys_of_ten = keys.replace("SESSION_ITEMS = 4", "SESSION_ITEMS = 10");
+    let mut server = OpcServer::start(free_port(), None);
+    let plc = plccoms(&server.url(), &keys_of_ten);
+    every_session_notifies(&mut server, &plc).await;
+    let items = items_by_session(&mut server, 21, &plc).await;
+    assert_eq!(items, [10, 11], "{}", plc.log());
 
     // The link's session, the SETs' and one more.
     let mut server = OpcServer::start_args(free_port(), None, None, Some(3));

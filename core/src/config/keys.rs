@@ -946,7 +946,7 @@ static KEYS: &[Key] = &[
         "SETs on a second session, not queued behind the subscription's publishes (No: one session, for a server short of sessions)",
         Setter::Section(|s, v| s.opcua_client.write_session = v.bool())),
     row("OPCUA_SESSION_ITEMS", Some("10000"), number(0, 10_000_000, "items"),
-        "monitored items one session holds; more are monitored on further sessions, as many as the server grants (0 = all on one)",
+        "monitored items one session holds; more are monitored on further sessions, as many as the server grants, a rest of a tenth on the last (0 = all on one)",
         Setter::Section(|s, v| s.opcua_client.session_items = v.number() as usize)),
     // Accepted in a PLC section for symmetry with [*]: no effect there.
     row("SERIAL_DEVICE_CFG", None, Kind::Text, "no effect in a PLC section (a [*] key)",

@@ -581,6 +581,19 @@ impl OpcuaBackend {
         }
     }
 
+    /// The monitored items a session holding `on_session` takes more, of
+    /// `pending`: up to [`Self::session_items`], and a rest of no more than
+    /// a tenth of them besides. A further session for a handful of items
+    /// (a list of 10,000 and the link's state) would cost the server a
+    /// session, of the few an S7-1200 shares with its HMIs, for nothing.
+    fn session_room(&self, on_session: usize, pending: usize) -> usize {
+        let most = self.session_items();
+        match most.saturating_sub(on_session) {
+            0 if on_session.saturating_add(pending) <= most.saturating_add(most / 10) => pending,
+            room => room,
+        }
+    }
+
     /// The session for SETs: the writer's while it lasts, else the link's.
     fn write_session(&self) -> Result<Arc<Session>, PlcError> {
         match &self.connection {
@@ -973,7 +986,7 @@ impl OpcuaBackend {
                 return Ok(());
             };
             let (id, count) = (last.id, last.items);
-            let session_room = self.session_items().saturating_sub(on_session);
+            let session_room = self.session_room(on_session, pending.len());
             let room = self
                 .limits
                 .per_subscription
