@@ -903,8 +903,9 @@ async fn every_session_notifies(server: &mut OpcServer, plc: &ServerProcess) {
 }
 
 /// OPCUA_SESSION_ITEMS: the monitored items are spread over sessions of
-/// at most that many (and a small rest), each notifying its own; where the server grants no
-/// more sessions, the rest go on the sessions there are (said in the log).
+/// at most that many (and a small rest), each notifying its own; where the
+/// server grants no more sessions, the rest go on the sessions there are
+/// (said in the log).
 #[tokio::test]
 async fn monitored_items_spread_over_sessions() {
     let keys = "OPCUA_REBROWSE = 0\nOPCUA_TIMEOUT = 5000\nOPCUA_SESSION_ITEMS = 4";
