@@ -248,7 +248,7 @@ fn births_data_commands_and_seq() {
     assert_eq!(dbirth["topic"], "spBv1.0/Plant/DBIRTH/gw1/Hala 1");
     assert_eq!(dbirth["seq"], 1);
     let metrics = dbirth["metrics"].as_array().unwrap();
-    assert_eq!(metrics.len(), 11, "{dbirth}");
+    assert_eq!(metrics.len(), 11, "{dbirth}\n{}", server.log());
     let mut aliases: Vec<u64> = metrics
         .iter()
         .map(|m| m["alias"].as_u64().unwrap())

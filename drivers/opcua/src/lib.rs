@@ -1513,28 +1513,35 @@ pub(crate) enum Carries {
     /// Values in bulk: subscriptions' publishes, the poll's reads, browses.
     /// On [`bulk_threads`].
     Values,
-    /// SETs and their read-backs: on the link's runtime.
+    /// SETs and their read-backs: beside the link, on its runtime.
     Sets,
 }
 
 /// The threads that run the event loops of the sessions carrying values in
 /// bulk, shared by every OPC UA section. Decoding a publish of 10,000
 /// notifications takes milliseconds in one poll of a session's task, and
-/// tokio does not preempt a task: on the link's runtime, a SET's Write, its
+/// tokio does not preempt a task: beside the link, a SET's Write, its
 /// answer and the DIFF would wait for it. The kernel preempts a thread, so
-/// here they wait for a time slice at most. Half the cores, at least one.
-fn bulk_threads() -> &'static tokio::runtime::Handle {
+/// here they wait for a time slice at most. Half the cores, at least one;
+/// started with the first such session (an error where the process may
+/// start no more threads: the session is not opened, and tried again).
+fn bulk_threads() -> std::io::Result<&'static tokio::runtime::Handle> {
     static BULK: std::sync::OnceLock<tokio::runtime::Runtime> = std::sync::OnceLock::new();
-    BULK.get_or_init(|| {
-        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-        tokio::runtime::Builder::new_multi_thread()
-            .worker_threads((cores / 2).max(1))
-            .thread_name("opcua-values")
-            .enable_all()
-            .build()
-            .expect("the OPC UA sessions' threads start")
-    })
-    .handle()
+    static START: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    if let Some(runtime) = BULK.get() {
+        return Ok(runtime.handle());
+    }
+    let _once = START.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(runtime) = BULK.get() {
+        return Ok(runtime.handle());
+    }
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads((cores / 2).max(1))
+        .thread_name("opcua-values")
+        .enable_all()
+        .build()?;
+    Ok(BULK.get_or_init(|| runtime).handle())
 }
 
 /// A session with the server: endpoint, security and identity as
@@ -1582,7 +1589,7 @@ pub(crate) async fn connect_session(
     };
     session.disable_reconnects();
     let mut event_loop = match carries {
-        Carries::Values => bulk_threads().spawn(event_loop.run()),
+        Carries::Values => bulk_threads()?.spawn(event_loop.run()),
         Carries::Sets => event_loop.spawn(),
     };
     // Secure channel, CreateSession, ActivateSession: a few round trips.
