@@ -548,13 +548,24 @@ fn primary_host_state() {
 /// A metric's time is the PLC's own where HISTORY_STAMP pairs one, and a
 /// new PLC time is a new event of its value even when the value is the
 /// same ([tck-id-payloads-metric-timestamp-in-UTC]).
+/// A section whose MQTT_PUBLISH names none of its variables is a device
+/// all the same: born without metrics once the wait for them ends.
+#[test]
+fn a_device_without_metrics_is_born_all_the_same() {
+    let (_broker, host, _server) = start("", "MQTT_PUBLISH = no_such_variable");
+    let birth = host.wait("DBIRTH", is("DBIRTH"));
+    assert_eq!(birth["topic"], "spBv1.0/Plant/DBIRTH/gw1/Demo");
+    assert_eq!(birth["metrics"].as_array().unwrap().len(), 0, "{birth}");
+}
+
 #[test]
 fn plc_time_of_a_paired_metric() {
     let (_broker, host, server) =
         start("", "MQTT_PUBLISH = counter\nHISTORY_STAMP = counter:v_lint");
     let port = server.port();
-    // A device online before its public file is read is born with no
-    // metrics, and again with the new table's.
+    // A device online before its public file is read waits for it (2 s at
+    // most: longer, under load, it is born with no metrics, and again with
+    // the new table's).
     let birth = host.wait("DBIRTH with COUNTER", |m| {
         m["type"] == "DBIRTH" && !m["metrics"].as_array().unwrap().is_empty()
     });

@@ -189,7 +189,9 @@ impl Device {
     /// Whether the device is up: its PLC online and its metrics read, so
     /// that it is born with values, not before them. A metric the PLC
     /// will not read (its read refused) is waited for [`BIRTH_WAIT`] at
-    /// most, then born `is_null`.
+    /// most, then born `is_null`; so is a table with none of the metrics
+    /// (the fixed variables, polled while the PLC's public file is still
+    /// being made the section's table), then born without them.
     fn up(&mut self, snapshot: &Snapshot) -> bool {
         if !snapshot.online || snapshot.polled.is_none() {
             self.online_at = None;
@@ -200,10 +202,11 @@ impl Device {
         }
         let since = *self.online_at.get_or_insert_with(Instant::now);
         since.elapsed() >= BIRTH_WAIT
-            || self
-                .wanted
-                .iter()
-                .all(|&id| snapshot.slot(id).text().is_some())
+            || (!self.wanted.is_empty()
+                && self
+                    .wanted
+                    .iter()
+                    .all(|&id| snapshot.slot(id).text().is_some()))
     }
 
     /// The time of `id`'s value: the PLC's own where HISTORY_STAMP pairs
@@ -333,6 +336,7 @@ impl Node {
                     self.connect();
                 }
                 _ = tick.tick() => {
+                    self.births_waited();
                     let durable = !self.born;
                     if let Err(e) = self.held.checkpoint(durable) {
                         warn!("Sparkplug: cannot save the held changes: {e}");
@@ -533,6 +537,26 @@ impl Node {
             let up = self.devices[index].up(&snapshot);
             self.devices[index].online = up;
             if up {
+                self.device_birth(index, &snapshot);
+            }
+        }
+    }
+
+    /// The DBIRTH of a device whose wait ([`BIRTH_WAIT`]) ended with no
+    /// change to bring it: a section with none of its metrics sends none.
+    fn births_waited(&mut self) {
+        if !self.born {
+            return;
+        }
+        for index in 0..self.devices.len() {
+            if self.devices[index].online {
+                continue;
+            }
+            let snapshot = self.devices[index].section.latest();
+            if Arc::ptr_eq(&self.devices[index].table, &snapshot.table)
+                && self.devices[index].up(&snapshot)
+            {
+                self.devices[index].online = true;
                 self.device_birth(index, &snapshot);
             }
         }
