@@ -69,7 +69,9 @@ try {
   // Back to Big, its tags a page at a time.
   await page.locator("#section-filter").fill("big");
   await page.locator('#tabs button[data-section="Big"]').click();
-  await page.waitForFunction(() => window.plccoms.section.name === "Big" && document.querySelectorAll("#vars tr").length === 100);
+  // 60 s: in a full test run on two loaded cores this first page of a
+  // 20,000-variable section once took longer than 20 s (10 s alone).
+  await page.waitForFunction(() => window.plccoms.section.name === "Big" && document.querySelectorAll("#vars tr").length === 100, null, { timeout: 60000 });
   await page.locator("#mask").fill("T*");
   await page.waitForFunction(() => document.querySelector("#vars tr").dataset.name === "T00000");
   await page.locator("#vars-next").click();
