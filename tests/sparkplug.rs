@@ -545,9 +545,6 @@ fn primary_host_state() {
     assert_seq_runs(&all[reborn..]);
 }
 
-/// A metric's time is the PLC's own where HISTORY_STAMP pairs one, and a
-/// new PLC time is a new event of its value even when the value is the
-/// same ([tck-id-payloads-metric-timestamp-in-UTC]).
 /// A section whose MQTT_PUBLISH names none of its variables is a device
 /// all the same: born without metrics once the wait for them ends.
 #[test]
@@ -558,6 +555,9 @@ fn a_device_without_metrics_is_born_all_the_same() {
     assert_eq!(birth["metrics"].as_array().unwrap().len(), 0, "{birth}");
 }
 
+/// A metric's time is the PLC's own where HISTORY_STAMP pairs one, and a
+/// new PLC time is a new event of its value even when the value is the
+/// same ([tck-id-payloads-metric-timestamp-in-UTC]).
 #[test]
 fn plc_time_of_a_paired_metric() {
     let (_broker, host, server) =
