@@ -910,10 +910,18 @@ async fn every_session_notifies(server: &mut OpcServer, plc: &ServerProcess) {
 async fn monitored_items_spread_over_sessions() {
     let keys = "OPCUA_REBROWSE = 0\nOPCUA_TIMEOUT = 5000\nOPCUA_SESSION_ITEMS = 4";
     let mut server = OpcServer::start(free_port(), None);
-    let plc = plccoms(&server.url(), keys);
+    let mut plc = plccoms(&server.url(), keys);
     every_session_notifies(&mut server, &plc).await;
     let items = items_by_session(&mut server, 21, &plc).await;
     assert_eq!(items, [4, 4, 4, 4, 4, 1], "{}", plc.log());
+    // The sessions carrying values run on threads of their own.
+    let pid = plc.child.child().id();
+    let threads: Vec<String> = std::fs::read_dir(format!("/proc/{pid}/task"))
+        .expect("the process's threads")
+        .filter_map(|task| std::fs::read_to_string(task.ok()?.path().join("comm")).ok())
+        .map(|name| name.trim().to_string())
+        .collect();
+    assert!(threads.iter().any(|t| t == "opcua-values"), "{threads:?}");
 
     // A rest of no more than a tenth of OPCUA_SESSION_ITEMS goes on the
     // last session, not on a session of its own.
