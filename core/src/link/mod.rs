@@ -1271,22 +1271,49 @@ pub fn spawn(mut link: Link, placement: Placement) -> std::io::Result<Running> {
 /// context switch per wake-up. It is apart from the clients' runtime, so
 /// that client load never queues a poll cycle behind client work.
 pub fn pool() -> std::io::Result<&'static tokio::runtime::Runtime> {
-    static POOL: std::sync::OnceLock<tokio::runtime::Runtime> = std::sync::OnceLock::new();
-    static START: std::sync::Mutex<()> = std::sync::Mutex::new(());
-    if let Some(pool) = POOL.get() {
-        return Ok(pool);
+    static POOL: Pool = Pool::new("links", links_threads);
+    POOL.get()
+}
+
+fn links_threads() -> usize {
+    std::thread::available_parallelism().map_or(2, |n| n.get().clamp(1, 8))
+}
+
+/// A runtime of threads named `name` apart from the others, started at its
+/// first use; where the process may start no more threads, that use gets
+/// the error and the next one tries again.
+pub struct Pool {
+    runtime: std::sync::OnceLock<tokio::runtime::Runtime>,
+    start: std::sync::Mutex<()>,
+    name: &'static str,
+    threads: fn() -> usize,
+}
+
+impl Pool {
+    pub const fn new(name: &'static str, threads: fn() -> usize) -> Pool {
+        Pool {
+            runtime: std::sync::OnceLock::new(),
+            start: std::sync::Mutex::new(()),
+            name,
+            threads,
+        }
     }
-    let _once = START.lock().unwrap_or_else(|e| e.into_inner());
-    if let Some(pool) = POOL.get() {
-        return Ok(pool);
+
+    pub fn get(&self) -> std::io::Result<&tokio::runtime::Runtime> {
+        if let Some(runtime) = self.runtime.get() {
+            return Ok(runtime);
+        }
+        let _once = self.start.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(runtime) = self.runtime.get() {
+            return Ok(runtime);
+        }
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads((self.threads)())
+            .thread_name(self.name)
+            .enable_all()
+            .build()?;
+        Ok(self.runtime.get_or_init(|| runtime))
     }
-    let threads = std::thread::available_parallelism().map_or(2, |n| n.get().clamp(1, 8));
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(threads)
-        .thread_name("links")
-        .enable_all()
-        .build()?;
-    Ok(POOL.get_or_init(|| runtime))
 }
 
 /// Runs the link on a thread of its own, so that client load never delays a

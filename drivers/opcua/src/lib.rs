@@ -73,6 +73,7 @@ use plccoms_core::driver::{
     Answer, Driver, FileInfo, Opened, PlcBackend, PlcError, PlcStatus, Pushed, PushedBytes,
     PushedVar, ReadRequest, Refusal, WriteData, WriteRequest,
 };
+use plccoms_core::link::Pool;
 use plccoms_core::metrics::BackendCounters;
 use plccoms_plc::memory::{PF_CRC_OFFSET, PLC_RUN_BIT, PLC_RUN_BYTE};
 use plccoms_plc::opcua::nodeid::{self, NodeRef};
@@ -1526,22 +1527,12 @@ pub(crate) enum Carries {
 /// started with the first such session (an error where the process may
 /// start no more threads: the session is not opened, and tried again).
 fn bulk_threads() -> std::io::Result<&'static tokio::runtime::Handle> {
-    static BULK: std::sync::OnceLock<tokio::runtime::Runtime> = std::sync::OnceLock::new();
-    static START: std::sync::Mutex<()> = std::sync::Mutex::new(());
-    if let Some(runtime) = BULK.get() {
-        return Ok(runtime.handle());
-    }
-    let _once = START.lock().unwrap_or_else(|e| e.into_inner());
-    if let Some(runtime) = BULK.get() {
-        return Ok(runtime.handle());
-    }
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads((cores / 2).max(1))
-        .thread_name("opcua-values")
-        .enable_all()
-        .build()?;
-    Ok(BULK.get_or_init(|| runtime).handle())
+    static BULK: Pool = Pool::new("opcua-values", half_the_cores);
+    BULK.get().map(|runtime| runtime.handle())
+}
+
+fn half_the_cores() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| (n.get() / 2).max(1))
 }
 
 /// A session with the server: endpoint, security and identity as
