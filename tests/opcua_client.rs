@@ -506,6 +506,64 @@ async fn server_restart_mid_subscription_and_nodes_added() {
     assert_eq!(log.matches("PLC lost").count(), 1, "{log}");
 }
 
+/// A look that only compares browses the folders and the variables that
+/// had children (RECIPE's fields), not every variable: at 10,000 variables
+/// the Browse of each every 10 s tipped node-opcua's server over. A field
+/// added to a structure is found by such a look; a variable that had no
+/// children and gains one, by the full look every tenth.
+#[tokio::test]
+async fn a_look_browses_folders_and_structures_only() {
+    let port = free_port();
+    let mut server = OpcServer::start(port, None);
+    let plc = plccoms(&server.url(), "OPCUA_REBROWSE = 1");
+    let mut c = Client::connect(plc.addr).await;
+    listed(&mut c, "TYPES.INT16_V").await;
+    server.answer("browsed");
+    // The nodes browsed by the next looks (a look every 1 s or more).
+    let mut browsed = std::collections::BTreeSet::new();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !(browsed.contains("DB_LINE1.MOTOR") && browsed.contains("RECIPE")) {
+        assert!(Instant::now() < deadline, "no look: {browsed:?}");
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let answer = server.answer("browsed");
+        browsed.extend(answer.split_whitespace().skip(1).map(str::to_owned));
+    }
+    for childless in [
+        "TYPES.INT16_V",
+        "DB_LINE1.MOTOR.SPEED",
+        "ARRAY_V",
+        "RECIPE.TEMP",
+    ] {
+        assert!(
+            !browsed.contains(childless),
+            "{childless} browsed: {browsed:?}"
+        );
+    }
+    assert!(browsed.contains("TYPES"), "{browsed:?}");
+
+    // A structure's new field: found by the next look.
+    server.command("addto RECIPE PRESSURE");
+    reloaded(&mut c).await;
+    c.ask(
+        "GET:recipe.pressure\r\n",
+        "GET:RECIPE.PRESSURE,1.5000000000\r\n",
+    )
+    .await;
+    // A child of a variable that had none: found by a full look, one in
+    // ten (looks every 1 s or more: well within 60 s).
+    server.command("addto INT16_V EXTRA");
+    c.wait_for_line(
+        b"WARNING:250 Changed public file: 'OPCUA_VARS.csv'\r\n",
+        Duration::from_secs(60),
+    )
+    .await;
+    c.ask(
+        "GET:types.int16_v.extra\r\n",
+        "GET:TYPES.INT16_V.EXTRA,1.5000000000\r\n",
+    )
+    .await;
+}
+
 #[tokio::test]
 async fn a_slow_server() {
     let mut server = OpcServer::start(free_port(), None);

@@ -23,6 +23,10 @@ Objects/
 Prints "ready" once it listens; stops when stdin closes. Commands on
 stdin, one a line:
   add NAME   adds a Double variable NAME (= 1.5) to DB_LINE1/MOTOR
+  addto PARENT NAME  adds a Double variable NAME (= 1.5) as a child of
+             variable PARENT (RECIPE, or one of MOTOR's or TYPES')
+  browsed    answers `browsed ID ...`: the string node ids of this
+             namespace that clients browsed since the last `browsed`
   remove NAME  deletes variable NAME (one added or MOTOR's)
   set NAME V sets TYPES or MOTOR variable NAME to the number V
   slow MS    answers every Read MS milliseconds late (0: at once again)
@@ -69,7 +73,15 @@ BROWSE_DELAY = [0.0]
 _browse = InternalSession.browse
 
 
+# The nodes of this server's namespace a client browsed, since `browsed`.
+BROWSED = set()
+
+
 async def _slow_browse(self, params):
+    if self.external:
+        BROWSED.update(
+            d.NodeId.Identifier for d in params.NodesToBrowse if isinstance(d.NodeId.Identifier, str)
+        )
     if BROWSE_DELAY[0]:
         await asyncio.sleep(BROWSE_DELAY[0])
     return await _browse(self, params)
@@ -235,6 +247,7 @@ async def main():
         ua.NodeId("RECIPE", ns), ua.QualifiedName("RECIPE", ns),
         ua.RecipeT(TEMP=21.5, TIME=30), datatype=recipe_t.nodeid,
     )
+    nodes["RECIPE"] = (recipe, None)
     await var(recipe, "RECIPE", "TEMP", 21.5, ua.VariantType.Double)
     await var(recipe, "RECIPE", "TIME", 30, ua.VariantType.UInt32)
     empty = await objects.add_folder(ua.NodeId("EMPTY", ns), ua.QualifiedName("EMPTY", ns))
@@ -251,6 +264,12 @@ async def main():
             words = line.split()
             if words[:1] == ["add"]:
                 await var(motor, "DB_LINE1.MOTOR", words[1], 1.5, ua.VariantType.Double)
+            elif words[:1] == ["addto"]:
+                parent, _ = nodes[words[1]]
+                await var(parent, parent.nodeid.Identifier, words[2], 1.5, ua.VariantType.Double)
+            elif words[:1] == ["browsed"]:
+                print(" ".join(["browsed"] + sorted(BROWSED)), flush=True)
+                BROWSED.clear()
             elif words[:1] == ["remove"]:
                 node, _ = nodes.pop(words[1])
                 await server.delete_nodes([node])

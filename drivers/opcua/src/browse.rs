@@ -184,18 +184,34 @@ pub(crate) fn visit_key(node: &NodeId) -> u128 {
     (u128::from(half(0)) << 64) | u128::from(half(1))
 }
 
+/// What [`find`] found.
+pub(crate) struct Finding {
+    /// Its [`Print`].
+    pub print: u128,
+    /// The variables, where kept.
+    pub found: Option<Vec<Found>>,
+    /// The [`visit_key`]s of the variables browsed with children of their
+    /// own (a structure's fields): a look that only compares browses
+    /// these and no other variable.
+    pub parents: HashSet<u128>,
+}
+
 /// The variables: the tag file's tags, or those found by browsing
 /// `starts`, and their [`Print`]; [`build`] reads their attributes. With
 /// `keep` false a browse only hashes what it finds (a rebrowse that
-/// compares): no list of 100,000 names and node ids is held.
-pub async fn find(
+/// compares): no list of 100,000 names and node ids is held. With
+/// `parents` given, only those variables are browsed for children; the
+/// others are taken to have none (a look at 100,000 variables is then a
+/// Browse of their folders, not of each of them).
+pub(crate) async fn find(
     section: &str,
     session: &Session,
     limits: &Limits,
     tags: Option<Vec<Tag>>,
     starts: &[NodeRef],
     keep: bool,
-) -> Result<(u128, Option<Vec<Found>>), PlcError> {
+    parents: Option<&HashSet<u128>>,
+) -> Result<Finding, PlcError> {
     Ok(match tags {
         Some(tags) => {
             let mut print = Print::new();
@@ -214,16 +230,24 @@ pub async fn find(
                     Err(e) => warn!(section, "tag file line {}: {e}; skipped", tag.line),
                 }
             }
-            (print.finish(), Some(found))
+            Finding {
+                print: print.finish(),
+                found: Some(found),
+                parents: HashSet::new(),
+            }
         }
         None => {
             let mut sink = Sink {
                 print: Print::new(),
                 found: keep.then(Vec::new),
+                parents: HashSet::new(),
             };
-            browse(section, session, limits, starts, &mut sink).await?;
-            let found = sink.found.map(|found| named(section, found));
-            (sink.print.finish(), found)
+            browse(section, session, limits, starts, parents, &mut sink).await?;
+            Finding {
+                print: sink.print.finish(),
+                found: sink.found.map(|found| named(section, found)),
+                parents: sink.parents,
+            }
         }
     })
 }
@@ -233,6 +257,8 @@ struct Sink {
     print: Print,
     /// Kept for [`build`], or only hashed.
     found: Option<Vec<Found>>,
+    /// See [`Finding::parents`].
+    parents: HashSet<u128>,
 }
 
 impl Sink {
@@ -570,12 +596,14 @@ fn describe(node: &NodeId) -> BrowseDescription {
 
 /// Browses from `starts` down hierarchical references (not properties),
 /// breadth first: every Variable with a served type becomes a variable
-/// named by its browse path below its start node, given to `sink`.
+/// named by its browse path below its start node, given to `sink`. With
+/// `parents`, a variable not among them is not browsed (see [`find`]).
 async fn browse(
     section: &str,
     session: &Session,
     limits: &Limits,
     starts: &[NodeRef],
+    parents: Option<&HashSet<u128>>,
     sink: &mut Sink,
 ) -> Result<(), PlcError> {
     let mut queue: VecDeque<Queued> = VecDeque::new();
@@ -629,6 +657,7 @@ async fn browse(
                 },
             };
             let path = item.path;
+            let parent = item.variable.then(|| visit_key(&item.node));
             // Continuation points bring the rest of a long list: each page
             // taken as it comes (a folder of 100,000 variables held at
             // once was the largest peak of a rebrowse).
@@ -644,6 +673,9 @@ async fn browse(
                         continue;
                     }
                     let node = reference.node_id.node_id;
+                    if let Some(parent) = parent {
+                        sink.parents.insert(parent);
+                    }
                     if node == NodeId::new(0, SERVER_OBJECT) || !visited.insert(visit_key(&node)) {
                         continue;
                     }
@@ -687,7 +719,7 @@ async fn browse(
                         fresh.push(Queued::new(node, child, variable));
                     }
                 }
-                prefetch(session, limits, &mut fresh).await?;
+                prefetch(session, limits, parents, &mut fresh).await?;
                 queue.extend(fresh);
                 if point.is_null() || pages >= 10_000 || seen >= MAX_NODES {
                     break;
@@ -712,13 +744,24 @@ async fn browse(
 /// Those with children keep them for their turn (the names' order
 /// stays); those whose answer was not plain (a refusal, more than a
 /// page: its continuation point given back) are browsed at their turn.
+/// With `parents`, a variable not among them is dropped unbrowsed.
 async fn prefetch(
     session: &Session,
     limits: &Limits,
+    parents: Option<&HashSet<u128>>,
     fresh: &mut Vec<Queued>,
 ) -> Result<(), PlcError> {
-    let variables: Vec<usize> = (0..fresh.len()).filter(|&i| fresh[i].variable).collect();
     let mut childless = vec![false; fresh.len()];
+    let mut variables = Vec::new();
+    for (i, queued) in fresh.iter().enumerate() {
+        if !queued.variable {
+            continue;
+        }
+        match parents {
+            Some(parents) if !parents.contains(&visit_key(&queued.node)) => childless[i] = true,
+            _ => variables.push(i),
+        }
+    }
     for chunk in variables.chunks(limits.per_browse.clamp(1, VARIABLE_BATCH)) {
         let descriptions = chunk.iter().map(|&i| describe(&fresh[i].node)).collect();
         let results =

@@ -704,7 +704,7 @@ impl OpcuaBackend {
         let limits = self.limits;
         let listed = tokio::time::timeout(
             self.config.timeout * 60,
-            rebrowse::list(&session, &lister, &limits, None),
+            rebrowse::list(&session, &lister, &limits, None, true),
         )
         .await
         .map_err(|_| PlcError::Timeout("browsing the server's variables took too long".into()))

@@ -11,6 +11,7 @@
 //! than OPCUA_TIMEOUT ([`Limits::browse_timeout`]); a failed rebrowse
 //! leaves the link's session and the list as they are.
 
+use std::collections::HashSet;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -42,46 +43,78 @@ pub(crate) struct Lister {
 /// The list built by the task and not yet taken by the link.
 pub(crate) type Slot = Arc<Mutex<Option<Built>>>;
 
+/// What the last list found, kept between looks: its print and the
+/// variables with children ([`browse::Finding`]).
+#[derive(Debug, Clone, Default)]
+pub(crate) struct Known {
+    pub print: u128,
+    pub parents: HashSet<u128>,
+}
+
 /// Finds the variables and builds their list; `None` for the list where
-/// the same nodes by the same names as last time were found (`known`, their
-/// [`browse::Print`]): their attributes are not read again (at 100,000
-/// variables that is 400,000 of them every OPCUA_REBROWSE), and the browse
-/// only hashes what it finds. Where they differ, it browses again keeping
-/// them (a change is rare; a list of 100,000 held each OPCUA_REBROWSE was
-/// most of a rebrowse's memory).
+/// the same nodes by the same names as `known` (its [`browse::Print`])
+/// were found: their attributes are not read again (at 100,000 variables
+/// that is 400,000 of them every OPCUA_REBROWSE), and the browse only
+/// hashes what it finds. Unless `full`, such a look browses no variable
+/// but those that had children (a structure's fields): at 100,000
+/// variables, their folders, not 100,000 nodes. Where they differ, it
+/// browses everything again keeping it (a change is rare; a list of
+/// 100,000 held each OPCUA_REBROWSE was most of a rebrowse's memory).
 pub(crate) async fn list(
     session: &Session,
     lister: &Lister,
     limits: &Limits,
-    known: Option<u128>,
-) -> Result<(u128, Option<Built>), PlcError> {
-    let find = |keep: bool| {
-        let tags = lister
+    known: Option<&Known>,
+    full: bool,
+) -> Result<(Known, Option<Built>), PlcError> {
+    let tags = || {
+        lister
             .tags
             .as_ref()
-            .map(|path| crate::read_tag_file(&lister.section, path));
-        browse::find(&lister.section, session, limits, tags, &lister.starts, keep)
+            .map(|path| crate::read_tag_file(&lister.section, path))
     };
-    let (print, found) = find(known.is_none()).await?;
-    if known == Some(print) {
-        return Ok((print, None));
+    let section = &lister.section;
+    let starts = &lister.starts;
+    let parents = known.filter(|_| !full).map(|k| &k.parents);
+    let looked = browse::find(
+        section,
+        session,
+        limits,
+        tags(),
+        starts,
+        known.is_none(),
+        parents,
+    )
+    .await?;
+    let known_of = |looked: browse::Finding| Known {
+        print: looked.print,
+        parents: looked.parents,
+    };
+    if known.map(|k| k.print) == Some(looked.print) {
+        return Ok((known_of(looked), None));
     }
-    let (print, found) = match found {
-        Some(found) => (print, found),
-        None => {
-            let (print, found) = find(true).await?;
-            (print, found.unwrap_or_default())
-        }
+    let mut looked = match looked.found {
+        Some(_) => looked,
+        None => browse::find(section, session, limits, tags(), starts, true, None).await?,
     };
-    let built = browse::build(&lister.section, session, limits, found).await?;
-    Ok((print, Some(built)))
+    let found = looked.found.take().unwrap_or_default();
+    let built = browse::build(section, session, limits, found).await?;
+    Ok((known_of(looked), Some(built)))
 }
 
 /// A look takes at most one part in this many of the time: at 100,000
-/// variables each look browses every variable (for a structure's fields)
-/// and costs seconds of both sides' CPU, more than a 10 s OPCUA_REBROWSE
-/// should spend.
+/// variables a full look browses every variable (for a structure's
+/// fields) and costs seconds of both sides' CPU, more than a 10 s
+/// OPCUA_REBROWSE should spend.
 const REBROWSE_SHARE: u32 = 20;
+
+/// Every this many looks, one browses every variable again, not only
+/// those that had children: a variable that had none and has some now
+/// (its type made a structure, its node id the same) is found by it. The
+/// others cost a server its folders' Browse only (node-opcua's, at 10,000
+/// variables and 50 SETs a second, stopped answering under the Browse of
+/// every variable every 10 s).
+const FULL_LOOK_EVERY: u32 = 10;
 
 /// Every `every` (or [`REBROWSE_SHARE`] times the last look's time, if
 /// longer): the list again, put in `slot` where it differs from the last
@@ -92,11 +125,12 @@ pub(crate) fn spawn(
     lister: Lister,
     limits: Limits,
     every: Duration,
-    known: u128,
+    known: Known,
     slot: Slot,
 ) -> JoinHandle<()> {
     tokio::spawn(async move {
         let mut known = known;
+        let mut looks = 0u32;
         let mut failing = false;
         let mut client = None;
         let mut shared = false;
@@ -104,6 +138,8 @@ pub(crate) fn spawn(
         loop {
             tokio::time::sleep(every.max(took.saturating_mul(REBROWSE_SHARE))).await;
             let started = std::time::Instant::now();
+            looks = looks.wrapping_add(1);
+            let full = looks.is_multiple_of(FULL_LOOK_EVERY);
             // The link's client settings (accepted already), but patient:
             // a keep-alive the server answers after a slow Browse must not
             // close this session.
@@ -118,7 +154,7 @@ pub(crate) fn spawn(
                 Ok((session, event_loop)) => {
                     let event_loop = Aborted(event_loop);
                     shared = false;
-                    let listed = list(&session, &lister, &limits, Some(known)).await;
+                    let listed = list(&session, &lister, &limits, Some(&known), full).await;
                     let _ = tokio::time::timeout(config.timeout, session.disconnect()).await;
                     drop(event_loop);
                     listed
@@ -127,7 +163,7 @@ pub(crate) fn spawn(
                     if !std::mem::replace(&mut shared, true) {
                         info!(section = %lister.section, "no session of its own to look for the server's variables again ({e}): on the link's session");
                     }
-                    list(&link, &lister, &limits, Some(known)).await
+                    list(&link, &lister, &limits, Some(&known), full).await
                 }
             };
             took = started.elapsed();
