@@ -184,16 +184,20 @@ pub(crate) fn visit_key(node: &NodeId) -> u128 {
     (u128::from(half(0)) << 64) | u128::from(half(1))
 }
 
+/// What a look keeps until the next: the print of the variables it found
+/// (see [`Print`]) and the [`visit_key`]s of those browsed with children
+/// of their own (a structure's fields): a look that only compares browses
+/// these and no other variable.
+pub(crate) struct Known {
+    pub print: u128,
+    pub parents: HashSet<u128>,
+}
+
 /// What [`find`] found.
 pub(crate) struct Finding {
-    /// Its [`Print`].
-    pub print: u128,
+    pub known: Known,
     /// The variables, where kept.
     pub found: Option<Vec<Found>>,
-    /// The [`visit_key`]s of the variables browsed with children of their
-    /// own (a structure's fields): a look that only compares browses
-    /// these and no other variable.
-    pub parents: HashSet<u128>,
 }
 
 /// The variables: the tag file's tags, or those found by browsing
@@ -231,9 +235,11 @@ pub(crate) async fn find(
                 }
             }
             Finding {
-                print: print.finish(),
+                known: Known {
+                    print: print.finish(),
+                    parents: HashSet::new(),
+                },
                 found: Some(found),
-                parents: HashSet::new(),
             }
         }
         None => {
@@ -244,9 +250,11 @@ pub(crate) async fn find(
             };
             browse(section, session, limits, starts, parents, &mut sink).await?;
             Finding {
-                print: sink.print.finish(),
+                known: Known {
+                    print: sink.print.finish(),
+                    parents: sink.parents,
+                },
                 found: sink.found.map(|found| named(section, found)),
-                parents: sink.parents,
             }
         }
     })
@@ -257,7 +265,7 @@ struct Sink {
     print: Print,
     /// Kept for [`build`], or only hashed.
     found: Option<Vec<Found>>,
-    /// See [`Finding::parents`].
+    /// See [`Known::parents`].
     parents: HashSet<u128>,
 }
 

@@ -11,7 +11,6 @@
 //! than OPCUA_TIMEOUT ([`Limits::browse_timeout`]); a failed rebrowse
 //! leaves the link's session and the list as they are.
 
-use std::collections::HashSet;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -27,7 +26,7 @@ use tracing::{info, warn};
 use plccoms_core::driver::PlcError;
 use plccoms_plc::opcua::nodeid::NodeRef;
 
-use crate::browse::{self, Built};
+use crate::browse::{self, Built, Known};
 use crate::{connect_session, new_client, service_error, Carries, Limits, OpcuaConfig};
 
 /// What to look for.
@@ -42,14 +41,6 @@ pub(crate) struct Lister {
 
 /// The list built by the task and not yet taken by the link.
 pub(crate) type Slot = Arc<Mutex<Option<Built>>>;
-
-/// What the last list found, kept between looks: its print and the
-/// variables with children ([`browse::Finding`]).
-#[derive(Debug, Clone, Default)]
-pub(crate) struct Known {
-    pub print: u128,
-    pub parents: HashSet<u128>,
-}
 
 /// Finds the variables and builds their list; `None` for the list where
 /// the same nodes by the same names as `known` (its [`browse::Print`])
@@ -86,20 +77,16 @@ pub(crate) async fn list(
         parents,
     )
     .await?;
-    let known_of = |looked: browse::Finding| Known {
-        print: looked.print,
-        parents: looked.parents,
-    };
-    if known.map(|k| k.print) == Some(looked.print) {
-        return Ok((known_of(looked), None));
+    if known.map(|k| k.print) == Some(looked.known.print) {
+        return Ok((looked.known, None));
     }
-    let mut looked = match looked.found {
+    let looked = match looked.found {
         Some(_) => looked,
         None => browse::find(section, session, limits, tags(), starts, true, None).await?,
     };
-    let found = looked.found.take().unwrap_or_default();
+    let found = looked.found.unwrap_or_default();
     let built = browse::build(section, session, limits, found).await?;
-    Ok((known_of(looked), Some(built)))
+    Ok((looked.known, Some(built)))
 }
 
 /// A look takes at most one part in this many of the time: at 100,000
