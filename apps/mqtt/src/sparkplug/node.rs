@@ -534,11 +534,16 @@ impl Node {
         self.born = true;
         for index in 0..self.devices.len() {
             let snapshot = self.devices[index].section.latest();
-            let up = self.devices[index].up(&snapshot);
-            self.devices[index].online = up;
-            if up {
-                self.device_birth(index, &snapshot);
-            }
+            self.birth_when_up(index, &snapshot);
+        }
+    }
+
+    /// Device `index` online where it is up, with its DBIRTH.
+    fn birth_when_up(&mut self, index: usize, snapshot: &Snapshot) {
+        let up = self.devices[index].up(snapshot);
+        self.devices[index].online = up;
+        if up {
+            self.device_birth(index, snapshot);
         }
     }
 
@@ -553,11 +558,9 @@ impl Node {
                 continue;
             }
             let snapshot = self.devices[index].section.latest();
-            if Arc::ptr_eq(&self.devices[index].table, &snapshot.table)
-                && self.devices[index].up(&snapshot)
-            {
-                self.devices[index].online = true;
-                self.device_birth(index, &snapshot);
+            // A newer table comes as a batch, and is born from there.
+            if Arc::ptr_eq(&self.devices[index].table, &snapshot.table) {
+                self.birth_when_up(index, &snapshot);
             }
         }
     }
