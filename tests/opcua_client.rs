@@ -443,9 +443,14 @@ async fn tag_file_user_and_refusals() {
 
 /// The rebrowse found the server's variables changed: the table reloaded.
 async fn reloaded(c: &mut Client) {
+    reloaded_within(c, Duration::from_secs(10)).await;
+}
+
+/// As [`reloaded`], waiting up to `wait`.
+async fn reloaded_within(c: &mut Client, wait: Duration) {
     c.wait_for_line(
         b"WARNING:250 Changed public file: 'OPCUA_VARS.csv'\r\n",
-        Duration::from_secs(10),
+        wait,
     )
     .await;
 }
@@ -552,11 +557,7 @@ async fn a_look_browses_folders_and_structures_only() {
     // A child of a variable that had none: found by a full look, one in
     // ten (looks every 1 s or more: well within 60 s).
     server.command("addto INT16_V EXTRA");
-    c.wait_for_line(
-        b"WARNING:250 Changed public file: 'OPCUA_VARS.csv'\r\n",
-        Duration::from_secs(60),
-    )
-    .await;
+    reloaded_within(&mut c, Duration::from_secs(60)).await;
     c.ask(
         "GET:types.int16_v.extra\r\n",
         "GET:TYPES.INT16_V.EXTRA,1.5000000000\r\n",
