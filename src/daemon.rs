@@ -6,7 +6,10 @@ use std::fs::File;
 use std::io::{Read, Write};
 use std::os::fd::{AsRawFd, OwnedFd, RawFd};
 
-use nix::unistd::{dup2_stderr, dup2_stdin, dup2_stdout, fork, pipe, setsid, ForkResult};
+use std::time::{Duration, Instant};
+
+use nix::sys::wait::{waitpid, WaitPidFlag, WaitStatus};
+use nix::unistd::{dup2_stderr, dup2_stdin, dup2_stdout, fork, pipe, setsid, ForkResult, Pid};
 
 /// The child's way to tell the waiting parent how start-up went.
 pub struct Notifier {
@@ -40,9 +43,13 @@ pub fn detach() -> Result<Notifier, String> {
     // SAFETY: no other thread exists yet (the runtime starts after this), so
     // the child may run arbitrary code.
     match unsafe { fork() }.map_err(|e| format!("fork: {e}"))? {
-        ForkResult::Parent { .. } => {
+        ForkResult::Parent { child } => {
             drop(write_end);
-            std::process::exit(wait_for_child(read_end));
+            let code = wait_for_child(read_end);
+            if code != 0 {
+                reap(child);
+            }
+            std::process::exit(code);
         }
         ForkResult::Child => {
             drop(read_end);
@@ -81,6 +88,20 @@ fn close_inherited(keep: RawFd) {
             unsafe {
                 libc::close(fd);
             }
+        }
+    }
+}
+
+/// Waits (5 s at most) for a child that failed to start to end: it has
+/// said why, but still holds what it took (the pid file's lock, ports)
+/// until it exits, and a script that starts another at once would find
+/// them taken.
+fn reap(child: Pid) {
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while Instant::now() < deadline {
+        match waitpid(child, Some(WaitPidFlag::WNOHANG)) {
+            Ok(WaitStatus::StillAlive) => std::thread::sleep(Duration::from_millis(10)),
+            _ => return,
         }
     }
 }
