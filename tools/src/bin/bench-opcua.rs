@@ -95,6 +95,28 @@ struct Args {
     /// (`bench-opcua-plc`: async-opcua's in-memory server, likewise).
     #[arg(long, value_enum, value_delimiter = ',', default_value = "plccoms")]
     against: Vec<Against>,
+    /// CPUs of the client side, the process measured (`taskset -c` list,
+    /// e.g. `0`). The bench itself (its SETs and, against plccoms, its
+    /// plcsim) runs where it is started: `taskset -c 0 bench-opcua ...`.
+    #[arg(long)]
+    pin_client: Option<String>,
+    /// CPUs of the server process (plccoms serving, node-opcua's or
+    /// bench-opcua-plc), e.g. `1`: so that its burst of changed values
+    /// and the client side do not take turns on the same cores.
+    #[arg(long)]
+    pin_server: Option<String>,
+}
+
+/// `program`, under `taskset -c cpus` when given.
+fn command(program: impl AsRef<std::ffi::OsStr>, pin: Option<&str>) -> Command {
+    match pin {
+        Some(cpus) => {
+            let mut command = Command::new("taskset");
+            command.args(["-c", cpus]).arg(program);
+            command
+        }
+        None => Command::new(program),
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -144,10 +166,10 @@ struct Server {
 impl Server {
     /// node-opcua's server of `n` variables, all but the SET targets
     /// (`VAR_00000`..) changing each `delay` ms; once it listens.
-    fn node(dir: &Path, port: u16, n: usize, delay: u64) -> Server {
+    fn node(dir: &Path, port: u16, n: usize, delay: u64, pin: Option<&str>) -> Server {
         let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../bench/opcua/node/server.js");
         let log = std::fs::File::create(dir.join("node.log")).expect("log");
-        let child = Command::new("node")
+        let child = command("node", pin)
             .arg(&script)
             .args([
                 port.to_string(),
@@ -181,12 +203,12 @@ impl Server {
 
     /// `bench-opcua-plc` (next to this binary) of `n` variables, the
     /// `V*` changing each `delay` ms; once it listens.
-    fn ua(dir: &Path, port: u16, n: usize, delay: u64) -> Server {
+    fn ua(dir: &Path, port: u16, n: usize, delay: u64, pin: Option<&str>) -> Server {
         let binary = std::env::current_exe()
             .expect("this binary's path")
             .with_file_name("bench-opcua-plc");
         let log = std::fs::File::create(dir.join("ua.log")).expect("log");
-        let child = Command::new(&binary)
+        let child = command(&binary, pin)
             .args([
                 "--port",
                 &port.to_string(),
@@ -203,10 +225,17 @@ impl Server {
         Server::once_ready(child, "bench-opcua-plc", &dir.join("ua.log"))
     }
 
-    fn start(binary: &Path, dir: &Path, name: &str, ini: &str, split: bool) -> Server {
+    fn start(
+        binary: &Path,
+        dir: &Path,
+        name: &str,
+        ini: &str,
+        split: bool,
+        pin: Option<&str>,
+    ) -> Server {
         std::fs::write(dir.join(format!("{name}.ini")), ini).expect("ini");
         let log = std::fs::File::create(dir.join(format!("{name}.log"))).expect("log");
-        let mut command = Command::new(binary);
+        let mut command = command(binary, pin);
         if split {
             command.env("RUST_LOG", "info,plccoms::set_timing=debug");
         }
@@ -334,6 +363,7 @@ async fn run(args: &Args, binary: &Path, n: usize, against: Against) -> Row {
                     plc.local_addr().port()
                 ),
                 args.split,
+                args.pin_server.as_deref(),
             );
             (
                 serving,
@@ -345,7 +375,7 @@ async fn run(args: &Args, binary: &Path, n: usize, against: Against) -> Row {
             )
         }
         Against::Node => (
-            Server::node(dir.path(), ua, n, plc_cycle),
+            Server::node(dir.path(), ua, n, plc_cycle, args.pin_server.as_deref()),
             None,
             "OPCUA_BROWSE = nsu=urn:node-opcua-bench;s=Bench\n",
             format!("ANIM_{:05}", n - SET_TAGS - 1),
@@ -353,7 +383,7 @@ async fn run(args: &Args, binary: &Path, n: usize, against: Against) -> Row {
             "VAR_",
         ),
         Against::Ua => (
-            Server::ua(dir.path(), ua, n, plc_cycle),
+            Server::ua(dir.path(), ua, n, plc_cycle, args.pin_server.as_deref()),
             None,
             "OPCUA_BROWSE = nsu=urn:bench-plc;s=Bench\n",
             format!("V{}", n - 1),
@@ -382,6 +412,7 @@ async fn run(args: &Args, binary: &Path, n: usize, against: Against) -> Row {
              {browse}SERVER_PORT = {via_port}\n{keys}"
         ),
         args.split,
+        args.pin_client.as_deref(),
     );
     let pid = client.child.id();
     loop {
@@ -532,6 +563,15 @@ async fn main() {
         args.delay,
         args.window
     );
+    if args.pin_client.is_some() || args.pin_server.is_some() {
+        let cpus = |pin: &Option<String>| pin.clone().unwrap_or_else(|| "any".into());
+        let _ = writeln!(
+            out,
+            "CPUs: client side {}, server {}\n",
+            cpus(&args.pin_client),
+            cpus(&args.pin_server)
+        );
+    }
     let _ = writeln!(
         out,
         "| server | variables | ready after | client CPU | client RSS peak / now | requests per cycle | DIFF lines/s | SET confirmed min / avg / max / p99 | SET -> DIFF min / avg / max / p99 | DIFFs seen |"
