@@ -228,7 +228,29 @@ impl ClientTable {
             return 0;
         }
         let mut lines = 0;
-        if consecutive && self.takes_block(snapshot, eol) {
+        // Values owed to variables just enabled go first, in the order they
+        // were enabled (EN:*: the table's), then this snapshot's changes:
+        // the first DIFFs after EN:* come in table order whether the first
+        // snapshot the session sees holds the new variables' first poll
+        // or not. The shared block would send some of them again.
+        let owed = !self.pending.is_empty();
+        if owed {
+            let pending = std::mem::take(&mut self.pending);
+            let mut waiting = Vec::new();
+            for id in pending {
+                if !self.is_enabled(id) {
+                    continue;
+                }
+                if snapshot.current(id).is_some() {
+                    // Owed its value now, whatever went out before.
+                    lines += usize::from(self.offer(snapshot, id, format, eol, out, false));
+                } else {
+                    waiting.push(id);
+                }
+            }
+            self.pending.extend(waiting);
+        }
+        if consecutive && !owed && self.takes_block(snapshot, eol) {
             if let Some(block) = snapshot.diff_block() {
                 out.extend_from_slice(&block.bytes);
                 lines += block.lines;
@@ -245,22 +267,6 @@ impl ClientTable {
                     lines += usize::from(self.offer(snapshot, id, format, eol, out, true));
                 }
             }
-        }
-        if !self.pending.is_empty() {
-            let pending = std::mem::take(&mut self.pending);
-            let mut waiting = Vec::new();
-            for id in pending {
-                if !self.is_enabled(id) {
-                    continue;
-                }
-                if snapshot.current(id).is_some() {
-                    // Owed its value now, whatever went out before.
-                    lines += usize::from(self.offer(snapshot, id, format, eol, out, false));
-                } else {
-                    waiting.push(id);
-                }
-            }
-            self.pending.extend(waiting);
         }
         lines
     }
@@ -375,5 +381,74 @@ impl ClientTable {
 impl Drop for ClientTable {
     fn drop(&mut self) {
         self.release();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use plccoms_core::changes::{PollStamp, Publisher};
+    use std::time::Duration;
+
+    /// The names of the DIFF lines `client` is owed from `snapshot`.
+    fn diff_names(client: &mut ClientTable, snapshot: &Snapshot) -> Vec<String> {
+        let mut out = Vec::new();
+        client.collect_diffs(snapshot, &FormatOptions::default(), b"\n", &mut out);
+        String::from_utf8(out)
+            .expect("text")
+            .lines()
+            .map(|l| l.split(',').next().unwrap_or_default().to_string())
+            .collect()
+    }
+
+    /// A session slow to look (a loaded machine) first sees EN:*'s
+    /// variables in the snapshot of their first poll: their values are
+    /// that snapshot's changes, and the fixed ones', polled before, are
+    /// owed. Both go out in table order, as when it looks in time.
+    #[test]
+    fn en_all_owes_every_first_value_in_table_order_when_the_first_poll_is_in() {
+        let table = Arc::new(
+            VarTable::from_public_text(
+                "t.pub",
+                b" A R B 0 INT PUB_INOUT\r\n B R B 2 INT PUB_INOUT\r\n",
+            )
+            .expect("table"),
+        );
+        assert_eq!(table.fixed_count(), 2);
+        let (publisher, stream) = Publisher::new(
+            table.clone(),
+            FormatOptions::default(),
+            Duration::from_secs(60),
+        );
+        let mut publisher = publisher;
+        let poll = |publisher: &mut Publisher, ids: &[(VarId, &[u8])]| {
+            let stamp = PollStamp::now();
+            for (id, bytes) in ids {
+                publisher.update(*id, bytes, stamp.unix_ms);
+            }
+            publisher.publish_poll(stamp);
+        };
+        // Connected: the fixed variables are polled before any EN.
+        let fixed: [(VarId, &[u8]); 2] = [(0, &[0x04]), (1, &[0x80, 0xDA, 0x54, 0x15])];
+        poll(&mut publisher, &fixed);
+        let mut client = ClientTable::new(&stream.latest(), false);
+        for id in 0..table.len() as VarId {
+            client.enable(id);
+        }
+        // The first poll with A and B: the fixed ones again, unchanged.
+        poll(
+            &mut publisher,
+            &[fixed[0], fixed[1], (2, &[5, 0]), (3, &[6, 0])],
+        );
+        assert_eq!(
+            diff_names(&mut client, &stream.latest()),
+            ["DIFF:__PLC_RUN", "DIFF:__PF_CRC", "DIFF:A", "DIFF:B"]
+        );
+        // Owed once: the next poll, nothing changed, sends nothing.
+        poll(
+            &mut publisher,
+            &[fixed[0], fixed[1], (2, &[5, 0]), (3, &[6, 0])],
+        );
+        assert!(diff_names(&mut client, &stream.latest()).is_empty());
     }
 }
