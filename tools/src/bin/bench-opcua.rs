@@ -28,6 +28,8 @@
 //!
 //! Run: `cargo run --release -p plccoms-tools --bin bench-opcua -- --help`.
 
+#[path = "../pinned.rs"]
+mod pinned;
 #[path = "../procfs.rs"]
 mod procfs;
 #[path = "../timed.rs"]
@@ -37,7 +39,7 @@ mod timed;
 use std::fmt::Write as _;
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Stdio};
 use std::time::{Duration, Instant};
 
 use clap::Parser;
@@ -107,18 +109,6 @@ struct Args {
     pin_server: Option<String>,
 }
 
-/// `program`, under `taskset -c cpus` when given.
-fn command(program: impl AsRef<std::ffi::OsStr>, pin: Option<&str>) -> Command {
-    match pin {
-        Some(cpus) => {
-            let mut command = Command::new("taskset");
-            command.args(["-c", cpus]).arg(program);
-            command
-        }
-        None => Command::new(program),
-    }
-}
-
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 enum Against {
     Plccoms,
@@ -169,7 +159,7 @@ impl Server {
     fn node(dir: &Path, port: u16, n: usize, delay: u64, pin: Option<&str>) -> Server {
         let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../bench/opcua/node/server.js");
         let log = std::fs::File::create(dir.join("node.log")).expect("log");
-        let child = command("node", pin)
+        let child = pinned::command("node", pin)
             .arg(&script)
             .args([
                 port.to_string(),
@@ -208,7 +198,7 @@ impl Server {
             .expect("this binary's path")
             .with_file_name("bench-opcua-plc");
         let log = std::fs::File::create(dir.join("ua.log")).expect("log");
-        let child = command(&binary, pin)
+        let child = pinned::command(&binary, pin)
             .args([
                 "--port",
                 &port.to_string(),
@@ -235,7 +225,7 @@ impl Server {
     ) -> Server {
         std::fs::write(dir.join(format!("{name}.ini")), ini).expect("ini");
         let log = std::fs::File::create(dir.join(format!("{name}.log"))).expect("log");
-        let mut command = command(binary, pin);
+        let mut command = pinned::command(binary, pin);
         if split {
             command.env("RUST_LOG", "info,plccoms::set_timing=debug");
         }

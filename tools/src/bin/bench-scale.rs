@@ -23,13 +23,15 @@
 //!
 //! Run: `cargo run --release -p plccoms-tools --bin bench-scale -- --help`.
 
+#[path = "../pinned.rs"]
+mod pinned;
 #[path = "../procfs.rs"]
 mod procfs;
 
 use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Stdio};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -120,14 +122,7 @@ impl Children {
         args: &[String],
         log_path: &Path,
     ) -> u32 {
-        let mut command = match pin {
-            Some(cpus) => {
-                let mut c = Command::new("taskset");
-                c.args(["-c", cpus]).arg(bin);
-                c
-            }
-            None => Command::new(bin),
-        };
+        let mut command = pinned::command(bin, pin);
         let log = std::fs::File::create(log_path).expect("log file");
         let child = command
             .args(args)
