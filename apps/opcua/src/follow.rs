@@ -40,8 +40,9 @@ impl Follow {
     /// Feeds the sections served now (`old`, the list `Shared` was made
     /// from), then follows `rx` until stopped.
     pub async fn run(self, mut old: SectionList, mut rx: watch::Receiver<SectionList>) {
-        let feeds_stop = self.stop.child_token();
-        let feeds = feed_runtime(feeds_stop.clone());
+        // Shut down with this task, however it ends.
+        let runtime = FeedRuntime::new();
+        let feeds = runtime.handle();
         let mut running: Vec<Running> = self
             .shared
             .list()
@@ -65,7 +66,6 @@ impl Follow {
             feed.stop.cancel();
             feed.task.abort();
         }
-        feeds_stop.cancel();
     }
 
     fn spawn(&self, feeds: &Handle, nodes: Arc<SectionNodes>) -> Running {
@@ -198,40 +198,43 @@ impl Follow {
     }
 }
 
-/// The feeds' runtime: threads of their own until `stop`. A feed's walk of
-/// a snapshot and the stack's notify of its changes (100,000 a second: a
-/// few hundred ms) run without yielding; on the server's workers they held
-/// one of them, and a Write or Read waited for it (SET p99 at 100,000
-/// through plccoms's server: 149 ms). On threads of their own the OS
-/// shares the cores between them and the requests. The current runtime
-/// when those threads cannot be made.
-fn feed_runtime(stop: CancellationToken) -> Handle {
-    let (tx, rx) = std::sync::mpsc::channel();
-    let made = std::thread::Builder::new()
-        .name("opcua-feeds".into())
-        .spawn(move || {
-            let runtime = match tokio::runtime::Builder::new_multi_thread()
-                .worker_threads(FEED_THREADS)
-                .thread_name("opcua-feed")
-                .enable_all()
-                .build()
-            {
-                Ok(runtime) => runtime,
-                Err(e) => return drop(tx.send(Err(e.to_string()))),
-            };
-            let _ = tx.send(Ok(runtime.handle().clone()));
-            // Dropped here, on a thread of its own, once every feed is told
-            // to stop.
-            runtime.block_on(stop.cancelled());
-        });
-    let made = made
-        .map_err(|e| e.to_string())
-        .and_then(|_| rx.recv().map_err(|e| e.to_string())?);
-    match made {
-        Ok(handle) => handle,
-        Err(e) => {
-            warn!("OPC UA: the feeds run on the server's threads ({e})");
-            Handle::current()
+/// The feeds' runtime: threads of their own. A feed's walk of a snapshot
+/// and the stack's notify of its changes (100,000 a second: a few hundred
+/// ms) run without yielding; on the server's workers they held one of
+/// them, and a Write or Read waited for it (SET p99 at 100,000 through
+/// plccoms's server: 149 ms). On threads of their own the OS shares the
+/// cores between them and the requests. The current runtime when those
+/// threads cannot be made.
+struct FeedRuntime(Option<tokio::runtime::Runtime>);
+
+impl FeedRuntime {
+    fn new() -> FeedRuntime {
+        let built = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(FEED_THREADS)
+            .thread_name("opcua-feed")
+            .enable_all()
+            .build();
+        match built {
+            Ok(runtime) => FeedRuntime(Some(runtime)),
+            Err(e) => {
+                warn!("OPC UA: the feeds run on the server's threads ({e})");
+                FeedRuntime(None)
+            }
+        }
+    }
+
+    fn handle(&self) -> Handle {
+        self.0
+            .as_ref()
+            .map_or_else(Handle::current, |runtime| runtime.handle().clone())
+    }
+}
+
+impl Drop for FeedRuntime {
+    fn drop(&mut self) {
+        // Inside another runtime a plain drop would panic (it blocks).
+        if let Some(runtime) = self.0.take() {
+            runtime.shutdown_background();
         }
     }
 }

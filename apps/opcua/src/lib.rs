@@ -200,8 +200,6 @@ pub struct Opcua {
     server: JoinHandle<()>,
     follow: JoinHandle<()>,
     stop: CancellationToken,
-    /// Dropped without a shutdown, it still ends the feeds' threads.
-    _feeds_end: tokio_util::sync::DropGuard,
 }
 
 impl Opcua {
@@ -381,7 +379,6 @@ pub fn start(
         handle,
         server,
         follow,
-        _feeds_end: stop.clone().drop_guard(),
         stop,
     })
 }
