@@ -242,3 +242,32 @@ impl Drop for FeedRuntime {
 /// The feeds' threads: more than one, so a section's long walk does not
 /// hold every other section's feed.
 const FEED_THREADS: usize = 2;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Dropped on a runtime's worker (as the follow task ends), the feeds'
+    /// runtime ends and drops its tasks; a plain drop there would panic.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 1)]
+    async fn the_feed_runtime_ends_its_feeds_when_dropped_inside_a_runtime() {
+        let runtime = FeedRuntime::new();
+        assert!(runtime.0.is_some(), "threads of its own");
+        let (alive, ended) = tokio::sync::oneshot::channel::<()>();
+        let (started_tx, started) = tokio::sync::oneshot::channel();
+        runtime.handle().spawn(async move {
+            let _alive = alive;
+            let name = std::thread::current().name().map(str::to_owned);
+            let _ = started_tx.send(name);
+            std::future::pending::<()>().await;
+        });
+        let name = started.await.expect("the feed ran");
+        assert_eq!(name.as_deref(), Some("opcua-feed"));
+        drop(runtime);
+        let ended = tokio::time::timeout(std::time::Duration::from_secs(10), ended).await;
+        assert!(
+            matches!(ended, Ok(Err(_))),
+            "the feed's task is dropped with its runtime"
+        );
+    }
+}
