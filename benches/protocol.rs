@@ -35,8 +35,11 @@ fn format(c: &mut Criterion) {
         scient_notation: true,
         ..FormatOptions::default()
     };
-    let cases: [(&str, IecType, Value, &FormatOptions); 6] = [
+    let cases: [(&str, IecType, Value, &FormatOptions); 8] = [
         ("real", IecType::Real, Value::Real(21.537), &opts),
+        // Integral reals (0, counters, setpoints) are common in PLC data.
+        ("real_integral", IecType::Real, Value::Real(1234.0), &opts),
+        ("lreal_zero", IecType::Lreal, Value::LReal(0.0), &opts),
         ("real_sci", IecType::Real, Value::Real(-0.000_123_4), &sci),
         (
             "lreal",

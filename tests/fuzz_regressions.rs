@@ -141,6 +141,20 @@ fn every_target_runs_on_ordinary_input() {
     ] {
         checks::user_value(text.as_bytes());
     }
+    // LREALs as bytes: integral (0, -0, 2^53 + 2, -1234), fractional, and
+    // one past the integral values' own path, at 0, 2, 40 decimals.
+    for (x, decimals) in [
+        (0.0, 2),
+        (-0.0, 0),
+        (9_007_199_254_740_994.0, 40),
+        (-1234.0, 2),
+        (-1234.567, 2),
+        (9.5e18, 2),
+    ] {
+        let mut data = f64::to_le_bytes(x).to_vec();
+        data.push(decimals);
+        checks::user_value(&data);
+    }
     // A DCMD of COUNTER = 42 by alias 21 (Int16 in int_value), an NCMD
     // rebirth by name, an empty payload, and a truncated varint.
     checks::sparkplug_command(&[0x12, 0x06, 0x10, 0x15, 0x20, 0x02, 0x50, 0x2a]);

@@ -960,6 +960,7 @@ pub fn sparkplug_command(data: &[u8]) {
 pub fn user_value(data: &[u8]) {
     use plccoms_core::present::{protocol_text, Presented};
     let opts = plccoms_protocol::value::FormatOptions::default();
+    lreal_prints_exactly(data);
     for ty in all_types() {
         let Ok(text) = protocol_text(ty, data, &opts) else {
             continue;
@@ -980,6 +981,29 @@ pub fn user_value(data: &[u8]) {
         let shown_text = shown.text();
         let again = protocol_text(ty, shown_text.as_bytes(), &opts).expect("its own form");
         assert_eq!(again, text, "{ty}: {shown:?}");
+    }
+}
+
+/// An LREAL prints as Rust's exact formatting does (which rounds as
+/// glibc's printf), its integral part alone too: the integral values'
+/// own path gives the same digits.
+fn lreal_prints_exactly(data: &[u8]) {
+    let Some((bits, rest)) = data.split_first_chunk::<8>() else {
+        return;
+    };
+    let x = f64::from_le_bytes(*bits);
+    if !x.is_finite() {
+        return;
+    }
+    let opts = FormatOptions {
+        num_of_decimals: rest.first().map_or(6, |d| d % 41),
+        ..FormatOptions::default()
+    };
+    let decimals = opts.decimals(IecType::Lreal);
+    for x in [x, x.trunc()] {
+        let mut out = Vec::new();
+        Value::LReal(x).format(IecType::Lreal, &opts, &mut out);
+        assert_eq!(out, format!("{x:.decimals$}").into_bytes(), "{x:e}");
     }
 }
 
