@@ -490,21 +490,15 @@ fn split_table(sides: &[(&str, &Path, u64)]) -> String {
     let mut out = String::from(
         "| side | part | count | p50 | p99 | max |\n| --- | --- | --- | --- | --- | --- |\n",
     );
+    let mut tails = String::new();
     for (side, path, from) in sides {
         let text = std::fs::read(path).unwrap_or_default();
         let text = String::from_utf8_lossy(text.get(*from as usize..).unwrap_or_default());
+        tails.push_str(&tail_of_rounds(side, &text, PARTS[0].1));
         for (event, fields) in PARTS {
             let lines: Vec<&str> = text.lines().filter(|l| l.contains(event)).collect();
             for field in fields {
-                let mut ms: Vec<f64> = lines
-                    .iter()
-                    .filter_map(|l| {
-                        let value = l
-                            .split_whitespace()
-                            .find_map(|w| w.strip_prefix(*field)?.strip_prefix('='))?;
-                        Some(value.parse::<f64>().ok()? / 1000.0)
-                    })
-                    .collect();
+                let mut ms: Vec<f64> = lines.iter().filter_map(|l| field_ms(l, field)).collect();
                 if ms.is_empty() {
                     continue;
                 }
@@ -521,7 +515,46 @@ fn split_table(sides: &[(&str, &Path, u64)]) -> String {
             }
         }
     }
-    out
+    out + &tails
+}
+
+/// The value of a log line's `name=<µs>` field, in ms.
+fn field_ms(line: &str, name: &str) -> Option<f64> {
+    let value = line
+        .split_whitespace()
+        .find_map(|w| w.strip_prefix(name)?.strip_prefix('='))?;
+    Some(value.parse::<f64>().ok()? / 1000.0)
+}
+
+/// The slowest 1 % of a side's SET rounds (at least one), each with its
+/// parts: what the tail waits on, which the parts' own p99s, taken from
+/// different rounds, do not tell.
+fn tail_of_rounds(side: &str, text: &str, fields: &[&str]) -> String {
+    let mut rounds: Vec<Vec<f64>> = text
+        .lines()
+        .filter(|l| l.contains("set round"))
+        .filter_map(|l| fields.iter().map(|f| field_ms(l, f)).collect())
+        .collect();
+    if rounds.is_empty() {
+        return String::new();
+    }
+    rounds.sort_by(|a, b| b.iter().sum::<f64>().total_cmp(&a.iter().sum::<f64>()));
+    let slowest = &rounds[..rounds.len().div_ceil(100)];
+    let names: Vec<&str> = fields.iter().map(|f| f.trim_end_matches("_us")).collect();
+    let each: Vec<String> = slowest
+        .iter()
+        .map(|round| {
+            let parts: Vec<String> = round.iter().map(|ms| format!("{ms:.1}")).collect();
+            parts.join(" / ")
+        })
+        .collect();
+    format!(
+        "\n{side}: the slowest {} of {} SET rounds, {} (ms): {}\n",
+        slowest.len(),
+        rounds.len(),
+        names.join(" / "),
+        each.join("; ")
+    )
 }
 
 fn summary(values: &[f64]) -> (f64, f64, f64, f64) {
