@@ -141,14 +141,16 @@ fn every_target_runs_on_ordinary_input() {
     ] {
         checks::user_value(text.as_bytes());
     }
-    // LREALs as bytes: integral (0, -0, 2^53 + 2, -1234), fractional, and
-    // one past the integral values' own path, at 0, 2, 40 decimals.
+    // LREALs as bytes: integral (0, -0, 2^53 + 2, -1234), of few fractional
+    // bits (21.5, -0.125), longer, and one past the own path of those.
     for (x, decimals) in [
         (0.0, 2),
         (-0.0, 0),
         (9_007_199_254_740_994.0, 40),
         (-1234.0, 2),
         (-1234.567, 2),
+        (21.5, 6),
+        (-0.125, 2),
         (9.5e18, 2),
     ] {
         let mut data = f64::to_le_bytes(x).to_vec();

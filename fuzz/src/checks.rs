@@ -985,8 +985,8 @@ pub fn user_value(data: &[u8]) {
 }
 
 /// An LREAL prints as Rust's exact formatting does (which rounds as
-/// glibc's printf), its integral part alone too: the integral values'
-/// own path gives the same digits.
+/// glibc's printf), and so do its integral part and its nearest 64th:
+/// the own path of values with few fractional bits gives the same digits.
 fn lreal_prints_exactly(data: &[u8]) {
     let Some((bits, rest)) = data.split_first_chunk::<8>() else {
         return;
@@ -1000,7 +1000,7 @@ fn lreal_prints_exactly(data: &[u8]) {
         ..FormatOptions::default()
     };
     let decimals = opts.decimals(IecType::Lreal);
-    for x in [x, x.trunc()] {
+    for x in [x, x.trunc(), (x * 64.0).round() / 64.0] {
         let mut out = Vec::new();
         Value::LReal(x).format(IecType::Lreal, &opts, &mut out);
         assert_eq!(out, format!("{x:.decimals$}").into_bytes(), "{x:e}");

@@ -252,19 +252,7 @@ fn format_float(x: f64, decimals: usize, scientific: bool, out: &mut Vec<u8>) {
         return;
     }
     if !scientific {
-        // An integral value's digits are its integer's, then zeros. Rust's
-        // exact formatting of one falls back to its slowest algorithm (2x a
-        // fractional value's time, 8x an integer's; `cargo bench --bench
-        // protocol -- format/`), and counters and setpoints are integral.
-        if x.fract() == 0.0 && x.abs() < 9.0e18 {
-            if x.is_sign_negative() && x == 0.0 {
-                out.push(b'-');
-            }
-            let _ = write!(out, "{}", x as i64);
-            if decimals > 0 {
-                out.push(b'.');
-                out.resize(out.len() + decimals, b'0');
-            }
+        if print_short_binary(x, decimals, out) {
             return;
         }
         // Rust rounds the exact binary value half-to-even, as glibc does.
@@ -277,6 +265,56 @@ fn format_float(x: f64, decimals: usize, scientific: bool, out: &mut Vec<u8>) {
     let exponent: i32 = exponent.parse().unwrap_or(0);
     let sign = if exponent < 0 { '-' } else { '+' };
     let _ = write!(out, "{mantissa}e{sign}{:02}", exponent.unsigned_abs());
+}
+
+/// Prints `x` with `decimals` decimals when its binary value has at most
+/// that many fractional bits (an integer, 21.5, 0.25): then its decimal
+/// expansion ends within them and every digit is exact, with no rounding.
+/// Rust's exact formatting takes its slowest path for these (2x a longer
+/// value's time, 6x an integer's: `cargo bench --bench protocol --
+/// format/`), and counters and setpoints are such values.
+fn print_short_binary(x: f64, decimals: usize, out: &mut Vec<u8>) -> bool {
+    // 5^k for k fractional bits fits a u128 beside the 53-bit fraction.
+    const MOST_BITS: u32 = 20;
+    if x.abs() >= 9.0e18 {
+        return false;
+    }
+    let bits = x.to_bits();
+    let biased = ((bits >> 52) & 0x7ff) as i32;
+    let (mut mantissa, mut exponent) = match biased {
+        0 => (bits & ((1 << 52) - 1), -1074),
+        _ => ((bits & ((1 << 52) - 1)) | 1 << 52, biased - 1075),
+    };
+    if mantissa == 0 {
+        exponent = 0;
+    } else {
+        let zeros = mantissa.trailing_zeros();
+        mantissa >>= zeros;
+        exponent += zeros as i32;
+    }
+    let (whole, fraction_bits, fraction) = if exponent >= 0 {
+        (mantissa << exponent, 0, 0)
+    } else {
+        let k = exponent.unsigned_abs();
+        if k > MOST_BITS || k as usize > decimals {
+            return false;
+        }
+        (mantissa >> k, k, mantissa & ((1 << k) - 1))
+    };
+    if x.is_sign_negative() {
+        out.push(b'-');
+    }
+    let _ = write!(out, "{whole}");
+    if decimals > 0 {
+        out.push(b'.');
+        if fraction_bits > 0 {
+            // fraction / 2^k = fraction * 5^k / 10^k: k digits exactly.
+            let digits = u128::from(fraction) * 5u128.pow(fraction_bits);
+            let _ = write!(out, "{digits:0width$}", width = fraction_bits as usize);
+        }
+        out.resize(out.len() + decimals - fraction_bits as usize, b'0');
+    }
+    true
 }
 
 impl Value {
@@ -817,7 +855,7 @@ mod tests {
     }
 
     #[test]
-    fn integral_reals_print_as_the_exact_formatting_does() {
+    fn short_binary_reals_print_as_the_exact_formatting_does() {
         let mut values = vec![
             0.0,
             -0.0,
@@ -842,6 +880,14 @@ mod tests {
             ]);
             n = n * 3 + 1;
         }
+        // Few fractional bits (21.5, -0.25, 1/2^20, 3 + 2^-21) and many.
+        for k in 0..=22 {
+            let step = 0.5f64.powi(k);
+            for whole in [0.0, 21.0, -3.0, 123_456.0, 4_503_599_627_370_495.0] {
+                values.extend([whole + step, whole - step, step * 3.0]);
+            }
+        }
+        values.extend([21.537, f64::from(21.537f32), 1e-300, 5e-324, 0.1]);
         for x in values {
             for decimals in [0, 1, 2, 6, 10, 15, 40] {
                 let mut out = Vec::new();
@@ -859,6 +905,8 @@ mod tests {
         };
         assert_eq!(fmt(&Value::LReal(-0.0), IecType::Lreal, &two), "-0.00");
         assert_eq!(fmt(&Value::Real(-1234.0), IecType::Real, &two), "-1234.00");
+        assert_eq!(fmt(&Value::Real(21.5), IecType::Real, &two), "21.50");
+        assert_eq!(fmt(&Value::Real(-0.125), IecType::Real, &two), "-0.12");
     }
 
     #[test]
