@@ -123,7 +123,11 @@ fn a_server_limiting_monitored_items_gets_more_subscriptions() {
     let (server, mut sim, mut via) = sim_and_via("OPCUA_MAX_MONITORED_ITEMS = 3\n");
     let start = Instant::now();
     while !via.ask("GET:setpoint").starts_with("GET:SETPOINT,") {
-        assert!(start.elapsed() < DEADLINE, "Via has no SETPOINT");
+        assert!(
+            start.elapsed() < DEADLINE,
+            "Via has no SETPOINT; log:\n{}",
+            server.log()
+        );
         thread::sleep(Duration::from_millis(200));
     }
     let changes = [
