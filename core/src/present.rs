@@ -131,6 +131,16 @@ impl Serialize for Presented {
     }
 }
 
+/// `YYYY-MM-DD` in ASCII digits: chrono's `%Y-%m-%d` also takes a signed
+/// year and unpadded fields (`+23220-6-5`), which no face prints back.
+fn is_iso_date(text: &[u8]) -> bool {
+    text.len() == 10
+        && text.iter().enumerate().all(|(at, &c)| match at {
+            4 | 7 => c == b'-',
+            _ => c.is_ascii_digit(),
+        })
+}
+
 /// The protocol text a SET takes for a value of type `ty` given in the
 /// user's terms (`input`, as [`Presented`] shows values): the reverse of
 /// [`Presented::of`] for MQTT's `/set` and other faces that write.
@@ -156,7 +166,7 @@ pub fn protocol_text<'a>(
         }
         IecType::Date => {
             let d = text
-                .filter(|t| t.len() == 10)
+                .filter(|t| is_iso_date(t.as_bytes()))
                 .and_then(|t| chrono::NaiveDate::parse_from_str(t, "%Y-%m-%d").ok())
                 .ok_or(EXPECTED_DATE)?;
             Value::Date(d.and_time(chrono::NaiveTime::MIN).and_utc().timestamp() as f64)
@@ -512,6 +522,9 @@ mod tests {
             (IecType::Dt, "4745318240020496122", EXPECTED_DT),
             (IecType::Date, "2026-11-5", EXPECTED_DATE),
             (IecType::Date, "2026-02-30", EXPECTED_DATE),
+            // Ten characters chrono's `%Y-%m-%d` takes (fuzzing found it).
+            (IecType::Date, "+23220-6-5", EXPECTED_DATE),
+            (IecType::Date, "2026-1-025", EXPECTED_DATE),
             (IecType::Tod, "24:00", EXPECTED_TOD),
             (IecType::Tod, "7:30", EXPECTED_TOD),
             (IecType::Tod, "10:15:00.1234", EXPECTED_TOD),
