@@ -271,7 +271,7 @@ fn format_float(x: f64, decimals: usize, scientific: bool, out: &mut Vec<u8>) {
 /// that many fractional bits (an integer, 21.5, 0.25): then its decimal
 /// expansion ends within them and every digit is exact, with no rounding.
 /// Rust's exact formatting takes its slowest path for these (2x a longer
-/// value's time, 6x an integer's: `cargo bench --bench protocol --
+/// value's time, 7x an integer's: `cargo bench --bench protocol --
 /// format/`), and counters and setpoints are such values.
 fn print_short_binary(x: f64, decimals: usize, out: &mut Vec<u8>) -> bool {
     // 5^k for k fractional bits fits a u128 beside the 53-bit fraction.
