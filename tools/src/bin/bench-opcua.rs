@@ -494,7 +494,7 @@ fn split_table(sides: &[(&str, &Path, u64)]) -> String {
     for (side, path, from) in sides {
         let text = std::fs::read(path).unwrap_or_default();
         let text = String::from_utf8_lossy(text.get(*from as usize..).unwrap_or_default());
-        tails.push_str(&tail_of_rounds(side, &text, PARTS[0].1));
+        tails.push_str(&tail_of_rounds(side, &text, PARTS[0]));
         for (event, fields) in PARTS {
             let lines: Vec<&str> = text.lines().filter(|l| l.contains(event)).collect();
             for field in fields {
@@ -529,10 +529,10 @@ fn field_ms(line: &str, name: &str) -> Option<f64> {
 /// The slowest 1 % of a side's SET rounds (at least one), each with its
 /// parts: what the tail waits on, which the parts' own p99s, taken from
 /// different rounds, do not tell.
-fn tail_of_rounds(side: &str, text: &str, fields: &[&str]) -> String {
+fn tail_of_rounds(side: &str, text: &str, (event, fields): (&str, &[&str])) -> String {
     let mut rounds: Vec<Vec<f64>> = text
         .lines()
-        .filter(|l| l.contains("set round"))
+        .filter(|l| l.contains(event))
         .filter_map(|l| fields.iter().map(|f| field_ms(l, f)).collect())
         .collect();
     if rounds.is_empty() {
@@ -549,7 +549,7 @@ fn tail_of_rounds(side: &str, text: &str, fields: &[&str]) -> String {
         })
         .collect();
     format!(
-        "\n{side}: the slowest {} of {} SET rounds, {} (ms): {}\n",
+        "\n{side}: the slowest {} of {} {event}s, {} (ms): {}\n",
         slowest.len(),
         rounds.len(),
         names.join(" / "),
