@@ -888,6 +888,14 @@ mod tests {
             }
         }
         values.extend([21.537, f64::from(21.537f32), 1e-300, 5e-324, 0.1]);
+        // The own path is taken where it can be, and only there.
+        let short = |x: f64, decimals| print_short_binary(x, decimals, &mut Vec::new());
+        for (x, decimals) in [(1234.0, 0), (-0.0, 2), (21.5, 6), (0.0625, 4)] {
+            assert!(short(x, decimals), "{x} with {decimals} decimals");
+        }
+        for (x, decimals) in [(21.537, 6), (-0.125, 2), (9.5e18, 2), (5e-324, 40)] {
+            assert!(!short(x, decimals), "{x} with {decimals} decimals");
+        }
         for x in values {
             for decimals in [0, 1, 2, 6, 10, 15, 40] {
                 let mut out = Vec::new();
