@@ -5,6 +5,7 @@
 //! block the PLC refuses is split until only the variables at fault are
 //! left out ([`super::refusals`]).
 
+use std::collections::HashSet;
 use std::time::Duration;
 
 use plccoms_protocol::value::Value;
@@ -25,6 +26,9 @@ use crate::vars::VarId;
 pub const SLICE_TIME: Duration = Duration::from_millis(2);
 /// Fewest blocks a slice reads.
 pub const SLICE_MIN: usize = 8;
+/// Fewest values a piece of a poll's finish applies ([`Cycle::finish_piece`]);
+/// the clock is read once a piece of this many.
+pub const FINISH_PIECE_MIN: usize = 256;
 
 /// A poll under way: what is read so far.
 pub struct Round {
@@ -33,6 +37,29 @@ pub struct Round {
     /// Publisher sequence when it began: a value read after that (a SET's
     /// read-back) is newer than the poll's.
     first_seq: u64,
+}
+
+/// A poll being published: its answers, and how far they are applied.
+pub struct Finishing {
+    limits: Limits,
+    first_seq: u64,
+    stamp: PollStamp,
+    data: super::plan::PlanData,
+    refused: Vec<usize>,
+    /// Index in the poll's variables of the next value to apply.
+    next: usize,
+    /// The values before this index were applied and published since,
+    /// by a publish outside the poll.
+    published_through: usize,
+    /// The publisher's next sequence when the last piece ended.
+    seq: u64,
+    /// Read back since the poll began: kept, and counted as read by it.
+    kept: Vec<VarId>,
+    /// In a refused block: split to find which refuse.
+    suspects: Vec<VarId>,
+    /// What the backend said was uncertain of the poll's reads (`None`: a
+    /// device without a per-value quality).
+    uncertain: Option<HashSet<VarId>>,
 }
 
 /// What the system variables of a completed poll say.
@@ -167,7 +194,8 @@ impl Cycle {
     ) -> Result<(), PlcError> {
         let mut round = self.begin(backend, publisher);
         while self.read_slice(backend, &mut round).await? {}
-        self.finish(backend, publisher, round).await
+        let finishing = self.finish_begin(backend, publisher, round);
+        self.finish_end(backend, publisher, finishing).await
     }
 
     /// Reads the next slice of the plan; `false` once every block is read.
@@ -194,32 +222,77 @@ impl Cycle {
         Ok(to < blocks.len())
     }
 
-    /// Publishes what the poll read, stamped with the time the answers were
-    /// complete (a variable a SET read back meanwhile keeps that value);
-    /// splits refused blocks; system-variable events wait in
-    /// [`Cycle::take_events`].
-    pub async fn finish(
+    /// Starts publishing what the poll read, stamped with the time the
+    /// answers were complete: [`Cycle::finish_piece`] applies the values a
+    /// piece at a time, so SETs can go between pieces as between slices,
+    /// and [`Cycle::finish_end`] publishes the poll.
+    pub fn finish_begin(
         &mut self,
         backend: &mut dyn PlcBackend,
-        publisher: &mut Publisher,
+        publisher: &Publisher,
         round: Round,
-    ) -> Result<(), PlcError> {
+    ) -> Finishing {
         let stamp = PollStamp::now();
         let (data, refused) = self.plan.assemble_answers(round.answers);
+        // Marks of the poll's reads (those before it were taken at its
+        // start); applied with each value, so a SET between pieces cannot
+        // take a mark of the poll's read.
+        let uncertain = backend.take_uncertain().map(|names| {
+            let table = publisher.table();
+            names.iter().filter_map(|name| table.lookup(name)).collect()
+        });
+        Finishing {
+            limits: round.limits,
+            first_seq: round.first_seq,
+            stamp,
+            data,
+            refused,
+            next: 0,
+            published_through: 0,
+            seq: publisher.next_seq(),
+            kept: Vec::new(),
+            suspects: Vec::new(),
+            uncertain,
+        }
+    }
+
+    /// Applies the next piece of the poll's values: as many as fit in
+    /// `budget`, at least [`FINISH_PIECE_MIN`]. `false` once every value is
+    /// applied. A variable read back since the poll began (a SET between
+    /// its slices or pieces) keeps that newer value.
+    pub fn finish_piece(
+        &mut self,
+        publisher: &mut Publisher,
+        finishing: &mut Finishing,
+        budget: Duration,
+    ) -> bool {
+        let f = finishing;
+        if publisher.next_seq() != f.seq {
+            // Published since the last piece (a SET's read-back): what the
+            // poll applied so far carries an earlier sequence than its own.
+            f.published_through = f.next;
+        }
         let table = publisher.table().clone();
-        let newer = |publisher: &Publisher, id: VarId| publisher.read_seq(id) >= round.first_seq;
-        // Read back since the poll began (a SET between its slices): kept,
-        // and read by this poll as much as what it read itself.
-        let mut kept = Vec::new();
-        let mut suspects = Vec::new();
-        for (index, &id) in self.poll_vars.iter().enumerate() {
+        let started = Instant::now();
+        let mut index = f.next;
+        while index < self.poll_vars.len() {
+            if (index - f.next).is_multiple_of(FINISH_PIECE_MIN)
+                && index > f.next
+                && started.elapsed() >= budget
+            {
+                break;
+            }
+            let id = self.poll_vars[index];
             let alone = self.refusals.alone.contains(&id);
-            match self.plan.range_answer(&data, index) {
+            match self.plan.range_answer(&f.data, index) {
                 Ok(bytes) => {
-                    if newer(publisher, id) {
-                        kept.push(id);
+                    if publisher.read_seq(id) >= f.first_seq {
+                        f.kept.push(id);
                     } else {
-                        publisher.update(id, bytes, stamp.unix_ms);
+                        publisher.update(id, bytes, f.stamp.unix_ms);
+                        if let Some(uncertain) = &f.uncertain {
+                            publisher.set_uncertain(id, uncertain.contains(&id), f.stamp.unix_ms);
+                        }
                     }
                     if alone {
                         let range = self.ranges(&table)[index];
@@ -229,57 +302,68 @@ impl Cycle {
                     }
                 }
                 Err(_) if alone => {}
-                Err(_) => suspects.push(id),
+                Err(_) => f.suspects.push(id),
             }
+            index += 1;
         }
-        if !refused.is_empty() && !suspects.is_empty() {
+        f.next = index;
+        f.seq = publisher.next_seq();
+        index < self.poll_vars.len()
+    }
+
+    /// Publishes the poll once [`Cycle::finish_piece`] applied every value:
+    /// splits refused blocks; system-variable events wait in
+    /// [`Cycle::take_events`].
+    pub async fn finish_end(
+        &mut self,
+        backend: &mut dyn PlcBackend,
+        publisher: &mut Publisher,
+        mut finishing: Finishing,
+    ) -> Result<(), PlcError> {
+        while self.finish_piece(publisher, &mut finishing, Duration::MAX) {}
+        let f = finishing;
+        let mut kept = f.kept;
+        let table = publisher.table().clone();
+        if !f.refused.is_empty() && !f.suspects.is_empty() {
             let ranges = self.ranges(&table);
             let mut group: Vec<_> = self
                 .poll_vars
                 .iter()
                 .zip(ranges)
-                .filter(|(id, _)| suspects.contains(id))
+                .filter(|(id, _)| f.suspects.contains(id))
                 .map(|(&id, range)| (id, range))
                 .collect();
             group.sort_unstable_by_key(|(_, r)| (r.area, r.offset));
             let mut found = Vec::new();
             self.refusals
-                .split(
-                    &self.section,
-                    &table,
-                    backend,
-                    &round.limits,
-                    group,
-                    &mut found,
-                )
+                .split(&self.section, &table, backend, &f.limits, group, &mut found)
                 .await?;
+            let uncertain: Option<HashSet<VarId>> = backend
+                .take_uncertain()
+                .map(|names| names.iter().filter_map(|name| table.lookup(name)).collect());
             for (id, bytes) in found {
-                if newer(publisher, id) {
+                if publisher.read_seq(id) >= f.first_seq {
                     kept.push(id);
                 } else {
-                    publisher.update(id, &bytes, stamp.unix_ms);
+                    publisher.update(id, &bytes, f.stamp.unix_ms);
+                    if let Some(uncertain) = &uncertain {
+                        publisher.set_uncertain(id, uncertain.contains(&id), f.stamp.unix_ms);
+                    }
                 }
             }
             self.replan = true;
         }
-        if let Some(names) = backend.take_uncertain() {
-            let uncertain: std::collections::HashSet<VarId> =
-                names.iter().filter_map(|name| table.lookup(name)).collect();
-            // What this poll read carries the publish's sequence (a SET's
-            // read-back meanwhile was published already).
-            let seq = publisher.next_seq();
-            for &id in &self.poll_vars {
-                if publisher.read_seq(id) == seq {
-                    publisher.set_uncertain(id, uncertain.contains(&id), stamp.unix_ms);
-                }
+        // Not current after this publish unless counted as read by it: what
+        // a publish between pieces carried, and what was read back newer.
+        for index in 0..f.published_through {
+            if self.plan.range_answer(&f.data, index).is_ok() {
+                publisher.mark_read(self.poll_vars[index]);
             }
         }
-        // Not current after this publish unless counted as read by it;
-        // after the uncertain marks, which are of what the poll read.
         for id in kept {
             publisher.mark_read(id);
         }
-        publisher.publish_poll(stamp);
+        publisher.publish_poll(f.stamp);
         self.system_events(publisher);
         Ok(())
     }
@@ -314,5 +398,176 @@ impl Cycle {
         }
         self.last_crc = crc;
         events.pf_crc = crc;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use async_trait::async_trait;
+    use plccoms_protocol::value::FormatOptions;
+    use plccoms_protocol::Area;
+
+    use super::*;
+    use crate::changes::Quality;
+    use crate::driver::{Answer, PlcStatus, ReadRequest, WriteRequest};
+    use crate::vars::table_of;
+
+    /// R memory of INTs 16 bytes apart (as [`table_of`] lays them out);
+    /// every read of it names `marked` uncertain.
+    struct Memory {
+        r: Vec<u8>,
+        marked: Box<[u8]>,
+        uncertain: Vec<Box<[u8]>>,
+    }
+
+    impl Memory {
+        fn set_all(&mut self, value: impl Fn(usize) -> i16) {
+            for i in 0..self.r.len() / 16 {
+                self.r[i * 16..i * 16 + 2].copy_from_slice(&value(i).to_le_bytes());
+            }
+        }
+    }
+
+    #[async_trait]
+    impl PlcBackend for Memory {
+        fn describe(&self) -> String {
+            "memory".into()
+        }
+        fn max_read_block(&self, _area: Area) -> u32 {
+            1024
+        }
+        fn max_file_block(&self) -> u32 {
+            1024
+        }
+        async fn connect(&mut self) -> Result<String, PlcError> {
+            Ok("memory".into())
+        }
+        async fn read(
+            &mut self,
+            requests: &[ReadRequest],
+        ) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
+            Ok(requests
+                .iter()
+                .map(|r| {
+                    let (from, to) = (r.offset as usize, (r.offset + r.len) as usize);
+                    if r.area == Area::R {
+                        self.uncertain.push(self.marked.clone());
+                        Ok(self.r[from..to].to_vec())
+                    } else {
+                        Ok(vec![0; r.len as usize])
+                    }
+                })
+                .collect())
+        }
+        async fn write(&mut self, _requests: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {
+            Err(PlcError::Unsupported("write"))
+        }
+        async fn status(&mut self) -> Result<PlcStatus, PlcError> {
+            Ok(PlcStatus { run: true })
+        }
+        fn take_uncertain(&mut self) -> Option<Vec<Box<[u8]>>> {
+            Some(std::mem::take(&mut self.uncertain))
+        }
+    }
+
+    /// A SET served between two pieces of a poll's finish (its read-back
+    /// published) leaves: the poll's values applied before it published
+    /// with it, its own value kept over the poll's, and after the poll's
+    /// publish every value current, each with the poll's quality.
+    #[tokio::test]
+    async fn a_set_between_pieces_of_a_finish_keeps_its_value_and_every_value_is_current() {
+        const N: usize = 2000;
+        let names: Vec<String> = (0..N).map(|i| format!("V{i}")).collect();
+        let vars: Vec<(&str, &str)> = names.iter().map(|n| (n.as_str(), "INT")).collect();
+        let table = Arc::new(table_of(&vars));
+        let (mut publisher, stream) = Publisher::new(
+            table.clone(),
+            FormatOptions::default(),
+            Duration::from_secs(60),
+        );
+        let id = |i: usize| table.lookup(names[i].as_bytes()).expect("a variable");
+        for i in 0..N {
+            publisher.interest().add(id(i));
+        }
+        let mut memory = Memory {
+            r: vec![0; N * 16],
+            marked: b"V5"[..].into(),
+            uncertain: Vec::new(),
+        };
+        memory.set_all(|i| i as i16);
+        let mut cycle = Cycle::new("test".into());
+        cycle
+            .poll(&mut memory, &mut publisher)
+            .await
+            .expect("a poll");
+        let first = stream.latest();
+        assert_eq!(first.slot(id(7)).text(), Some(&b"7"[..]));
+        assert_eq!(first.quality(id(5)), Quality::Stale, "V5 read uncertain");
+        assert_eq!(first.quality(id(6)), Quality::Good);
+
+        memory.set_all(|i| i as i16 + 10_000);
+        let mut round = cycle.begin(&mut memory, &publisher);
+        while cycle
+            .read_slice(&mut memory, &mut round)
+            .await
+            .expect("read")
+        {}
+        let mut finishing = cycle.finish_begin(&mut memory, &publisher, round);
+        assert!(cycle.finish_piece(&mut publisher, &mut finishing, Duration::ZERO));
+        // The fixed variables come first in the poll; the piece ends at
+        // its minimum with no time to spare.
+        let applied = FINISH_PIECE_MIN - table.fixed_count();
+        let text =
+            |publisher: &Publisher, i: usize| publisher.slot(id(i)).text().map(<[u8]>::to_vec);
+        let last = applied - 1;
+        assert_eq!(
+            text(&publisher, last),
+            Some(format!("{}", last + 10_000).into_bytes())
+        );
+        assert_eq!(
+            text(&publisher, applied),
+            Some(format!("{applied}").into_bytes())
+        );
+
+        // A SET of one variable the poll applied and of one it has not yet.
+        let now = PollStamp::now().unix_ms;
+        publisher.update(id(10), &7i16.to_le_bytes(), now);
+        publisher.update(id(1000), &8i16.to_le_bytes(), now);
+        publisher.publish();
+        let between = stream.latest();
+        assert!(between.changed.contains(&id(0)) && between.changed.contains(&id(1000)));
+        assert!(!between.changed.contains(&id(applied)));
+        assert!((0..N).all(|i| between.current(id(i)).is_some()));
+
+        while cycle.finish_piece(&mut publisher, &mut finishing, Duration::ZERO) {}
+        cycle
+            .finish_end(&mut memory, &mut publisher, finishing)
+            .await
+            .expect("the poll's end");
+        let polled = stream.latest();
+        assert_eq!(polled.poll_seq, polled.seq);
+        let text = |i: usize| polled.slot(id(i)).text().map(|t| t.to_vec());
+        assert_eq!(text(10), Some(b"7".to_vec()), "the SET's value, applied");
+        assert_eq!(
+            text(1000),
+            Some(b"8".to_vec()),
+            "the SET's value, not applied yet"
+        );
+        assert_eq!(text(0), Some(b"10000".to_vec()));
+        assert_eq!(
+            text(N - 1),
+            Some(format!("{}", N - 1 + 10_000).into_bytes())
+        );
+        for i in 0..N {
+            assert!(
+                polled.current(id(i)).is_some(),
+                "V{i} not current after the poll"
+            );
+        }
+        assert_eq!(polled.quality(id(5)), Quality::Stale, "V5 read uncertain");
+        assert_eq!(polled.quality(id(4)), Quality::Good);
+        assert_eq!(polled.quality(id(1500)), Quality::Good);
     }
 }

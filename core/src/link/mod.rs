@@ -43,7 +43,7 @@ use crate::changes::{unix_ms, Notice, Publisher};
 use crate::config;
 use crate::driver::{Answer, Drivers, PlcBackend, PlcError, PushedVar, ReadRequest};
 use crate::metrics::SectionMetrics;
-use cycle::Cycle;
+use cycle::{Cycle, SLICE_TIME};
 use files::{FileJob, FileReply, Files};
 pub use health::LinkState;
 use health::{Connected, Failure, Health, SharedState};
@@ -732,10 +732,31 @@ impl Link {
                 return;
             }
         }
+        // The values too are applied a slice's time at a time, with SETs
+        // between (at 100,000 variables the whole was 6-19 ms).
         let backend = self.backend.as_deref_mut().expect("polling it");
-        let finishing = Instant::now();
-        let polled = self.cycle.finish(backend, &mut self.publisher, round).await;
-        debug!(target: jobs::SET_TIMING, section = %self.name, finish_us = jobs::micros(finishing.elapsed()), "poll finish");
+        let mut finishing = self.cycle.finish_begin(backend, &self.publisher, round);
+        loop {
+            let piece = Instant::now();
+            let more = self
+                .cycle
+                .finish_piece(&mut self.publisher, &mut finishing, SLICE_TIME);
+            debug!(target: jobs::SET_TIMING, section = %self.name, finish_us = jobs::micros(piece.elapsed()), "poll finish");
+            if !more {
+                break;
+            }
+            self.sets_meanwhile().await;
+            if self.health.state() != LinkState::Online {
+                return;
+            }
+        }
+        let backend = self.backend.as_deref_mut().expect("polling it");
+        let ending = Instant::now();
+        let polled = self
+            .cycle
+            .finish_end(backend, &mut self.publisher, finishing)
+            .await;
+        debug!(target: jobs::SET_TIMING, section = %self.name, finish_us = jobs::micros(ending.elapsed()), "poll finish");
         self.metrics.poll_cycle.observe(started.elapsed());
         if let Err(err) = polled {
             return self.failed(&err);
