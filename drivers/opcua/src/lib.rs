@@ -1719,11 +1719,14 @@ pub(crate) fn read_tag_file(section: &str, path: &std::path::Path) -> Vec<Tag> {
 /// the RSS stayed at the peak's.
 pub(crate) fn trim_heap() {
     LAST_TRIM_MS.store(process_ms(), std::sync::atomic::Ordering::Relaxed);
+    let started = Instant::now();
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: malloc_trim only walks the allocator's own free lists.
     unsafe {
         libc::malloc_trim(0);
     }
+    let took = u64::try_from(started.elapsed().as_micros()).unwrap_or(u64::MAX);
+    tracing::debug!(target: plccoms_core::link::jobs::SET_TIMING, trim_us = took, "heap trim");
 }
 
 /// When the process last gave freed heap back ([`process_ms`]).

@@ -478,7 +478,7 @@ async fn run(args: &Args, binary: &Path, n: usize, against: Against) -> Row {
 /// (name, log, where its SETs' lines begin).
 fn split_table(sides: &[(&str, &Path, u64)]) -> String {
     // (event message, its fields in µs) that make a row.
-    const PARTS: [(&str, &[&str]); 4] = [
+    const PARTS: [(&str, &[&str]); 5] = [
         (
             "set round",
             &["queued_us", "write_us", "confirm_us", "publish_us"],
@@ -486,6 +486,7 @@ fn split_table(sides: &[(&str, &Path, u64)]) -> String {
         ("pushed", &["take_us", "apply_us"]),
         ("poll slice", &["slice_us"]),
         ("poll finish", &["finish_us"]),
+        ("heap trim", &["trim_us"]),
     ];
     let mut out = String::from(
         "| side | part | count | p50 | p99 | max |\n| --- | --- | --- | --- | --- | --- |\n",
