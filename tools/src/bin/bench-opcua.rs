@@ -87,7 +87,8 @@ struct Args {
     /// Split each SET's time into its parts on both sides (both logs at
     /// `plccoms::set_timing=debug`): queued in the link before the Write,
     /// the Write, the confirmation, the publish; and what a SET may wait
-    /// behind (a take of pushed values, a poll slice, a poll's end).
+    /// behind (a take of pushed values, a poll slice, a piece of a poll's
+    /// end, a heap trim).
     #[arg(long)]
     split: bool,
     /// The servers measured against (one row each): `plccoms` (a second
