@@ -16,7 +16,7 @@ use super::plan::{Limits, Range, ReadPlan};
 use super::refusals::Refusals;
 use crate::changes::{PollStamp, Publisher};
 use crate::driver::{PlcBackend, PlcError};
-use crate::vars::VarId;
+use crate::vars::{VarId, VarTable};
 
 /// A poll is read in slices; SETs that came in meanwhile go before the next
 /// slice, so a write waits for one slice, not a whole poll. A slice is as
@@ -237,10 +237,7 @@ impl Cycle {
         // Marks of the poll's reads (those before it were taken at its
         // start); applied with each value, so a SET between pieces cannot
         // take a mark of the poll's read.
-        let uncertain = backend.take_uncertain().map(|names| {
-            let table = publisher.table();
-            names.iter().filter_map(|name| table.lookup(name)).collect()
-        });
+        let uncertain = uncertain_of(backend, publisher.table());
         Finishing {
             limits: round.limits,
             first_seq: round.first_seq,
@@ -286,13 +283,8 @@ impl Cycle {
             let alone = self.refusals.alone.contains(&id);
             match self.plan.range_answer(&f.data, index) {
                 Ok(bytes) => {
-                    if publisher.read_seq(id) >= f.first_seq {
+                    if !apply(publisher, f, id, bytes, f.uncertain.as_ref()) {
                         f.kept.push(id);
-                    } else {
-                        publisher.update(id, bytes, f.stamp.unix_ms);
-                        if let Some(uncertain) = &f.uncertain {
-                            publisher.set_uncertain(id, uncertain.contains(&id), f.stamp.unix_ms);
-                        }
                     }
                     if alone {
                         let range = self.ranges(&table)[index];
@@ -321,8 +313,8 @@ impl Cycle {
         mut finishing: Finishing,
     ) -> Result<(), PlcError> {
         while self.finish_piece(publisher, &mut finishing, Duration::MAX) {}
-        let f = finishing;
-        let mut kept = f.kept;
+        let mut f = finishing;
+        let mut kept = std::mem::take(&mut f.kept);
         let table = publisher.table().clone();
         if !f.refused.is_empty() && !f.suspects.is_empty() {
             let ranges = self.ranges(&table);
@@ -338,17 +330,10 @@ impl Cycle {
             self.refusals
                 .split(&self.section, &table, backend, &f.limits, group, &mut found)
                 .await?;
-            let uncertain: Option<HashSet<VarId>> = backend
-                .take_uncertain()
-                .map(|names| names.iter().filter_map(|name| table.lookup(name)).collect());
+            let uncertain = uncertain_of(backend, &table);
             for (id, bytes) in found {
-                if publisher.read_seq(id) >= f.first_seq {
+                if !apply(publisher, &f, id, &bytes, uncertain.as_ref()) {
                     kept.push(id);
-                } else {
-                    publisher.update(id, &bytes, f.stamp.unix_ms);
-                    if let Some(uncertain) = &uncertain {
-                        publisher.set_uncertain(id, uncertain.contains(&id), f.stamp.unix_ms);
-                    }
                 }
             }
             self.replan = true;
@@ -399,6 +384,33 @@ impl Cycle {
         self.last_crc = crc;
         events.pf_crc = crc;
     }
+}
+
+/// The variables `backend` named uncertain since the last take, as ids of
+/// `table`; `None` for a device without a per-value quality.
+fn uncertain_of(backend: &mut dyn PlcBackend, table: &VarTable) -> Option<HashSet<VarId>> {
+    let names = backend.take_uncertain()?;
+    Some(names.iter().filter_map(|name| table.lookup(name)).collect())
+}
+
+/// Records what the poll read of `id`, with its quality; `false` (nothing
+/// recorded) for a value read back since the poll began, which is newer.
+fn apply(
+    publisher: &mut Publisher,
+    finishing: &Finishing,
+    id: VarId,
+    bytes: &[u8],
+    uncertain: Option<&HashSet<VarId>>,
+) -> bool {
+    if publisher.read_seq(id) >= finishing.first_seq {
+        return false;
+    }
+    let unix_ms = finishing.stamp.unix_ms;
+    publisher.update(id, bytes, unix_ms);
+    if let Some(uncertain) = uncertain {
+        publisher.set_uncertain(id, uncertain.contains(&id), unix_ms);
+    }
+    true
 }
 
 #[cfg(test)]
