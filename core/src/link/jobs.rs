@@ -240,7 +240,8 @@ async fn set_round(
 /// `--split`): a disabled debug event costs one load and a branch.
 pub const SET_TIMING: &str = "plccoms::set_timing";
 
-pub(crate) fn micros(d: std::time::Duration) -> u64 {
+/// A [`SET_TIMING`] event's field: whole µs, saturating.
+pub fn micros(d: std::time::Duration) -> u64 {
     u64::try_from(d.as_micros()).unwrap_or(u64::MAX)
 }
 

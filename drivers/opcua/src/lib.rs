@@ -1718,6 +1718,7 @@ pub(crate) fn read_tag_file(section: &str, path: &std::path::Path) -> Vec<Tag> {
 /// built, a rebrowse): glibc keeps the top of each arena a peak grew, and
 /// the RSS stayed at the peak's.
 pub(crate) fn trim_heap() {
+    use plccoms_core::link::jobs::{micros, SET_TIMING};
     LAST_TRIM_MS.store(process_ms(), std::sync::atomic::Ordering::Relaxed);
     let started = Instant::now();
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
@@ -1725,8 +1726,7 @@ pub(crate) fn trim_heap() {
     unsafe {
         libc::malloc_trim(0);
     }
-    let took = u64::try_from(started.elapsed().as_micros()).unwrap_or(u64::MAX);
-    tracing::debug!(target: plccoms_core::link::jobs::SET_TIMING, trim_us = took, "heap trim");
+    tracing::debug!(target: SET_TIMING, trim_us = micros(started.elapsed()), "heap trim");
 }
 
 /// When the process last gave freed heap back ([`process_ms`]).
