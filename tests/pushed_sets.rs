@@ -11,11 +11,8 @@ use std::time::Duration;
 
 use async_trait::async_trait;
 
-use common::memory::{MemoryBackend, MAX_FILE_BLOCK, MAX_READ_BLOCK};
-use plccoms_core::driver::{
-    Answer, PlcBackend, PlcError, PlcStatus, Pushed, PushedVar, ReadRequest, WriteData,
-    WriteRequest,
-};
+use common::memory::{Hooked, Hooks, MemoryBackend};
+use plccoms_core::driver::{PlcError, Pushed, PushedVar, ReadRequest, WriteData, WriteRequest};
 use plccoms_protocol::Area;
 
 /// Pushed values in a take, and where in it the SET's variable comes.
@@ -25,10 +22,8 @@ const STALE_AT: usize = 2500;
 const V_DINT_AT: u32 = 60;
 const V_UINT_AT: u32 = 74;
 
-/// The in-process PLC, with one take of pushed values handed out once the
-/// test has sent its SET.
+/// One take of pushed values, handed out once the test has sent its SET.
 struct Pushing {
-    inner: MemoryBackend,
     take: Arc<Mutex<Option<Vec<Pushed>>>>,
     wake: Arc<tokio::sync::Notify>,
     /// Rung when the link takes the values; it gets them once `go`.
@@ -41,44 +36,21 @@ struct Pushing {
 }
 
 #[async_trait]
-impl PlcBackend for Pushing {
+impl Hooks for Pushing {
     fn describe(&self) -> String {
         "in-process memory, pushing".into()
     }
 
-    fn max_read_block(&self, _area: plccoms_protocol::Area) -> u32 {
-        MAX_READ_BLOCK
-    }
-
-    fn max_file_block(&self) -> u32 {
-        MAX_FILE_BLOCK
-    }
-
-    /// Long enough that the SET held back below is not refused as late.
-    fn answer_timeout(&self) -> Duration {
-        Duration::from_secs(10)
-    }
-
-    async fn connect(&mut self) -> Result<String, PlcError> {
-        self.inner.connect().await
-    }
-
-    async fn read(&mut self, requests: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
+    async fn before_read(&mut self, _requests: &[ReadRequest]) {
         self.applying.store(false, Ordering::SeqCst);
-        self.inner.read(requests).await
     }
 
-    async fn write(&mut self, requests: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {
+    fn before_write(&mut self, _requests: &[WriteRequest]) {
         let applying = self.applying.load(Ordering::SeqCst);
         self.writes.lock().unwrap().push(applying);
-        self.inner.write(requests).await
     }
 
-    async fn status(&mut self) -> Result<PlcStatus, PlcError> {
-        self.inner.status().await
-    }
-
-    fn take_pushed(&mut self) -> Vec<Pushed> {
+    fn take_pushed(&mut self, memory: &MemoryBackend) -> Vec<Pushed> {
         let Some(take) = self.take.lock().unwrap().take() else {
             return Vec::new();
         };
@@ -90,7 +62,7 @@ impl PlcBackend for Pushing {
         drop(turn.wait_timeout_while(go, Duration::from_secs(10), |go| !*go));
         self.applying.store(true, Ordering::SeqCst);
         // Reads answer what was pushed last, as a pushing device's do.
-        let mut device = self.inner.device().lock().unwrap();
+        let mut device = memory.device().lock().unwrap();
         for (offset, value) in [(V_UINT_AT, &take[TAKE - 1]), (V_DINT_AT, &take[STALE_AT])] {
             let data = WriteData::Bytes(value.bytes.to_vec());
             device.write(Area::R, offset, &data).unwrap();
@@ -130,21 +102,23 @@ async fn a_set_is_served_within_a_take_of_pushed_values_and_not_undone_by_it() {
             _ => pushed("GONE", vec![0; 2]),
         })
         .collect();
-    let backend = Pushing {
+    let backend = Hooked {
         inner: MemoryBackend::new(device),
-        take: Arc::default(),
-        wake: Arc::default(),
-        taking: Arc::default(),
-        go: Arc::default(),
-        applying: Arc::default(),
-        writes: Arc::default(),
+        hooks: Pushing {
+            take: Arc::default(),
+            wake: Arc::default(),
+            taking: Arc::default(),
+            go: Arc::default(),
+            applying: Arc::default(),
+            writes: Arc::default(),
+        },
     };
     let (pending, wake, taking, go, writes) = (
-        backend.take.clone(),
-        backend.wake.clone(),
-        backend.taking.clone(),
-        backend.go.clone(),
-        backend.writes.clone(),
+        backend.hooks.take.clone(),
+        backend.hooks.wake.clone(),
+        backend.hooks.taking.clone(),
+        backend.hooks.go.clone(),
+        backend.hooks.writes.clone(),
     );
     let server = common::start_on("", &common::user_pub(), Some(Box::new(backend))).await;
     let mut watcher = server.client().await;
@@ -197,7 +171,6 @@ async fn a_set_is_served_within_a_take_of_pushed_values_and_not_undone_by_it() {
 
 /// A device that pushes without a pause, from when `on` until `until`.
 struct Flooding {
-    inner: MemoryBackend,
     flood: Arc<Flood>,
 }
 
@@ -223,17 +196,9 @@ impl Flood {
 }
 
 #[async_trait]
-impl PlcBackend for Flooding {
+impl Hooks for Flooding {
     fn describe(&self) -> String {
         "in-process memory, flooding".into()
-    }
-
-    fn max_read_block(&self, _area: plccoms_protocol::Area) -> u32 {
-        MAX_READ_BLOCK
-    }
-
-    fn max_file_block(&self) -> u32 {
-        MAX_FILE_BLOCK
     }
 
     /// Longer than the flood: a SET it held up is served late, not refused.
@@ -241,26 +206,13 @@ impl PlcBackend for Flooding {
         Duration::from_secs(20)
     }
 
-    async fn connect(&mut self) -> Result<String, PlcError> {
-        self.inner.connect().await
-    }
-
-    async fn read(&mut self, requests: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
-        self.inner.read(requests).await
-    }
-
-    async fn write(&mut self, requests: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {
+    fn before_write(&mut self, _requests: &[WriteRequest]) {
         let flooding = self.flood.flooding();
         self.flood.writes.lock().unwrap().push(flooding);
         self.flood.on.store(false, Ordering::SeqCst);
-        self.inner.write(requests).await
     }
 
-    async fn status(&mut self) -> Result<PlcStatus, PlcError> {
-        self.inner.status().await
-    }
-
-    fn take_pushed(&mut self) -> Vec<Pushed> {
+    fn take_pushed(&mut self, _memory: &MemoryBackend) -> Vec<Pushed> {
         if !self.flood.flooding() {
             return Vec::new();
         }
@@ -288,9 +240,11 @@ async fn a_device_that_pushes_without_a_pause_does_not_hold_up_a_set() {
         plccoms_plc::MemoryMap::FOXTROT,
     )));
     let flood = Arc::new(Flood::default());
-    let backend = Flooding {
+    let backend = Hooked {
         inner: MemoryBackend::new(device),
-        flood: flood.clone(),
+        hooks: Flooding {
+            flood: flood.clone(),
+        },
     };
     let server = common::start_on(
         "COMM_LOOP_DELAY = 1000\n",

@@ -5,25 +5,27 @@
 //! snapshot without the SET's before it (a busy one, or one that enabled
 //! everything) never sent its DIFF: measured against node-opcua, 1-4 of
 //! 1,000 SETs' values never reached an `EN:*` client.
+//!
+//! A SET that comes in while the link applies a poll's values is served
+//! between the pieces of that finish, not after the whole.
 
 mod common;
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use async_trait::async_trait;
 use tokio::sync::Notify;
 
-use common::memory::{MemoryBackend, MAX_FILE_BLOCK};
-use plccoms_core::driver::{Answer, PlcBackend, PlcError, PlcStatus, ReadRequest, WriteRequest};
+use common::memory::{Hooked, Hooks, MemoryBackend};
+use plccoms_core::driver::ReadRequest;
 use plccoms_protocol::Area;
 
-/// The in-process PLC read in blocks of two bytes, each taking a
-/// millisecond, so that a poll is many slices; once armed, the next read of
-/// `TEST_1` (R0, 2 bytes) waits for the test.
+/// Reads in blocks of two bytes, each taking a millisecond, so that a poll
+/// is many slices; once armed, the next read of `TEST_1` (R0, 2 bytes)
+/// waits for the test.
 struct Sliced {
-    inner: MemoryBackend,
     armed: Arc<AtomicBool>,
     /// Rung when the armed read began; it goes on at `go`.
     reading: Arc<Notify>,
@@ -37,28 +39,16 @@ fn reads_test_1(requests: &[ReadRequest]) -> bool {
 }
 
 #[async_trait]
-impl PlcBackend for Sliced {
+impl Hooks for Sliced {
     fn describe(&self) -> String {
         "in-process memory, read in small slices".into()
     }
 
-    fn max_read_block(&self, _area: Area) -> u32 {
+    fn max_read_block(&self) -> u32 {
         2
     }
 
-    fn max_file_block(&self) -> u32 {
-        MAX_FILE_BLOCK
-    }
-
-    fn answer_timeout(&self) -> Duration {
-        Duration::from_secs(10)
-    }
-
-    async fn connect(&mut self) -> Result<String, PlcError> {
-        self.inner.connect().await
-    }
-
-    async fn read(&mut self, requests: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
+    async fn before_read(&mut self, requests: &[ReadRequest]) {
         if reads_test_1(requests) && self.armed.swap(false, Ordering::SeqCst) {
             *self.held.lock().unwrap() = requests
                 .iter()
@@ -69,15 +59,6 @@ impl PlcBackend for Sliced {
             self.go.notified().await;
         }
         tokio::time::sleep(Duration::from_millis(requests.len() as u64)).await;
-        self.inner.read(requests).await
-    }
-
-    async fn write(&mut self, requests: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {
-        self.inner.write(requests).await
-    }
-
-    async fn status(&mut self) -> Result<PlcStatus, PlcError> {
-        self.inner.status().await
     }
 }
 
@@ -86,18 +67,20 @@ async fn a_value_set_between_a_polls_slices_is_current_after_that_poll() {
     let device = Arc::new(Mutex::new(plcsim::Device::new(
         plccoms_plc::MemoryMap::FOXTROT,
     )));
-    let backend = Sliced {
+    let backend = Hooked {
         inner: MemoryBackend::new(device),
-        armed: Arc::default(),
-        reading: Arc::default(),
-        go: Arc::default(),
-        held: Arc::default(),
+        hooks: Sliced {
+            armed: Arc::default(),
+            reading: Arc::default(),
+            go: Arc::default(),
+            held: Arc::default(),
+        },
     };
     let (armed, reading, go, held) = (
-        backend.armed.clone(),
-        backend.reading.clone(),
-        backend.go.clone(),
-        backend.held.clone(),
+        backend.hooks.armed.clone(),
+        backend.hooks.reading.clone(),
+        backend.hooks.go.clone(),
+        backend.hooks.held.clone(),
     );
     let server = common::start_on("", &common::user_pub(), Some(Box::new(backend))).await;
     let section = &server.section.section;
@@ -149,4 +132,140 @@ async fn a_value_set_between_a_polls_slices_is_current_after_that_poll() {
         polled.poll_seq
     );
     watcher.ask("GET:TEST_1\r\n", "GET:TEST_1,5\r\n").await;
+}
+
+/// Once armed, the link's first take of uncertain marks after a read (the
+/// start of a poll's finish, after its last read slice) holds until the
+/// test says go.
+struct HeldFinish {
+    /// 0: not armed; 1: armed; 2: armed and a read came.
+    state: Arc<AtomicU8>,
+    holding: Arc<Notify>,
+    go: std::sync::mpsc::Receiver<()>,
+}
+
+#[async_trait]
+impl Hooks for HeldFinish {
+    fn describe(&self) -> String {
+        "in-process memory, its finish held".into()
+    }
+
+    async fn before_read(&mut self, _requests: &[ReadRequest]) {
+        let _ = self
+            .state
+            .compare_exchange(1, 2, Ordering::SeqCst, Ordering::SeqCst);
+    }
+
+    fn take_uncertain(&mut self) -> Option<Vec<Box<[u8]>>> {
+        if self
+            .state
+            .compare_exchange(2, 0, Ordering::SeqCst, Ordering::SeqCst)
+            .is_ok()
+        {
+            self.holding.notify_one();
+            // A blocking wait, as a finish is synchronous: the link's
+            // thread is held, the clients' runtime goes on.
+            let _ = self.go.recv_timeout(Duration::from_secs(10));
+        }
+        None
+    }
+}
+
+/// A SET that comes in while the link applies a poll's values is served
+/// between the pieces of that finish, before the poll is published: the
+/// link no longer holds it for all of them (a poll of 90,000 variables
+/// takes tens of milliseconds to apply in a debug build: many pieces of
+/// 2 ms).
+#[tokio::test]
+async fn a_set_during_a_polls_finish_is_served_before_the_poll_is_published() {
+    const VARS: usize = 90_000;
+    let mut user = b"; many small variables\r\n".to_vec();
+    for i in 0..VARS {
+        user.extend_from_slice(format!(" V{i} R B {i} USINT PUB_INOUT\r\n").as_bytes());
+    }
+    let device = Arc::new(Mutex::new(plcsim::Device::new(
+        plccoms_plc::MemoryMap::FOXTROT,
+    )));
+    let (go, go_rx) = std::sync::mpsc::channel();
+    let backend = Hooked {
+        inner: MemoryBackend::new(device),
+        hooks: HeldFinish {
+            state: Arc::default(),
+            holding: Arc::default(),
+            go: go_rx,
+        },
+    };
+    let (state, holding) = (backend.hooks.state.clone(), backend.hooks.holding.clone());
+    let server = common::start_on("", &user, Some(Box::new(backend))).await;
+    let section = &server.section.section;
+    let last = format!("V{}", VARS - 1);
+    let id = section
+        .latest()
+        .table
+        .lookup(last.as_bytes())
+        .expect("the last variable");
+    // Every variable wanted, so that every poll reads and applies them all.
+    let mut polls = section.subscribe(&["V*"]).every_poll().every_change();
+    let polled = tokio::time::timeout(Duration::from_secs(30), async {
+        loop {
+            let batch = polls.next().await.expect("the section runs");
+            if batch.snapshot.slot(id).text() == Some(&b"0"[..]) {
+                break;
+            }
+        }
+    })
+    .await;
+    polled.expect("a poll of every variable");
+
+    state.store(1, Ordering::SeqCst);
+    tokio::time::timeout(Duration::from_secs(10), holding.notified())
+        .await
+        .expect("a poll's finish");
+    // The last poll published before the held one.
+    let before = section.latest().poll_seq;
+    // Through the apps' write path: queued for the link when it returns.
+    let table = section.latest().table.clone();
+    let pending = section
+        .start_write(&table, last.as_bytes(), b"5")
+        .expect("a valid SET");
+    go.send(()).expect("the held finish waits");
+    let reply = tokio::time::timeout(Duration::from_secs(10), pending.reply)
+        .await
+        .expect("the SET's answer")
+        .expect("the link answers");
+    let written = pending.target.confirm(reply).expect("the SET confirmed");
+    assert_eq!(written.text, b"5");
+
+    // The first publish that holds the SET's value came before the held
+    // poll's own publish.
+    let set_in = tokio::time::timeout(Duration::from_secs(10), async {
+        loop {
+            let batch = polls.next().await.expect("the section runs");
+            if batch.snapshot.slot(id).text() == Some(&b"5"[..]) {
+                break batch.snapshot;
+            }
+        }
+    })
+    .await
+    .expect("the SET's publish");
+    assert_eq!(
+        set_in.poll_seq, before,
+        "the SET was published after the poll whose finish it came in during"
+    );
+    // And that poll, published next, keeps it.
+    let after = tokio::time::timeout(Duration::from_secs(10), async {
+        loop {
+            let batch = polls.next().await.expect("the section runs");
+            if batch.snapshot.poll_seq > before {
+                break batch.snapshot;
+            }
+        }
+    })
+    .await
+    .expect("the held poll's publish");
+    assert_eq!(after.slot(id).text(), Some(&b"5"[..]));
+    assert!(
+        after.current(id).is_some(),
+        "{last} is current after the poll"
+    );
 }

@@ -6,7 +6,8 @@ use std::sync::{Arc, Mutex};
 use async_trait::async_trait;
 
 use plccoms_core::driver::{
-    Answer, DirEntry, FileInfo, PlcBackend, PlcError, PlcStatus, ReadRequest, Refusal, WriteRequest,
+    Answer, DirEntry, FileInfo, PlcBackend, PlcError, PlcStatus, Pushed, ReadRequest, Refusal,
+    WriteRequest,
 };
 use plccoms_plc::epsnet::Exception;
 use plcsim::{Device, FileStore};
@@ -136,5 +137,99 @@ impl PlcBackend for MemoryBackend {
 
     async fn list_dir(&mut self, path: &[u8]) -> Result<Answer<Vec<DirEntry>>, PlcError> {
         Ok(self.with_files(|files| files.list(path)))
+    }
+}
+
+/// What a test adds to the in-process PLC: a hold or a delay before its
+/// reads, the uncertain marks it reports. [`Hooked`] does the rest.
+#[async_trait]
+pub trait Hooks: Send + 'static {
+    fn describe(&self) -> String;
+
+    /// The read block (EPSNET's by default).
+    fn max_read_block(&self) -> u32 {
+        MAX_READ_BLOCK
+    }
+
+    /// Long enough by default that a SET a test holds back is not refused
+    /// as late.
+    fn answer_timeout(&self) -> std::time::Duration {
+        std::time::Duration::from_secs(10)
+    }
+
+    /// Runs before each read reaches the memory.
+    async fn before_read(&mut self, _requests: &[ReadRequest]) {}
+
+    /// Runs before each write reaches the memory.
+    fn before_write(&mut self, _requests: &[WriteRequest]) {}
+
+    /// As [`PlcBackend::take_uncertain`].
+    fn take_uncertain(&mut self) -> Option<Vec<Box<[u8]>>> {
+        None
+    }
+
+    /// As [`PlcBackend::take_pushed`], with the memory at hand.
+    fn take_pushed(&mut self, _memory: &MemoryBackend) -> Vec<Pushed> {
+        Vec::new()
+    }
+
+    /// As [`PlcBackend::wait_pushed`]: never, by default.
+    async fn wait_pushed(&mut self) -> Result<(), PlcError> {
+        std::future::pending().await
+    }
+}
+
+/// The in-process PLC with a test's [`Hooks`].
+pub struct Hooked<H> {
+    pub inner: MemoryBackend,
+    pub hooks: H,
+}
+
+#[async_trait]
+impl<H: Hooks> PlcBackend for Hooked<H> {
+    fn describe(&self) -> String {
+        self.hooks.describe()
+    }
+
+    fn max_read_block(&self, _area: plccoms_protocol::Area) -> u32 {
+        self.hooks.max_read_block()
+    }
+
+    fn max_file_block(&self) -> u32 {
+        MAX_FILE_BLOCK
+    }
+
+    fn answer_timeout(&self) -> std::time::Duration {
+        self.hooks.answer_timeout()
+    }
+
+    async fn connect(&mut self) -> Result<String, PlcError> {
+        self.inner.connect().await
+    }
+
+    async fn read(&mut self, requests: &[ReadRequest]) -> Result<Vec<Answer<Vec<u8>>>, PlcError> {
+        self.hooks.before_read(requests).await;
+        self.inner.read(requests).await
+    }
+
+    async fn write(&mut self, requests: &[WriteRequest]) -> Result<Vec<Answer<()>>, PlcError> {
+        self.hooks.before_write(requests);
+        self.inner.write(requests).await
+    }
+
+    async fn status(&mut self) -> Result<PlcStatus, PlcError> {
+        self.inner.status().await
+    }
+
+    fn take_uncertain(&mut self) -> Option<Vec<Box<[u8]>>> {
+        self.hooks.take_uncertain()
+    }
+
+    fn take_pushed(&mut self) -> Vec<Pushed> {
+        self.hooks.take_pushed(&self.inner)
+    }
+
+    async fn wait_pushed(&mut self) -> Result<(), PlcError> {
+        self.hooks.wait_pushed().await
     }
 }
