@@ -11,6 +11,7 @@ use plccoms::daemon::{self, Notifier};
 use plccoms::logfile::{self, LogFile};
 use plccoms::watch;
 use plccoms_core::config::{self, Diagnostic, Severity};
+use tokio::signal::unix::SignalKind;
 use tracing::{error, info, warn};
 
 const DEFAULT_CONFIG: &str = "PLCComS.ini";
@@ -280,6 +281,23 @@ async fn run(cli: Cli, mut notifier: Notifier, log: Option<Arc<LogFile>>) -> Exi
             }
         }
     }
+    // Before the sections start: once their ports accept, a SIGTERM or
+    // SIGINT must stop the server gracefully, not kill it with the
+    // signal's default action.
+    let stops = [
+        (SignalKind::terminate(), "SIGTERM"),
+        (SignalKind::interrupt(), "SIGINT"),
+    ]
+    .map(|(kind, name)| tokio::signal::unix::signal(kind).map_err(|err| (name, err)));
+    let [mut terminate, mut interrupt] = match stops {
+        [Ok(terminate), Ok(interrupt)] => [terminate, interrupt],
+        [Err((name, err)), _] | [_, Err((name, err))] => {
+            let message = format!("cannot handle {name}: {err}");
+            error!("{message}");
+            notifier.fail(&message);
+            return ExitCode::FAILURE;
+        }
+    };
     let mut server = match plccoms::startup::start(&loaded.config).await {
         Ok(server) => server,
         Err(message) => {
@@ -288,16 +306,6 @@ async fn run(cli: Cli, mut notifier: Notifier, log: Option<Arc<LogFile>>) -> Exi
             return ExitCode::FAILURE;
         }
     };
-    let mut terminate =
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(signal) => signal,
-            Err(err) => {
-                let message = format!("cannot handle SIGTERM: {err}");
-                error!("{message}");
-                notifier.fail(&message);
-                return ExitCode::FAILURE;
-            }
-        };
     info!(
         "plccoms {} running, {} section(s), pid {}",
         env!("CARGO_PKG_VERSION"),
@@ -314,7 +322,7 @@ async fn run(cli: Cli, mut notifier: Notifier, log: Option<Arc<LogFile>>) -> Exi
             }
         };
         tokio::select! {
-            _ = tokio::signal::ctrl_c() => info!("SIGINT: shutting down"),
+            _ = interrupt.recv() => info!("SIGINT: shutting down"),
             _ = terminate.recv() => info!("SIGTERM: shutting down"),
             _ = config_changed => info!("configuration file {} changed: exiting (-t)", cli.config.display()),
             Some(()) = hangups.recv() => {
