@@ -4,7 +4,8 @@
 //! holding `T0`..`T15` (Int16, writable, written in memory at once) and
 //! `V16`.. (Int32, Float, Double, UInt16 in turn), every `V*` set to a
 //! rising counter each `--delay` ms with that moment as SourceTimestamp.
-//! No security, anonymous. Prints `ready` on stdout once it listens.
+//! No security, anonymous, Nagle off. Prints `ready` on stdout once it
+//! listens.
 //!
 //! Run: `bench-opcua-plc --port 4840 --vars 100000 --delay 1000`.
 
@@ -187,9 +188,21 @@ async fn main() {
             }
         }
     });
-    let serving = tokio::spawn(server.run());
-    // The listener is bound by `run`: wait until it accepts.
+    // Bound here, not by `run`, for Nagle's algorithm: async-opcua leaves
+    // it on, and a Write's or a Read's answer could then wait for the
+    // client's delayed ACK (40 ms on Linux). The stacks PLCs' servers are
+    // built on turn it off (open62541, the OPC Foundation's), as plccoms's
+    // server does; accepted sockets inherit it from the listener.
     let addr = std::net::SocketAddr::from(([127, 0, 0, 1], args.port));
+    let listener = std::net::TcpListener::bind(addr).expect("the port");
+    listener
+        .set_nonblocking(true)
+        .expect("a non-blocking listener");
+    socket2::SockRef::from(&listener)
+        .set_tcp_nodelay(true)
+        .expect("TCP_NODELAY");
+    let listener = tokio::net::TcpListener::from_std(listener).expect("the listener");
+    let serving = tokio::spawn(server.run_with(listener));
     while tokio::net::TcpStream::connect(addr).await.is_err() {
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
