@@ -59,8 +59,9 @@ const SUBSCRIPTION_TIMER_MS: u64 = 10;
 /// The OPC UA port's listener. async-opcua accepts on it and leaves Nagle
 /// on: the last chunk of a publish waited for the client's delayed ACK (40
 /// ms on Linux; bench/opcua/run's PublishTime -> arrival, p50 48 ms).
-/// Accepted sockets inherit TCP_NODELAY from the listener on Linux.
-fn listen(addr: std::net::SocketAddr) -> std::io::Result<std::net::TcpListener> {
+/// Accepted sockets inherit TCP_NODELAY from the listener on Linux. Public
+/// for the benchmarks' stand-in of a PLC's server, which binds alike.
+pub fn listen(addr: std::net::SocketAddr) -> std::io::Result<std::net::TcpListener> {
     let listener = std::net::TcpListener::bind(addr)?;
     listener.set_nonblocking(true)?;
     socket2::SockRef::from(&listener).set_tcp_nodelay(true)?;

@@ -192,20 +192,11 @@ async fn main() {
     // it on, and a Write's or a Read's answer could then wait for the
     // client's delayed ACK (40 ms on Linux). The stacks PLCs' servers are
     // built on turn it off (open62541, the OPC Foundation's), as plccoms's
-    // server does; accepted sockets inherit it from the listener.
+    // server does, with this listener. Bound, it accepts: ready.
     let addr = std::net::SocketAddr::from(([127, 0, 0, 1], args.port));
-    let listener = std::net::TcpListener::bind(addr).expect("the port");
-    listener
-        .set_nonblocking(true)
-        .expect("a non-blocking listener");
-    socket2::SockRef::from(&listener)
-        .set_tcp_nodelay(true)
-        .expect("TCP_NODELAY");
+    let listener = plccoms_opcua::listen(addr).expect("the port");
     let listener = tokio::net::TcpListener::from_std(listener).expect("the listener");
     let serving = tokio::spawn(server.run_with(listener));
-    while tokio::net::TcpStream::connect(addr).await.is_err() {
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
     println!("ready");
     if let Ok(Err(e)) = serving.await {
         eprintln!("bench-opcua-plc: {e}");
