@@ -89,9 +89,6 @@ fn pushed(name: &str, bytes: Vec<u8>) -> Pushed {
 
 #[tokio::test]
 async fn a_set_is_served_within_a_take_of_pushed_values_and_not_undone_by_it() {
-    let device = Arc::new(Mutex::new(plcsim::Device::new(
-        plccoms_plc::MemoryMap::FOXTROT,
-    )));
     // V_DINT once, to a value sampled before the SET; V_UINT last; the
     // others of a variable the table has not (skipped, as after a change
     // of the server's variables).
@@ -102,17 +99,14 @@ async fn a_set_is_served_within_a_take_of_pushed_values_and_not_undone_by_it() {
             _ => pushed("GONE", vec![0; 2]),
         })
         .collect();
-    let backend = Hooked {
-        inner: MemoryBackend::new(device),
-        hooks: Pushing {
-            take: Arc::default(),
-            wake: Arc::default(),
-            taking: Arc::default(),
-            go: Arc::default(),
-            applying: Arc::default(),
-            writes: Arc::default(),
-        },
-    };
+    let backend = Hooked::new(Pushing {
+        take: Arc::default(),
+        wake: Arc::default(),
+        taking: Arc::default(),
+        go: Arc::default(),
+        applying: Arc::default(),
+        writes: Arc::default(),
+    });
     let (pending, wake, taking, go, writes) = (
         backend.hooks.take.clone(),
         backend.hooks.wake.clone(),
@@ -236,16 +230,10 @@ impl Hooks for Flooding {
 /// the next poll: it is served between two takes.
 #[tokio::test]
 async fn a_device_that_pushes_without_a_pause_does_not_hold_up_a_set() {
-    let device = Arc::new(Mutex::new(plcsim::Device::new(
-        plccoms_plc::MemoryMap::FOXTROT,
-    )));
     let flood = Arc::new(Flood::default());
-    let backend = Hooked {
-        inner: MemoryBackend::new(device),
-        hooks: Flooding {
-            flood: flood.clone(),
-        },
-    };
+    let backend = Hooked::new(Flooding {
+        flood: flood.clone(),
+    });
     let server = common::start_on(
         "COMM_LOOP_DELAY = 1000\n",
         &common::user_pub(),

@@ -18,7 +18,7 @@ use std::time::Duration;
 use async_trait::async_trait;
 use tokio::sync::Notify;
 
-use common::memory::{Hooked, Hooks, MemoryBackend};
+use common::memory::{Hooked, Hooks};
 use plccoms_core::driver::ReadRequest;
 use plccoms_protocol::Area;
 
@@ -64,18 +64,12 @@ impl Hooks for Sliced {
 
 #[tokio::test]
 async fn a_value_set_between_a_polls_slices_is_current_after_that_poll() {
-    let device = Arc::new(Mutex::new(plcsim::Device::new(
-        plccoms_plc::MemoryMap::FOXTROT,
-    )));
-    let backend = Hooked {
-        inner: MemoryBackend::new(device),
-        hooks: Sliced {
-            armed: Arc::default(),
-            reading: Arc::default(),
-            go: Arc::default(),
-            held: Arc::default(),
-        },
-    };
+    let backend = Hooked::new(Sliced {
+        armed: Arc::default(),
+        reading: Arc::default(),
+        go: Arc::default(),
+        held: Arc::default(),
+    });
     let (armed, reading, go, held) = (
         backend.hooks.armed.clone(),
         backend.hooks.reading.clone(),
@@ -134,11 +128,16 @@ async fn a_value_set_between_a_polls_slices_is_current_after_that_poll() {
     watcher.ask("GET:TEST_1\r\n", "GET:TEST_1,5\r\n").await;
 }
 
+const IDLE: u8 = 0;
+const ARMED: u8 = 1;
+/// Armed, and a read came: the next take of marks starts a finish.
+const READ_SINCE: u8 = 2;
+
 /// Once armed, the link's first take of uncertain marks after a read (the
 /// start of a poll's finish, after its last read slice) holds until the
 /// test says go.
 struct HeldFinish {
-    /// 0: not armed; 1: armed; 2: armed and a read came.
+    /// [`IDLE`], [`ARMED`] or [`READ_SINCE`].
     state: Arc<AtomicU8>,
     holding: Arc<Notify>,
     go: std::sync::mpsc::Receiver<()>,
@@ -153,13 +152,13 @@ impl Hooks for HeldFinish {
     async fn before_read(&mut self, _requests: &[ReadRequest]) {
         let _ = self
             .state
-            .compare_exchange(1, 2, Ordering::SeqCst, Ordering::SeqCst);
+            .compare_exchange(ARMED, READ_SINCE, Ordering::SeqCst, Ordering::SeqCst);
     }
 
     fn take_uncertain(&mut self) -> Option<Vec<Box<[u8]>>> {
         if self
             .state
-            .compare_exchange(2, 0, Ordering::SeqCst, Ordering::SeqCst)
+            .compare_exchange(READ_SINCE, IDLE, Ordering::SeqCst, Ordering::SeqCst)
             .is_ok()
         {
             self.holding.notify_one();
@@ -183,18 +182,12 @@ async fn a_set_during_a_polls_finish_is_served_before_the_poll_is_published() {
     for i in 0..VARS {
         user.extend_from_slice(format!(" V{i} R B {i} USINT PUB_INOUT\r\n").as_bytes());
     }
-    let device = Arc::new(Mutex::new(plcsim::Device::new(
-        plccoms_plc::MemoryMap::FOXTROT,
-    )));
     let (go, go_rx) = std::sync::mpsc::channel();
-    let backend = Hooked {
-        inner: MemoryBackend::new(device),
-        hooks: HeldFinish {
-            state: Arc::default(),
-            holding: Arc::default(),
-            go: go_rx,
-        },
-    };
+    let backend = Hooked::new(HeldFinish {
+        state: Arc::default(),
+        holding: Arc::default(),
+        go: go_rx,
+    });
     let (state, holding) = (backend.hooks.state.clone(), backend.hooks.holding.clone());
     let server = common::start_on("", &user, Some(Box::new(backend))).await;
     let section = &server.section.section;
@@ -217,7 +210,7 @@ async fn a_set_during_a_polls_finish_is_served_before_the_poll_is_published() {
     .await;
     polled.expect("a poll of every variable");
 
-    state.store(1, Ordering::SeqCst);
+    state.store(ARMED, Ordering::SeqCst);
     tokio::time::timeout(Duration::from_secs(10), holding.notified())
         .await
         .expect("a poll's finish");

@@ -185,6 +185,17 @@ pub struct Hooked<H> {
     pub hooks: H,
 }
 
+impl<H> Hooked<H> {
+    /// `hooks` on a PLC of its own (a Foxtrot's memory, zeroed).
+    pub fn new(hooks: H) -> Self {
+        let device = Device::new(plccoms_plc::MemoryMap::FOXTROT);
+        Hooked {
+            inner: MemoryBackend::new(Arc::new(Mutex::new(device))),
+            hooks,
+        }
+    }
+}
+
 #[async_trait]
 impl<H: Hooks> PlcBackend for Hooked<H> {
     fn describe(&self) -> String {
