@@ -11,7 +11,7 @@ use plccoms::daemon::{self, Notifier};
 use plccoms::logfile::{self, LogFile};
 use plccoms::watch;
 use plccoms_core::config::{self, Diagnostic, Severity};
-use tokio::signal::unix::SignalKind;
+use tokio::signal::unix::{signal, Signal, SignalKind};
 use tracing::{error, info, warn};
 
 const DEFAULT_CONFIG: &str = "PLCComS.ini";
@@ -206,6 +206,15 @@ fn log_diagnostic(diagnostic: &Diagnostic) {
     }
 }
 
+/// The streams of SIGTERM and SIGINT, the signals that stop the server.
+fn stop_signals() -> Result<(Signal, Signal), String> {
+    let listen = |kind, name| signal(kind).map_err(|err| format!("cannot handle {name}: {err}"));
+    Ok((
+        listen(SignalKind::terminate(), "SIGTERM")?,
+        listen(SignalKind::interrupt(), "SIGINT")?,
+    ))
+}
+
 async fn run(cli: Cli, mut notifier: Notifier, log: Option<Arc<LogFile>>) -> ExitCode {
     // Held (locked) until the server ends; written after -d forked, so it
     // names the server, not the parent that waits for its start.
@@ -284,15 +293,9 @@ async fn run(cli: Cli, mut notifier: Notifier, log: Option<Arc<LogFile>>) -> Exi
     // Before the sections start: once their ports accept, a SIGTERM or
     // SIGINT must stop the server gracefully, not kill it with the
     // signal's default action.
-    let stops = [
-        (SignalKind::terminate(), "SIGTERM"),
-        (SignalKind::interrupt(), "SIGINT"),
-    ]
-    .map(|(kind, name)| tokio::signal::unix::signal(kind).map_err(|err| (name, err)));
-    let [mut terminate, mut interrupt] = match stops {
-        [Ok(terminate), Ok(interrupt)] => [terminate, interrupt],
-        [Err((name, err)), _] | [_, Err((name, err))] => {
-            let message = format!("cannot handle {name}: {err}");
+    let (mut terminate, mut interrupt) = match stop_signals() {
+        Ok(signals) => signals,
+        Err(message) => {
             error!("{message}");
             notifier.fail(&message);
             return ExitCode::FAILURE;
